@@ -1,0 +1,162 @@
+"""Environment maps: lat-long or cube EXR (OpenEXR's ImfEnvmap convention), and
+Radiance .hdr or any other OpenImageIO format read as lat-long.
+
+Spec: ``formats/envmap.md``.  This module reads and validates pixels; the
+geometry (directions, solid angles, resampling) lives in ``relight_cli.envmap``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from relight_cli.errors import DataError, UsageProblem
+
+FORMAT = "relight/envmap"
+VERSION = 1
+LAYOUTS = ("latlong", "cube")
+
+
+@dataclass
+class EnvMap:
+    """Linear radiance on the sphere.
+
+    Attributes:
+        radiance: [H, W, 3] float32, linear RGB (W/m²/sr up to a global scale).
+            lat-long: H×W with W = 2H typical.  cube: six N×N faces stacked
+            vertically (W = N, H = 6N) in the order +X −X +Y −Y +Z −Z.
+        layout: "latlong" or "cube".
+        name: where it came from (a path or a ``builtin:`` name).
+    """
+
+    radiance: np.ndarray
+    layout: str = "latlong"
+    name: str = ""
+
+    def __post_init__(self):
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {LAYOUTS}, got {self.layout!r}")
+        r = self.radiance
+        if r.ndim != 3 or r.shape[2] != 3:
+            raise ValueError(f"radiance must be [H, W, 3], got {r.shape}")
+        if self.layout == "cube" and (r.shape[0] != 6 * r.shape[1]):
+            raise ValueError(f"cube maps are N wide and 6N tall, got {r.shape[1]}x{r.shape[0]}")
+
+    @property
+    def height(self) -> int:
+        return self.radiance.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.radiance.shape[1]
+
+
+def _rgb_from_channels(channels: dict[str, np.ndarray], path: str) -> np.ndarray:
+    if all(c in channels for c in "RGB"):
+        return np.stack([channels["R"], channels["G"], channels["B"]], axis=-1)
+    if "Y" in channels:
+        return np.repeat(channels["Y"][..., None], 3, axis=-1)
+    # A single layer with R/G/B, e.g. 'radiance.R'.
+    prefixes = sorted({k.rsplit(".", 1)[0] for k in channels if k.endswith((".R", ".G", ".B"))})
+    for p in prefixes:
+        if all(f"{p}.{c}" in channels for c in "RGB"):
+            return np.stack([channels[f"{p}.{c}"] for c in "RGB"], axis=-1)
+    raise DataError("no R, G, B (or Y) channels; has " + ", ".join(sorted(channels)[:8]), path)
+
+
+def handle_nonfinite(radiance: np.ndarray, path: str, policy: str = "error") -> np.ndarray:
+    """Refuse (default), zero or clamp NaN/±Inf pixels.
+
+    ``clamp`` sends NaN to 0 and ±Inf to the largest finite value of the map
+    (0 if there is none); ``zero`` sends every non-finite value to 0.
+    """
+    bad = ~np.isfinite(radiance)
+    if not bad.any():
+        return radiance
+    n_pixels = int(bad.any(axis=-1).sum())
+    if policy == "error":
+        raise DataError(f"{n_pixels} pixel(s) hold NaN or Inf values", path,
+                        hint="--nonfinite zero or --nonfinite clamp replaces them")
+    out = radiance.copy()
+    if policy == "zero":
+        out[bad] = 0.0
+    elif policy == "clamp":
+        finite = radiance[np.isfinite(radiance)]
+        top = float(finite.max()) if finite.size else 0.0
+        low = float(finite.min()) if finite.size else 0.0
+        out[np.isnan(radiance)] = 0.0
+        out[np.isposinf(radiance)] = top
+        out[np.isneginf(radiance)] = low
+    else:
+        raise UsageProblem(f"unknown non-finite policy {policy!r}")
+    return out
+
+
+def read_envmap(path: str, nonfinite: str = "error", layout: str | None = None) -> EnvMap:
+    """Read an environment map file.
+
+    The EXR ``envmap`` attribute decides the layout (absent: lat-long); other
+    formats go through OpenImageIO as lat-long.  ``layout`` overrides it.
+    Negative radiance is refused (it is never physical and breaks sampling).
+    """
+    path = str(path)
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    if os.path.isdir(path):
+        raise DataError("is a directory, expected an environment map", path)
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic == b"\x76\x2f\x31\x01":
+        from .exr import read_exr
+        image = read_exr(path)
+        radiance = _rgb_from_channels(image.channels, path)
+        found_layout = image.envmap or "latlong"
+    else:
+        radiance = read_image_oiio(path)
+        found_layout = "latlong"
+    layout = layout or found_layout
+    radiance = handle_nonfinite(np.ascontiguousarray(radiance, dtype=np.float32), path, nonfinite)
+    h, w = radiance.shape[:2]
+    if layout == "cube":
+        if h != 6 * w:
+            raise DataError(f"cube map must be N wide and 6N tall (faces stacked), got {w}x{h}", path)
+    elif h < 2 or w < 2:
+        raise DataError(f"lat-long map is too small ({w}x{h})", path)
+    if (radiance < 0).any():
+        n = int((radiance < 0).any(axis=-1).sum())
+        raise DataError(f"{n} pixel(s) have negative radiance", path)
+    return EnvMap(radiance=radiance, layout=layout, name=path)
+
+
+def read_image_oiio(path: str) -> np.ndarray:
+    """Read level 0 of any OpenImageIO-readable image as [H, W, 3] float32 (RGB)."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise DataError("unreadable image: " + (oiio.geterror().splitlines() or ["unknown format"])[0]
+                        .replace(path, "").strip(' :"'), path)
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None:
+            raise DataError("damaged image: " + (inp.geterror().splitlines() or ["read failed"])[0], path)
+    finally:
+        inp.close()
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.shape[2] == 1:
+        pixels = np.repeat(pixels, 3, axis=2)
+    return pixels[..., :3]
+
+
+def write_envmap(path: str, env: EnvMap, provenance: dict | None = None,
+                 attributes: dict | None = None, half: bool = False) -> None:
+    """Write an env map as an RGB EXR with OpenEXR's ``envmap`` attribute, atomically."""
+    from .exr import write_exr
+    channels = {c: env.radiance[..., i] for i, c in enumerate("RGB")}
+    write_exr(path, channels, attributes=attributes, half=half, envmap=env.layout,
+              provenance=provenance)

@@ -1,0 +1,193 @@
+"""OpenEXR reading and writing with named channels and provenance attributes.
+
+Channels use OpenEXR's layer naming (``diffuse.R``); RGB images use ``R G B``.
+Header attributes ``relight.format`` (str), ``relight.version`` (int) and
+``relight.provenance`` (JSON str) are written on every file this toolkit makes.
+Reading uses the OpenEXR Python bindings (level 0 of mip-mapped / tiled files);
+anything the library rejects becomes a one-line :class:`DataError`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from relight_cli.errors import DataError
+
+FORMAT_KEY = "relight.format"
+VERSION_KEY = "relight.version"
+PROVENANCE_KEY = "relight.provenance"
+
+# OpenEXR's own header attributes; everything else is user metadata.
+_STANDARD = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder",
+             "pixelAspectRatio", "screenWindowCenter", "screenWindowWidth", "tiles",
+             "type", "preview", "chunkCount", "version", "name"}
+
+
+@dataclass
+class ExrImage:
+    """An EXR file in memory.
+
+    Attributes:
+        channels: name -> [H, W] float32 pixels (half is widened on read).
+        attributes: non-standard header attributes (str/int/float/list/array).
+        envmap: "latlong", "cube" or None (the ``envmap`` header attribute).
+        path: where it came from (for error messages).
+    """
+
+    channels: dict[str, np.ndarray]
+    attributes: dict = field(default_factory=dict)
+    envmap: str | None = None
+    path: str = ""
+
+    @property
+    def height(self) -> int:
+        return next(iter(self.channels.values())).shape[0]
+
+    @property
+    def width(self) -> int:
+        return next(iter(self.channels.values())).shape[1]
+
+    def layer(self, prefix: str, names=("R", "G", "B")) -> np.ndarray:
+        """Stack ``prefix.R``, ``prefix.G`` ... (or bare ``R`` for prefix '') as [H, W, C]."""
+        keys = [f"{prefix}.{n}" if prefix else n for n in names]
+        missing = [k for k in keys if k not in self.channels]
+        if missing:
+            raise DataError(f"missing channel(s) {', '.join(missing)}; file has "
+                            f"{', '.join(sorted(self.channels)) or 'none'}", self.path)
+        return np.stack([self.channels[k] for k in keys], axis=-1)
+
+    def provenance(self) -> dict | None:
+        text = self.attributes.get(PROVENANCE_KEY)
+        if not text:
+            return None
+        try:
+            return json.loads(text)
+        except (TypeError, ValueError):
+            raise DataError("damaged relight.provenance header attribute", self.path) from None
+
+
+def _plain(value):
+    """Convert an OpenEXR header value to a plain Python value."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (str, int, float, bool, list, tuple, dict)) or value is None:
+        return value
+    return str(value)
+
+
+def read_exr(path: str) -> ExrImage:
+    """Read every channel of part 0, level 0, as float32.  Raises DataError."""
+    import OpenEXR
+
+    path = str(path)
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    if os.path.isdir(path):
+        raise DataError("is a directory, expected an EXR file", path)
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"\x76\x2f\x31\x01":
+        raise DataError("not an OpenEXR file (bad magic number)", path)
+    try:
+        exr = OpenEXR.File(path, separate_channels=True)
+        header = exr.header()
+        raw = exr.channels()
+        channels = {}
+        for name, ch in raw.items():
+            pixels = np.asarray(ch.pixels)
+            if pixels.ndim != 2:
+                raise DataError(f"channel {name!r} is not a flat 2-D image", path)
+            channels[name] = pixels.astype(np.float32, copy=False)
+    except DataError:
+        raise
+    except MemoryError:
+        raise DataError("damaged EXR file (implausible size)", path) from None
+    except Exception as exc:  # the bindings raise RuntimeError/ValueError/... on damage
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        msg = msg.replace(path, "").replace("''", "").strip(" :'")
+        raise DataError(f"damaged or unsupported EXR file: {msg[:160]}", path) from None
+    if not channels:
+        raise DataError("EXR file has no channels", path)
+    shapes = {c.shape for c in channels.values()}
+    if len(shapes) != 1:
+        raise DataError("channels have different sizes (subsampled channels are not supported)", path)
+    env = header.get("envmap")
+    envmap = None
+    if env is not None:
+        envmap = "cube" if "CUBE" in str(env).upper() or str(env) == "1" else "latlong"
+    attributes = {k: _plain(v) for k, v in header.items() if k not in _STANDARD and k != "envmap"}
+    return ExrImage(channels=channels, attributes=attributes, envmap=envmap, path=path)
+
+
+def write_exr(path: str, channels: dict[str, np.ndarray], attributes: dict | None = None,
+              half: bool = False, envmap: str | None = None,
+              provenance: dict | None = None) -> None:
+    """Write named [H, W] channels atomically.
+
+    Args:
+        path: target file (written via a temporary file in the same folder).
+        channels: name -> [H, W] array; all the same shape.
+        attributes: extra header attributes; str/int/float, lists of floats,
+            anything else is stored as a JSON string.
+        half: store 16-bit half floats (float32 otherwise).
+        envmap: "latlong" or "cube" sets OpenEXR's ``envmap`` attribute.
+        provenance: record from :func:`relight_cli.provenance.provenance`; its
+            format and version also go to ``relight.format``/``relight.version``.
+    """
+    import OpenEXR
+
+    from relight_cli.provenance import atomic_path
+
+    dtype = np.float16 if half else np.float32
+    pixels = {}
+    for name, array in channels.items():
+        array = np.asarray(array)
+        if array.ndim != 2:
+            raise ValueError(f"channel {name} must be 2-D, got shape {array.shape}")
+        if half:
+            # Values beyond half's range would become Inf; clamp to the largest half.
+            array = np.clip(array, -65504.0, 65504.0)
+        pixels[name] = np.ascontiguousarray(array, dtype=dtype)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if envmap is not None:
+        header["envmap"] = (OpenEXR.Envmap.ENVMAP_CUBE if envmap == "cube"
+                            else OpenEXR.Envmap.ENVMAP_LATLONG)
+    for key, value in (attributes or {}).items():
+        header[key] = _header_value(value)
+    if provenance is not None:
+        header[FORMAT_KEY] = str(provenance["format"])
+        header[VERSION_KEY] = int(provenance["version"])
+        header[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True)
+    with atomic_path(path, suffix=".exr") as tmp:
+        OpenEXR.File(header, pixels).write(tmp)
+
+
+def _header_value(value):
+    if isinstance(value, bool):
+        return int(value)
+    if isinstance(value, (str, int, float)):
+        return value
+    if isinstance(value, (list, tuple, np.ndarray)):
+        arr = np.asarray(value)
+        if arr.ndim == 1 and arr.dtype.kind in "fiu" and arr.size > 0:
+            return [float(v) for v in arr]
+    return json.dumps(value, sort_keys=True)
+
+
+def check_format(image: ExrImage, format_name: str, max_version: int) -> int:
+    """Require ``relight.format == format_name`` and a known major version; return it."""
+    found = image.attributes.get(FORMAT_KEY)
+    if found != format_name:
+        raise DataError(f"not a {format_name} file (format attribute is {found!r})", image.path)
+    version = image.attributes.get(VERSION_KEY)
+    if not isinstance(version, int) or version < 1:
+        raise DataError(f"missing or invalid {VERSION_KEY} attribute", image.path)
+    if version > max_version:
+        raise DataError(f"{format_name} version {version} is newer than this relight "
+                        f"understands (≤ {max_version})", image.path,
+                        hint="upgrade relight")
+    return version

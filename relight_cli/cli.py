@@ -1,0 +1,106 @@
+"""The ``relight`` click group: one registry, lazy subcommands, one error path.
+
+``relight --help`` imports every command module for its short help, so command
+modules import only click and the standard library at module level; torch,
+embree and OpenImageIO are imported inside the callbacks.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import traceback
+
+import click
+
+from . import __version__
+from .errors import RelightError
+
+# name -> "module:attribute"; the only place a subcommand is registered.
+COMMANDS: dict[str, str] = {
+    "envmap": "relight_cli.commands.envmap:command",
+}
+
+
+class RelightGroup(click.Group):
+    """A click group that loads subcommands on demand and owns the error path."""
+
+    def list_commands(self, ctx):
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx, name):
+        target = COMMANDS.get(name)
+        if target is None:
+            return None
+        module_name, attr = target.split(":")
+        return getattr(importlib.import_module(module_name), attr)
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except RelightError as exc:
+            _report(ctx, exc, exc.exit_code)
+        except click.exceptions.Exit:
+            raise
+        except click.ClickException:
+            raise
+        except click.Abort:
+            raise
+        except KeyboardInterrupt:
+            click.echo(f"relight {_subcommand(ctx)}: interrupted", err=True)
+            sys.exit(130)
+        except MemoryError:
+            _report(ctx, RelightError("out of memory; try a smaller resolution or fewer inputs"), 1)
+        except Exception as exc:  # a bug, not a user error: still one line unless --debug
+            _report(ctx, RelightError(f"internal error: {type(exc).__name__}: {exc}",
+                                      hint="rerun with --debug for a traceback and report it"), 1)
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        args = list(sys.argv[1:] if args is None else args)
+        from .provenance import set_command_line
+        set_command_line(args)
+        if not standalone_mode:
+            return super().main(args, prog_name or "relight", complete_var, False, **extra)
+        try:
+            rv = super().main(args, prog_name or "relight", complete_var, False, **extra)
+        except click.UsageError as exc:
+            where = exc.ctx.command_path if exc.ctx is not None else "relight"
+            hint = f" (see '{where} --help')" if exc.ctx is not None else ""
+            click.echo(f"{where}: error: {exc.format_message()}{hint}", err=True)
+            sys.exit(2)
+        except click.ClickException as exc:
+            click.echo(f"relight: error: {exc.format_message()}", err=True)
+            sys.exit(exc.exit_code)
+        except click.Abort:
+            click.echo("relight: aborted", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
+def _subcommand(ctx) -> str:
+    return ctx.invoked_subcommand or ctx.info_name or "relight"
+
+
+def _report(ctx, exc: RelightError, code: int):
+    debug = ctx.params.get("debug") or ctx.meta.get("relight.debug")
+    if debug:
+        traceback.print_exc()
+    click.echo(f"relight {_subcommand(ctx)}: error: {exc}", err=True)
+    sys.exit(code)
+
+
+@click.group(cls=RelightGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="relight")
+@click.option("--debug", is_flag=True, help="Show a traceback for errors (for bug reports).")
+@click.pass_context
+def cli(ctx, debug):
+    """Relight articulated hands and 3D Gaussian avatars.
+
+    Each subcommand reads and writes documented file formats (see formats/ and
+    the man pages), so pipelines chain them in shell scripts and Make.
+    """
+    ctx.meta["relight.debug"] = debug
+
+
+def main():  # console-script entry point
+    cli.main()

@@ -1,0 +1,116 @@
+"""Options and helpers shared by every subcommand (click and stdlib only).
+
+Command modules import this at top level; it must stay light so that
+``relight --help`` never imports torch, embree or OpenImageIO.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import sys
+
+import click
+
+
+def quiet_option(func):
+    return click.option("--quiet", "-q", is_flag=True,
+                        help="Silence progress bars and log messages on stderr.")(func)
+
+
+def seed_option(func):
+    return click.option("--seed", type=int, default=0, show_default=True,
+                        help="Random seed; identical inputs and seed give identical outputs.")(func)
+
+
+def output_option(text: bool = False, required: bool = True, help: str | None = None):
+    """``-o/--output``; for text formats ``-`` means stdout."""
+    default_help = "Output file" + (" ('-' for stdout)." if text else ".")
+    return click.option("-o", "--output", type=str, required=required, help=help or default_help)
+
+
+def no_clobber_option(func):
+    return click.option("--no-clobber", is_flag=True,
+                        help="Refuse to overwrite an existing output (exit 2).")(func)
+
+
+def check_output(path: str | None, no_clobber: bool = False, text: bool = False) -> None:
+    """Validate an output path before any work is done (usage errors exit 2)."""
+    from .errors import UsageProblem
+    if path is None:
+        return
+    if path == "-":
+        if not text:
+            raise UsageProblem("this output is binary and cannot go to stdout; give a file name")
+        return
+    folder = os.path.dirname(path) or "."
+    if not os.path.isdir(folder):
+        raise UsageProblem("output folder does not exist", folder)
+    if os.path.isdir(path):
+        raise UsageProblem("output is a directory", path)
+    if no_clobber and os.path.exists(path):
+        raise UsageProblem("output exists and --no-clobber was given", path)
+
+
+def check_input(path: str) -> str:
+    """Fail early and clearly for a missing input or a directory given as a file."""
+    from .errors import DataError
+    if path.startswith("builtin:"):
+        return path
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    if os.path.isdir(path):
+        raise DataError("is a directory, expected a file", path)
+    if not os.access(path, os.R_OK):
+        raise DataError("file is not readable (permissions)", path)
+    return path
+
+
+def log(message: str, quiet: bool = False) -> None:
+    """A log line on stderr (never stdout, which may carry data)."""
+    if not quiet:
+        click.echo(message, err=True)
+
+
+def progress(iterable=None, total=None, desc: str = "", quiet: bool = False):
+    """A tqdm progress bar on stderr, silent under --quiet."""
+    from tqdm import tqdm
+    return tqdm(iterable, total=total, desc=desc, disable=quiet, file=sys.stderr,
+                leave=False, dynamic_ncols=True)
+
+
+def dumps_json(obj) -> str:
+    """JSON with stable key order and round-trippable floats."""
+    return json.dumps(obj, indent=2, sort_keys=False, allow_nan=False) + "\n"
+
+
+def parse_size(text: str, what: str = "--size") -> tuple[int, int]:
+    """Parse 'WxH' (or a single N meaning N) into (width, height)."""
+    from .errors import UsageProblem
+    try:
+        if "x" in text.lower():
+            w, h = text.lower().split("x")
+            w, h = int(w), int(h)
+        else:
+            w = h = int(text)
+    except ValueError:
+        raise UsageProblem(f"{what} must look like WxH or N, got {text!r}") from None
+    if w <= 0 or h <= 0 or w > 65536 or h > 65536:
+        raise UsageProblem(f"{what} must be positive and at most 65536, got {text!r}")
+    return w, h
+
+
+def parse_vector(text: str, n: int, what: str) -> tuple[float, ...]:
+    from .errors import UsageProblem
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise UsageProblem(f"{what} must be {n} comma-separated numbers, got {text!r}") from None
+    if len(values) != n or not all(map(_finite, values)):
+        raise UsageProblem(f"{what} must be {n} finite comma-separated numbers, got {text!r}")
+    return values
+
+
+def _finite(x: float) -> bool:
+    return x == x and abs(x) != float("inf")
