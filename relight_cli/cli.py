@@ -19,6 +19,7 @@ from .errors import RelightError
 # name -> "module:attribute"; the only place a subcommand is registered.
 COMMANDS: dict[str, str] = {
     "envmap": "relight_cli.commands.envmap:command",
+    "metrics": "relight_cli.commands.metrics:command",
 }
 
 

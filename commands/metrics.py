@@ -1,0 +1,435 @@
+"""``relight metrics``: image, shadow and lighting-consistency metrics, and the CI gate.
+
+Subcommands ``image``, ``shadow``, ``lighting`` write a ``relight/metrics`` JSON
+record (spec: formats/metrics_json.md); ``compare`` checks one against a baseline
+and exits with :data:`EXIT_REGRESSION` when something regressed.
+"""
+
+from __future__ import annotations
+
+import click
+
+from relight_cli.clitools import check_input, check_output, log, no_clobber_option, quiet_option
+
+EXIT_REGRESSION = 3  # `relight metrics compare`: a metric regressed beyond tolerance
+
+
+@click.group("metrics", short_help="Image, shadow and lighting metrics; compare with a baseline.")
+def command():
+    """Compute quality metrics as relight/metrics JSON, and gate on them.
+
+    \b
+    Exit codes: 0 success, 1 bad data, 2 usage error,
+    3 (compare only) a metric regressed beyond its tolerance.
+    """
+
+
+_output = click.option("-o", "--output", default="-", show_default=True,
+                       help="Metrics JSON file ('-' for stdout).")
+_jsonl = click.option("--jsonl", "jsonl", default=None,
+                      help="Also write one JSON row per pair to this file ('-' for stdout).")
+_percentiles = click.option("--percentiles", default="5,95", show_default=True,
+                            help="Percentiles reported in the batch aggregate.")
+
+
+# ------------------------------------------------------------------ helpers
+
+
+def _finite_or_fail(pixels, path):
+    import numpy as np
+
+    from relight_cli.errors import DataError
+    bad = ~np.isfinite(pixels)
+    if bad.any():
+        n = int(bad.reshape(bad.shape[0], bad.shape[1], -1).any(axis=-1).sum())
+        raise DataError(f"{n} pixel(s) hold NaN or Inf values", path)
+    return pixels
+
+
+def _read_rgb(path: str):
+    """[H, W, C] float32 colour channels (R, G, B when named so; alpha dropped) and their names."""
+    from relight_cli.formats.image import read_image
+    check_input(path)
+    pixels, names = read_image(path)
+    if all(c in names for c in "RGB"):
+        idx = [names.index(c) for c in "RGB"]
+        pixels, names = pixels[..., idx], ["R", "G", "B"]
+    elif pixels.shape[-1] == 4:
+        pixels, names = pixels[..., :3], names[:3]
+    elif pixels.shape[-1] == 2:  # grey + alpha
+        pixels, names = pixels[..., :1], names[:1]
+    return _finite_or_fail(pixels, path), [n.split(".")[-1] or f"c{i}" for i, n in enumerate(names)]
+
+
+def _read_single(path: str):
+    """[H, W] float64 from a one-channel image, its Y/A channel, or Rec. 709 luminance of RGB."""
+    import numpy as np
+
+    from relight_cli.formats.image import read_image
+    check_input(path)
+    pixels, names = read_image(path)
+    _finite_or_fail(pixels, path)
+    if pixels.shape[-1] == 1:
+        return pixels[..., 0].astype(np.float64)
+    for name in ("Y", "A"):
+        if name in names and not all(c in names for c in "RGB"):
+            return pixels[..., names.index(name)].astype(np.float64)
+    if all(c in names for c in "RGB"):
+        rgb = np.stack([pixels[..., names.index(c)] for c in "RGB"], axis=-1)
+    else:
+        rgb = pixels[..., :3] if pixels.shape[-1] >= 3 else pixels[..., :1].repeat(3, -1)
+    return rgb.astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def _same_size(shape, reference, path, what="ground truth"):
+    from relight_cli.errors import DataError
+    if tuple(shape[:2]) != tuple(reference[:2]):
+        raise DataError(f"size {shape[1]}x{shape[0]} differs from the {what}'s "
+                        f"{reference[1]}x{reference[0]}", path)
+
+
+def _read_mask(path: str, shape):
+    from relight_cli.errors import DataError
+    values = _read_single(path)
+    _same_size(values.shape, shape, path)
+    mask = values > 0.5
+    if not mask.any():
+        raise DataError("mask selects no pixels (foreground is where the mask is > 0.5)", path)
+    return mask
+
+
+def _check_outputs(output, jsonl, no_clobber):
+    from relight_cli.errors import UsageProblem
+    check_output(output, no_clobber, text=True)
+    if jsonl is not None:
+        check_output(jsonl, no_clobber, text=True)
+        if jsonl == "-" and output == "-":
+            raise UsageProblem("--jsonl - and -o - would both write to stdout; give one a file name")
+
+
+def _engine_error(exc: ValueError, path):
+    from relight_cli.errors import DataError
+    return DataError(str(exc), path)
+
+
+def _write(output, jsonl, record, rows):
+    from relight_cli.formats.metrics_json import dumps, write_metrics
+    from relight_cli.provenance import write_text_atomic
+    if jsonl is not None:
+        import json
+        write_text_atomic(jsonl, "".join(json.dumps(r, allow_nan=False, ensure_ascii=False) + "\n"
+                                         for r in rows))
+    write_metrics(output, record)
+    return dumps
+
+
+def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None):
+    """Metrics record from per-pair results [(name, pred, gt, mask, result_dict)]."""
+    from relight_cli.formats.metrics_json import FORMAT, VERSION, _encode_tree, make_record
+    from relight_cli.metrics.batch import aggregate
+    from relight_cli.provenance import provenance
+
+    single = len(results) == 1 and not pairs
+    inputs = {}
+    for name, pred, gt, mask, _ in results:
+        prefix = "" if single else f"{name}:"
+        inputs[f"{prefix}pred"] = pred
+        inputs[f"{prefix}gt"] = gt
+        if mask is not None:
+            inputs[f"{prefix}mask"] = mask
+    inputs.update(extra_inputs or {})
+    prov = provenance(FORMAT, VERSION, inputs, settings)
+    rows = []
+    for name, pred, gt, mask, result in results:
+        row = {"name": name, "pred": pred, "gt": gt}
+        if mask is not None:
+            row["mask"] = mask
+        row.update(result)
+        rows.append(_encode_tree(row))
+    if single:
+        result = results[0][4]
+        details = {k: v for k, v in result.items() if k not in ("metrics", "per_channel")}
+        return make_record(kind, result["metrics"], prov["inputs"], settings, prov,
+                           per_channel=result.get("per_channel"), details=details or None), rows
+    flat = [r[4]["metrics"] for r in results]
+    agg = aggregate(flat, percentiles)
+    means = {k: v["mean"] for k, v in agg.items()}
+    return make_record(kind, means, prov["inputs"], settings, prov, aggregate=agg,
+                       pairs=len(results)), rows
+
+
+# ------------------------------------------------------------------ image
+
+
+@command.command("image", short_help="MSE, PSNR, SSIM, MAE of images (per channel, masked).")
+@click.argument("pred", metavar="PRED")
+@click.argument("gt", metavar="GT")
+@click.option("--mask", default=None,
+              help="Foreground mask (> 0.5 = foreground): one file, or a folder/glob matched by name.")
+@click.option("--space", type=click.Choice(["linear", "srgb", "display"]), default="linear",
+              show_default=True,
+              help="linear: HDR values as stored; srgb: both tone-mapped (Reinhard + sRGB) with "
+                   "the ground truth's exposure; display: values already in [0, 1] (PNG).")
+@click.option("--exposure", type=float, default=None,
+              help="Exposure multiplier for --space srgb (default: from the ground truth's "
+                   "log-average luminance).")
+@click.option("--data-range", "data_range", type=float, default=None,
+              help="Peak-to-peak range R for PSNR/SSIM (default: 1 for srgb/display; "
+                   "max−min of the ground truth over the region for linear).")
+@click.option("--win-size", "win_size", type=int, default=7, show_default=True,
+              help="SSIM window size (odd).")
+@click.option("--lpips", "use_lpips", is_flag=True,
+              help="Also compute LPIPS (needs --lpips-weights; weights are never downloaded).")
+@click.option("--lpips-weights", "lpips_weights", default=None,
+              help="Local LPIPS (AlexNet) state dict, see formats/metrics_json.md.")
+@_output
+@_jsonl
+@_percentiles
+@no_clobber_option
+@quiet_option
+def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpips, lpips_weights,
+                  output, jsonl, percentiles, no_clobber, quiet):
+    """Compare predicted images PRED with ground truth GT.
+
+    PRED and GT are two image files (EXR, or anything OpenImageIO reads), or two
+    folders / glob patterns whose files are matched by name without extension.
+    Many pairs give per-pair rows (--jsonl) and mean, median and percentiles.
+
+    \b
+    Examples:
+      relight metrics image render.exr gt.exr --mask fg.png -o m.json
+      relight metrics image out/ gt/ --space srgb --jsonl rows.jsonl -o m.json
+      relight metrics image 'out/*.exr' gt/ -o -
+    """
+    from relight_cli.errors import UsageProblem
+    from relight_cli.metrics import image as M
+    from relight_cli.metrics.batch import match_masks, match_pairs, parse_percentiles
+
+    _check_outputs(output, jsonl, no_clobber)
+    qs = parse_percentiles(percentiles)
+    if win_size < 3 or win_size % 2 == 0:
+        raise UsageProblem(f"--win-size must be odd and at least 3, got {win_size}")
+    if data_range is not None and not data_range > 0:
+        raise UsageProblem("--data-range must be positive")
+    if exposure is not None and (space != "srgb" or not exposure > 0):
+        raise UsageProblem("--exposure needs --space srgb and a positive value")
+    if lpips_weights is not None and not use_lpips:
+        use_lpips = True
+    lpips_net = None
+    if use_lpips:
+        if lpips_weights is None:
+            raise UsageProblem("--lpips needs --lpips-weights FILE (local weights; relight never "
+                               "downloads network weights)")
+        from relight_cli.metrics.lpips import load_lpips
+        lpips_net = load_lpips(check_input(lpips_weights))
+    pairs, extra = match_pairs(pred, gt)
+    if extra:
+        log(f"note: {len(extra)} ground-truth file(s) have no prediction and are ignored", quiet)
+    masks = match_masks(mask, [n for n, _, _ in pairs])
+    results = []
+    for name, p_path, g_path in (pairs if len(pairs) < 2 else
+                                 _progress(pairs, "image pairs", quiet)):
+        g, names = _read_rgb(g_path)
+        p, _ = _read_rgb(p_path)
+        _same_size(p.shape, g.shape, p_path)
+        if p.shape[-1] != g.shape[-1]:
+            from relight_cli.errors import DataError
+            raise DataError(f"has {p.shape[-1]} channel(s), the ground truth has {g.shape[-1]}",
+                            p_path)
+        region = None if masks[name] is None else _read_mask(masks[name], g.shape)
+        ps, gs, natural, used_exposure = M.to_space(p, g, space, region, exposure)
+        try:
+            result = M.image_metrics(ps, gs, region, data_range or natural, win_size, names)
+        except ValueError as exc:
+            raise _engine_error(exc, masks[name] or g_path) from None
+        if lpips_net is not None:
+            from relight_cli.metrics.lpips import lpips_distance
+            value = lpips_distance(lpips_net, ps, gs, result["data_range"], region)
+            result["metrics"]["lpips"] = value
+        if used_exposure is not None:
+            result["exposure"] = used_exposure
+        results.append((name, p_path, g_path, masks[name], result))
+    settings = {"space": space, "exposure": exposure, "data_range": data_range,
+                "win_size": win_size, "lpips": bool(use_lpips), "mask": mask is not None,
+                "percentiles": qs}
+    record, rows = _batch_record("image", results, len(pairs) > 1 or _is_multi(pred), settings, qs)
+    _write(output, jsonl, record, rows)
+    log(f"{len(results)} pair(s) compared", quiet)
+
+
+def _is_multi(spec):
+    import os
+
+    from relight_cli.metrics.batch import is_glob
+    return is_glob(spec) or os.path.isdir(spec)
+
+
+def _progress(items, desc, quiet):
+    from relight_cli.clitools import progress
+    return progress(items, total=len(items), desc=desc, quiet=quiet)
+
+
+# ------------------------------------------------------------------ shadow
+
+
+def _parse_roi(text):
+    from relight_cli.clitools import parse_vector
+    from relight_cli.errors import UsageProblem
+    if text is None:
+        return None
+    values = parse_vector(text, 4, "--roi")
+    if any(v != int(v) for v in values) or values[2] <= 0 or values[3] <= 0 or min(values[:2]) < 0:
+        raise UsageProblem(f"--roi must be X,Y,W,H in whole pixels with W, H > 0, got {text!r}")
+    return tuple(int(v) for v in values)
+
+
+@command.command("shadow", short_help="SAE, SM-IoU and boundary F-measure of shadow mattes.")
+@click.argument("pred", metavar="PRED")
+@click.argument("gt", metavar="GT")
+@click.option("--roi", default=None, help="Region of interest X,Y,W,H in pixels (default: all).")
+@click.option("--threshold", type=float, default=0.1, show_default=True,
+              help="Matte value above which a pixel counts as shadowed.")
+@click.option("--tolerance", type=float, default=2.0, show_default=True,
+              help="Boundary F-measure pixel tolerance.")
+@click.option("--matte", type=click.Choice(["shadow", "visibility"]), default="shadow",
+              show_default=True, help="What the images hold: shadow strength (1 = full shadow) "
+                                      "or visibility (1 = lit; used as 1 − value).")
+@_output
+@_jsonl
+@_percentiles
+@no_clobber_option
+@quiet_option
+def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, percentiles,
+                   no_clobber, quiet):
+    """Score predicted shadow mattes PRED against pseudo-ground-truth GT (DGSM paper).
+
+    SAE: mean absolute error over the GT shadow region; SM-IoU: IoU of the
+    thresholded mattes; boundary F: precision/recall of shadow boundaries within
+    --tolerance pixels.  Empty cases are defined (formats/metrics_json.md).
+    PRED and GT are files, or folders / globs matched by name.
+
+    \b
+    Example:
+      relight metrics shadow shadow.exr pseudo_gt.png --threshold 0.1 -o s.json
+    """
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.metrics.batch import match_pairs, parse_percentiles
+    from relight_cli.metrics.shadow import shadow_metrics
+
+    _check_outputs(output, jsonl, no_clobber)
+    qs = parse_percentiles(percentiles)
+    roi_box = _parse_roi(roi)
+    if not 0 <= threshold < 1:
+        raise UsageProblem(f"--threshold must lie in [0, 1), got {threshold}")
+    if not tolerance >= 0:
+        raise UsageProblem(f"--tolerance must be ≥ 0, got {tolerance}")
+    pairs, extra = match_pairs(pred, gt)
+    if extra:
+        log(f"note: {len(extra)} ground-truth file(s) have no prediction and are ignored", quiet)
+    results = []
+    for name, p_path, g_path in (pairs if len(pairs) < 2 else
+                                 _progress(pairs, "shadow pairs", quiet)):
+        mattes = []
+        for path in (p_path, g_path):
+            values = _read_single(path)
+            if values.min() < -1e-3 or values.max() > 1 + 1e-3:
+                raise DataError(f"matte values must lie in [0, 1], found "
+                                f"[{values.min():.4g}, {values.max():.4g}]", path)
+            values = values.clip(0, 1)
+            mattes.append(1 - values if matte == "visibility" else values)
+        _same_size(mattes[0].shape, mattes[1].shape, p_path)
+        try:
+            result = shadow_metrics(mattes[0], mattes[1], threshold, tolerance, roi_box)
+        except ValueError as exc:
+            raise UsageProblem(str(exc), g_path) from None
+        results.append((name, p_path, g_path, None, result))
+    settings = {"threshold": threshold, "tolerance": tolerance, "roi": list(roi_box) if roi_box else None,
+                "matte": matte, "percentiles": qs}
+    record, rows = _batch_record("shadow", results, len(pairs) > 1 or _is_multi(pred), settings, qs)
+    _write(output, jsonl, record, rows)
+    log(f"{len(results)} pair(s) scored", quiet)
+
+
+# ------------------------------------------------------------------ compare
+
+
+def _parse_keyed(values, what, convert):
+    """['psnr=0.01', '0.001', '*.ssim=1e-4'] -> {'psnr': 0.01, None: 0.001, '*.ssim': 1e-4}."""
+    from relight_cli.errors import UsageProblem
+    out = {}
+    for text in values:
+        key, sep, value = text.rpartition("=")
+        try:
+            out[key if sep else None] = convert(value)
+        except ValueError:
+            raise UsageProblem(f"{what} must look like [METRIC=]VALUE, got {text!r}") from None
+    return out
+
+
+def _tolerance(text):
+    value = float(text)
+    if not value >= 0 or value == float("inf"):
+        raise ValueError(text)
+    return value
+
+
+def _direction(text):
+    from relight_cli.metrics.compare import DIRECTIONS
+    if text not in DIRECTIONS:
+        raise ValueError(text)
+    return text
+
+
+@command.command("compare", short_help="Compare a metrics JSON with a baseline; exit 3 on regression.")
+@click.argument("new", metavar="NEW.json")
+@click.argument("baseline", metavar="BASELINE.json")
+@click.option("--rtol", multiple=True, metavar="[METRIC=]VALUE",
+              help="Relative tolerance (default 1e-3), for all metrics or one; repeatable. METRIC "
+                   "is a dotted key, a pattern like '*.psnr', or a name like 'psnr'.")
+@click.option("--atol", multiple=True, metavar="[METRIC=]VALUE",
+              help="Absolute tolerance (default 1e-9); repeatable like --rtol.")
+@click.option("--better", multiple=True, metavar="METRIC=higher|lower|either",
+              help="Which direction is better (defaults: psnr/ssim/iou/F higher; errors lower; "
+                   "unknown metrics: either, so any move beyond tolerance fails).")
+@click.option("--only-changed", is_flag=True, help="List only metrics that moved beyond tolerance.")
+@quiet_option
+@click.pass_context
+def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, quiet):
+    """Compare metrics record NEW.json with BASELINE.json and print what moved.
+
+    Each metric regresses when it moved in its bad direction by more than
+    atol + rtol·|baseline|; improvements never fail.  A metric missing from
+    NEW.json is a regression.
+
+    \b
+    Exit codes: 0 nothing regressed, 3 something regressed, 1 unreadable or
+    mismatched files, 2 usage error.
+
+    \b
+    Example:
+      relight metrics compare new.json baseline.json --rtol 0.01 --rtol psnr=0.002 \\
+          --better my_score=higher
+    """
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.formats.metrics_json import decode_value, flatten, read_metrics
+    from relight_cli.metrics.compare import compare_metrics, format_table
+
+    rtols = _parse_keyed(rtol, "--rtol", _tolerance)
+    atols = _parse_keyed(atol, "--atol", _tolerance)
+    directions = _parse_keyed(better, "--better", _direction)
+    if None in directions:
+        raise UsageProblem("--better needs METRIC=higher|lower|either")
+    new_record = read_metrics(check_input(new))
+    base_record = read_metrics(check_input(baseline))
+    if new_record.get("kind") != base_record.get("kind"):
+        raise DataError(f"kind {new_record.get('kind')!r} differs from the baseline's "
+                        f"{base_record.get('kind')!r}", new)
+    rows = compare_metrics([(k, decode_value(v)) for k, v in flatten(new_record["metrics"])],
+                           [(k, decode_value(v)) for k, v in flatten(base_record["metrics"])],
+                           rtols, atols, directions)
+    if not quiet or any(r.regressed for r in rows):
+        click.echo(format_table(rows, only_changed=only_changed), nl=False)
+    if any(r.regressed for r in rows):
+        click.echo(f"relight metrics compare: regression against {baseline} "
+                   f"(exit {EXIT_REGRESSION})", err=True)
+        ctx.exit(EXIT_REGRESSION)

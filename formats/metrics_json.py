@@ -1,0 +1,136 @@
+"""Metrics JSON: format ``relight/metrics`` version 1 (spec: ``formats/metrics_json.md``).
+
+One JSON object per file, keys always in the same order so diffs stay readable::
+
+    format, version, kind, metrics, [per_channel], [aggregate], [pairs], [frames],
+    [details], inputs, settings, provenance
+
+``metrics`` is a (possibly nested) object of numbers; ``relight metrics compare``
+compares its leaves.  A metric whose value is +∞ (PSNR of identical images) is
+stored as ``null`` because JSON has no infinity; see :func:`decode_value`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+from relight_cli.errors import DataError
+
+FORMAT = "relight/metrics"
+VERSION = 1
+KINDS = ("image", "shadow", "lighting", "gate")
+# The order keys are written in; anything else follows in insertion order.
+KEY_ORDER = ("format", "version", "kind", "metrics", "per_channel", "aggregate", "pairs",
+             "frames", "details", "inputs", "settings", "provenance")
+
+
+def encode_value(value):
+    """A JSON-safe number: floats rounded-trip exactly, ±∞ → None (null), NaN refused."""
+    if value is None:
+        return None
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, int):
+        return value
+    value = float(value)
+    if math.isnan(value):
+        raise ValueError("NaN metric value")
+    if math.isinf(value):
+        return None
+    return value
+
+
+def decode_value(value):
+    """Inverse of :func:`encode_value` for comparison: null → +∞."""
+    return math.inf if value is None else float(value)
+
+
+def _encode_tree(obj):
+    if isinstance(obj, dict):
+        return {str(k): _encode_tree(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_encode_tree(v) for v in obj]
+    if isinstance(obj, str) or obj is None:
+        return obj
+    if hasattr(obj, "item") and not isinstance(obj, (int, float)):  # numpy scalars
+        obj = obj.item()
+    return encode_value(obj)
+
+
+def make_record(kind: str, metrics: dict, inputs: dict, settings: dict, provenance: dict,
+                **extra) -> dict:
+    """Build a record with keys in :data:`KEY_ORDER` (``extra``: per_channel, aggregate, ...)."""
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    fields = {"format": FORMAT, "version": VERSION, "kind": kind, "metrics": metrics,
+              "inputs": inputs, "settings": settings, "provenance": provenance, **extra}
+    ordered = {k: fields[k] for k in KEY_ORDER if k in fields and fields[k] is not None}
+    for k, v in fields.items():
+        if k not in ordered and v is not None:
+            ordered[k] = v
+    return {k: (v if k in ("format", "version", "kind") else _encode_tree(v))
+            for k, v in ordered.items()}
+
+
+def dumps(record: dict) -> str:
+    """Serialize with stable key order and round-trippable floats (repr)."""
+    return json.dumps(record, indent=2, allow_nan=False, ensure_ascii=False) + "\n"
+
+
+def write_metrics(path: str, record: dict) -> None:
+    """Write atomically (``-`` = stdout)."""
+    from relight_cli.provenance import write_text_atomic
+    write_text_atomic(path, dumps(record))
+
+
+def loads(text: str, path: str = "<string>") -> dict:
+    """Parse and validate a metrics record.  Raises DataError naming ``path``."""
+    try:
+        record = json.loads(text)
+    except ValueError as exc:
+        raise DataError(f"not valid JSON: {str(exc).splitlines()[0]}", path) from None
+    if not isinstance(record, dict):
+        raise DataError("metrics JSON must hold an object", path)
+    if record.get("format") != FORMAT:
+        raise DataError(f"not a {FORMAT} file (format is {record.get('format')!r})", path)
+    version = record.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise DataError("missing or invalid 'version'", path)
+    if version > VERSION:
+        raise DataError(f"{FORMAT} version {version} is newer than this relight understands "
+                        f"(≤ {VERSION})", path, hint="upgrade relight")
+    metrics = record.get("metrics")
+    if not isinstance(metrics, dict):
+        raise DataError("missing 'metrics' object", path)
+    for key, value in flatten(metrics):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise DataError(f"metric {key!r} is not a number", path)
+    return record
+
+
+def read_metrics(path: str) -> dict:
+    path = str(path)
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    if os.path.isdir(path):
+        raise DataError("is a directory, expected a metrics JSON file", path)
+    with open(path, encoding="utf-8") as f:
+        try:
+            text = f.read()
+        except UnicodeDecodeError:
+            raise DataError("not a text file", path) from None
+    return loads(text, path)
+
+
+def flatten(metrics: dict, prefix: str = "") -> list[tuple[str, object]]:
+    """Leaves of a nested metrics object as (dotted.key, value), in file order."""
+    out = []
+    for key, value in metrics.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.extend(flatten(value, name + "."))
+        else:
+            out.append((name, value))
+    return out
