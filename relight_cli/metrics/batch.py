@@ -63,12 +63,12 @@ def match_pairs(pred: str, gt: str) -> tuple[list[tuple[str, str, str]], list[st
     Raises DataError when a prediction has no ground truth, UsageProblem when a
     single file is paired with many.
     """
+    for spec, role in ((pred, "prediction"), (gt, "ground truth")):
+        if not is_glob(spec) and not os.path.exists(spec):
+            raise DataError(f"no such {role} file or folder", spec)
     single_pred = not is_glob(pred) and not os.path.isdir(pred)
     single_gt = not is_glob(gt) and not os.path.isdir(gt)
     if single_pred and single_gt:
-        for p, role in ((pred, "prediction"), (gt, "ground truth")):
-            if not os.path.exists(p):
-                raise DataError(f"no such {role} file", p)
         return [(stem(pred), pred, gt)], []
     if single_pred != single_gt:
         raise UsageProblem("PRED and GT must both be files, or both folders/glob patterns")

@@ -12,7 +12,8 @@ map is ``1 − matte``).  With threshold t:
   with a 4-neighbour outside the region (the image border does not make a
   boundary).  Precision = fraction of predicted boundary pixels within Euclidean
   distance τ of a GT boundary pixel; recall the other way round; F = 2PR/(P+R).
-  Both boundaries empty → P = R = F = 1; exactly one empty → P = R = F = 0
+  Both boundaries empty (each region is empty or the whole image) → P = R = F = 1
+  when the regions are equal, else 0; exactly one boundary empty → P = R = F = 0
   (the non-empty side has nothing to match).
 
 An optional ROI (x, y, w, h in pixels) crops both mattes before scoring.
@@ -46,7 +47,8 @@ def boundary_scores(pred_region: np.ndarray, gt_region: np.ndarray, tolerance: f
     bg = boundary(gt_region)
     n_p, n_g = int(bp.sum()), int(bg.sum())
     if n_p == 0 and n_g == 0:
-        return 1.0, 1.0, 1.0
+        same = float(np.array_equal(np.asarray(pred_region, bool), np.asarray(gt_region, bool)))
+        return same, same, same
     if n_p == 0 or n_g == 0:
         return 0.0, 0.0, 0.0
     precision = float(_within(bp, bg, tolerance).mean())
@@ -60,7 +62,8 @@ def boundary_scores_reference(pred_region, gt_region, tolerance: float = 2.0):
     bp = np.argwhere(boundary(pred_region)).astype(np.float64)
     bg = np.argwhere(boundary(gt_region)).astype(np.float64)
     if len(bp) == 0 and len(bg) == 0:
-        return 1.0, 1.0, 1.0
+        same = float(np.array_equal(np.asarray(pred_region, bool), np.asarray(gt_region, bool)))
+        return same, same, same
     if len(bp) == 0 or len(bg) == 0:
         return 0.0, 0.0, 0.0
     d = np.sqrt(((bp[:, None, :] - bg[None, :, :]) ** 2).sum(-1))
