@@ -1,0 +1,117 @@
+"""The quality gate: a small deterministic pipeline on built-in data, its metrics, and a
+comparison with the checked-in baseline ``tests/baseline/quality.json``.
+
+A change that silently degrades quality makes ``relight metrics compare`` exit 3
+and this test fail.  To accept a deliberate change of the numbers, regenerate
+the baseline on purpose and commit it with the change that explains it::
+
+    RELIGHT_REGEN_BASELINE=1 .venv/bin/python -m pytest tests/test_quality_gate.py
+
+Adding a pipeline stage is one entry in :data:`STAGES`: a name, a function
+that runs the stage through the installed ``relight`` command and returns the
+path of a ``relight/metrics`` JSON, and optional per-metric tolerances.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+from conftest import run_relight
+
+BASELINE = Path(__file__).resolve().parent / "baseline" / "quality.json"
+REGEN = os.environ.get("RELIGHT_REGEN_BASELINE") == "1"
+# The pipeline is deterministic, so the same machine reproduces the numbers to the
+# last bit; the slack only absorbs BLAS/libm differences between platforms.
+DEFAULT_RTOL = 1e-4
+
+
+def _ok(result):
+    assert result.returncode == 0, result.stderr
+    return result
+
+
+@dataclass
+class Stage:
+    name: str
+    run: Callable[[Path], Path]          # workdir -> metrics JSON path
+    rtol: dict[str, float] = field(default_factory=dict)   # metric (leaf or dotted) -> rtol
+    atol: dict[str, float] = field(default_factory=dict)
+
+
+def envmap_cube_roundtrip(work: Path) -> Path:
+    """builtin:sky → cube 32 → lat-long 128×64, against the direct lat-long resampling."""
+    _ok(run_relight("envmap", "builtin:sky", "--to", "cube", "--size", "32", "-o", work / "cube.exr", "-q"))
+    _ok(run_relight("envmap", work / "cube.exr", "--to", "latlong", "--size", "128x64",
+                    "-o", work / "back.exr", "-q"))
+    _ok(run_relight("envmap", "builtin:sky", "--to", "latlong", "--size", "128x64",
+                    "-o", work / "direct.exr", "-q"))
+    out = work / "envmap_cube_roundtrip.json"
+    _ok(run_relight("metrics", "image", work / "back.exr", work / "direct.exr", "--space", "srgb",
+                    "-o", out, "-q"))
+    return out
+
+
+# One entry per pipeline stage; later stages append here.
+STAGES: list[Stage] = [
+    Stage("envmap_cube_roundtrip", envmap_cube_roundtrip),
+]
+
+
+def _combined_record(parts: dict[str, dict]) -> dict:
+    from relight_cli.formats.metrics_json import FORMAT, VERSION, make_record
+    metrics = {name: rec["metrics"] for name, rec in parts.items()}
+    settings = {name: rec.get("settings", {}) for name, rec in parts.items()}
+    provenance = {"format": FORMAT, "version": VERSION, "tool": "tests/test_quality_gate.py",
+                  "stages": list(parts)}
+    return make_record("gate", metrics, {}, settings, provenance)
+
+
+def test_stage_names_unique():
+    names = [s.name for s in STAGES]
+    assert len(names) == len(set(names))
+
+
+def test_quality_gate(tmp_path):
+    from relight_cli.formats.metrics_json import dumps
+    parts = {}
+    for stage in STAGES:
+        work = tmp_path / stage.name
+        work.mkdir()
+        parts[stage.name] = json.loads(stage.run(work).read_text())
+    new = tmp_path / "quality.json"
+    new.write_text(dumps(_combined_record(parts)))
+    if REGEN:
+        BASELINE.write_text(new.read_text())
+        pytest.skip(f"baseline regenerated on request: {BASELINE} (review and commit it)")
+    if not BASELINE.exists():
+        pytest.fail(f"no baseline {BASELINE}; create it with RELIGHT_REGEN_BASELINE=1")
+    args = ["metrics", "compare", new, BASELINE, "--rtol", str(DEFAULT_RTOL)]
+    for stage in STAGES:
+        for key, value in stage.rtol.items():
+            args += ["--rtol", f"{key if '.' in key else stage.name + '.' + key}={value}"]
+        for key, value in stage.atol.items():
+            args += ["--atol", f"{key if '.' in key else stage.name + '.' + key}={value}"]
+    result = run_relight(*args)
+    assert result.returncode in (0, 3), result.stderr
+    assert result.returncode == 0, "quality regressed against tests/baseline/quality.json:\n" + result.stdout
+
+
+def test_gate_detects_a_regression(tmp_path):
+    """The gate can fail: a degraded copy of the baseline must make compare exit 3."""
+    from relight_cli.formats.metrics_json import dumps, read_metrics
+    if not BASELINE.exists():
+        pytest.skip("no baseline yet")
+    record = read_metrics(str(BASELINE))
+    worse = json.loads(json.dumps(record))
+    stage = STAGES[0].name
+    worse["metrics"][stage]["psnr"] = record["metrics"][stage]["psnr"] - 1.0
+    path = tmp_path / "worse.json"
+    path.write_text(dumps(worse))
+    result = run_relight("metrics", "compare", path, BASELINE, "--rtol", str(DEFAULT_RTOL))
+    assert result.returncode == 3 and f"{stage}.psnr" in result.stdout
