@@ -1,0 +1,118 @@
+"""``relight sh-probe``: fit an SH light probe to an environment map or a Gaussian scene."""
+
+from __future__ import annotations
+
+import click
+
+from relight_cli.clitools import (check_input, check_output, log, no_clobber_option,
+                                  parse_vector, quiet_option)
+
+
+@click.command("sh-probe", short_help="Fit an SH light probe to an env map or a Gaussian scene.")
+@click.argument("input", metavar="IN")
+@click.option("-o", "--output", required=True, help="Probe JSON ('-' for stdout).")
+@click.option("--degree", default="auto", show_default=True,
+              help="SH degree N (0-8), or 'auto': the smallest degree whose cosine-convolved "
+                   "irradiance is within --tolerance of degree --max-degree's.")
+@click.option("--ridge", type=float, default=0.0, show_default=True,
+              help="Ridge weight λ of the least-squares fit (paper Eq. 7).")
+@click.option("--tolerance", type=float, default=0.01, show_default=True,
+              help="For --degree auto: allowed relative RMS irradiance error (over all normals).")
+@click.option("--max-degree", type=click.IntRange(1, 12), default=8, show_default=True,
+              help="For --degree auto: the high reference degree.")
+@click.option("--at", "at", default=None, metavar="X,Y,Z",
+              help="Probe position (metres, world) for a Gaussian scene IN (.ply).")
+@click.option("--face-size", type=click.IntRange(4, 1024), default=64, show_default=True,
+              help="Cube-face resolution rendered for a scene probe.")
+@click.option("--near", type=float, default=0.01, show_default=True,
+              help="Near plane (metres) of the scene probe's cube cameras.")
+@click.option("--nonfinite", type=click.Choice(["error", "zero", "clamp"]), default="error",
+              show_default=True, help="What to do with NaN/Inf env-map pixels.")
+@no_clobber_option
+@quiet_option
+def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, near, nonfinite,
+            no_clobber, quiet):
+    """Fit radiance L(ω) ≈ Σ c_k Y_k(ω) by solid-angle-weighted ridge least squares.
+
+    IN is an environment map (EXR lat-long or cube, .hdr, builtin:sky|studio|
+    uniform|point), or a Gaussian scene PLY with --at X,Y,Z: the six 90° cube
+    faces of the scene at that point are splatted on the CPU and fitted
+    (paper Sec. 3.4).  The JSON holds the real orthonormal SH coefficients
+    (3DGS convention), see formats/sh_probe_json.md.
+
+    \b
+    Examples:
+      relight sh-probe builtin:sky -o sky.json
+      relight sh-probe stage.exr --degree 2 -o stage.json
+      relight sh-probe room.ply --at 0,1.2,0 -o room-probe.json
+    """
+    import time
+
+    from relight_cli.errors import UsageProblem
+    from relight_cli.formats.sh_probe_json import FORMAT, VERSION, ShProbe, write_probe
+    from relight_cli.gaussians import probe as P
+    from relight_cli.provenance import provenance
+
+    check_output(output, no_clobber, text=True)
+    if degree == "auto":
+        fixed = None
+    else:
+        try:
+            fixed = int(degree)
+        except ValueError:
+            raise UsageProblem(f"--degree must be an integer or 'auto', got {degree!r}") from None
+        if not 0 <= fixed <= 12:
+            raise UsageProblem(f"--degree must be in 0..12, got {fixed}")
+    if not (ridge >= 0 and ridge < float("inf")):
+        raise UsageProblem(f"--ridge must be a finite number ≥ 0, got {ridge}")
+    if not (0 < tolerance < 1):
+        raise UsageProblem(f"--tolerance must be in (0, 1), got {tolerance}")
+    if not near > 0:
+        raise UsageProblem(f"--near must be positive, got {near}")
+    is_scene = input.lower().endswith(".ply")
+    if is_scene and at is None:
+        raise UsageProblem("a Gaussian scene needs the probe position: --at X,Y,Z")
+    if at is not None and not is_scene:
+        raise UsageProblem("--at is only for Gaussian scenes (.ply); IN looks like an env map")
+
+    start = time.perf_counter()
+    settings = {"degree": degree, "ridge": ridge}
+    position = None
+    if is_scene:
+        from relight_cli.clitools import progress
+        from relight_cli.formats.gaussians_ply import read_gaussians
+        position = parse_vector(at, 3, "--at")
+        scene = read_gaussians(check_input(input))
+        log(f"read {input}: {len(scene)} Gaussians, SH degree {scene.sh_degree}", quiet)
+        samples = P.scene_samples(scene, position, face_size, near,
+                                  progress=lambda it: progress(it, total=6, desc="cube faces",
+                                                               quiet=quiet))
+        settings.update(at=list(position), face_size=face_size, near=near)
+    else:
+        from ._inputs import load_envmap
+        env = load_envmap(input, nonfinite=nonfinite)
+        log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
+        samples = P.env_samples(env)
+        settings["nonfinite"] = nonfinite
+
+    extra = {}
+    if fixed is None:
+        choice = P.choose_degree(samples, tolerance, ridge, max_degree)
+        chosen = choice.degree
+        coefficients = choice.coefficients
+        extra["degree_search"] = {"tolerance": tolerance, "reference_degree": choice.reference_degree,
+                                  "irradiance_errors": {str(d): e for d, e in choice.errors.items()}}
+        settings.update(tolerance=tolerance, max_degree=max_degree)
+        log(f"auto degree: {chosen} (irradiance error {choice.errors[chosen]:.2e} vs degree "
+            f"{max_degree}, tolerance {tolerance})", quiet)
+    else:
+        chosen = fixed
+        coefficients = P.fit_probe(samples, chosen, ridge)
+    if is_scene:
+        extra["face_size"] = face_size
+    prov = provenance(FORMAT, VERSION, {"input": input}, settings)
+    write_probe(output, ShProbe(coefficients, chosen, ridge, input,
+                                None if position is None else position, extra, prov))
+    if output != "-":
+        log(f"wrote {output} (degree {chosen}, {len(coefficients)} coefficients, "
+            f"{time.perf_counter() - start:.2f} s)", quiet)

@@ -1,0 +1,117 @@
+"""SH light probes in JSON (spec: ``formats/sh_probe_json.md``)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from relight_cli.errors import DataError
+
+FORMAT = "relight/sh-probe"
+VERSION = 1
+
+
+@dataclass
+class ShProbe:
+    """Radiance L(ω) = Σ_k coefficients[k] · Y_k(ω) (real orthonormal SH, 3DGS convention).
+
+    Attributes:
+        coefficients: [(degree+1)², 3] float64, linear RGB radiance per SH basis function.
+        degree: SH degree.
+        ridge: λ of the ridge least-squares fit (paper Eq. 7).
+        source: what was fitted (env-map path / builtin name, or scene PLY).
+        position: [3] probe position (metres, world) for scene probes, else None.
+        extra: other fields (degree search, resolution, …), kept on read.
+        provenance: the provenance record.
+    """
+
+    coefficients: np.ndarray
+    degree: int
+    ridge: float = 0.0
+    source: str = ""
+    position: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)
+    provenance: dict | None = None
+
+
+def probe_to_json(probe: ShProbe) -> dict:
+    out = {"format": FORMAT, "version": VERSION, "degree": int(probe.degree),
+           "basis": "real orthonormal SH, Condon-Shortley phase (3DGS), index l*l+l+m",
+           "coefficients": [[float(v) for v in row] for row in np.asarray(probe.coefficients)],
+           "ridge": float(probe.ridge), "source": probe.source}
+    if probe.position is not None:
+        out["position"] = [float(v) for v in probe.position]
+    out.update(probe.extra)
+    if probe.provenance is not None:
+        out["provenance"] = probe.provenance
+    return out
+
+
+def write_probe(path: str, probe: ShProbe) -> None:
+    """Write a probe atomically ('-' for stdout); floats round-trip exactly (repr)."""
+    from relight_cli.provenance import write_text_atomic
+    if not np.isfinite(probe.coefficients).all():
+        raise DataError("probe coefficients hold NaN/Inf", path)
+    write_text_atomic(path, json.dumps(probe_to_json(probe), indent=2, allow_nan=False) + "\n")
+
+
+def probe_from_json(obj, path: str = "") -> ShProbe:
+    if not isinstance(obj, dict):
+        raise DataError("expected a JSON object", path)
+    if obj.get("format") != FORMAT:
+        raise DataError(f"not a {FORMAT} file (format is {obj.get('format')!r})", path)
+    version = obj.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise DataError("missing or invalid 'version'", path)
+    if version > VERSION:
+        raise DataError(f"{FORMAT} version {version} is newer than this relight understands "
+                        f"(≤ {VERSION})", path, hint="upgrade relight")
+    degree = obj.get("degree")
+    if not isinstance(degree, int) or isinstance(degree, bool) or not 0 <= degree <= 20:
+        raise DataError(f"'degree' must be an integer in 0..20, got {degree!r}", path)
+    try:
+        coeffs = np.asarray(obj.get("coefficients"), np.float64)
+    except (TypeError, ValueError):
+        raise DataError("'coefficients' must be a list of [r, g, b] rows of numbers", path) from None
+    k = (degree + 1) ** 2
+    if coeffs.shape != (k, 3):
+        raise DataError(f"'coefficients' must be {k} rows of 3 for degree {degree}, got shape "
+                        f"{coeffs.shape}", path)
+    if not np.isfinite(coeffs).all():
+        raise DataError("'coefficients' hold NaN/Inf", path)
+    ridge = obj.get("ridge", 0.0)
+    if not isinstance(ridge, (int, float)) or isinstance(ridge, bool) or not math.isfinite(ridge) \
+            or ridge < 0:
+        raise DataError(f"'ridge' must be a finite number ≥ 0, got {ridge!r}", path)
+    position = obj.get("position")
+    if position is not None:
+        try:
+            position = np.asarray(position, np.float64).reshape(3)
+        except (TypeError, ValueError):
+            raise DataError("'position' must be [x, y, z]", path) from None
+        if not np.isfinite(position).all():
+            raise DataError("'position' holds NaN/Inf", path)
+    known = {"format", "version", "degree", "basis", "coefficients", "ridge", "source", "position",
+             "provenance"}
+    extra = {k_: v for k_, v in obj.items() if k_ not in known}
+    return ShProbe(coeffs, degree, float(ridge), str(obj.get("source", "")), position, extra,
+                   obj.get("provenance"))
+
+
+def read_probe(path: str) -> ShProbe:
+    """Read and validate a probe JSON file (DataError naming the file otherwise)."""
+    path = str(path)
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    if os.path.isdir(path):
+        raise DataError("is a directory, expected a probe JSON file", path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            obj = json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"not valid JSON: {exc}", path) from None
+    return probe_from_json(obj, path)
