@@ -20,6 +20,7 @@ from .errors import RelightError
 COMMANDS: dict[str, str] = {
     "envmap": "relight_cli.commands.envmap:command",
     "metrics": "relight_cli.commands.metrics:command",
+    "sh-probe": "relight_cli.commands.sh_probe:command",
 }
 
 
