@@ -41,6 +41,9 @@ from relight_cli.formats.envmap import EnvMap
 # Shading works on [receivers, directions] blocks of at most this many entries
 # (float64: 8 bytes each, a handful alive at once) to bound memory.
 _BLOCK = 1 << 16
+# Transport weights (N·M per feature, float64) are kept between env maps up to
+# this many entries (128 MiB); beyond it they are streamed and recomputed.
+_TRANSPORT_CACHE = 1 << 24
 # Roughness below this makes the GGX lobe narrower than any env texel; clamp
 # (also keeps α² > 0 so D stays finite).
 MIN_ROUGHNESS = 1e-3
@@ -368,6 +371,70 @@ def ggx_weights(normals: np.ndarray, view: np.ndarray, directions: np.ndarray,
     return np.where((nl > 0) & (nv > 0), w, 0.0)
 
 
+def transport_blocks(receivers: Receivers, view: np.ndarray, directions: np.ndarray,
+                     solid_angle: np.ndarray, visible: np.ndarray, settings: FeatureSettings,
+                     roughness: np.ndarray | None = None):
+    """Yield the env-independent light-transport weights, a block of receivers at a time.
+
+    Every feature is linear in the env map: feature_i = Σ_m W_i,m · L(ω_m)Δω_m.  This
+    yields (receiver slice, {name: W [b, M] float64}, visibility [b]) with
+      W_diffuse = h·max(n·ω, 0),  W_phongα = (α+2)/(2π)·h·max(r·ω, 0)^α,
+      W_ggx = h·f_s·max(n·ω, 0), and the cosine-weighted visibility channel.
+    Pairs never traced have zero weight (guaranteed by :func:`needed_pairs`).
+    """
+    n = len(receivers)
+    m = len(directions)
+    if roughness is None:
+        roughness = np.broadcast_to(np.asarray(settings.roughness, np.float64), (n,))
+    reflected = reflect(view, receivers.normals)
+    cutoff = lobe_cutoff(settings.phong)
+    step = max(1, _BLOCK // max(1, m))
+    for s in range(0, n, step):
+        sl = slice(s, min(n, s + step))
+        nrm = receivers.normals[sl]
+        h = visible[sl].astype(np.float64)                        # [b, M]
+        cos = np.clip(nrm @ directions.T, 0, None)                # [b, M]
+        hc = h * cos
+        weights = {"diffuse": hc}
+        if settings.phong:
+            ref = reflected[sl] @ directions.T
+            lobe = np.where(ref > cutoff, ref, 0.0)
+            for alpha, power in zip(settings.phong, _powers(lobe, settings.phong)):
+                weights[phong_name(alpha)] = (h * power) * ((alpha + 2) / (2 * math.pi))
+        if settings.ggx:
+            weights["ggx"] = h * ggx_weights(nrm, view[sl], directions, roughness[sl], settings.f0)
+        denom = cos @ solid_angle
+        vis = np.divide(hc @ solid_angle, denom, out=np.zeros_like(denom), where=denom > 0)
+        undefined = ~receivers.defined[sl]
+        if undefined.any():
+            for w in weights.values():
+                w[undefined] = 0
+            vis[undefined] = 0
+        yield sl, weights, vis
+
+
+def apply_transport(blocks, n: int, envs: list[DiscreteEnv]) -> list[dict]:
+    """Features of each env map from transport blocks (one matrix product per feature).
+
+    Returns:
+        One dict per env map: name → [N, 3] float64 (diffuse, phong…, ggx) and
+        ``visibility`` → [N] float64.
+    """
+    omega = envs[0].solid_angle
+    weighted = np.concatenate([e.radiance * omega[:, None] for e in envs], axis=1)   # [M, 3K]
+    out = [dict() for _ in envs]
+    for sl, weights, vis in blocks:
+        for name, w in weights.items():
+            res = w @ weighted                                    # [b, 3K]
+            for j, o in enumerate(out):
+                if name not in o:
+                    o[name] = np.zeros((n, 3))
+                o[name][sl] = res[:, 3 * j:3 * j + 3]
+        for o in out:
+            o.setdefault("visibility", np.zeros(n))[sl] = vis
+    return out
+
+
 def shade(receivers: Receivers, view: np.ndarray, envs: list[DiscreteEnv], visible: np.ndarray,
           settings: FeatureSettings, roughness: np.ndarray | None = None) -> list[dict]:
     """Features of every receiver under each env map, given visibility.
@@ -375,58 +442,18 @@ def shade(receivers: Receivers, view: np.ndarray, envs: list[DiscreteEnv], visib
     Args:
         receivers: N receivers.
         view: [N, 3] unit directions towards the eye.
-        envs: env maps sharing one direction grid (same H×W).
+        envs: env maps sharing one direction grid.
         visible: [N, M] bool h (True where the ray escapes; pairs never traced must
             carry zero weight, which :func:`needed_pairs` guarantees).
         settings: what to compute.
         roughness: [N] GGX roughness (default from settings).
 
     Returns:
-        One dict per env map: name → [N, 3] float64 (diffuse, phong…, ggx) and
-        ``visibility`` → [N] float64.
+        One dict per env map: name → [N, 3] float64 and ``visibility`` → [N] float64.
     """
-    n = len(receivers)
-    dirs = envs[0].directions
-    omega = envs[0].solid_angle
-    m = len(dirs)
-    if roughness is None:
-        roughness = np.broadcast_to(np.asarray(settings.roughness, np.float64), (n,))
-    # All env maps at once: [M, 3K] columns of L·Δω.
-    weighted = np.concatenate([e.radiance * omega[:, None] for e in envs], axis=1)
-    k_env = len(envs)
-    names = feature_names(settings)
-    out = [{name: np.zeros((n, 3)) for name in names[:-1]} for _ in envs]
-    for o in out:
-        o["visibility"] = np.zeros(n)
-    reflected = reflect(view, receivers.normals)
-    step = max(1, _BLOCK // max(1, m))
-    for s in range(0, n, step):
-        sl = slice(s, min(n, s + step))
-        nrm = receivers.normals[sl]
-        h = visible[sl].astype(np.float64)                        # [b, M]
-        cos = np.clip(nrm @ dirs.T, 0, None)                      # [b, M]
-        hc = h * cos
-        blocks = {"diffuse": hc}
-        ref = reflected[sl] @ dirs.T
-        lobe = np.where(ref > lobe_cutoff(settings.phong), ref, 0.0)
-        for alpha, power in zip(settings.phong, _powers(lobe, settings.phong)):
-            blocks[phong_name(alpha)] = (h * power) * ((alpha + 2) / (2 * math.pi))
-        if settings.ggx:
-            blocks["ggx"] = h * ggx_weights(nrm, view[sl], dirs, roughness[sl], settings.f0)
-        for name, weight in blocks.items():
-            res = weight @ weighted                               # [b, 3K]
-            for j in range(k_env):
-                out[j][name][sl] = res[:, 3 * j:3 * j + 3]
-        denom = cos @ omega
-        vis = np.divide(hc @ omega, denom, out=np.zeros_like(denom), where=denom > 0)
-        for j in range(k_env):
-            out[j]["visibility"][sl] = vis
-    undefined = ~receivers.defined
-    if undefined.any():
-        for o in out:
-            for v in o.values():
-                v[undefined] = 0
-    return out
+    blocks = transport_blocks(receivers, view, envs[0].directions, envs[0].solid_angle,
+                              visible, settings, roughness)
+    return apply_transport(blocks, len(receivers), envs)
 
 
 def _powers(base: np.ndarray, exponents) -> list[np.ndarray]:
@@ -538,7 +565,12 @@ class FeatureBaker:
         else:  # any direction set, e.g. a rotated grid (tests) or a discretized env
             self.env_res = (grid.height, grid.width)
             self.directions = np.asarray(grid.directions, np.float64)
+        self.solid_angle = (E.latlong_solid_angles(*self.env_res).reshape(-1) if grid is None
+                            else np.asarray(grid.solid_angle, np.float64))
         self.cache = VisibilityCache(scene, self.receivers, self.directions, offset)
+        self._transport = None          # cached transport blocks for (eye, roughness)
+        self._transport_key = None
+        self._lit_covered = np.zeros(len(self.directions), bool)
 
     def bake(self, envs: list[EnvMap] | list[DiscreteEnv], eye, roughness=None) -> list[list[dict]]:
         """Features for each env map, split per mesh.
@@ -562,24 +594,44 @@ class FeatureBaker:
         self.stats.add_time("env", time.perf_counter() - t0)
 
         t0 = time.perf_counter()
-        view = view_directions(self.receivers.points, eye)
-        reflected = reflect(view, self.receivers.normals)
+        eye = np.asarray(eye, np.float64).reshape(3)
+        if roughness is not None:
+            roughness = np.broadcast_to(np.asarray(roughness, np.float64), (len(self.receivers),))
+        key = (eye.tobytes(), None if roughness is None else roughness.tobytes())
         lit = np.zeros(len(self.directions), bool)
         for d in discrete:
             lit |= d.lit
-        need = needed_pairs(self.receivers, reflected, self.directions, lit, self.settings)
-        self.stats.add_time("cull", time.perf_counter() - t0)
-        before = self.cache.seconds
-        self.cache.require(need)
-        self.stats.add_time("trace", self.cache.seconds - before)
-        self.stats.rays_traced = self.cache.rays_traced
-        self.stats.rays_possible += len(self.receivers) * len(self.directions) * (
-            1 if self.settings.visibility else 0)
-
+        # Same eye and roughness, and no texel lit that earlier env maps left dark: every
+        # needed ray is traced and the transport weights are cached, so an extra env map
+        # costs one small matrix product per feature.
+        reuse = (self._transport is not None and self._transport_key == key
+                 and not (lit & ~self._lit_covered).any())
+        if not reuse:
+            view = view_directions(self.receivers.points, eye)
+            reflected = reflect(view, self.receivers.normals)
+            lit_all = lit | (self._lit_covered if self._transport_key == key else False)
+            need = needed_pairs(self.receivers, reflected, self.directions, lit_all, self.settings)
+            self.stats.add_time("cull", time.perf_counter() - t0)
+            before = self.cache.seconds
+            self.cache.require(need)
+            self.stats.add_time("trace", self.cache.seconds - before)
+            self.stats.rays_traced = self.cache.rays_traced
+            self.stats.rays_possible += len(self.receivers) * len(self.directions) * (
+                1 if self.settings.visibility else 0)
+            t0 = time.perf_counter()
+            blocks = transport_blocks(self.receivers, view, self.directions, self.solid_angle,
+                                      self.cache.visible, self.settings, roughness)
+            size = len(self.receivers) * len(self.directions) * len(feature_names(self.settings))
+            if size <= _TRANSPORT_CACHE:
+                blocks = list(blocks)
+                self._transport, self._transport_key, self._lit_covered = blocks, key, lit_all
+            else:  # too big to keep (benchmark references): stream, recompute next time
+                self._transport, self._transport_key = None, None
+            self.stats.add_time("transport", time.perf_counter() - t0)
+        else:
+            blocks = self._transport
         t0 = time.perf_counter()
-        if roughness is not None:
-            roughness = np.broadcast_to(np.asarray(roughness, np.float64), (len(self.receivers),))
-        per_env = shade(self.receivers, view, discrete, self.cache.visible, self.settings, roughness)
+        per_env = apply_transport(blocks, len(self.receivers), discrete)
         self.stats.add_time("shade", time.perf_counter() - t0)
         return [[{k: v[sl] for k, v in feats.items()} for sl in self.slices] for feats in per_env]
 

@@ -358,3 +358,21 @@ def test_settings_validation():
         FeatureSettings(shininess=(-1,))
     assert feature_names(FeatureSettings(shininess=(16, 2.5), specular="both")) == \
         ["diffuse", "phong16", "phong2.5", "ggx", "visibility"]
+
+
+def test_cached_transport_extends_when_new_texels_light_up():
+    # A dark-below env first, then one lit below: the Phong lobes now need rays below
+    # the tangent planes, so the cache must trace more and still match a fresh baker.
+    meshes = [sphere((-0.05, 0, 0)), sphere((0.05, 0, 0))]
+    top = grid_env(8, 16, lambda d: np.where(d[:, 1] > 0, 1.0, 0.0))
+    everywhere = grid_env(8, 16, lambda d: 1.0 + 0 * d[:, 1])
+    eye = [0.0, -0.3, 0.2]
+    baker = FeatureBaker(meshes, ALL, grid=top)
+    baker.bake([top], eye)
+    first = baker.stats.rays_traced
+    again = baker.bake([everywhere], eye)[0]
+    assert baker.stats.rays_traced > first
+    fresh = FeatureBaker(meshes, ALL, grid=top).bake([everywhere], eye)[0]
+    for a, b in zip(again, fresh):
+        for name in feature_names(ALL):
+            np.testing.assert_allclose(a[name], b[name], rtol=1e-12, atol=1e-15)
