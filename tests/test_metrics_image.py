@@ -152,7 +152,7 @@ def images(tmp_path):
 
 
 def test_help(run_cli):
-    for sub in ("image", "shadow", "compare"):
+    for sub in ("image", "shadow", "compare", "lighting"):
         r = run_cli("metrics", sub, "--help")
         assert r.exit_code == 0 and "Usage" in r.output
     assert "Exit codes" in run_cli("metrics", "--help").output

@@ -1,0 +1,199 @@
+"""`relight metrics lighting`: PAA-Y / APF-Y / NCM-ab on synthetic Gaussians with known
+answers, Wasserstein against known transports, pseudo-normal slow twin, CLI, bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from conftest import run_relight
+from relight_cli.formats.gaussians_ply import Gaussians, rgb_to_sh_dc, write_gaussians
+from relight_cli.metrics.lighting import (avatar_lighting_metrics, lab_ab, lighting_metrics,
+                                          pseudo_normals, pseudo_normals_reference,
+                                          robust_linear_fit, scene_radiance_sh, wasserstein_2d)
+from relight_cli.sh import evaluate_sh, irradiance_coefficients
+
+
+def fibonacci_sphere(n):
+    i = np.arange(n) + 0.5
+    polar = np.arccos(1 - 2 * i / n)
+    azimuth = math.pi * (1 + 5 ** 0.5) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.cos(polar),
+                     np.sin(azimuth) * np.sin(polar)], axis=1)
+
+
+def gaussians(means, colors, scale=0.02, normals=None):
+    n = len(means)
+    sh = np.zeros((n, 1, 3))
+    sh[:, 0] = rgb_to_sh_dc(np.asarray(colors, np.float64))
+    return Gaussians(means, np.full((n, 3), scale), np.tile([1.0, 0, 0, 0], (n, 1)),
+                     np.full(n, 0.9), sh, 0, normals)
+
+
+KEY = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
+
+
+@pytest.fixture(scope="module")
+def setup():
+    """A scene shell with a warm key light towards KEY, and an avatar sphere lit by it."""
+    d = fibonacci_sphere(500)
+    colors = 0.15 + 0.8 * np.clip(d @ KEY, 0, None)[:, None] ** 4 * np.array([1.0, 0.9, 0.7])
+    scene = gaussians(d * 1.2, colors, 0.05)
+    radiance, _ = scene_radiance_sh(scene.means, scene.colors(), scene.opacities, scene.scales,
+                                    np.zeros(3), 1.5)
+    irr = irradiance_coefficients(radiance)
+    normals = fibonacci_sphere(700)
+    e = evaluate_sh(irr, normals)                        # [N, 3] exact SH irradiance
+    avatar_colors = 0.9 * e / e.max()                    # albedo × irradiance (affine: scale only)
+    avatar = gaussians(normals * 0.3, avatar_colors, 0.01)
+    return scene, irr, normals, avatar
+
+
+def _scene_ab(scene):
+    return lab_ab(scene.colors()), scene.opacities
+
+
+def test_ideal_avatar_scores_zero_with_exact_normals(setup):
+    scene, irr, normals, avatar = setup
+    ab, w = _scene_ab(scene)
+    m = avatar_lighting_metrics(avatar.means, avatar.colors(), avatar.opacities, irr, ab, w,
+                                normals=normals)["metrics"]
+    # Exact normals and colours made from the same SH: only rounding remains.
+    assert m["paa_y"] < 1e-5
+    assert m["apf_y"] < 1e-9
+
+
+def test_ideal_avatar_scores_near_zero_with_pseudo_normals(setup):
+    scene, irr, normals, avatar = setup
+    pn = pseudo_normals(avatar.means, avatar.opacities)
+    angle = np.degrees(np.arccos(np.clip((pn * normals).sum(1), -1, 1)))
+    assert angle.max() < 3.0              # 700 points on a sphere: PCA normals within a few degrees
+    ab, w = _scene_ab(scene)
+    m = avatar_lighting_metrics(avatar.means, avatar.colors(), avatar.opacities, irr, ab, w)["metrics"]
+    # Normal errors of ~1° perturb E by ~1 %: allow 0.5° and 1 % (measured: 0.08°, 0.3 %).
+    assert m["paa_y"] < 0.5
+    assert m["apf_y"] < 0.01
+
+
+def test_wrongly_lit_avatar_scores_high(setup):
+    scene, irr, normals, avatar = setup
+    e_flipped = evaluate_sh(irr, -normals)               # lit from the opposite side
+    wrong = gaussians(avatar.means, 0.9 * e_flipped / e_flipped.max(), 0.01)
+    ab, w = _scene_ab(scene)
+    m = avatar_lighting_metrics(wrong.means, wrong.colors(), wrong.opacities, irr, ab, w)["metrics"]
+    assert m["paa_y"] > 150
+    assert m["apf_y"] > 0.1
+
+
+def test_colour_cast_raises_ncm_and_deltas(setup):
+    scene, _, _, avatar = setup
+    cast = gaussians(avatar.means, np.clip(avatar.colors() * [1.3, 1.0, 0.7], 0, 1), 0.01)
+    out = lighting_metrics(scene, [avatar], [cast], radius=1.5)
+    m = out["metrics"]
+    assert m["delta"]["ncm_ab"] > 5.0                    # Lab units: a clearly visible cast
+    assert m["delta"]["ncm_ab"] == pytest.approx(m["relit"]["ncm_ab"] - m["orig"]["ncm_ab"])
+    assert abs(m["delta"]["paa_y"]) < 0.5                # the cast leaves the direction alone
+    assert out["frames"][0]["scene_gaussians"] == 500
+
+
+def test_wasserstein_known_transports():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(40, 2))
+    t = np.array([3.0, -4.0])
+    d, method = wasserstein_2d(a, a + t)
+    assert method == "assignment" and d == pytest.approx(5.0, rel=1e-12)  # a translation costs |t|
+    # Hand-solved weighted case: two half-masses at (0,0), (1,0) → one unit mass at (0,1).
+    d, method = wasserstein_2d(np.array([[0.0, 0], [1, 0]]), np.array([[0.0, 1]]),
+                               np.array([0.5, 0.5]), np.array([1.0]))
+    assert method == "exact-lp" and d == pytest.approx((1 + math.sqrt(2)) / 2, rel=1e-9)
+
+
+def test_wasserstein_paths_agree():
+    from scipy.stats import wasserstein_distance_nd
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(30, 2)), rng.normal(size=(30, 2)) + 0.5
+    d, method = wasserstein_2d(a, b)
+    assert method == "assignment"
+    assert d == pytest.approx(wasserstein_distance_nd(a, b), rel=1e-7)   # LP solver tolerance
+    # Large unequal sets: resampled assignment vs the translation answer (sampling noise).
+    big = rng.normal(size=(3000, 2))
+    d, method = wasserstein_2d(big, big[:2000] + [5.0, 0.0], max_points=512)
+    assert method == "assignment-resampled"
+    assert d == pytest.approx(5.0, abs=0.4)
+
+
+def test_pseudo_normals_match_slow_twin():
+    rng = np.random.default_rng(2)
+    p = rng.normal(size=(150, 3)) * [1.0, 0.6, 0.3]
+    w = rng.uniform(0.2, 1.0, 150)
+    fast = pseudo_normals(p, w, k=12)
+    slow = pseudo_normals_reference(p, w, k=12)
+    np.testing.assert_allclose(fast, slow, atol=1e-9)
+
+
+def test_robust_fit_trims_outliers():
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0, 1, 400)
+    y = 2.0 * x + 0.5
+    y[:12] += rng.uniform(5, 10, 12)                     # 3 % gross outliers
+    coef, res, kept = robust_linear_fit(np.stack([x, np.ones_like(x)], 1), y)
+    # Trimming leaves exact inliers; the fit's 1e-9 relative ridge biases by ~1e-9.
+    assert coef == pytest.approx([2.0, 0.5], abs=1e-7)
+    assert not kept[:12].any() and np.abs(res).max() < 1e-7
+
+
+# ------------------------------------------------------------------ CLI
+
+
+@pytest.fixture
+def plys(setup, tmp_path):
+    scene, _, _, avatar = setup
+    write_gaussians(str(tmp_path / "scene.ply"), scene)
+    write_gaussians(str(tmp_path / "avatar.ply"), avatar)
+    cast = gaussians(avatar.means, np.clip(avatar.colors() * [1.3, 1.0, 0.7], 0, 1), 0.01)
+    write_gaussians(str(tmp_path / "relit.ply"), cast)
+    return tmp_path
+
+
+def test_cli_in_process(run_cli, plys):
+    out = plys / "l.json"
+    r = run_cli("metrics", "lighting", "--scene", plys / "scene.ply", "--avatar", plys / "avatar.ply",
+                "--relit", plys / "relit.ply", "--radius", "1.5", "-o", out)
+    assert r.exit_code == 0, r.output
+    rec = json.loads(out.read_text())
+    assert rec["kind"] == "lighting" and list(rec["metrics"]) == ["orig", "relit", "delta"]
+    assert rec["metrics"]["orig"]["paa_y"] < 0.5 and rec["metrics"]["delta"]["ncm_ab"] > 5
+    assert set(rec["inputs"]) == {"scene", "avatar:0", "relit:0"}
+    assert len(rec["frames"]) == 1
+
+
+def test_cli_subprocess_and_bad_input(plys):
+    r = run_relight("metrics", "lighting", "--scene", plys / "scene.ply", "--avatar",
+                    plys / "avatar.ply", "-q")
+    assert r.returncode == 0, r.stderr
+    assert list(json.loads(r.stdout)["metrics"]) == ["orig"]
+    out = plys / "x.json"
+    r = run_relight("metrics", "lighting", "--scene", plys / "scene.ply", "--avatar",
+                    plys / "avatar.ply", "--normals", "ply", "-o", out)
+    assert r.returncode == 1 and "no normals" in r.stderr and "avatar.ply" in r.stderr
+    r = run_relight("metrics", "lighting", "--scene", plys / "scene.ply", "--avatar",
+                    plys / "avatar.ply", "--radius", "0.5", "-o", out)
+    assert r.returncode == 1 and "within radius" in r.stderr
+    r = run_relight("metrics", "lighting", "--scene", plys / "scene.ply", "--avatar",
+                    plys / "avatar.ply", "--relit", plys / "relit.ply", "--relit",
+                    plys / "relit.ply", "-o", out)
+    assert r.returncode == 2
+    # A PLY without colours (no f_dc_*): the reader's one-line error.
+    from plyfile import PlyData, PlyElement
+    v = np.zeros(20, dtype=[(n, "f4") for n in ("x", "y", "z", "opacity", "scale_0", "scale_1",
+                                                  "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")])
+    v["rot_0"] = 1
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(plys / "nocolour.ply"))
+    r = run_relight("metrics", "lighting", "--scene", plys / "scene.ply", "--avatar",
+                    plys / "nocolour.ply", "-o", out)
+    assert r.returncode == 1 and "f_dc" in r.stderr and "nocolour.ply" in r.stderr
+    assert r.stderr.strip().count("\n") == 0
+    assert not out.exists()
