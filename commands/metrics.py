@@ -221,6 +221,8 @@ def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpi
         if lpips_weights is None:
             raise UsageProblem("--lpips needs --lpips-weights FILE (local weights; relight never "
                                "downloads network weights)")
+        if space == "linear":
+            raise UsageProblem("LPIPS compares display images: add --space srgb or --space display")
         from relight_cli.metrics.lpips import load_lpips
         lpips_net = load_lpips(check_input(lpips_weights))
     pairs, extra = match_pairs(pred, gt)

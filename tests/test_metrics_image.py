@@ -263,3 +263,37 @@ def test_bad_input_subprocess(images):
     assert r.returncode == 1
     assert r.stderr.strip().count("\n") == 0 and "missing.exr" in r.stderr
     assert not (d / "x.json").exists()
+
+
+def test_lpips_with_local_weights(run_cli, tmp_path):
+    """LPIPS runs only from a local state dict; random weights check the plumbing
+    (identical images → 0, different → > 0), not published LPIPS values."""
+    torch = pytest.importorskip("torch")
+    from relight_cli.metrics.lpips import _CONVS
+    g = torch.Generator().manual_seed(0)
+    state = {}
+    for i, (name, cin, cout, k, _, _) in enumerate(_CONVS):
+        state[f"{name}.weight"] = torch.randn(cout, cin, k, k, generator=g) * 0.05
+        state[f"{name}.bias"] = torch.zeros(cout)
+        state[f"lin{i}.model.1.weight"] = torch.rand(1, cout, 1, 1, generator=g)
+    torch.save(state, tmp_path / "lpips.pth")
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(0, 1, (48, 48, 3)).astype(np.float32)
+    write_png(str(tmp_path / "gt.png"), gt)
+    write_png(str(tmp_path / "pred.png"), np.clip(gt + 0.2, 0, 1))
+    r = run_cli("metrics", "image", tmp_path / "gt.png", tmp_path / "gt.png", "--space", "display",
+                "--lpips-weights", tmp_path / "lpips.pth", "-o", tmp_path / "same.json")
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "same.json").read_text())["metrics"]["lpips"] == 0.0
+    r = run_cli("metrics", "image", tmp_path / "pred.png", tmp_path / "gt.png", "--space", "display",
+                "--lpips-weights", tmp_path / "lpips.pth", "-o", tmp_path / "diff.json")
+    assert json.loads((tmp_path / "diff.json").read_text())["metrics"]["lpips"] > 0
+    del state["lin4.model.1.weight"]
+    torch.save(state, tmp_path / "bad.pth")
+    r = run_cli("metrics", "image", tmp_path / "pred.png", tmp_path / "gt.png", "--space", "display",
+                "--lpips-weights", tmp_path / "bad.pth", "-o", tmp_path / "x.json")
+    assert r.exit_code == 1 and "lin4.model.1.weight" in r.output
+    r = run_cli("metrics", "image", tmp_path / "pred.png", tmp_path / "gt.png",
+                "--lpips-weights", tmp_path / "lpips.pth", "-o", tmp_path / "x.json")
+    assert r.exit_code == 2 and "--space" in r.output      # LPIPS needs display values
+    assert not (tmp_path / "x.json").exists()
