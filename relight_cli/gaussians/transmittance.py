@@ -224,13 +224,25 @@ def pair_terms(mix: Mixture, origins, directions, gaussian_index,
     """
     gi = np.asarray(gaussian_index, np.int64)
     o = np.asarray(origins, np.float64)
-    smax = mix.scale_max[gi]
     rot = mix.rotation[gi]
     # Principal-frame coordinates d_l = Rᵀd, r_l = Rᵀ(o − μ)/s_max, projected in
     # float64 and only then cast: each component keeps its own relative precision,
     # so a ray 1 µm off a 1 µm thin disc is still resolved in float32.
     d_l = np.einsum("pji,pj->pi", rot, np.asarray(directions, np.float64)).astype(dtype)
-    r_l = np.einsum("pji,pj->pi", rot, (o - mix.means[gi]) / smax[:, None]).astype(dtype)
+    r_l = np.einsum("pji,pj->pi", rot, (o - mix.means[gi]) / mix.scale_max[gi, None]).astype(dtype)
+    return local_pair_terms(mix, r_l, d_l, gi, dtype)
+
+
+def local_pair_terms(mix: Mixture, r_l, d_l, gaussian_index, dtype=np.float64) -> PairTerms:
+    """:func:`pair_terms` from principal-frame inputs (for callers that batch them).
+
+    Args:
+        r_l: [P, 3] Rᵀ(o − μ)/s_max, the ray origin in the Gaussian's normalized frame.
+        d_l: [P, 3] Rᵀd, the unit direction in the Gaussian's frame.
+        gaussian_index: [P] int.
+    """
+    gi = gaussian_index
+    smax = mix.scale_max[gi]
     cof = mix.cof[gi].astype(dtype, copy=False)
     var = mix.var[gi].astype(dtype, copy=False)
     A = np.einsum("pi,pi->p", cof, d_l * d_l)                 # dᵀ adjΣ̃ d ≥ min cof > 0

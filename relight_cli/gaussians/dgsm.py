@@ -1,0 +1,613 @@
+"""Deep Gaussian Shadow Maps: per-light transmittance tabulated on radial shells.
+
+For each point light at L, an H×W direction atlas (octahedral, paper Eq. 6, or a
+cube map for the ablation) of world directions ω from the light is crossed with
+K radial bins whose centres are t_k = (k + ½)·t_max / K.  The table holds
+T(ω, t_k) = exp(−τ(L, L + t_k ω)), the closed-form transmittance through the
+occluder Gaussians (:mod:`relight_cli.gaussians.transmittance`).
+
+Only what the scene needs is computed:
+
+* Receiver ROI: receivers (scene points) that can be shadowed at all — within
+  ``roi_radius`` of the occluders' alpha-weighted centroid (if given), inside
+  robust height bounds, and whose segment to the light passes through the
+  occluders' bounding sphere — mark the atlas texels (with their bilinear
+  neighbours) and the radial bin range [k0, k1] that lookups will read.
+  Everything else is T = 1 by construction.
+* Light-space occluder culling: a Gaussian i may be dropped from a ray when its
+  optical depth there is below ``cull_tolerance`` ε.  With the per-Gaussian peak
+  bound b_i (:meth:`Mixture.peak_bound`) that happens outside the Mahalanobis
+  radius k_i = √(2 ln(b_i / ε)) (the k_σ ellipse of the projected covariance in
+  the plane ⊥ the ray).  Culling is hierarchical: 8×8 texel tiles (cone test
+  against the Gaussian's bounding cone), then texels (cone), then the exact
+  projected-covariance ellipse m² ≤ k_i², plus radial culling (a Gaussian
+  entirely beyond the last needed bin).  The culled table equals the unculled one
+  to (number of nearly-touching Gaussians)·ε (tested ≤ 1e-5).
+
+Octahedral atlas (this toolkit's Eq. 6 convention, spec in formats/dgsm_exr.md):
+direction ω = (x, y, z), n = |x| + |y| + |z|; the lower hemisphere (y ≤ 0, where
+receivers of a ceiling light are) is the central diamond (u, v) = (x, z)/n; the
+upper hemisphere folds out to the corners: u = (1 − |z/n|)·sgn x,
+v = (1 − |x/n|)·sgn z (sgn 0 = +1).  Texel column x ↦ u = 2(x + ½)/W − 1, row y
+(top row 0) ↦ v = 1 − 2(y + ½)/H.  Cube atlas: OpenEXR's ImfEnvmap cube layout
+(six N×N faces stacked +X −X +Y −Y +Z −Z, W = N, H = 6N), as relight_cli.envmap.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import transmittance as TR
+
+LAYOUTS = ("octahedral", "cube")
+FOOTPRINTS = ("centre", "stencil", "mc")
+TILE = 8
+_ERF_WINDOW = 6.5          # |u| beyond which erf(u) = ±1 to < 1e-19 (erfc(6.5) ≈ 4e-20)
+_STENCIL_H = math.sqrt(3.5)  # 7 equal weights: mean and covariance of the Gaussian exact
+
+
+@dataclass
+class DGSM:
+    """A built shadow map for L lights.
+
+    Attributes:
+        transmittance: [L, K, H, W] float32 T at bin centres t_k (1 outside the ROI).
+        lights: [L, 3] light positions, metres, world.
+        t_max: [L] radial extent per light, metres; bin k centre = (k + ½) t_max / K.
+        layout: "octahedral" or "cube".
+        mapping: opacity→absorption mapping used; kappa: its κ.
+        roi: per light, a dict with the texel bbox ``pixels`` [x0, y0, x1, y1]
+            (inclusive), ``bins`` [k0, k1] (inclusive; [0, −1] when empty),
+            ``centroid`` [3], ``radius`` (m or None), ``height`` [lo, hi],
+            ``receivers`` (count in the ROI), ``texels`` (count computed).
+        build_seconds: wall time of :func:`build_dgsm`.
+        stats: counters (pairs tested/kept, Gaussians after culling ...).
+    """
+
+    transmittance: np.ndarray
+    lights: np.ndarray
+    t_max: np.ndarray
+    layout: str = "octahedral"
+    mapping: str = "eq5"
+    kappa: float = 1.0
+    roi: list = field(default_factory=list)
+    build_seconds: float = 0.0
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def bins(self) -> int:
+        return self.transmittance.shape[1]
+
+    @property
+    def height(self) -> int:
+        return self.transmittance.shape[2]
+
+    @property
+    def width(self) -> int:
+        return self.transmittance.shape[3]
+
+
+# ------------------------------------------------------------------ atlas geometry
+
+
+def octahedral_encode(directions: np.ndarray) -> np.ndarray:
+    """[N, 3] directions (any length > 0) → [N, 2] (u, v) ∈ [−1, 1]² (see module doc)."""
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    n = np.abs(d).sum(axis=1)
+    n = np.where(n > 0, n, 1.0)
+    x, y, z = d[:, 0] / n, d[:, 1] / n, d[:, 2] / n
+    sx = np.where(x >= 0, 1.0, -1.0)
+    sz = np.where(z >= 0, 1.0, -1.0)
+    up = y > 0
+    u = np.where(up, (1 - np.abs(z)) * sx, x)
+    v = np.where(up, (1 - np.abs(x)) * sz, z)
+    return np.stack([u, v], axis=1)
+
+
+def octahedral_decode(uv: np.ndarray) -> np.ndarray:
+    """[N, 2] (u, v) → [N, 3] unit directions (inverse of :func:`octahedral_encode`)."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    u, v = uv[:, 0], uv[:, 1]
+    h = 1 - np.abs(u) - np.abs(v)
+    su = np.where(u >= 0, 1.0, -1.0)
+    sv = np.where(v >= 0, 1.0, -1.0)
+    x = np.where(h >= 0, u, (1 - np.abs(v)) * su)
+    z = np.where(h >= 0, v, (1 - np.abs(u)) * sv)
+    d = np.stack([x, -h, z], axis=1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def cube_face_size(height: int, width: int) -> int:
+    """Face size N of a cube atlas with about as many texels as an H×W octahedral one."""
+    return max(2, int(round(math.sqrt(height * width / 6.0))))
+
+
+@functools.lru_cache(maxsize=8)
+def _atlas_directions_cached(layout: str, height: int, width: int) -> np.ndarray:
+    if layout == "octahedral":
+        xs = 2 * (np.arange(width) + 0.5) / width - 1
+        ys = 1 - 2 * (np.arange(height) + 0.5) / height
+        u, v = np.meshgrid(xs, ys)
+        d = octahedral_decode(np.stack([u.ravel(), v.ravel()], axis=1)).reshape(height, width, 3)
+    elif layout == "cube":
+        from relight_cli.envmap import cube_directions
+        if height != 6 * width:
+            raise ValueError(f"a cube atlas is N wide and 6N high, got {width}x{height}")
+        d = cube_directions(width)
+    else:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    d.setflags(write=False)
+    return d
+
+
+def atlas_directions(layout: str, height: int, width: int) -> np.ndarray:
+    """[H, W, 3] float64 unit world directions at texel centres."""
+    return _atlas_directions_cached(layout, int(height), int(width))
+
+
+def atlas_pixel(directions: np.ndarray, layout: str, height: int, width: int) -> np.ndarray:
+    """[N, 2] continuous texel coordinates (x, y) of directions (texel centres at integers)."""
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    if layout == "octahedral":
+        uv = octahedral_encode(d)
+        x = (uv[:, 0] + 1) * width / 2 - 0.5
+        y = (1 - uv[:, 1]) * height / 2 - 0.5
+        return np.stack([x, y], axis=1)
+    from relight_cli.envmap import cube_pixel
+    return cube_pixel(d, width)
+
+
+def _bilinear_taps(pix: np.ndarray, layout: str, height: int, width: int):
+    """The 4 texels and weights of bilinear lookups: ([N, 4] rows, [N, 4] cols, [N, 4] w).
+
+    Octahedral: clamped to the atlas.  Cube: clamped inside the face (no
+    cross-face filtering; an ablation-quality choice, documented).
+    """
+    x, y = pix[:, 0], pix[:, 1]
+    if layout == "octahedral":
+        ylo, yhi = 0.0, height - 1.0
+    else:
+        face = np.clip(np.floor((y + 0.5) / width), 0, 5)
+        ylo, yhi = face * width, face * width + width - 1.0
+    x = np.clip(x, 0, width - 1.0)
+    y = np.clip(y, ylo, yhi)
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = x - x0
+    fy = y - y0
+    x1 = np.minimum(x0 + 1, width - 1)
+    y1 = np.minimum(y0 + 1, yhi)
+    cols = np.stack([x0, x1, x0, x1], axis=1).astype(np.int64)
+    rows = np.stack([y0, y0, y1, y1], axis=1).astype(np.int64)
+    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    return rows, cols, w
+
+
+# ------------------------------------------------------------------ receiver footprints
+
+
+def footprint_samples(points, scales=None, rotations=None, footprint: str = "centre",
+                      samples: int = 16, seed: int = 0):
+    """Sample points over each receiver's footprint (paper ablation A).
+
+    Args:
+        points: [M, 3] receiver centres, metres, world.
+        scales: [M, 3] receiver Gaussian std devs (metres), needed unless "centre".
+        rotations: [M, 4] w-first quaternions (or [M, 3, 3]), needed unless "centre".
+        footprint: "centre" (1 sample), "stencil" (deterministic 7 points: the
+            centre and ±√3.5·s_k along each principal axis, equal weights, which
+            reproduce the Gaussian's mean and covariance exactly) or "mc"
+            (``samples`` seeded normal draws in the principal frame, equal weights).
+    Returns:
+        ([M, S, 3] sample positions, S) with equal weights 1/S.
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if footprint not in FOOTPRINTS:
+        raise ValueError(f"footprint must be one of {FOOTPRINTS}, got {footprint!r}")
+    if footprint == "centre":
+        return points[:, None, :], 1
+    if scales is None or rotations is None:
+        raise ValueError(f"footprint {footprint!r} needs the receivers' scales and rotations")
+    m = len(points)
+    s = np.asarray(scales, np.float64).reshape(m, 3)
+    rot = np.asarray(rotations, np.float64)
+    R = TR._quat_to_matrix(rot.reshape(m, 4)) if rot.size == 4 * m else rot.reshape(m, 3, 3)
+    if footprint == "stencil":
+        offsets = np.zeros((7, 3))
+        for k in range(3):
+            offsets[1 + 2 * k, k] = _STENCIL_H
+            offsets[2 + 2 * k, k] = -_STENCIL_H
+    else:
+        if samples < 1:
+            raise ValueError("samples must be ≥ 1")
+        offsets = np.random.default_rng(seed).standard_normal((samples, 3))
+    local = offsets[None, :, :] * s[:, None, :]                  # [M, S, 3] principal frame
+    world = np.einsum("mij,msj->msi", R, local)
+    return points[:, None, :] + world, len(offsets)
+
+
+# ------------------------------------------------------------------ ROI
+
+
+def receiver_roi(mix: TR.Mixture, light, receivers: np.ndarray, roi_radius: float | None = None,
+                 cull_tolerance: float = 1e-7):
+    """Which receivers of one light need a table entry (see module doc).
+
+    Args:
+        mix: occluders.
+        light: [3] position, metres.
+        receivers: [M, 3] points (centres or footprint samples), metres, world.
+        roi_radius: optional cap R on the distance to the occluders' alpha-weighted
+            centroid, metres.
+    Returns:
+        ([M] bool mask, info dict with centroid, radius, height bounds).
+    """
+    light = np.asarray(light, np.float64).reshape(3)
+    receivers = np.asarray(receivers, np.float64).reshape(-1, 3)
+    centroid = mix.alpha_weighted_centroid()
+    radius_k = _truncation_radius(mix, cull_tolerance)
+    keep_g = np.isfinite(radius_k)
+    if keep_g.any():
+        reach = np.linalg.norm(mix.means[keep_g] - centroid, axis=1) + radius_k[keep_g] * mix.scale_max[keep_g]
+        bound = float(reach.max())
+        top = float(np.max(mix.means[keep_g, 1] + radius_k[keep_g] * mix.scale_max[keep_g]))
+    else:
+        bound, top = 0.0, -np.inf
+    mask = np.ones(len(receivers), bool)
+    if roi_radius is not None:
+        mask &= np.linalg.norm(receivers - centroid, axis=1) <= roi_radius
+    # Robust height bounds: below, drop floaters under the floor (0.5th percentile
+    # minus 5 cm); above, a receiver higher than every occluder cannot be shadowed
+    # by a light that is higher still.
+    lo = -np.inf
+    if len(receivers) >= 200:
+        lo = float(np.percentile(receivers[:, 1], 0.5)) - 0.05
+    hi = top if light[1] >= top else np.inf
+    mask &= (receivers[:, 1] >= lo) & (receivers[:, 1] <= hi)
+    # Exact reach test: the segment light→receiver must pass through the bounding sphere.
+    if keep_g.any():
+        v = receivers - light
+        length = np.linalg.norm(v, axis=1)
+        dirs = v / np.where(length > 0, length, 1)[:, None]
+        w = centroid - light
+        t = np.clip(dirs @ w, 0, length)
+        closest = light + t[:, None] * dirs
+        mask &= np.linalg.norm(closest - centroid, axis=1) <= bound
+    else:
+        mask[:] = False
+    info = {"centroid": [float(c) for c in centroid],
+            "radius": None if roi_radius is None else float(roi_radius),
+            "height": [float(lo), float(hi)],
+            "bounding_radius": bound}
+    return mask, info
+
+
+def _truncation_radius(mix: TR.Mixture, tolerance: float) -> np.ndarray:
+    """[N] Mahalanobis radius k_i beyond which Gaussian i adds < tolerance to τ (NaN: nowhere)."""
+    bound = mix.peak_bound()
+    with np.errstate(divide="ignore"):
+        k2 = 2 * np.log(np.maximum(bound, 1e-300) / tolerance)
+    k = np.sqrt(np.maximum(k2, 0.0))
+    # a Gaussian whose peak is already below the tolerance contributes nothing anywhere
+    return np.where(bound > tolerance, k, np.nan)
+
+
+# ------------------------------------------------------------------ build
+
+
+def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 128),
+               bins: int = 64, layout: str = "octahedral", mapping: str = "eq5",
+               kappa: float = 1.0, t_max=None, roi: bool = True,
+               roi_radius: float | None = None, cull: bool = True,
+               cull_tolerance: float = 1e-7, dtype=np.float32, chunk: int = 1 << 20,
+               progress=None) -> DGSM:
+    """Build a deep Gaussian shadow map.
+
+    Args:
+        occluders: a ``Gaussians`` (formats.gaussians_ply) or a prepared
+            :class:`~relight_cli.gaussians.transmittance.Mixture` (then
+            ``mapping``/``kappa`` are taken from it).
+        lights: [L, 3] point-light positions, metres, world.
+        receivers: [M, 3] receiver points (scene Gaussian centres, or footprint
+            samples from :func:`footprint_samples`), metres, world; None = no ROI
+            (then ``t_max`` is required).
+        size: (H, W) of the octahedral atlas; a cube atlas uses faces of
+            :func:`cube_face_size` (about the same texel count).
+        bins: K radial bins.
+        layout: "octahedral" (paper) or "cube" (ablation C).
+        t_max: per-light radial extent (scalar or [L]); default: the farthest ROI
+            receiver sits at the last bin centre, t_max = d_max·K/(K − ½).
+        roi: restrict to texels/bins that ROI receivers read.
+        roi_radius: optional radius R around the occluders' alpha-weighted centroid.
+        cull: light-space occluder culling (tiles, texels, k_σ ellipse, radial).
+        cull_tolerance: ε, the largest optical depth a culled Gaussian may have had.
+        dtype: precision of the per-pair closed form (float32 fast path or float64).
+        progress: optional callable(iterable, total) → iterable for a progress bar.
+    Returns:
+        :class:`DGSM`.
+    """
+    start = time.perf_counter()
+    if isinstance(occluders, TR.Mixture):
+        mix = occluders
+    else:
+        mix = TR.from_gaussians(occluders, mapping, kappa)
+    lights = np.asarray(lights, np.float64).reshape(-1, 3)
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    h, w = int(size[0]), int(size[1])
+    if layout == "cube":
+        n = cube_face_size(h, w)
+        h, w = 6 * n, n
+    if bins < 1:
+        raise ValueError("bins must be ≥ 1")
+    if receivers is None and t_max is None:
+        raise ValueError("without receivers, t_max must be given")
+    dirs = atlas_directions(layout, h, w).reshape(-1, 3)
+    n_lights = len(lights)
+    table = np.ones((n_lights, bins, h, w), np.float32)
+    t_maxes = np.zeros(n_lights)
+    rois = []
+    stats = {"pairs_tested": 0, "pairs_kept": 0, "gaussians": len(mix), "gaussians_used": [],
+             "texels_computed": 0, "bins_computed": 0}
+    trunc = _truncation_radius(mix, cull_tolerance)
+    iterator = range(n_lights) if progress is None else progress(range(n_lights), n_lights)
+    for li in iterator:
+        light = lights[li]
+        if receivers is not None:
+            recv = np.asarray(receivers, np.float64).reshape(-1, 3)
+            if roi:
+                mask, info = receiver_roi(mix, light, recv, roi_radius, cull_tolerance)
+            else:
+                mask = np.ones(len(recv), bool)
+                info = {"centroid": [float(c) for c in mix.alpha_weighted_centroid()],
+                        "radius": None, "height": [-math.inf, math.inf]}
+            sel = recv[mask]
+        else:
+            sel = np.zeros((0, 3))
+            info = {"centroid": [float(c) for c in mix.alpha_weighted_centroid()],
+                    "radius": None, "height": [-math.inf, math.inf]}
+        if t_max is not None:
+            tm = float(np.broadcast_to(np.asarray(t_max, np.float64), (n_lights,))[li])
+        else:
+            all_recv = np.asarray(receivers, np.float64).reshape(-1, 3)
+            far = np.linalg.norm((sel if len(sel) else all_recv) - light, axis=1)
+            tm = float(far.max()) * bins / (bins - 0.5) if len(far) else 1.0
+            tm = max(tm, 1e-6)
+        t_maxes[li] = tm
+        # Texels and bins to compute.
+        if roi and receivers is not None:
+            texel_mask = np.zeros(h * w, bool)
+            if len(sel):
+                v = sel - light
+                dist = np.linalg.norm(v, axis=1)
+                rows, cols, _ = _bilinear_taps(atlas_pixel(v, layout, h, w), layout, h, w)
+                texel_mask[(rows * w + cols).ravel()] = True
+                r = dist * bins / tm - 0.5
+                k0 = int(np.clip(np.floor(r.min()), 0, bins - 1))
+                k1 = int(np.clip(np.floor(r.max()) + 1, 0, bins - 1))
+            else:
+                k0, k1 = 0, -1
+        else:
+            texel_mask = np.ones(h * w, bool)
+            k0, k1 = 0, bins - 1
+        texels = np.flatnonzero(texel_mask)
+        if k1 < k0:
+            texels = texels[:0]
+        info.update(receivers=int(len(sel)), texels=int(len(texels)), bins=[k0, k1])
+        if len(texels):
+            ys, xs = np.divmod(texels, w)
+            info["pixels"] = [int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max())]
+        else:
+            info["pixels"] = [0, 0, -1, -1]
+        rois.append(info)
+        if len(texels) == 0:
+            stats["gaussians_used"].append(0)
+            continue
+        tau = _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, tm, h, w, cull,
+                                   trunc, dtype, chunk, stats)
+        table[li, k0:k1 + 1].reshape(k1 - k0 + 1, h * w)[:, texels] = np.exp(-tau.T)
+        stats["texels_computed"] += int(len(texels))
+        stats["bins_computed"] += int(k1 - k0 + 1)
+    return DGSM(table, lights, t_maxes, layout, mix.mapping, mix.kappa, rois,
+                time.perf_counter() - start, stats)
+
+
+def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cull, trunc,
+                         dtype, chunk, stats):
+    """[T, k1−k0+1] optical depth for the given texels and bins of one light."""
+    n_bins = k1 - k0 + 1
+    t_centres = (np.arange(k0, k1 + 1) + 0.5) * t_max / bins
+    # Per-Gaussian light-space quantities (shared by every texel of this light).
+    rel = mix.means - light
+    dist = np.linalg.norm(rel, axis=1)
+    gdir = rel / np.where(dist > 0, dist, 1)[:, None]
+    r_l_all = np.einsum("nji,nj->ni", mix.rotation, -rel / mix.scale_max[:, None])
+    if cull:
+        usable = np.isfinite(trunc)
+        reach = np.where(usable, trunc, 0) * mix.scale_max           # bounding-sphere radius, m
+        usable &= dist - reach <= t_centres[-1]                      # radial: not beyond the last bin
+        with np.errstate(invalid="ignore"):
+            half_angle = np.where(dist > reach, np.arcsin(np.clip(reach / np.maximum(dist, 1e-300), 0, 1)),
+                                  np.pi)
+        candidates = np.flatnonzero(usable)
+    else:
+        candidates = np.arange(len(mix))
+    pair_tex, pair_g = [], []
+    if cull and len(candidates):
+        # Tiles of 8×8 texels holding at least one needed texel.
+        ty, tx = np.divmod(texels, w)
+        tile_id = (ty // TILE) * ((w + TILE - 1) // TILE) + tx // TILE
+        order = np.argsort(tile_id, kind="stable")
+        tile_sorted = tile_id[order]
+        bounds = np.flatnonzero(np.diff(tile_sorted)) + 1
+        groups = np.split(order, bounds)
+        # One cone around all needed texels first: most occluders of a light
+        # project far from the receivers' texels.
+        tex_dirs = dirs[texels]
+        all_centre = tex_dirs.mean(axis=0)
+        all_centre /= max(np.linalg.norm(all_centre), 1e-300)
+        all_rad = float(np.arccos(np.clip(tex_dirs @ all_centre, -1, 1)).max())
+        ang_all = np.arccos(np.clip(gdir[candidates] @ all_centre, -1, 1))
+        candidates = candidates[ang_all <= half_angle[candidates] + all_rad + 1e-9]
+        gd = gdir[candidates]
+        ang_g = half_angle[candidates]
+        # float32 for the dense texel test; the 1e-5 slack (≫ float32 rounding)
+        # only makes it more conservative, the exact ellipse test follows.
+        gd32 = gd.astype(np.float32)
+        cos_g32 = (np.cos(ang_g) - 1e-5).astype(np.float32)
+        for grp in groups:
+            tdirs = tex_dirs[grp]                                      # [n, 3]
+            centre = tdirs.mean(axis=0)
+            centre /= max(np.linalg.norm(centre), 1e-300)
+            tile_rad = float(np.arccos(np.clip(tdirs @ centre, -1, 1)).max())
+            # angle(centre, g) ≤ half-angle + tile radius, compared as cosines
+            near = np.flatnonzero(gd @ centre >= np.cos(np.minimum(ang_g + tile_rad + 1e-9, np.pi)))
+            stats["pairs_tested"] += int(len(near)) * len(grp)
+            if len(near) == 0:
+                continue
+            # texel-level cone test: cos(angle) ≥ cos(half-angle)
+            hit = (tdirs.astype(np.float32) @ gd32[near].T) >= cos_g32[near][None, :]
+            ti, gj = np.nonzero(hit)
+            pair_tex.append(grp[ti])
+            pair_g.append(candidates[near[gj]])
+    elif len(candidates):
+        stats["pairs_tested"] += int(len(candidates)) * len(texels)
+        pair_tex.append(np.repeat(np.arange(len(texels)), len(candidates)))
+        pair_g.append(np.tile(candidates, len(texels)))
+    stats["gaussians_used"].append(int(len(candidates)))
+    tau = np.zeros((len(texels), n_bins))
+    if not pair_tex:
+        return tau
+    pt = np.concatenate(pair_tex)
+    pg = np.concatenate(pair_g)
+    step = np.zeros(len(texels) * (n_bins + 1))
+    direct = np.zeros(len(texels) * n_bins)
+    kept = 0
+    for s in range(0, len(pt), chunk):
+        ti, gi = pt[s:s + chunk], pg[s:s + chunk]
+        d = dirs[texels[ti]]
+        d_l = np.einsum("pji,pj->pi", mix.rotation[gi], d).astype(dtype)
+        terms = TR.local_pair_terms(mix, r_l_all[gi].astype(dtype), d_l, gi, dtype)
+        if cull:
+            ok = terms.m2 <= trunc[gi] ** 2
+            ti, gi = ti[ok], gi[ok]
+            terms = TR.PairTerms(terms.t_star[ok], terms.sigma_t[ok], terms.m2[ok],
+                                 terms.half_amplitude[ok])
+        kept += len(ti)
+        _accumulate(terms, ti, t_max, bins, k0, k1, step, direct)
+    stats["pairs_kept"] += kept
+    step = step.reshape(len(texels), n_bins + 1)[:, :n_bins]
+    return np.cumsum(step, axis=1) + direct.reshape(len(texels), n_bins)
+
+
+def _accumulate(terms: TR.PairTerms, ti, t_max, bins, k0, k1, step, direct):
+    """Add each pair's τ(t_k) = G·[erf(u_k) − erf(u_0)] for bins k0..k1.
+
+    Bins inside the erf's transition window |u| ≤ 6.5 are evaluated explicitly;
+    from the first bin past the window on, the term is the constant G·erfc(u_0),
+    added once to ``step`` and spread by a cumulative sum.
+    """
+    n_bins = k1 - k0 + 1
+    t_star = terms.t_star.astype(np.float64)
+    sig = terms.sigma_t.astype(np.float64)
+    G = terms.half_amplitude.astype(np.float64)
+    width = _ERF_WINDOW * math.sqrt(2) * sig
+    scale = bins / t_max
+    k_lo = np.ceil((t_star - width) * scale - 0.5)
+    k_hi = np.floor((t_star + width) * scale - 0.5) + 1          # first bin past the window
+    k_lo = np.clip(k_lo, k0, k1 + 1).astype(np.int64)
+    k_hi = np.clip(k_hi, k0, k1 + 1).astype(np.int64)
+    u0 = terms.u(np.zeros((), terms.t_star.dtype))
+    # step: G·erfc(u0) at k_hi (if inside the range)
+    from scipy.special import erfc
+    has_step = k_hi <= k1
+    if has_step.any():
+        full = G[has_step] * erfc(u0[has_step].astype(np.float64))
+        idx = ti[has_step] * (n_bins + 1) + (k_hi[has_step] - k0)
+        step += np.bincount(idx, full, minlength=len(step))
+    count = np.maximum(k_hi - k_lo, 0)
+    total = int(count.sum())
+    if total:
+        rep = np.repeat(np.arange(len(count)), count)
+        first = np.repeat(np.cumsum(count) - count, count)
+        k = k_lo[rep] + (np.arange(total) - first)
+        tk = (k + 0.5) * (t_max / bins)
+        u_k = ((tk - t_star[rep]) / (math.sqrt(2) * sig[rep]))
+        vals = G[rep] * TR.erf_difference(u0[rep].astype(np.float64), np.maximum(u_k, u0[rep]))
+        idx = ti[rep] * n_bins + (k - k0)
+        direct += np.bincount(idx, vals, minlength=len(direct))
+
+
+def build_dgsm_reference(mix: TR.Mixture, light, size, bins, t_max, layout="octahedral"):
+    """Slow twin: [K, H, W] T for EVERY texel and bin by the dense float64 closed form."""
+    h, w = size
+    if layout == "cube":
+        n = cube_face_size(h, w)
+        h, w = 6 * n, n
+    dirs = atlas_directions(layout, h, w).reshape(-1, 3)
+    light = np.asarray(light, np.float64)
+    out = np.empty((bins, h * w))
+    for k in range(bins):
+        tk = (k + 0.5) * t_max / bins
+        out[k] = TR.transmittance(mix, np.broadcast_to(light, dirs.shape), dirs, 0.0, tk)
+    return out.reshape(bins, h, w)
+
+
+# ------------------------------------------------------------------ lookup
+
+
+def lookup(dgsm: DGSM, light_index: int, points: np.ndarray) -> np.ndarray:
+    """[M] trilinear T at points [M, 3] (metres, world) for one light.
+
+    Bilinear over texels (clamped at the atlas border, or inside the face for
+    the cube), linear over bins; between the light (T = 1 at t = 0) and the first
+    bin centre it interpolates from 1; beyond the last bin centre it clamps.
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    light = dgsm.lights[light_index]
+    table = dgsm.transmittance[light_index]                       # [K, H, W]
+    K, H, W = table.shape
+    v = points - light
+    dist = np.linalg.norm(v, axis=1)
+    rows, cols, wts = _bilinear_taps(atlas_pixel(v, dgsm.layout, H, W), dgsm.layout, H, W)
+    r = dist * K / dgsm.t_max[light_index] - 0.5
+    r = np.clip(r, -0.5, K - 1)
+    k0 = np.floor(r).astype(np.int64)
+    f = r - k0
+    ka = np.clip(k0, 0, K - 1)
+    kb = np.clip(k0 + 1, 0, K - 1)
+    ta = (table[ka[:, None], rows, cols] * wts).sum(axis=1)
+    tb = (table[kb[:, None], rows, cols] * wts).sum(axis=1)
+    ta = np.where(k0 < 0, 1.0, ta)                                # T(t=0) = 1
+    return ((1 - f) * ta + f * tb).astype(np.float64)
+
+
+def sample_transmittance(dgsm: DGSM, points, scales=None, rotations=None,
+                         footprint: str = "centre", samples: int = 16, seed: int = 0,
+                         light_index: int | None = None) -> np.ndarray:
+    """Transmittance from each light to each receiver, averaged over its footprint.
+
+    This is the render-time entry point (used by ``relight relight``).
+
+    Args:
+        dgsm: a built or loaded :class:`DGSM`.
+        points: [M, 3] receiver centres, metres, world.
+        scales, rotations: [M, 3] std devs and [M, 4] w-first quaternions of the
+            receiver Gaussians (needed for "stencil" and "mc").
+        footprint: "centre", "stencil" (7-point) or "mc" (``samples`` seeded draws).
+        light_index: one light (returns [M]) or None for all (returns [L, M]).
+    Returns:
+        [L, M] (or [M]) float64 T in [0, 1].
+    """
+    pts, n = footprint_samples(points, scales, rotations, footprint, samples, seed)
+    m = len(pts)
+    flat = pts.reshape(-1, 3)
+    which = range(len(dgsm.lights)) if light_index is None else [light_index]
+    out = np.stack([lookup(dgsm, i, flat).reshape(m, n).mean(axis=1) for i in which])
+    out = np.clip(out, 0.0, 1.0)
+    return out[0] if light_index is not None else out
