@@ -66,7 +66,7 @@ def test_cube_atlas_pixels_round_trip():
 @pytest.mark.parametrize("layout", D.LAYOUTS)
 @pytest.mark.parametrize("mapping", ["eq5", "mass"])
 def test_culled_equals_unculled_and_reference(layout, mapping):
-    mix = TR.prepare(*_blob(), mapping=mapping, kappa=1.0)
+    mix = TR.prepare(*_blob(n=150), mapping=mapping, kappa=1.0)
     kw = dict(size=(24, 24), bins=12, layout=layout, t_max=5.0, roi=False)
     culled = D.build_dgsm(mix, [LIGHT], None, cull=True, **kw)
     unculled = D.build_dgsm(mix, [LIGHT], None, cull=False, **kw)
