@@ -18,6 +18,7 @@ from .errors import RelightError
 
 # name -> "module:attribute"; the only place a subcommand is registered.
 COMMANDS: dict[str, str] = {
+    "bake-features": "relight_cli.commands.bake_features:command",
     "envmap": "relight_cli.commands.envmap:command",
     "metrics": "relight_cli.commands.metrics:command",
     "sh-probe": "relight_cli.commands.sh_probe:command",

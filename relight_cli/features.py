@@ -72,7 +72,8 @@ class FeatureSettings:
         f0: GGX Fresnel reflectance at normal incidence (0.04: dielectric skin).
         visibility: False = the no-shadow ablation (h ≡ 1, nothing traced).
         ray_offset: metres to lift ray origins along the normal; None = 1e-4 × the
-            scene's bounding-box diagonal (0.02 mm for a hand).
+            bounding-box diagonal of the receiver's own mesh (0.02 mm for a hand), so
+            adding a second hand to the scene does not change the first one's rays.
     """
 
     shininess: tuple = (16, 32, 64)
@@ -276,15 +277,16 @@ class VisibilityCache:
             None for "nothing occludes" (the ``--no-visibility`` ablation).
         receivers: the receiving points.
         directions: [M, 3] unit directions.
-        ray_offset: metres to lift ray origins along the normal (avoids hitting the
+        ray_offset: metres (scalar or [N]) to lift ray origins along the normal (avoids hitting the
             receiver's own triangles through rounding).
     """
 
-    def __init__(self, scene, receivers: Receivers, directions: np.ndarray, ray_offset: float):
+    def __init__(self, scene, receivers: Receivers, directions: np.ndarray, ray_offset):
         self.scene = scene
         self.receivers = receivers
         self.directions = np.asarray(directions, np.float64)
-        self.ray_offset = float(ray_offset)
+        self.ray_offset = np.broadcast_to(np.asarray(ray_offset, np.float64),
+                                          (len(receivers),))[:, None]
         shape = (len(receivers), len(self.directions))
         self.traced = np.zeros(shape, bool)
         self.visible = np.zeros(shape, bool)
@@ -553,7 +555,8 @@ class FeatureBaker:
                     for m in meshes]
         offset = self.settings.ray_offset
         if offset is None:
-            offset = 1e-4 * scene_diagonal(geometry)
+            offset = np.concatenate([np.full(len(g[0]), 1e-4 * scene_diagonal([g]))
+                                     for g in geometry])
         scene = None
         if self.settings.visibility:
             from relight_cli.raytrace import RayScene
@@ -655,7 +658,8 @@ def vertex_features_reference(meshes: list[PoseMesh], env: DiscreteEnv, eye,
     all_v = np.concatenate([g[0] for g in geometry])
     offsets = np.cumsum([0] + [len(g[0]) for g in geometry])
     all_f = np.concatenate([g[1] + o for g, o in zip(geometry, offsets[:-1])])
-    offset = settings.ray_offset if settings.ray_offset is not None else 1e-4 * scene_diagonal(geometry)
+    offsets_per_mesh = [settings.ray_offset if settings.ray_offset is not None
+                        else 1e-4 * scene_diagonal([g]) for g in geometry]
     eye = np.asarray(eye, np.float64)
     dirs, omega, rad = env.directions, env.solid_angle, env.radiance
     m = len(dirs)
@@ -671,7 +675,7 @@ def vertex_features_reference(meshes: list[PoseMesh], env: DiscreteEnv, eye,
             if not defined[i]:
                 continue
             if settings.visibility:
-                origins = np.repeat((x + offset * nrm)[None], m, axis=0)
+                origins = np.repeat((x + offsets_per_mesh[mesh_index] * nrm)[None], m, axis=0)
                 h = ~_occluded_brute_force(all_v[all_f], origins[0], dirs)
             else:
                 h = np.ones(m, bool)
@@ -777,3 +781,34 @@ def ggx_specular_torch(normals, view, directions, weighted_radiance, visibility,
     w = D * F * nlp / (4 * (nlp * (1 - k) + k) * (nvp * (1 - k) + k))
     w = torch.where((nl > 0) & (nv > 0), w, torch.zeros_like(w))
     return (visibility.detach() * w) @ weighted_radiance
+
+
+# ---------------------------------------------------------------- texel maps
+
+
+def texel_maps(features: dict, faces: np.ndarray, raster) -> dict:
+    """Per-vertex features → texel-aligned maps over a mesh's UV rasterization.
+
+    Args:
+        features: name → [V, 3] or [V] per-vertex values (one mesh).
+        faces: [F, 3] geometric faces (the same triangle order as the rasterized
+            ``faces_uv``).
+        raster: :class:`relight_cli.uvraster.UVRaster` of the mesh's UV layout.
+
+    Returns:
+        name → [H, W, 3] / [H, W] float32 maps, barycentrically interpolated inside
+        the charts and dilation-filled outside, plus ``mask`` [H, W] (1 inside).
+    """
+    names = list(features)
+    widths = [np.asarray(features[k]).reshape(len(features[k]), -1).shape[1] for k in names]
+    stacked = np.concatenate([np.asarray(features[k], np.float64).reshape(len(features[k]), -1)
+                              for k in names], axis=1)
+    image = raster.interpolate(stacked, faces, fill="dilate")             # [H, W, ΣC]
+    out = {}
+    start = 0
+    for name, width in zip(names, widths):
+        block = image[..., start:start + width].astype(np.float32)
+        out[name] = block[..., 0] if np.ndim(features[name]) == 1 else block
+        start += width
+    out["mask"] = raster.mask
+    return out

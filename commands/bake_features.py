@@ -1,0 +1,343 @@
+"""``relight bake-features``: texel-aligned, visibility-aware shading features."""
+
+from __future__ import annotations
+
+import click
+
+from relight_cli.clitools import check_output, log, no_clobber_option, quiet_option
+
+
+@click.command("bake-features",
+               short_help="Bake texel-aligned diffuse/specular/visibility features (EXR).")
+@click.argument("hand", metavar="HAND")
+@click.argument("envs", metavar="ENV...", nargs=-1, required=True)
+@click.option("-o", "--output", required=True,
+              help="Output EXR. May hold {frame} (e.g. {frame:04d}) and {env} (the env map's "
+                   "name); required with --frames all / several env maps.")
+@click.option("--frame", type=int, default=None, help="Frame to bake [default: 0].")
+@click.option("--frames", "frames_all", type=click.Choice(["all"]), default=None,
+              help="Bake every frame (the output needs {frame}).")
+@click.option("--mesh", type=click.Choice(["coarse", "fine"]), default="coarse", show_default=True,
+              help="Receivers and occluders: the coarse proxy, or the fine mesh (ablations).")
+@click.option("--env-res", default="16x32", show_default=True,
+              help="Lat-long grid HxW the env map is integrated over (M = H·W directions).")
+@click.option("--res", "texture_res", default="128", show_default=True,
+              help="Feature map size N (N×N) or WxH.")
+@click.option("--shininess", default="16,32,64", show_default=True,
+              help="Phong exponents, comma-separated (one phong<α> layer each).")
+@click.option("--specular", type=click.Choice(["phong", "ggx", "both", "none"]), default="phong",
+              show_default=True, help="Specular features: RelightableHands' Phong, URHand's GGX.")
+@click.option("--roughness", default="0.5", show_default=True,
+              help="GGX roughness: a number in (0, 1], or a UV-space EXR map (channel Y or R).")
+@click.option("--eye", default=None, help="Viewer position x,y,z (metres, world).")
+@click.option("--camera", type=str, default=None,
+              help="Viewer from an OpenCV camera JSON (its centre). Default: a camera framing "
+                   "the hands from the front (+Z).")
+@click.option("--no-visibility", is_flag=True, help="Ablation: no shadows (h ≡ 1, no rays).")
+@click.option("--per-vertex", type=str, default=None,
+              help="Also write per-vertex features (.npz; may hold {frame} and {env}).")
+@click.option("--preview", type=str, default=None,
+              help="Also write a PNG contact sheet of the feature layers (may hold {frame}, {env}).")
+@no_clobber_option
+@quiet_option
+def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, shininess, specular,
+            roughness, eye, camera, no_visibility, per_vertex, preview, no_clobber, quiet):
+    """Bake shading features of the posed hand(s) in HAND (a hand.npz, or
+    builtin:right|left|two[:POSE]) under each ENV (EXR/HDR env map or
+    builtin:sky|studio|uniform|point) into texel-aligned EXR maps.
+
+    Layers: diffuse (RelightableHands' d = Σ L·h·max(n·ω,0)·Δω), phong<α>
+    ((α+2)/2π Σ L·h·max(r·ω,0)^α·Δω), ggx (URHand's GGX lobe, --specular),
+    visibility (cosine-weighted) and mask (UV charts).  Visibility h is traced
+    with embree once per pose against every hand and reused for every env map.
+
+    \b
+    Examples:
+      relight bake-features hand.npz stage.exr -o feats.exr
+      relight bake-features hand.npz a.exr b.exr -o 'feats_{env}.exr'
+      relight bake-features hand.npz builtin:sky --frames all -o 'f_{frame:04d}.exr'
+    """
+    import time
+
+    import numpy as np
+
+    from relight_cli import features as F
+    from relight_cli.clitools import check_input, parse_vector, progress
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.formats.features_exr import (FORMAT, VERSION, VERTEX_FORMAT,
+                                                  VERTEX_VERSION, write_features,
+                                                  write_vertex_features)
+    from relight_cli.provenance import provenance
+
+    from ._inputs import load_envmap
+
+    # ---- options (usage errors, before any work)
+    env_h, env_w = _parse_hw(env_res, "--env-res")
+    if env_h < 2 or env_w < 2:
+        raise UsageProblem("--env-res needs at least 2x2 directions")
+    tex_w, tex_h = _parse_texture_res(texture_res)
+    try:
+        alphas = tuple(float(a) for a in shininess.split(",") if a.strip()) if shininess else ()
+        settings = F.FeatureSettings(shininess=alphas, specular=specular,
+                                     visibility=not no_visibility)
+    except ValueError as exc:
+        raise UsageProblem(f"--shininess: {exc}") from None
+    if settings.specular in ("phong", "both") and not settings.phong:
+        raise UsageProblem("--specular phong needs at least one --shininess exponent")
+    if eye is not None and camera is not None:
+        raise UsageProblem("give --eye or --camera, not both")
+    if frame is not None and frames_all:
+        raise UsageProblem("give --frame N or --frames all, not both")
+    if frame is not None and frame < 0:
+        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
+    rough_value = None
+    try:
+        rough_value = float(roughness)
+    except ValueError:
+        check_input(roughness)
+    if rough_value is not None and not (0 < rough_value <= 1):
+        raise UsageProblem(f"--roughness must be in (0, 1], got {roughness}")
+    if rough_value is not None:
+        settings.roughness = rough_value
+    eye_pos = None if eye is None else np.asarray(parse_vector(eye, 3, "--eye"))
+    env_names = [_env_name(e) for e in envs]
+    if len(set(env_names)) != len(env_names):
+        raise UsageProblem("two env maps have the same name; {env} would not tell them apart")
+    for pattern in filter(None, (output, per_vertex, preview)):
+        if len(envs) > 1 and "{env" not in pattern:
+            raise UsageProblem(f"several env maps need {{env}} in every output name: {pattern}")
+        _check_pattern(pattern)
+
+    # ---- inputs (data errors)
+    data = _load_hand(hand)
+    n_frames = data.n_frames
+    if frames_all:
+        frames = list(range(n_frames))
+    else:
+        frames = [frame or 0]
+        if frames[0] >= n_frames:
+            raise UsageProblem(f"--frame {frames[0]} is out of range: {hand} has {n_frames} "
+                               f"frame(s)")
+    for pattern in filter(None, (output, per_vertex, preview)):
+        if len(frames) > 1 and "{frame" not in pattern:
+            raise UsageProblem(f"--frames all needs {{frame}} in every output name: {pattern}")
+    targets = []  # (frame, env index, exr, npz, png)
+    for fr in frames:
+        for k, name in enumerate(env_names):
+            paths = [None if p is None else p.format(frame=fr, env=name)
+                     for p in (output, per_vertex, preview)]
+            for p in paths:
+                check_output(p, no_clobber)
+            targets.append((fr, k, *paths))
+    if per_vertex is not None and output.format(frame=0, env="x") == per_vertex.format(
+            frame=0, env="x"):
+        raise UsageProblem("--per-vertex must differ from -o")
+    cam = None
+    if camera is not None:
+        from relight_cli.formats.camera import read_camera
+        check_input(camera)
+        cam = read_camera(camera)
+    env_maps = []
+    for spec in envs:
+        env_maps.append(load_envmap(spec))
+    log(f"read {hand}: {len(data.hands)} hand(s), {n_frames} frame(s); "
+        f"{len(envs)} env map(s)", quiet)
+    t0 = time.perf_counter()
+    discrete = [F.discretize_env(e, env_h, env_w) for e in env_maps]
+    env_seconds = time.perf_counter() - t0
+
+    rough_map = None
+    if rough_value is None:
+        rough_map = _read_roughness_map(roughness)
+
+    from relight_cli.hand.scene import posed_meshes, preview_camera
+    from relight_cli.uvraster import rasterize_uv
+
+    inputs = {"hand": hand}
+    if camera is not None:
+        inputs["camera"] = camera
+    rasters = {}
+    for fr in progress(frames, desc="frames", quiet=quiet or len(frames) == 1):
+        t0 = time.perf_counter()
+        try:
+            posed = posed_meshes(data, fr, mesh)
+        except (IndexError, ValueError) as exc:
+            raise DataError(f"cannot pose frame {fr}: {exc}", hand) from None
+        for pm in posed:
+            if not np.isfinite(pm.vertices).all():
+                raise DataError(f"frame {fr}: posed vertices hold NaN/Inf", hand)
+        pose_seconds = time.perf_counter() - t0
+        if eye_pos is not None:
+            viewer = eye_pos
+        elif cam is not None:
+            viewer = cam.center
+        else:
+            viewer = preview_camera(posed).center
+        meshes = [F.PoseMesh(pm.vertices, pm.faces, pm.normals, pm.name) for pm in posed]
+        baker = F.FeatureBaker(meshes, settings, env_res=(env_h, env_w))
+        rough = None
+        if rough_map is not None:
+            rough = np.concatenate([_sample_uv_map(rough_map, pm) for pm in posed])
+        results = baker.bake(discrete, viewer, roughness=rough)
+        t0 = time.perf_counter()
+        maps_per_env = []
+        for per_mesh in results:
+            layers = {}
+            for pm, feats in zip(posed, per_mesh):
+                key = (id(pm.uv), pm.uv.shape, pm.faces_uv.tobytes())
+                if key not in rasters:
+                    rasters[key] = rasterize_uv(pm.uv, pm.faces_uv, (tex_h, tex_w))
+                maps = F.texel_maps(feats, pm.faces, rasters[key])
+                prefix = "" if len(posed) == 1 else pm.name + "."
+                for name, value in maps.items():
+                    layers[prefix + name] = value
+            maps_per_env.append(layers)
+        texel_seconds = time.perf_counter() - t0
+        seconds = {"env": env_seconds, "pose": pose_seconds, **baker.stats.seconds,
+                   "texels": texel_seconds}
+        for fr_t, k, exr_path, npz_path, png_path in (t for t in targets if t[0] == fr):
+            record = provenance(FORMAT, VERSION, {**inputs, "env": envs[k]}, {
+                "frame": fr, "mesh": mesh, "env_res": [env_h, env_w],
+                "res": [tex_w, tex_h], "shininess": list(settings.phong),
+                "specular": specular, "roughness": roughness, "visibility": not no_visibility,
+                "view": [float(x) for x in viewer]})
+            attrs = {"relight.env": envs[k],
+                     "relight.env_sha256": record["inputs"]["env"]["sha256"],
+                     "relight.env_res": f"{env_h}x{env_w}",
+                     "relight.shininess": list(settings.phong) or "none",
+                     "relight.specular": specular,
+                     "relight.view": [float(x) for x in viewer],
+                     "relight.frame": int(fr),
+                     "relight.mesh": mesh,
+                     "relight.visibility": int(not no_visibility),
+                     "relight.rays_traced": int(baker.stats.rays_traced),
+                     "relight.seconds": json_round(seconds),
+                     "relight.hands": ",".join(pm.name for pm in posed)}
+            write_features(exr_path, maps_per_env[k], attributes=attrs, provenance=record)
+            log(f"wrote {exr_path}", quiet)
+            if npz_path is not None:
+                arrays = {}
+                for pm, feats in zip(posed, results[k]):
+                    prefix = "" if len(posed) == 1 else pm.name + "."
+                    arrays[prefix + "vertices"] = pm.vertices
+                    arrays[prefix + "faces"] = pm.faces
+                    arrays[prefix + "normals"] = pm.normals
+                    for name, value in feats.items():
+                        arrays[prefix + name] = value
+                vrecord = dict(record, format=VERTEX_FORMAT, version=VERTEX_VERSION)
+                write_vertex_features(npz_path, arrays, vrecord)
+                log(f"wrote {npz_path}", quiet)
+            if png_path is not None:
+                _write_contact_sheet(png_path, maps_per_env[k])
+                log(f"wrote {png_path}", quiet)
+        log(f"frame {fr}: {baker.stats.rays_traced} rays, "
+            + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()), quiet)
+
+
+def json_round(seconds: dict) -> dict:
+    return {k: round(float(v), 6) for k, v in seconds.items()}
+
+
+def _parse_hw(text: str, what: str) -> tuple[int, int]:
+    from relight_cli.errors import UsageProblem
+    try:
+        h, w = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise UsageProblem(f"{what} must look like HxW (e.g. 16x32), got {text!r}") from None
+    if h <= 0 or w <= 0 or h > 4096 or w > 8192:
+        raise UsageProblem(f"{what} out of range, got {text!r}")
+    return h, w
+
+
+def _parse_texture_res(text: str) -> tuple[int, int]:
+    from relight_cli.clitools import parse_size
+    from relight_cli.errors import UsageProblem
+    w, h = parse_size(text, "--res")
+    if w > 8192 or h > 8192:
+        raise UsageProblem(f"--res must be at most 8192, got {text!r}")
+    return w, h
+
+
+def _check_pattern(pattern: str) -> None:
+    from relight_cli.errors import UsageProblem
+    try:
+        pattern.format(frame=0, env="x")
+    except (KeyError, IndexError, ValueError) as exc:
+        raise UsageProblem(f"output name {pattern!r} may only use {{frame}} and {{env}} "
+                           f"fields ({type(exc).__name__}: {exc})") from None
+
+
+def _env_name(spec: str) -> str:
+    import os
+    if spec.startswith("builtin:"):
+        return spec.split(":", 1)[1]
+    base = os.path.basename(spec)
+    return base.split(".", 1)[0] or base
+
+
+def _load_hand(spec: str):
+    """HandData from a hand.npz or builtin:right|left|two[:POSE]."""
+    from relight_cli.errors import UsageProblem
+    if spec.startswith("builtin:"):
+        from relight_cli.hand.model import builtin_hand
+        from relight_cli.hand.poses import POSE_NAMES
+        parts = spec.split(":")[1:]
+        which = parts[0] if parts else "right"
+        pose = parts[1] if len(parts) > 1 else "relaxed"
+        if which not in ("right", "left", "two") or len(parts) > 2 or pose not in POSE_NAMES:
+            raise UsageProblem(f"unknown built-in hand {spec!r}; use builtin:right|left|two"
+                               f"[:POSE] with POSE one of {', '.join(POSE_NAMES)}")
+        if which == "two":
+            from relight_cli.hand.scene import two_hands
+            return two_hands(builtin_hand("right", pose))
+        return builtin_hand(which, pose)
+    from relight_cli.clitools import check_input
+    from relight_cli.formats.hand_npz import read_hand
+    check_input(spec)
+    return read_hand(spec)
+
+
+def _read_roughness_map(path: str):
+    import numpy as np
+
+    from relight_cli.errors import DataError
+    from relight_cli.formats.exr import read_exr
+    image = read_exr(path)
+    name = next((c for c in ("Y", "R", "roughness.Y") if c in image.channels), None)
+    if name is None:
+        raise DataError("roughness map needs a Y or R channel", path)
+    values = image.channels[name].astype(np.float64)
+    if not np.isfinite(values).all() or values.min() <= 0 or values.max() > 1:
+        raise DataError("roughness map values must be finite and in (0, 1]", path)
+    return values
+
+
+def _sample_uv_map(image, pm):
+    """[V] bilinear samples of a UV-space map at each vertex's (first) UV."""
+    import numpy as np
+    h, w = image.shape
+    uv_of_vertex = np.zeros((len(pm.vertices), 2))
+    uv_of_vertex[pm.faces.ravel()] = pm.uv[pm.faces_uv.ravel()]
+    x = np.clip(uv_of_vertex[:, 0] * w - 0.5, 0, w - 1)
+    y = np.clip((1 - uv_of_vertex[:, 1]) * h - 0.5, 0, h - 1)   # v = 0 at the bottom row
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = x - x0, y - y0
+    return ((image[y0, x0] * (1 - fx) + image[y0, x1] * fx) * (1 - fy)
+            + (image[y1, x0] * (1 - fx) + image[y1, x1] * fx) * fy)
+
+
+def _write_contact_sheet(path: str, layers: dict) -> None:
+    """One PNG: every layer tone-mapped on its own, side by side (mask/visibility as grey)."""
+    import numpy as np
+
+    from relight_cli.formats.image import write_png
+    from relight_cli.tonemap import tonemap
+    tiles = []
+    for name, value in layers.items():
+        if value.ndim == 2:
+            tile = np.repeat(np.clip(value, 0, 1)[..., None], 3, axis=-1)
+        else:
+            tile = tonemap(value)
+        tiles.append(np.pad(tile, ((2, 2), (2, 2), (0, 0))))
+    write_png(path, np.concatenate(tiles, axis=1))
