@@ -49,7 +49,7 @@ def main():
           f"{len(pr.index)} in front of the camera")
     print(f"{'tile':>5} {'chunk':>6} {'seconds':>8}   (chunk = first chunk; it doubles up to 4096)")
     ref_img = None
-    for tile, chunk in [(16, 64), (16, 256), (16, 1024), (8, 64), (32, 64)]:
+    for tile, chunk in [(8, 64), (8, 256), (4, 64), (16, 64), (32, 64)]:
         t = time.perf_counter()
         out = render(g, cam, tile=tile, chunk=chunk)
         dt = time.perf_counter() - t

@@ -186,7 +186,7 @@ def read_gaussians(path: str) -> Gaussians:
     if os.path.isdir(path):
         raise DataError("is a directory, expected a Gaussians PLY file", path)
     try:
-        ply = plyfile.PlyData.read(path)
+        ply = plyfile.PlyData.read(path, mmap=False)  # copies: no view outlives the file
     except Exception as exc:  # plyfile raises PlyParseError, ValueError, struct errors …
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise DataError(f"not a readable PLY file: {msg}", path) from None

@@ -134,7 +134,7 @@ def _half_tan(c: float, size: int, f: float) -> float:
 
 
 def render(g: Gaussians, camera: Camera, background=(0.0, 0.0, 0.0), near: float = 0.01,
-           dilation: float = 0.3, colors: np.ndarray | None = None, tile: int = 16,
+           dilation: float = 0.3, colors: np.ndarray | None = None, tile: int = 8,
            chunk: int = 64) -> RenderResult:
     """Tile-based, vectorized EWA splatting (see the module docstring for the model).
 

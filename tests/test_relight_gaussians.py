@@ -1,0 +1,236 @@
+"""Per-Gaussian SH radiance transfer (Eq. 9–10), normals, shadow attenuation and `relight relight`."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.special import eval_legendre
+from scipy.spatial.transform import Rotation
+
+from conftest import run_relight
+from relight_cli import envmap as E
+from relight_cli.formats.camera import Camera, write_cameras
+from relight_cli.formats.envmap import EnvMap
+from relight_cli.formats.gaussians_ply import (Gaussians, matrix_to_quaternion, read_gaussians,
+                                               rgb_to_sh_dc, write_gaussians)
+from relight_cli.formats.sh_probe_json import ShProbe, write_probe
+from relight_cli.gaussians import probe as P
+from relight_cli.gaussians import transfer as TF
+from relight_cli.sh import lambert_band_factors, sh_basis
+
+
+@pytest.mark.parametrize("q", [0.5, 1.0, 2.0, 7.3])
+def test_lobe_moments_vs_quadrature(q):
+    m = TF.lobe_moments(q, 8)
+    ref = [quad(lambda x, l=l: x ** q * eval_legendre(l, x), 0, 1, epsabs=1e-14, limit=200)[0]
+           for l in range(9)]
+    np.testing.assert_allclose(m, ref, atol=1e-11)   # adaptive quadrature of a polynomial×|x|^q
+
+
+def test_lambert_case_matches_irradiance_factors():
+    np.testing.assert_allclose(TF.lobe_band_factors(1.0, 8) * math.pi, lambert_band_factors(8),
+                               atol=1e-15)
+
+
+@pytest.mark.parametrize("q", [1.0, 4.5])
+def test_shading_vs_sphere_quadrature(q):
+    rng = np.random.default_rng(1)
+    c = rng.normal(size=(16, 3))
+    normals = Rotation.random(6, random_state=2).apply([0, 0, 1.0])
+    fast = TF.shading(c, normals, q)
+    slow = TF.shading_reference(lambda d: sh_basis(d, 3) @ c, normals, q)
+    # 200k-point Fibonacci quadrature of a smooth integrand with a kink at n·ω = 0: ~1e-6.
+    np.testing.assert_allclose(fast, slow, atol=2e-5)
+
+
+def test_uniform_probe_shading_is_its_radiance():
+    c = np.zeros((9, 3))
+    c[0] = np.array([0.5, 1.0, 2.0]) * math.sqrt(4 * math.pi)   # L(ω) = (0.5, 1, 2) everywhere
+    normals = Rotation.random(10, random_state=0).apply([0, 1.0, 0])
+    for q in (0.7, 1.0, 12.0):
+        np.testing.assert_allclose(TF.shading(c, normals, q), np.tile([0.5, 1.0, 2.0], (10, 1)),
+                                   atol=1e-14)
+
+
+def test_linear_env_closed_form_through_probe():
+    """L(ω) = a + b (ω·u) ⇒ S(n) = a + (2/3) b (n·u) for q = 1 (env map → Eq. 7 fit → transfer)."""
+    u = np.array([0.3, 0.8, -0.52])
+    u /= np.linalg.norm(u)
+    a, b = 2.0, 1.5
+    d = E.latlong_directions(64, 128)
+    env = EnvMap((a + b * (d @ u))[..., None].repeat(3, -1), "latlong")
+    coeffs = P.fit_probe(P.env_samples(env), 2)
+    normals = Rotation.random(20, random_state=5).apply([1.0, 0, 0])
+    expected = a + 2 / 3 * b * (normals @ u)
+    # The fit of a band-1 signal is exact to rounding; 1e-10 covers it.
+    np.testing.assert_allclose(TF.shading(coeffs, normals, 1.0), expected[:, None].repeat(3, 1),
+                               atol=1e-10)
+
+
+def sphere_of_splats(n=400, radius=0.5, seed=0, flat_axis=2):
+    """Flat Gaussians tangent to a sphere (shortest axis = radial), random in-plane rotation."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # Rotation whose column `flat_axis` is the radial direction.
+    helper = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    t1 = np.cross(d, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(d, t1)
+    cols = [t1, t2]
+    cols.insert(flat_axis, d)
+    R = np.stack(cols, axis=2)
+    if np.linalg.det(R[0]) < 0:
+        R[:, :, (flat_axis + 1) % 3] *= -1
+    R = R * np.sign(np.linalg.det(R))[:, None, None]
+    scales = np.full((n, 3), 0.03)
+    scales[:, flat_axis] = 0.002
+    rgb = rng.uniform(0.2, 0.9, (n, 3))
+    return Gaussians(d * radius + [0.1, 1.0, -0.2], scales, matrix_to_quaternion(R),
+                     np.full(n, 0.9), rgb_to_sh_dc(rgb)[:, None, :], 0), d
+
+
+@pytest.mark.parametrize("flat_axis", [0, 2])
+def test_axis_normals_are_outward_radial(flat_axis):
+    g, radial = sphere_of_splats(flat_axis=flat_axis)
+    n = TF.estimate_normals(g, "axis")
+    np.testing.assert_allclose(n, radial, atol=1e-9)
+
+
+def test_pca_normals_on_a_sphere():
+    g, radial = sphere_of_splats(n=3000)
+    n = TF.estimate_normals(g, "pca", neighbours=12)
+    # 12 random neighbours lie within ~7° of arc on a 0.5 m sphere; a one-sided neighbourhood
+    # fits a secant plane tilted by up to about half that: worst case < 5°, typical < 1.5°.
+    cos = np.einsum("ij,ij->i", n, radial)
+    assert cos.min() > math.cos(math.radians(5)) and np.median(cos) > math.cos(math.radians(1.5))
+
+
+def test_relight_colours_and_clip():
+    g, radial = sphere_of_splats()
+    c = np.zeros((4, 3))
+    c[0] = 1.0 * math.sqrt(4 * math.pi)
+    c[2] = 0.8                               # + C1·z lobe: brighter towards +Z
+    out = TF.relight_gaussians(g, c, q=1.0, intensity=1.7, t_max=1.2)
+    S = TF.shading(c, radial, 1.0)
+    np.testing.assert_allclose(out.colors(), g.colors() * 1.7 * np.clip(S, 0, 1.2), atol=1e-12)
+    assert np.allclose(out.normals, radial, atol=1e-9)
+    np.testing.assert_array_equal(out.means, g.means)
+
+
+def test_relight_scales_view_dependence():
+    rng = np.random.default_rng(3)
+    g, _ = sphere_of_splats(n=20)
+    g = g.with_sh_degree(2)
+    g.sh[:, 1:] = rng.normal(size=(20, 8, 3)) * 0.05
+    c = np.zeros((1, 3))
+    c[0] = 2.0 * math.sqrt(4 * math.pi)      # uniform radiance 2 → factor 2
+    out = TF.relight_gaussians(g, c)
+    d = rng.normal(size=(20, 3))
+    col = lambda h: 0.5 + np.einsum("nk,nkc->nc", sh_basis(d, 2), h.sh)  # noqa: E731
+    np.testing.assert_allclose(col(out), 2 * col(g), atol=1e-12)
+
+
+def test_attenuate_and_shadow_factor():
+    g, _ = sphere_of_splats(n=30)
+    g = g.with_sh_degree(1)
+    g.sh[:, 1:] = 0.1
+    f = np.linspace(0, 1, 30)
+    out = TF.attenuate(g, f)
+    d = np.tile([0.0, 0.0, 1.0], (30, 1))
+    col = lambda h: 0.5 + np.einsum("nk,nkc->nc", sh_basis(d, 1), h.sh)  # noqa: E731
+    np.testing.assert_allclose(col(out), f[:, None] * col(g), atol=1e-12)
+    T = np.array([[1.0, 0.0, 0.5], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(TF.shadow_factor(T), [0.5, 0.0, 0.75])
+    np.testing.assert_allclose(TF.shadow_factor(T, [3.0, 1.0], strength=0.5),
+                               1 - 0.5 * (1 - np.array([0.75, 0.0, 0.625])))
+
+
+# ------------------------------------------------------------------ CLI
+
+
+@pytest.fixture
+def files(tmp_path):
+    g, _ = sphere_of_splats(n=300)
+    write_gaussians(str(tmp_path / "avatar.ply"), g)
+    c = np.zeros((4, 3))
+    c[0] = math.sqrt(4 * math.pi)
+    c[1] = -0.5                                                   # −C1·y: brighter from above
+    write_probe(str(tmp_path / "probe.json"), ShProbe(c, 1, 0.0, "test"))
+    floor = Gaussians(np.column_stack([np.linspace(-1, 1, 50), np.zeros(50), np.zeros(50)]),
+                      np.full((50, 3), 0.1), np.tile([1.0, 0, 0, 0], (50, 1)), np.full(50, 0.8),
+                      np.zeros((50, 1, 3)), 0)
+    write_gaussians(str(tmp_path / "scene.ply"), floor)
+    write_cameras(str(tmp_path / "cam.json"),
+                  [Camera.look_at([0.1, 1.0, 2.5], [0.1, 1.0, -0.2], width=40, height=30)])
+    return tmp_path
+
+
+def test_cli_help(run_cli):
+    r = run_cli("relight", "--help")
+    assert r.exit_code == 0 and "--probe" in r.output and "--dgsm" in r.output
+
+
+def test_cli_relit_ply(run_cli, files):
+    out = files / "relit.ply"
+    r = run_cli("relight", files / "avatar.ply", "--probe", files / "probe.json", "-o", out, "-q")
+    assert r.exit_code == 0, r.output
+    relit, avatar = read_gaussians(str(out)), read_gaussians(str(files / "avatar.ply"))
+    ratio = relit.colors() / avatar.colors()
+    # Probe L = 1 + 0.5·C1·y (c_1,−1 = −0.5 on −C1·y) ⇒ S(n) = 1 + (2/3)·0.5·C1·n_y (q = 1);
+    # float32 PLY storage of colours ~1e-6 relative.
+    expected = 1 + (2 / 3) * 0.5 * math.sqrt(3 / (4 * math.pi)) * relit.normals[:, 1]
+    np.testing.assert_allclose(ratio, expected[:, None].repeat(3, 1), rtol=1e-5)
+    assert ratio[relit.normals[:, 1] > 0.5].min() > 1.05                 # lit from above
+    assert relit.provenance["format"] == "relight/gaussians"
+    assert set(relit.provenance["inputs"]) == {"input", "probe"}
+
+
+def test_cli_render(run_cli, files):
+    from relight_cli.formats.exr import read_exr
+    out = files / "view.exr"
+    r = run_cli("relight", files / "avatar.ply", "--probe", files / "probe.json", "--receivers",
+                files / "scene.ply", "--render", files / "cam.json", "-o", out, "--preview",
+                files / "view.png", "-q")
+    assert r.exit_code == 0, r.output
+    img = read_exr(str(out))
+    assert set(img.channels) == {"R", "G", "B", "A"} and img.width == 40 and img.height == 30
+    assert img.channels["A"].max() > 0.9 and (files / "view.png").exists()
+
+
+def test_cli_subprocess(files):
+    r = run_relight("relight", files / "avatar.ply", "--probe", files / "probe.json", "-o",
+                    files / "relit2.ply", "--normals", "pca", "--lobe", "3", "--t-max", "2")
+    assert r.returncode == 0, r.stderr
+    assert len(read_gaussians(str(files / "relit2.ply"))) == 300
+
+
+@pytest.mark.parametrize("args, code, message", [
+    (["hand.npz"], 2, "hand relighting is not available yet"),
+    (["thing.obj", "--probe", "probe.json"], 2, "IN must be a Gaussians .ply"),
+    (["avatar.ply"], 2, "needs --probe"),
+    (["avatar.ply", "--probe", "probe.json", "--dgsm", "x.exr"], 2, "give --receivers"),
+    (["avatar.ply", "--probe", "probe.json", "--lobe", "0"], 2, "--lobe must be"),
+    (["avatar.ply", "--probe", "probe.json", "--render", "cam.json"], 2, "-o is an EXR"),
+    (["avatar.ply", "--probe", "missing.json"], 1, "no such file"),
+    (["avatar.ply", "--probe", "bad_probe.json"], 1, "version 9 is newer"),
+    (["avatar.ply", "--probe", "probe.json", "--normals", "stored"], 1, "no stored normals"),
+    (["nan.ply", "--probe", "probe.json"], 1, "non-finite"),
+])
+def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
+    monkeypatch.chdir(files)
+    (files / "bad_probe.json").write_text('{"format": "relight/sh-probe", "version": 9}')
+    g, _ = sphere_of_splats(n=5)
+    write_gaussians("nan.ply", g)
+    import plyfile
+    ply = plyfile.PlyData.read("nan.ply", mmap=False)
+    ply["vertex"].data["x"][2] = np.nan
+    ply.write("nan.ply")
+    target = "out.exr" if "--render" in args and "-o is an EXR" not in message else "out.ply"
+    r = run_cli("relight", *args, "-o", target)
+    assert r.exit_code == code, r.output
+    assert message in r.output, r.output
+    assert not (files / "out.ply").exists() and not (files / "out.exr").exists()
