@@ -1,0 +1,73 @@
+"""Images: linear radiance EXR (see exr.py) and tone-mapped 8-bit PNG previews.
+
+PNG is only ever a preview; data stays in EXR.  Reading of arbitrary image
+formats (masks, ground truth) goes through OpenImageIO.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from relight_cli.errors import DataError
+
+
+def write_png(path: str, display: np.ndarray) -> None:
+    """Write display-referred [H, W, C] values in [0, 1] as 8-bit PNG, atomically."""
+    import OpenImageIO as oiio
+
+    from relight_cli.provenance import atomic_path
+
+    pixels = np.clip(np.rint(np.asarray(display) * 255.0), 0, 255).astype(np.uint8)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    h, w, c = pixels.shape
+    with atomic_path(path, suffix=".png") as tmp:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None:
+            raise DataError("cannot create PNG writer: " + oiio.geterror(), path)
+        spec = oiio.ImageSpec(w, h, c, oiio.UINT8)
+        spec.attribute("Software", "relight")
+        if not out.open(tmp, spec) or not out.write_image(pixels):
+            msg = out.geterror()
+            out.close()
+            raise DataError("cannot write PNG: " + msg, path)
+        out.close()
+
+
+def write_preview(path: str, linear_rgb: np.ndarray, exposure: float | None = None) -> None:
+    """Tone-map linear radiance [H, W, 3] (Reinhard + sRGB) and write it as PNG."""
+    from relight_cli.tonemap import tonemap
+    write_png(path, tonemap(linear_rgb, exposure))
+
+
+def read_image(path: str) -> tuple[np.ndarray, list[str]]:
+    """Any OpenImageIO-readable image, level 0, as ([H, W, C] float32, channel names).
+
+    EXR values come back as stored (linear); 8-bit formats are scaled to [0, 1]
+    without any colour transform.
+    """
+    import OpenImageIO as oiio
+
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    if os.path.isdir(path):
+        raise DataError("is a directory, expected an image", path)
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        first = (oiio.geterror().splitlines() or ["unknown format"])[0]
+        raise DataError("unreadable image: " + first.replace(path, "").strip(' :"'), path)
+    try:
+        spec = inp.spec()
+        names = list(spec.channelnames)
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None:
+            raise DataError("damaged image: " + (inp.geterror().splitlines() or ["read failed"])[0]
+                            .replace(path, "").strip(' :"'), path)
+    finally:
+        inp.close()
+    pixels = np.asarray(pixels, np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    return pixels, names

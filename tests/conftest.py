@@ -1,0 +1,59 @@
+"""Shared test fixtures: the real-data folder, CLI runners."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = (ROOT / ".." / "shared" / "data").resolve()
+
+
+def shared_path(*parts: str) -> Path:
+    """A file under ../shared/data, or skip the test when it is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"real test data not available: {path}")
+    return path
+
+
+@pytest.fixture
+def shared():
+    return shared_path
+
+
+def relight_executable() -> str:
+    """The installed console script (next to this interpreter, else on PATH)."""
+    exe = Path(sys.executable).with_name("relight")
+    if exe.exists():
+        return str(exe)
+    found = shutil.which("relight")
+    if not found:
+        pytest.skip("the relight console script is not installed")
+    return found
+
+
+def run_relight(*args: str, cwd=None, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run the installed ``relight`` console script in a subprocess."""
+    env = dict(os.environ)
+    env.setdefault("PYTHONWARNINGS", "ignore")
+    return subprocess.run([relight_executable(), *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, timeout=timeout, env=env)
+
+
+@pytest.fixture
+def run_cli():
+    """In-process CliRunner call of the relight group: returns click's Result."""
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+
+    def run(*args):
+        runner = CliRunner()
+        return runner.invoke(cli, [str(a) for a in args], catch_exceptions=False)
+    return run
