@@ -234,3 +234,42 @@ def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     assert r.exit_code == code, r.output
     assert message in r.output, r.output
     assert not (files / "out.ply").exists() and not (files / "out.exr").exists()
+
+
+def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
+    """An opaque ball between a point light and a floor: receivers under it darken by the DGSM's
+    transmittance (equal to the engine's footprint lookup), receivers away from it do not."""
+    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr",
+                                   reason="formats/dgsm_exr.py (DGSM format) not in this tree")
+    from relight_cli.gaussians.dgsm import build_dgsm, sample_transmittance
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ball = Gaussians(d * 0.15 + [0, 1.0, 0], np.full((400, 3), 0.05), np.tile([1.0, 0, 0, 0], (400, 1)),
+                     np.full(400, 0.95), np.zeros((400, 1, 3)), 0)
+    xs, zs = np.meshgrid(np.linspace(-1, 1, 15), np.linspace(-1, 1, 15))
+    m = xs.size
+    floor = Gaussians(np.column_stack([xs.ravel(), np.zeros(m), zs.ravel()]), np.full((m, 3), 0.05),
+                      np.tile([1.0, 0, 0, 0], (m, 1)), np.full(m, 0.9),
+                      rgb_to_sh_dc(np.full((m, 3), 0.6))[:, None, :], 0)
+    light = np.array([[0.0, 2.5, 0.0]])
+    shadow = build_dgsm(ball, light, floor.means, size=(32, 32), bins=16)
+    from relight_cli.provenance import provenance
+    dgsm_exr.write_dgsm(str(tmp_path / "s.exr"), shadow, provenance(dgsm_exr.FORMAT, dgsm_exr.VERSION))
+    write_gaussians(str(tmp_path / "ball.ply"), ball)
+    write_gaussians(str(tmp_path / "floor.ply"), floor)
+    c = np.zeros((1, 3))
+    c[0] = math.sqrt(4 * math.pi)
+    write_probe(str(tmp_path / "p.json"), ShProbe(c, 0))
+    r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                tmp_path / "floor-shadowed.ply", "--footprint", "centre", "-o", tmp_path / "o.ply",
+                "-q")
+    assert r.exit_code == 0, r.output
+    out = read_gaussians(str(tmp_path / "floor-shadowed.ply"))
+    ratio = out.colors()[:, 0] / floor.colors()[:, 0]
+    T = sample_transmittance(shadow, floor.means, footprint="centre")[0]
+    np.testing.assert_allclose(ratio, T, atol=1e-5)   # float32 table and PLY storage
+    centre = np.argmin(np.linalg.norm(floor.means, axis=1))
+    corner = np.argmax(np.linalg.norm(floor.means, axis=1))
+    assert ratio[centre] < 0.2 and ratio[corner] > 0.999
