@@ -273,3 +273,69 @@ def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
     centre = np.argmin(np.linalg.norm(floor.means, axis=1))
     corner = np.argmax(np.linalg.norm(floor.means, axis=1))
     assert ratio[centre] < 0.2 and ratio[corner] > 0.999
+
+
+# ------------------------------------------------------------------ light estimation (Sec. 3.1)
+
+
+def room_with_lamps(seed=0):
+    """A 4×3×4 m grey room (floor + walls), a bright extended window, and two compact lamps."""
+    rng = np.random.default_rng(seed)
+    parts = []
+
+    def add(means, rgb, scale=0.05, opacity=0.9, sh_rest=None):
+        n = len(means)
+        sh = rgb_to_sh_dc(np.broadcast_to(rgb, (n, 3)))[:, None, :]
+        if sh_rest is not None:
+            sh = np.concatenate([sh, np.broadcast_to(sh_rest, (n, 3, 3))], axis=1)
+        else:
+            sh = np.concatenate([sh, np.zeros((n, 3, 3))], axis=1)
+        parts.append(Gaussians(means, np.full((n, 3), scale), np.tile([1.0, 0, 0, 0], (n, 1)),
+                               np.full(n, opacity), sh, 1))
+
+    u = rng.uniform(-2, 2, (3000, 2))
+    add(np.column_stack([u[:, 0], np.zeros(3000), u[:, 1]]), [0.3, 0.3, 0.3])                  # floor
+    w = rng.uniform([-2, 0], [2, 3], (2000, 2))
+    add(np.column_stack([w[:, 0], w[:, 1], np.full(2000, -2.0)]), [0.3, 0.3, 0.3])             # wall
+    win = rng.uniform([-0.5, 1.0], [0.5, 2.0], (600, 2))
+    add(np.column_stack([win[:, 0], win[:, 1], np.full(600, -1.99)]), [1.8, 1.8, 1.9])       # window
+    lamp_a, lamp_b = np.array([1.2, 2.6, 0.5]), np.array([-1.5, 1.8, 1.0])
+    add(lamp_a + rng.normal(0, 0.01, (12, 3)), [4.0, 3.0, 2.0], scale=0.01)
+    add(lamp_b + rng.normal(0, 0.01, (12, 3)), [2.0, 3.0, 5.0], scale=0.01)
+    # A specular glint: bright only from +x (degree-1 SH), dim on average.
+    add(np.array([[0.5, 0.3, -1.0]]) + rng.normal(0, 0.005, (5, 3)), [0.3, 0.3, 0.3],
+        sh_rest=np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-6.0, -6.0, -6.0]]), scale=0.01)
+    from relight_cli.formats.gaussians_ply import concatenate
+    return concatenate(parts), lamp_a, lamp_b
+
+
+def test_estimate_lights_finds_compact_emitters():
+    from relight_cli.gaussians.lights import LUMA, estimate_lights
+    scene, lamp_a, lamp_b = room_with_lamps()
+    est = estimate_lights(scene, 2)
+    found = sorted(est.positions.tolist(), key=lambda p: p[0])
+    # Positions are Gaussian centres of the lamp clusters (σ = 1 cm jitter): within 4 cm.
+    np.testing.assert_allclose(found[0], lamp_b, atol=0.04)
+    np.testing.assert_allclose(found[1], lamp_a, atol=0.04)
+    np.testing.assert_allclose(est.colors @ LUMA, 1.0, atol=1e-12)
+    a = int(np.argmin(np.linalg.norm(est.positions - lamp_a, axis=1)))
+    np.testing.assert_allclose(est.colors[a] / est.colors[a].max(), [1.0, 0.75, 0.5], atol=1e-6)
+    assert est.intensities[a] == pytest.approx(np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
+    # K = 3: the window (bright but extended) comes after both lamps; the glint never wins.
+    est3 = estimate_lights(scene, 3)
+    assert -0.6 < est3.positions[2, 0] < 0.6 and est3.positions[2, 2] < -1.9
+    assert est3.scores[0] >= est3.scores[1] >= est3.scores[2]
+
+
+def test_estimate_lights_roi_and_errors():
+    from relight_cli.gaussians.lights import estimate_lights, parse_auto
+    scene, lamp_a, _ = room_with_lamps()
+    est = estimate_lights(scene, 1, roi_center=lamp_a, roi_radius=0.5)
+    np.testing.assert_allclose(est.positions[0], lamp_a, atol=0.04)
+    with pytest.raises(ValueError, match="no scene Gaussians"):
+        estimate_lights(scene, 1, roi_center=[50.0, 0, 0], roi_radius=1.0)
+    assert parse_auto("auto:3") == 3 and parse_auto("lights.json") is None
+    with pytest.raises(ValueError):
+        parse_auto("auto:0")
+    with pytest.raises(ValueError):
+        parse_auto("auto:x")
