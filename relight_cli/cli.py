@@ -19,6 +19,7 @@ from .errors import RelightError
 # name -> "module:attribute"; the only place a subcommand is registered.
 COMMANDS: dict[str, str] = {
     "bake-features": "relight_cli.commands.bake_features:command",
+    "dgsm-build": "relight_cli.commands.dgsm_build:command",
     "envmap": "relight_cli.commands.envmap:command",
     "metrics": "relight_cli.commands.metrics:command",
     "relight": "relight_cli.commands.relight:command",

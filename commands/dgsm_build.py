@@ -1,0 +1,252 @@
+"""``relight dgsm-build``: Deep Gaussian Shadow Maps of occluder Gaussians for point lights."""
+
+from __future__ import annotations
+
+import click
+
+from relight_cli.clitools import (check_input, check_output, log, no_clobber_option,
+                                  progress, quiet_option, seed_option)
+
+
+@click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
+@click.argument("occluders", metavar="OCCLUDERS.ply")
+@click.option("--receivers", default=None, metavar="SCENE.ply",
+              help="Scene Gaussians that receive shadows: they drive the ROI and t_max.")
+@click.option("--lights", "lights_spec", required=True, metavar="LIGHTS.json|auto:K",
+              help="Point lights (relight/lights JSON), or auto:K to estimate K lights "
+                   "from the receivers' scene.")
+@click.option("--lights-out", default=None, metavar="FILE.json",
+              help="Also write the lights used (e.g. the auto:K estimate).")
+@click.option("-o", "--output", required=True, help="Output EXR (relight/dgsm).")
+@click.option("--size", default="128", show_default=True,
+              help="Octahedral atlas HxW or N (a cube atlas gets faces with as many texels).")
+@click.option("--bins", type=click.IntRange(1, 999), default=64, show_default=True,
+              help="Radial bins K per texel.")
+@click.option("--atlas", type=click.Choice(["octahedral", "cube"]), default="octahedral",
+              show_default=True, help="Direction atlas (cube for the ablation).")
+@click.option("--mapping", type=click.Choice(["eq5", "simple", "mass", "diag"]), default="eq5",
+              show_default=True, help="Opacity→absorption mapping (eq5: paper Eq. 5).")
+@click.option("--kappa", type=float, default=1.0, show_default=True,
+              help="Absorption scale κ (> 0).")
+@click.option("--t-max", type=float, default=None,
+              help="Radial extent (metres) for every light; default from the receivers.")
+@click.option("--roi/--no-roi", default=True, show_default=True,
+              help="Compute only texels and bins that receivers read.")
+@click.option("--roi-radius", type=float, default=None,
+              help="Also cap the ROI at this distance (metres) from the occluders' centroid.")
+@click.option("--cull/--no-cull", default=True, show_default=True,
+              help="Light-space occluder culling (tiles, texels, kσ ellipse, radial).")
+@click.option("--cull-tolerance", type=float, default=1e-7, show_default=True,
+              help="Largest optical depth a culled Gaussian may have contributed.")
+@click.option("--footprint", type=click.Choice(["centre", "stencil", "mc"]), default="stencil",
+              show_default=True,
+              help="Receiver footprint that later lookups use (widens the ROI to cover it).")
+@click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
+              help="Monte Carlo samples for --footprint mc.")
+@click.option("--allow-light-inside", is_flag=True,
+              help="Build even if a light lies inside an occluder Gaussian (1σ).")
+@click.option("--half", is_flag=True, help="Store 16-bit half floats (default float32).")
+@seed_option
+@no_clobber_option
+@quiet_option
+def command(occluders, receivers, lights_spec, lights_out, output, size, bins, atlas, mapping,
+            kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
+            allow_light_inside, half, seed, no_clobber, quiet):
+    """Tabulate the transmittance from each light through the OCCLUDERS Gaussians
+    (closed-form erf optical depth, T = exp(−τ)) on K radial shells over an
+    octahedral atlas of directions (Mir et al., Deep Gaussian Shadow Maps).
+
+    Only what the receivers need is computed: receivers that can be shadowed at
+    all mark the atlas texels and radial bins that lookups will read (everything
+    else is T = 1), and occluders are culled in light space.  The EXR layout is
+    documented in formats/dgsm_exr.md; `relight relight --dgsm` reads it.
+
+    \b
+    Examples:
+      relight dgsm-build avatar.ply --receivers room.ply --lights lights.json -o shadows.exr
+      relight dgsm-build hand.ply --receivers floor.ply --lights lights.json \\
+          --atlas cube --mapping mass -o shadows-cube.exr
+    """
+    import math
+    import time
+
+    import numpy as np
+
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.formats.dgsm_exr import FORMAT, VERSION, write_dgsm
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    from relight_cli.formats.lights_json import FORMAT as LFORMAT
+    from relight_cli.formats.lights_json import VERSION as LVERSION
+    from relight_cli.formats.lights_json import Lights, read_lights, write_lights
+    from relight_cli.gaussians import dgsm as D
+    from relight_cli.gaussians import transmittance as TR
+    from relight_cli.provenance import provenance
+
+    start = time.perf_counter()
+    check_output(output, no_clobber)
+    if output == "-":
+        raise UsageProblem("the EXR output cannot go to stdout; give a file name")
+    if lights_out is not None:
+        check_output(lights_out, no_clobber, text=True)
+    try:
+        h, w = _parse_hw(size)
+    except ValueError:
+        raise UsageProblem(f"--size must look like HxW or N (2..4096), got {size!r}") from None
+    if not (kappa > 0 and math.isfinite(kappa)):
+        raise UsageProblem(f"--kappa must be positive, got {kappa}")
+    if not (0 < cull_tolerance < 1):
+        raise UsageProblem(f"--cull-tolerance must be in (0, 1), got {cull_tolerance}")
+    if t_max is not None and not (t_max > 0 and math.isfinite(t_max)):
+        raise UsageProblem(f"--t-max must be positive, got {t_max}")
+    if roi_radius is not None and not (roi_radius > 0 and math.isfinite(roi_radius)):
+        raise UsageProblem(f"--roi-radius must be positive, got {roi_radius}")
+    if receivers is None and t_max is None:
+        raise UsageProblem("give --receivers SCENE.ply (or --t-max for a receiver-free build)")
+    auto_k = _parse_auto(lights_spec)
+    if auto_k is not None and receivers is None:
+        raise UsageProblem("--lights auto:K estimates lights from the scene: give --receivers")
+
+    check_input(occluders)
+    occ = read_gaussians(occluders)
+    if len(occ) == 0:
+        raise DataError("no occluder Gaussians", occluders)
+    scene = None
+    if receivers is not None:
+        check_input(receivers)
+        scene = read_gaussians(receivers)
+        log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
+    log(f"read {occluders}: {len(occ)} occluder Gaussians", quiet)
+
+    if auto_k is None:
+        check_input(lights_spec)
+        lights = read_lights(lights_spec)
+    else:
+        lights = _estimate_lights(scene, auto_k, lights_spec)
+    log(f"{len(lights)} light(s)", quiet)
+
+    mix = TR.from_gaussians(occ, mapping, kappa)
+    inside = _lights_inside(mix, lights.positions)
+    for li, gi, m in inside:
+        message = (f"light {li} at {_fmt(lights.positions[li])} lies inside occluder Gaussian "
+                   f"{gi} (Mahalanobis distance {m:.2f} < 1)")
+        if not allow_light_inside:
+            raise DataError(message, lights_spec if auto_k is None else occluders,
+                            hint="move the light, or pass --allow-light-inside")
+        log(f"warning: {message}; its shadows are dominated by that Gaussian", quiet)
+
+    recv_points = None
+    if scene is not None:
+        pts, _ = D.footprint_samples(scene.means, scene.scales, scene.rotations, footprint,
+                                     samples, seed)
+        recv_points = pts.reshape(-1, 3)
+        if not np.isfinite(recv_points).all():
+            raise DataError("receiver positions hold NaN/Inf", receivers)
+
+    bar = (lambda it, total: progress(it, total=total, desc="lights", quiet=quiet))
+    shadow_map = D.build_dgsm(mix, lights.positions, recv_points, size=(h, w), bins=bins,
+                              layout=atlas, t_max=t_max, roi=roi, roi_radius=roi_radius,
+                              cull=cull, cull_tolerance=cull_tolerance, progress=bar)
+    for li, info in enumerate(shadow_map.roi):
+        if scene is not None and roi and info["receivers"] == 0:
+            log(f"warning: light {li}: no receivers in the ROI (none can be shadowed by the "
+                f"occluders); its table is all ones", quiet)
+        else:
+            log(f"light {li}: {info['texels']} texels, bins {info['bins'][0]}..{info['bins'][1]}, "
+                f"t_max {shadow_map.t_max[li]:.3f} m, min T "
+                f"{float(shadow_map.transmittance[li].min()):.3f}", quiet)
+    st = shadow_map.stats
+    log(f"built in {shadow_map.build_seconds:.3f} s ({st['pairs_kept']} ray/Gaussian pairs kept "
+        f"of {st['pairs_tested']} tested)", quiet)
+
+    inputs = {"occluders": occluders}
+    if receivers is not None:
+        inputs["receivers"] = receivers
+    if auto_k is None:
+        inputs["lights"] = lights_spec
+    settings = {"size": [h, w], "bins": bins, "atlas": atlas, "mapping": mapping, "kappa": kappa,
+                "t_max": t_max, "roi": roi, "roi_radius": roi_radius, "cull": cull,
+                "cull_tolerance": cull_tolerance, "footprint": footprint, "samples": samples,
+                "seed": seed, "lights": lights_spec, "half": half}
+    write_dgsm(output, shadow_map, provenance(FORMAT, VERSION, inputs, settings), half=half)
+    log(f"wrote {output} ({time.perf_counter() - start:.2f} s)", quiet)
+    if lights_out is not None:
+        write_lights(lights_out, Lights(lights.positions, lights.colors, lights.intensities,
+                                        lights.names, lights.extra),
+                     provenance(LFORMAT, LVERSION, inputs, settings))
+        log(f"wrote {lights_out}", quiet)
+
+
+def _parse_hw(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    if len(parts) == 1:
+        h = w = int(parts[0])
+    elif len(parts) == 2:
+        h, w = int(parts[0]), int(parts[1])
+    else:
+        raise ValueError(text)
+    if not (2 <= h <= 4096 and 2 <= w <= 4096):
+        raise ValueError(text)
+    return h, w
+
+
+def _parse_auto(spec: str):
+    from relight_cli.errors import UsageProblem
+    if not spec.startswith("auto"):
+        return None
+    try:
+        k = int(spec.split(":", 1)[1])
+    except (IndexError, ValueError):
+        raise UsageProblem(f"--lights auto needs a count, e.g. auto:2, got {spec!r}") from None
+    if not 1 <= k <= 64:
+        raise UsageProblem(f"--lights auto:K needs 1 ≤ K ≤ 64, got {k}")
+    return k
+
+
+def _estimate_lights(scene, k, spec):
+    """auto:K through relight_cli.gaussians.lights (the light-estimation module), if present."""
+    import importlib
+
+    import numpy as np
+
+    from relight_cli.errors import UsageProblem
+    from relight_cli.formats.lights_json import Lights
+    try:
+        module = importlib.import_module("relight_cli.gaussians.lights")
+    except ImportError:
+        module = None
+    estimator = getattr(module, "estimate_lights", None) if module is not None else None
+    if estimator is None:
+        raise UsageProblem("--lights auto:K is not available in this build (no light estimator "
+                           "in relight_cli.gaussians.lights); give a lights JSON file", spec)
+    try:
+        result = estimator(scene, k)   # deterministic: no randomness to seed
+    except ValueError as exc:
+        from relight_cli.errors import DataError
+        raise DataError(f"light estimation failed: {exc}", spec) from None
+    if isinstance(result, Lights):
+        return result
+    if hasattr(result, "positions"):
+        return Lights(result.positions, getattr(result, "colors", None),
+                      getattr(result, "intensities", None),
+                      extra={"estimator": "relight_cli.gaussians.lights.estimate_lights",
+                             "count": int(k)})
+    return Lights(np.asarray(result, np.float64).reshape(-1, 3))
+
+
+def _lights_inside(mix, positions, threshold: float = 1.0):
+    """[(light, gaussian, mahalanobis)] for lights within 1σ of an occluder Gaussian."""
+    import numpy as np
+    found = []
+    for li, p in enumerate(np.asarray(positions, np.float64)):
+        rel = (p - mix.means) / mix.scale_max[:, None]
+        local = np.einsum("nji,nj->ni", mix.rotation, rel)
+        m2 = (local ** 2 / mix.var).sum(axis=1)
+        m2 = np.where(mix.alpha > 0, m2, np.inf)
+        j = int(np.argmin(m2))
+        if m2[j] < threshold ** 2:
+            found.append((li, j, float(np.sqrt(m2[j]))))
+    return found
+
+
+def _fmt(v) -> str:
+    return "(" + ", ".join(f"{float(x):.3g}" for x in v) + ")"

@@ -1,0 +1,123 @@
+"""Deep Gaussian Shadow Maps in OpenEXR (spec: ``formats/dgsm_exr.md``).
+
+One EXR per build: for light i and bin k the channel ``light{i}.t{k:03d}`` holds
+T at the bin centre t_k = (k + ½)·t_max_i / K over the H×W direction atlas.
+The geometry (atlas mapping, lookup) lives in ``relight_cli.gaussians.dgsm``;
+this module reads, validates and writes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from relight_cli.errors import DataError
+
+FORMAT = "relight/dgsm"
+VERSION = 1
+PREFIX = "relight.dgsm."
+TEXEL_MAPPING = ("octahedral: column x -> u = 2(x+0.5)/W - 1, row y (top 0) -> v = 1 - 2(y+0.5)/H; "
+                 "(u,v) -> direction from the light, lower hemisphere (y<=0) = central diamond "
+                 "(x,z)/|w|_1; cube: OpenEXR ImfEnvmap cube, faces +X -X +Y -Y +Z -Z stacked")
+
+
+def channel_name(light: int, k: int) -> str:
+    return f"light{light}.t{k:03d}"
+
+
+def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = False) -> None:
+    """Write a :class:`relight_cli.gaussians.dgsm.DGSM` atomically."""
+    from relight_cli.formats.exr import write_exr
+
+    table = np.asarray(dgsm.transmittance)
+    if not np.isfinite(table).all():
+        raise DataError("transmittance table holds NaN/Inf (a bug; nothing written)", path)
+    n_lights, K = table.shape[:2]
+    channels = {channel_name(i, k): table[i, k] for i in range(n_lights) for k in range(K)}
+    attributes = {
+        PREFIX + "layout": str(dgsm.layout),
+        PREFIX + "lights": int(n_lights),
+        PREFIX + "bins": int(K),
+        PREFIX + "light_positions": json.dumps([[float(v) for v in p] for p in dgsm.lights]),
+        PREFIX + "t_max": json.dumps([float(t) for t in dgsm.t_max]),
+        PREFIX + "mapping": str(dgsm.mapping),
+        PREFIX + "kappa": float(dgsm.kappa),
+        PREFIX + "roi": json.dumps(_jsonable(dgsm.roi), sort_keys=True),
+        PREFIX + "build_seconds": float(dgsm.build_seconds),
+        PREFIX + "texel_mapping": TEXEL_MAPPING,
+    }
+    write_exr(path, channels, attributes=attributes, half=half, provenance=provenance)
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, (np.floating, np.integer)):
+        return _jsonable(value.item())
+    return value
+
+
+def _json_attr(image, key, path):
+    text = image.attributes.get(PREFIX + key)
+    if not isinstance(text, str):
+        raise DataError(f"missing header attribute {PREFIX + key}", path)
+    try:
+        return json.loads(text)
+    except ValueError:
+        raise DataError(f"damaged header attribute {PREFIX + key}", path) from None
+
+
+def read_dgsm(path: str):
+    """Read and validate a DGSM EXR → :class:`relight_cli.gaussians.dgsm.DGSM`."""
+    from relight_cli.formats.exr import check_format, read_exr
+    from relight_cli.gaussians.dgsm import DGSM, LAYOUTS
+    from relight_cli.gaussians.transmittance import MAPPINGS
+
+    image = read_exr(path)
+    check_format(image, FORMAT, VERSION)
+    attrs = image.attributes
+    layout = attrs.get(PREFIX + "layout")
+    if layout not in LAYOUTS:
+        raise DataError(f"unknown atlas layout {layout!r}", path)
+    n_lights, K = attrs.get(PREFIX + "lights"), attrs.get(PREFIX + "bins")
+    if not isinstance(n_lights, int) or n_lights < 1 or not isinstance(K, int) or K < 1:
+        raise DataError("missing or invalid light/bin counts in the header", path)
+    lights = np.asarray(_json_attr(image, "light_positions", path), np.float64)
+    t_max = np.asarray(_json_attr(image, "t_max", path), np.float64)
+    if lights.shape != (n_lights, 3) or t_max.shape != (n_lights,):
+        raise DataError("light positions / t_max do not match the light count", path)
+    if not (np.isfinite(lights).all() and np.isfinite(t_max).all() and (t_max > 0).all()):
+        raise DataError("light positions / t_max must be finite (t_max > 0)", path)
+    mapping = attrs.get(PREFIX + "mapping")
+    if mapping not in MAPPINGS:
+        raise DataError(f"unknown opacity mapping {mapping!r}", path)
+    kappa = attrs.get(PREFIX + "kappa")
+    if not isinstance(kappa, (int, float)) or not kappa > 0:
+        raise DataError("missing or invalid kappa", path)
+    roi = _json_attr(image, "roi", path)
+    names = set(image.channels)
+    expected = {channel_name(i, k) for i in range(n_lights) for k in range(K)}
+    missing = sorted(expected - names)
+    if missing:
+        raise DataError(f"missing channel(s) {', '.join(missing[:3])}"
+                        f"{' …' if len(missing) > 3 else ''}", path)
+    h, w = image.height, image.width
+    if layout == "cube" and h != 6 * w:
+        raise DataError(f"a cube atlas must be N wide and 6N high, got {w}x{h}", path)
+    table = np.empty((n_lights, K, h, w), np.float32)
+    for i in range(n_lights):
+        for k in range(K):
+            table[i, k] = image.channels[channel_name(i, k)]
+    if not np.isfinite(table).all():
+        raise DataError("transmittance holds NaN/Inf", path)
+    if table.min() < -1e-3 or table.max() > 1 + 1e-3:
+        raise DataError(f"transmittance outside [0, 1] ({table.min():.4g}..{table.max():.4g})", path)
+    seconds = attrs.get(PREFIX + "build_seconds", 0.0)
+    return DGSM(np.clip(table, 0, 1), lights, t_max, layout, mapping, float(kappa), roi,
+                float(seconds) if isinstance(seconds, (int, float)) else 0.0, {})

@@ -1,0 +1,144 @@
+"""Point lights in JSON (spec: ``formats/lights_json.md``)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from relight_cli.errors import DataError
+
+FORMAT = "relight/lights"
+VERSION = 1
+
+
+@dataclass
+class Lights:
+    """L point lights.
+
+    Attributes:
+        positions: [L, 3] float64, metres, world (+Y up).
+        colors: [L, 3] float64 linear RGB (non-negative; relative spectrum).
+        intensities: [L] float64 non-negative scale (radiant intensity up to a
+            global scale; radiance at distance r is colour·intensity / r²).
+        names: [L] optional labels ("" when absent).
+        extra: other top-level fields (e.g. an estimator's settings), kept on read.
+        provenance: the provenance record.
+    """
+
+    positions: np.ndarray
+    colors: np.ndarray | None = None
+    intensities: np.ndarray | None = None
+    names: list = field(default_factory=list)
+    extra: dict = field(default_factory=dict)
+    provenance: dict | None = None
+
+    def __post_init__(self):
+        self.positions = np.asarray(self.positions, np.float64).reshape(-1, 3)
+        n = len(self.positions)
+        self.colors = (np.ones((n, 3)) if self.colors is None
+                       else np.asarray(self.colors, np.float64).reshape(n, 3))
+        self.intensities = (np.ones(n) if self.intensities is None
+                            else np.asarray(self.intensities, np.float64).reshape(n))
+        if not self.names:
+            self.names = [""] * n
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+
+def lights_to_json(lights: Lights) -> dict:
+    items = []
+    for i in range(len(lights)):
+        item = {"position": [float(v) for v in lights.positions[i]],
+                "color": [float(v) for v in lights.colors[i]],
+                "intensity": float(lights.intensities[i])}
+        if lights.names[i]:
+            item["name"] = str(lights.names[i])
+        items.append(item)
+    out = {"format": FORMAT, "version": VERSION, "lights": items}
+    out.update(lights.extra)
+    if lights.provenance is not None:
+        out["provenance"] = lights.provenance
+    return out
+
+
+def write_lights(path: str, lights: Lights, provenance: dict | None = None) -> None:
+    """Write atomically ('-' for stdout); floats round-trip exactly."""
+    from relight_cli.provenance import write_text_atomic
+    if provenance is not None:
+        lights.provenance = provenance
+    validate(lights, path)
+    write_text_atomic(path, json.dumps(lights_to_json(lights), indent=2, allow_nan=False) + "\n")
+
+
+def _vector(value, n, what, path, nonneg=False):
+    if (not isinstance(value, list) or len(value) != n
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+        raise DataError(f"{what} must be a list of {n} numbers, got {value!r}", path)
+    if not all(math.isfinite(v) for v in value):
+        raise DataError(f"{what} holds NaN/Inf", path)
+    if nonneg and any(v < 0 for v in value):
+        raise DataError(f"{what} must be non-negative, got {value!r}", path)
+    return [float(v) for v in value]
+
+
+def lights_from_json(obj, path: str = "") -> Lights:
+    if not isinstance(obj, dict):
+        raise DataError("expected a JSON object", path)
+    if obj.get("format") != FORMAT:
+        raise DataError(f"not a {FORMAT} file (format is {obj.get('format')!r})", path)
+    version = obj.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise DataError("missing or invalid 'version'", path)
+    if version > VERSION:
+        raise DataError(f"{FORMAT} version {version} is newer than this relight understands "
+                        f"(≤ {VERSION})", path, hint="upgrade relight")
+    items = obj.get("lights")
+    if not isinstance(items, list) or not items:
+        raise DataError("'lights' must be a non-empty list", path)
+    pos, col, inten, names = [], [], [], []
+    for i, item in enumerate(items):
+        if not isinstance(item, dict):
+            raise DataError(f"lights[{i}] must be an object", path)
+        if "position" not in item:
+            raise DataError(f"lights[{i}] has no 'position'", path)
+        pos.append(_vector(item["position"], 3, f"lights[{i}].position", path))
+        col.append(_vector(item.get("color", [1.0, 1.0, 1.0]), 3, f"lights[{i}].color", path, True))
+        value = item.get("intensity", 1.0)
+        inten.append(_vector([value] if not isinstance(value, list) else value, 1,
+                             f"lights[{i}].intensity", path, True)[0])
+        name = item.get("name", "")
+        if not isinstance(name, str):
+            raise DataError(f"lights[{i}].name must be a string", path)
+        names.append(name)
+    extra = {k: v for k, v in obj.items() if k not in ("format", "version", "lights", "provenance")}
+    return Lights(np.array(pos), np.array(col), np.array(inten), names, extra, obj.get("provenance"))
+
+
+def read_lights(path: str) -> Lights:
+    """Read and validate a lights JSON file.  Raises DataError naming the file."""
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            obj = json.load(f)
+    except UnicodeDecodeError:
+        raise DataError("not a text (UTF-8 JSON) file", path) from None
+    except json.JSONDecodeError as exc:
+        raise DataError(f"invalid JSON: {exc.msg} at line {exc.lineno}", path) from None
+    return lights_from_json(obj, path)
+
+
+def validate(lights: Lights, path: str = "") -> None:
+    if len(lights) == 0:
+        raise DataError("no lights", path)
+    for name, arr in (("positions", lights.positions), ("colors", lights.colors),
+                      ("intensities", lights.intensities)):
+        if not np.isfinite(arr).all():
+            raise DataError(f"light {name} hold NaN/Inf", path)
+    if (lights.colors < 0).any() or (lights.intensities < 0).any():
+        raise DataError("light colours and intensities must be non-negative", path)

@@ -1,0 +1,246 @@
+"""`relight dgsm-build`, the relight/dgsm EXR and relight/lights JSON formats, bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from relight_cli.cli import cli
+from relight_cli.formats.dgsm_exr import read_dgsm, write_dgsm
+from relight_cli.formats.gaussians_ply import Gaussians, rgb_to_sh_dc, write_gaussians
+from relight_cli.formats.lights_json import Lights, read_lights, write_lights
+from relight_cli.gaussians import dgsm as D
+from relight_cli.gaussians import transmittance as TR
+
+
+def _gaussians(means, scale, alpha=0.9, flat=False):
+    n = len(means)
+    s = np.tile([scale, scale, scale * (0.05 if flat else 1.0)], (n, 1))
+    return Gaussians(means, s, np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, alpha),
+                     rgb_to_sh_dc(np.full((n, 3), 0.6))[:, None, :], 0)
+
+
+@pytest.fixture()
+def scene(tmp_path):
+    rng = np.random.default_rng(0)
+    occ = _gaussians(rng.normal(size=(200, 3)) * 0.15 + [0, 1.0, 0], 0.04)
+    gx, gz = np.meshgrid(np.linspace(-1.5, 1.5, 30), np.linspace(-1.5, 1.5, 30))
+    floor = _gaussians(np.stack([gx.ravel(), np.zeros(gx.size), gz.ravel()], 1), 0.05, flat=True)
+    # rotate the floor discs so their thin axis is +Y: quaternion for +90° about X
+    floor.rotations[:] = [np.cos(np.pi / 4), np.sin(np.pi / 4), 0, 0]
+    paths = {"occ": tmp_path / "occ.ply", "floor": tmp_path / "floor.ply",
+             "lights": tmp_path / "lights.json"}
+    write_gaussians(str(paths["occ"]), occ)
+    write_gaussians(str(paths["floor"]), floor)
+    write_lights(str(paths["lights"]), Lights([[0.3, 3.0, 0.2], [-1.0, 2.5, 0.0]],
+                                              [[1, 1, 1], [1, 0.9, 0.8]], [10.0, 4.0]))
+    return {k: str(v) for k, v in paths.items()} | {"dir": tmp_path}
+
+
+def _run(args):
+    return CliRunner().invoke(cli, args, catch_exceptions=False)
+
+
+def test_help():
+    r = _run(["dgsm-build", "--help"])
+    assert r.exit_code == 0 and "--receivers" in r.output and "auto:K" in r.output
+
+
+def test_build_in_process_and_read_back(scene):
+    out = str(scene["dir"] / "shadows.exr")
+    r = _run(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+              scene["lights"], "-o", out, "--size", "32", "--bins", "16", "-q"])
+    assert r.exit_code == 0, r.output
+    m = read_dgsm(out)
+    assert m.transmittance.shape == (2, 16, 32, 32)
+    assert m.layout == "octahedral" and m.mapping == "eq5" and m.kappa == 1.0
+    assert len(m.roi) == 2 and m.roi[0]["receivers"] > 0
+    from relight_cli.formats.exr import read_exr
+    img = read_exr(out)
+    assert "light1.t015" in img.channels and img.attributes["relight.format"] == "relight/dgsm"
+    prov = img.provenance()
+    assert prov["settings"]["bins"] == 16 and "occluders" in prov["inputs"]
+    # the table agrees with the exact transmittance at receivers (resolution-limited)
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    floor = read_gaussians(scene["floor"])
+    mix = TR.from_gaussians(read_gaussians(scene["occ"]))
+    exact = TR.transmittance_between(mix, m.lights[0], floor.means)
+    looked = D.sample_transmittance(m, floor.means, light_index=0)
+    assert exact.min() < 0.2                         # a real shadow
+    assert np.abs(looked - exact).mean() < 0.05      # 32² × 16 table: mean error a few %
+
+
+def test_cube_atlas_and_half_and_lights_out(scene):
+    out = str(scene["dir"] / "cube.exr")
+    lout = str(scene["dir"] / "lights-out.json")
+    r = _run(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+              scene["lights"], "-o", out, "--size", "24", "--bins", "8", "--atlas", "cube",
+              "--mapping", "mass", "--kappa", "0.5", "--half", "--lights-out", lout, "-q"])
+    assert r.exit_code == 0, r.output
+    m = read_dgsm(out)
+    assert m.layout == "cube" and m.height == 6 * m.width and m.mapping == "mass"
+    back = read_lights(lout)
+    np.testing.assert_array_equal(back.positions, read_lights(scene["lights"]).positions)
+
+
+def test_installed_console_script(scene):
+    exe = Path(sys.executable).with_name("relight")
+    exe = str(exe) if exe.exists() else shutil.which("relight")
+    assert exe, "console script 'relight' not installed"
+    out = str(scene["dir"] / "sub.exr")
+    p = subprocess.run([exe, "dgsm-build", scene["occ"], "--receivers", scene["floor"],
+                        "--lights", scene["lights"], "-o", out, "--size", "16", "--bins", "8"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert os.path.exists(out) and p.stdout == ""
+    assert "built in" in p.stderr
+
+
+def _fails(args, code, *words):
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == code, r.output
+    text = r.output.lower()
+    assert "traceback" not in text
+    for w in words:
+        assert w.lower() in text, (w, r.output)
+
+
+def test_bad_ply_missing_field_and_nan(scene):
+    out = str(scene["dir"] / "x.exr")
+    from plyfile import PlyData, PlyElement
+    data = PlyData.read(scene["occ"])
+    v = data["vertex"].data
+    names = [n for n in v.dtype.names if n != "opacity"]
+    broken = np.empty(len(v), dtype=[(n, v.dtype[n]) for n in names])
+    for n in names:
+        broken[n] = v[n]
+    bad = str(scene["dir"] / "missing.ply")
+    PlyData([PlyElement.describe(broken, "vertex")]).write(bad)
+    _fails(["dgsm-build", bad, "--receivers", scene["floor"], "--lights", scene["lights"],
+            "-o", out], 1, "opacity", "missing.ply")
+    v2 = v.copy()
+    v2["x"][3] = np.nan
+    nan = str(scene["dir"] / "nan.ply")
+    PlyData([PlyElement.describe(v2, "vertex")]).write(nan)
+    _fails(["dgsm-build", nan, "--receivers", scene["floor"], "--lights", scene["lights"],
+            "-o", out], 1, "nan.ply")
+    assert not os.path.exists(out)
+
+
+def test_bad_lights_json(scene):
+    out = str(scene["dir"] / "x.exr")
+    bad = scene["dir"] / "v9.json"
+    obj = json.loads(Path(scene["lights"]).read_text())
+    obj["version"] = 9
+    bad.write_text(json.dumps(obj))
+    _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights", str(bad),
+            "-o", out], 1, "version 9", "v9.json")
+    obj["version"] = 1
+    obj["lights"][0]["position"] = [0, "up", 1]
+    bad.write_text(json.dumps(obj))
+    _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights", str(bad),
+            "-o", out], 1, "position")
+    other = scene["dir"] / "other.json"
+    other.write_text(json.dumps({"format": "relight/sh-probe", "version": 1}))
+    _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights", str(other),
+            "-o", out], 1, "not a relight/lights file")
+    assert not os.path.exists(out)
+
+
+def test_zero_receivers_in_roi_writes_all_ones_with_warning(scene):
+    far = _gaussians(np.array([[40.0, 0, 0], [41.0, 0, 0]]), 0.05)
+    path = str(scene["dir"] / "far.ply")
+    write_gaussians(path, far)
+    out = str(scene["dir"] / "ones.exr")
+    lights = scene["dir"] / "one.json"
+    write_lights(str(lights), Lights([[40.5, 3.0, 0.0]]))
+    r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", path, "--lights",
+                                 str(lights), "-o", out, "--size", "8", "--bins", "4"])
+    assert r.exit_code == 0, r.output
+    assert "warning" in r.output and "no receivers" in r.output
+    m = read_dgsm(out)
+    assert np.all(m.transmittance == 1.0)
+
+
+def test_light_inside_occluder(scene):
+    out = str(scene["dir"] / "x.exr")
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    occ = read_gaussians(scene["occ"])
+    lights = scene["dir"] / "inside.json"
+    write_lights(str(lights), Lights([occ.means[5] + 0.001]))
+    _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights", str(lights),
+            "-o", out], 1, "inside occluder gaussian", "--allow-light-inside")
+    assert not os.path.exists(out)
+    r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", scene["floor"],
+                                 "--lights", str(lights), "-o", out, "--size", "8", "--bins", "4",
+                                 "--allow-light-inside"])
+    assert r.exit_code == 0 and "warning" in r.output
+    assert np.isfinite(read_dgsm(out).transmittance).all()
+
+
+def test_usage_errors(scene):
+    out = str(scene["dir"] / "x.exr")
+    base = ["dgsm-build", scene["occ"], "--lights", scene["lights"], "-o", out]
+    _fails(base, 2, "--receivers")                                     # no receivers, no t_max
+    _fails(base + ["--receivers", scene["floor"], "--size", "0"], 2, "--size")
+    _fails(base + ["--receivers", scene["floor"], "--kappa", "-1"], 2, "--kappa")
+    _fails(base[:3] + ["auto:x", "-o", out, "--receivers", scene["floor"]], 2, "auto")
+    _fails(["dgsm-build", scene["occ"], "--lights", "auto:2", "-o", out], 2, "--receivers")
+    _fails(["dgsm-build", str(scene["dir"] / "nope.ply"), "--receivers", scene["floor"],
+            "--lights", scene["lights"], "-o", out], 1, "no such file")
+
+
+def test_auto_lights_unavailable_or_works(scene):
+    out = str(scene["dir"] / "auto.exr")
+    r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", scene["floor"],
+                                 "--lights", "auto:1", "-o", out, "--size", "8", "--bins", "4"])
+    try:
+        from relight_cli.gaussians.lights import estimate_lights  # noqa: F401
+        available = True
+    except ImportError:
+        available = False
+    if available:
+        assert r.exit_code == 0, r.output
+    else:
+        assert r.exit_code == 2 and "not available" in r.output
+        assert not os.path.exists(out)
+
+
+def test_dgsm_exr_rejects_damage(tmp_path):
+    m = D.DGSM(np.ones((1, 2, 4, 4), np.float32), np.array([[0.0, 2, 0]]), np.array([3.0]),
+               roi=[{"bins": [0, 1]}])
+    good = str(tmp_path / "g.exr")
+    from relight_cli.provenance import provenance
+    write_dgsm(good, m, provenance("relight/dgsm", 1))
+    assert read_dgsm(good).transmittance.shape == (1, 2, 4, 4)
+    from relight_cli.errors import DataError
+    from relight_cli.formats.exr import write_exr
+    # newer version
+    newer = str(tmp_path / "n.exr")
+    write_exr(newer, {"light0.t000": np.ones((4, 4))}, provenance=provenance("relight/dgsm", 2))
+    with pytest.raises(DataError, match="version 2"):
+        read_dgsm(newer)
+    # missing channel
+    img = {"light0.t000": np.ones((4, 4))}
+    attrs = {"relight.dgsm.layout": "octahedral", "relight.dgsm.lights": 1,
+             "relight.dgsm.bins": 2, "relight.dgsm.light_positions": "[[0, 2, 0]]",
+             "relight.dgsm.t_max": "[3.0]", "relight.dgsm.mapping": "eq5",
+             "relight.dgsm.kappa": 1.0, "relight.dgsm.roi": "[]"}
+    miss = str(tmp_path / "m.exr")
+    write_exr(miss, img, attributes=attrs, provenance=provenance("relight/dgsm", 1))
+    with pytest.raises(DataError, match="light0.t001"):
+        read_dgsm(miss)
+    # out-of-range values
+    img2 = {"light0.t000": np.full((4, 4), 2.0), "light0.t001": np.ones((4, 4))}
+    rng_ = str(tmp_path / "r.exr")
+    write_exr(rng_, img2, attributes=attrs, provenance=provenance("relight/dgsm", 1))
+    with pytest.raises(DataError, match="outside"):
+        read_dgsm(rng_)
