@@ -298,22 +298,24 @@ class VisibilityCache:
     def require(self, need: np.ndarray) -> int:
         """Trace every pair of ``need`` ([N, M] bool) not traced yet; return how many."""
         t0 = time.perf_counter()
-        todo = np.flatnonzero(need & ~self.traced)               # flat pair indices
-        count = len(todo)
+        todo = need & ~self.traced                                # [N, M]
+        count = int(todo.sum())
         if count:
-            visible = self.visible.reshape(-1)
             if self.scene is None:
-                visible[todo] = True
+                self.visible |= todo
             else:
                 if self._origins is None:
                     self._origins = (self.receivers.points + self.ray_offset
                                      * self.receivers.normals).astype(np.float32)
                     self._dirs32 = self.directions.astype(np.float32)
-                m = len(self.directions)
-                blocked = self.scene.occluded(self._origins[todo // m], self._dirs32[todo % m])
-                visible[todo] = ~blocked
+                # Row-major pair order: origins repeat per receiver (no gather), and the
+                # boolean-mask assignment below walks the same order.
+                _, mm = np.nonzero(todo)
+                origins = np.repeat(self._origins, todo.sum(axis=1), axis=0)
+                blocked = self.scene.occluded(origins, self._dirs32[mm])
+                self.visible[todo] = ~blocked
                 self.rays_traced += count
-            self.traced.reshape(-1)[todo] = True
+            self.traced |= todo
         self.seconds += time.perf_counter() - t0
         return count
 
