@@ -154,8 +154,17 @@ def rodrigues_torch(rotvec):
     return eye + a * K + b * (K @ K)
 
 
+def joint_levels(parents) -> list[np.ndarray]:
+    """Joints grouped by depth in the tree (root first), so FK runs one batch per level."""
+    parents = np.asarray(parents)
+    depth = np.zeros(len(parents), np.int64)
+    for j in range(1, len(parents)):
+        depth[j] = depth[parents[j]] + 1
+    return [np.nonzero(depth == d)[0] for d in range(depth.max() + 1)]
+
+
 def forward_kinematics_torch(poses, rest_joints, parents):
-    """Torch twin of :func:`forward_kinematics`.
+    """Torch twin of :func:`forward_kinematics`, one batched step per tree level.
 
     Args:
         poses: [N, J, 3]; rest_joints: [J, 3] or [N, J, 3] tensors (may require grad).
@@ -167,16 +176,25 @@ def forward_kinematics_torch(poses, rest_joints, parents):
     R = rodrigues_torch(poses)
     N, J = poses.shape[:2]
     rest = rest_joints.expand(N, J, 3) if rest_joints.dim() == 2 else rest_joints
-    rots, pos = [], []
-    for j in range(J):
-        p = int(parents[j])
-        if p < 0:
-            rots.append(R[:, j])
-            pos.append(rest[:, j])
-        else:
-            rots.append(rots[p] @ R[:, j])
-            pos.append(pos[p] + (rots[p] @ (rest[:, j] - rest[:, p])[..., None])[..., 0])
-    return torch.stack(rots, 1), torch.stack(pos, 1)
+    parents = np.asarray(parents)
+    levels = joint_levels(parents)
+    rot_parts, pos_parts = [R[:, levels[0]]], [rest[:, levels[0]]]
+    rot_of = {int(j): (0, k) for k, j in enumerate(levels[0])}
+    for li, level in enumerate(levels[1:], start=1):
+        par = parents[level]
+        # Gather parents' global transforms from the level tensors they live in.
+        pr = torch.stack([rot_parts[rot_of[int(p)][0]][:, rot_of[int(p)][1]] for p in par], 1)
+        pp = torch.stack([pos_parts[rot_of[int(p)][0]][:, rot_of[int(p)][1]] for p in par], 1)
+        offset = rest[:, level] - rest[:, par]                           # [N, L, 3]
+        rot_parts.append(pr @ R[:, level])
+        pos_parts.append(pp + (pr @ offset[..., None])[..., 0])
+        for k, j in enumerate(level):
+            rot_of[int(j)] = (li, k)
+    order = np.concatenate(levels)
+    inverse = np.argsort(order)
+    rots = torch.cat(rot_parts, 1)[:, inverse]
+    pos = torch.cat(pos_parts, 1)[:, inverse]
+    return rots, pos
 
 
 def lbs_torch(vertices, weights, rest_joints, parents, poses, translations=None):

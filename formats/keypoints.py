@@ -1,0 +1,127 @@
+"""3D hand keypoints: JSON or ``.npy`` (spec: ``formats/keypoints.md``).
+
+Keypoints are per-frame 3D joint positions (metres, world) in the template's
+joint order (25 WebXR joints), with an optional confidence per joint
+(0 = missing).  NaN or Inf anywhere is an error, never a missing joint.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from relight_cli.errors import DataError
+
+FORMAT = "relight/keypoints"
+VERSION = 1
+
+
+@dataclass
+class Keypoints:
+    """Attributes:
+        positions: [N, J, 3] float64 metres, world.
+        confidence: [N, J] float64 in [0, 1]; 0 marks a missing joint.
+        frames: [N] int64 frame numbers (strictly increasing; default 0..N−1).
+        joint_names: J names if the file gave them, else None.
+    """
+
+    positions: np.ndarray
+    confidence: np.ndarray
+    frames: np.ndarray
+    joint_names: list[str] | None = None
+
+
+def keypoints_from_array(a, path: str, n_joints: int = 25, frames=None,
+                         joint_names=None) -> Keypoints:
+    """Validate an (N, J, 3) or (N, J, 4) array (4th column = confidence)."""
+    a = np.asarray(a)
+    if a.dtype.kind not in "fiu":
+        raise DataError(f"keypoints must be numbers, got dtype {a.dtype}", path)
+    a = a.astype(np.float64)
+    if a.ndim == 2 and a.shape[-1] in (3, 4):
+        a = a[None]
+    if a.ndim != 3 or a.shape[2] not in (3, 4):
+        raise DataError(f"keypoints must have shape (N, {n_joints}, 3) or (N, {n_joints}, 4), "
+                        f"got {a.shape}", path)
+    if a.shape[0] == 0:
+        raise DataError("keypoints hold no frames", path)
+    if a.shape[1] != n_joints:
+        raise DataError(f"keypoints have {a.shape[1]} joints per frame; the template has "
+                        f"{n_joints}", path)
+    bad = ~np.isfinite(a)
+    if bad.any():
+        n, j, _ = np.argwhere(bad)[0]
+        raise DataError(f"keypoints hold NaN/Inf (first at frame {n}, joint {j}); mark a "
+                        "missing joint with confidence 0 instead", path)
+    conf = a[..., 3] if a.shape[2] == 4 else np.ones(a.shape[:2])
+    if conf.min() < 0 or conf.max() > 1:
+        raise DataError("keypoint confidences must lie in [0, 1]", path)
+    if frames is None:
+        frames = np.arange(a.shape[0])
+    frames = np.asarray(frames)
+    if frames.dtype.kind not in "iu" or frames.shape != (a.shape[0],):
+        raise DataError(f"'frames' must be {a.shape[0]} integers", path)
+    if len(frames) > 1 and np.any(np.diff(frames) <= 0):
+        raise DataError("'frames' must be strictly increasing", path)
+    if joint_names is not None and len(joint_names) != n_joints:
+        raise DataError(f"'joint_names' lists {len(joint_names)} joints, expected {n_joints}", path)
+    return Keypoints(a[..., :3].copy(), conf.copy(), frames.astype(np.int64),
+                     None if joint_names is None else [str(s) for s in joint_names])
+
+
+def read_keypoints(path: str, n_joints: int = 25) -> Keypoints:
+    """Read keypoints from ``.npy`` or ``.json``; DataError names the file and the problem."""
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    if os.path.isdir(path):
+        raise DataError("is a directory, expected keypoints (.json or .npy)", path)
+    if path.lower().endswith(".npy"):
+        try:
+            a = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise DataError(f"not a readable .npy array: {exc}", path) from None
+        return keypoints_from_array(a, path, n_joints)
+    try:
+        with open(path, encoding="utf-8") as f:
+            obj = json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(f"not valid JSON: {exc}", path) from None
+    frames = names = None
+    if isinstance(obj, dict):
+        if "format" in obj and obj["format"] != FORMAT:
+            raise DataError(f"not a {FORMAT} file (format is {obj['format']!r})", path)
+        if "version" in obj and obj["version"] != VERSION:
+            raise DataError(f"unsupported {FORMAT} version {obj['version']!r} (this tool reads "
+                            f"version {VERSION})", path)
+        if "keypoints" not in obj:
+            raise DataError("JSON object lacks 'keypoints'", path)
+        frames, names = obj.get("frames"), obj.get("joint_names")
+        obj = obj["keypoints"]
+    try:
+        a = np.array(obj, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError("'keypoints' must be a regular N × J × 3 (or 4) array of numbers",
+                        path) from None
+    if frames is not None:
+        try:
+            frames = np.array(frames)
+        except (TypeError, ValueError):
+            raise DataError("'frames' must be a list of integers", path) from None
+    return keypoints_from_array(a, path, n_joints, frames, names)
+
+
+def write_keypoints(path: str, kp: Keypoints, provenance: dict | None = None) -> None:
+    """Write keypoints as JSON (N × J × 4 with confidences), atomically."""
+    from relight_cli.provenance import write_text_atomic
+
+    data = np.concatenate([kp.positions, kp.confidence[..., None]], -1)
+    obj = {"format": FORMAT, "version": VERSION, "frames": [int(f) for f in kp.frames],
+           "keypoints": data.tolist()}
+    if kp.joint_names is not None:
+        obj["joint_names"] = list(kp.joint_names)
+    if provenance:
+        obj["provenance"] = provenance
+    write_text_atomic(path, json.dumps(obj) + "\n")

@@ -1,0 +1,539 @@
+"""Fitting a skinned hand template to 3D keypoints and/or scans (torch).
+
+Unknowns: per frame the pose θ [N, J, 3] (leaf joints stay 0: nothing
+observes them) and translation t [N, 3]; shared across frames the
+personalization — per-bone length scales s_j (offset J_j − J_p(j) scaled by
+s_j) and, optionally with scans, per-vertex offsets of the coarse mesh.
+
+Energy (each term normalized per observation):
+
+    E = E_keypoints      Geman–McClure ρ(r) = r²/(r² + σ²) of joint residuals,
+                         weighted by confidence; σ anneals 30 → 10 → 5 mm so
+                         outliers stop pulling once the fit is close
+      + E_scan           point-to-plane (scan → nearest model vertex) and
+                         chamfer (model → nearest scan point), both robust
+      + w_limits·E_lim   squared excess of the joint-axis projection of θ_j over
+                         the anatomical limits (poses.joint_limits)
+      + w_smooth·E_t     squared differences of θ and t between consecutive frames
+      + w_scale·Σ log²s  keeps unobserved bones at scale 1
+      + w_lap·|L·o|²     uniform Laplacian of the vertex offsets o
+
+Initialization: a robust (IRLS) Kabsch alignment of the palm joints gives
+the wrist rotation and t; local rotations start both from swing-only IK
+(each bone turned onto its keypoint direction) and from the relaxed pose;
+a pose-only stage runs both and keeps, per frame, the one with lower energy,
+then all unknowns are optimized jointly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import N_JOINTS
+from .poses import joint_axes, joint_limits, named_pose
+
+
+@dataclass
+class FitOptions:
+    iterations: int = 300          # joint stage (the pose-only stage runs a third of this)
+    fit_bone_scales: bool = True
+    fit_offsets: bool = False      # per-vertex offsets (only meaningful with scans)
+    w_limits: float = 10.0
+    w_smooth: float = 0.0
+    w_scale: float = 1e-3
+    w_laplacian: float = 10.0
+    w_scan: float = 1.0
+    scan_points: int = 1500        # scan points sampled per frame per iteration batch
+    seed: int = 0
+
+
+@dataclass
+class FitResult:
+    """Attributes:
+        poses: [N, J, 3] axis-angle; translations: [N, 3] metres.
+        bone_scales: [J] (1 for the root).
+        offsets: [V, 3] coarse-vertex offsets in the rest pose (metres), or None.
+        rest_joints: [J, 3] personalized rest joints.
+        joint_error_mm: [N] mean distance fitted joint ↔ keypoint over observed joints (mm).
+        joint_median_mm: [N] median of the same.
+        scan_mm: [N] mean |point-to-plane| distance scan → fitted coarse mesh (mm), or None.
+        energy: final energy per frame [N].
+    """
+
+    poses: np.ndarray
+    translations: np.ndarray
+    bone_scales: np.ndarray
+    offsets: np.ndarray | None
+    rest_joints: np.ndarray
+    joint_error_mm: np.ndarray
+    joint_median_mm: np.ndarray
+    scan_mm: np.ndarray | None
+    energy: np.ndarray
+    history: list = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- personalization
+
+def primary_children(parents) -> np.ndarray:
+    """[J] the only child of each joint, −1 for leaves and joints with several children."""
+    J = len(parents)
+    count = np.bincount(np.asarray(parents[1:]), minlength=J)
+    child = np.full(J, -1)
+    for j in range(1, J):
+        p = parents[j]
+        if count[p] == 1:
+            child[p] = j
+    return child
+
+
+def displacement_basis(vertices, weights, rest_joints, parents) -> np.ndarray:
+    """[V, J] B such that rest-vertex displacement = B @ ΔJ when joints move by ΔJ [J, 3].
+
+    A vertex bound to joint j follows j and slides along the bone towards the
+    joint's child by its projected fraction α ∈ [0, 1]:
+    d(v) = Σ_j w_j·((1 − α_j)·ΔJ_j + α_j·ΔJ_child(j)).
+    """
+    v = np.asarray(vertices, np.float64)
+    rest = np.asarray(rest_joints, np.float64)
+    child = primary_children(parents)
+    B = np.zeros((len(v), len(rest)))
+    for j in range(len(rest)):
+        w = weights[:, j]
+        if not np.any(w):
+            continue
+        c = child[j]
+        if c < 0:
+            B[:, j] += w
+            continue
+        bone = rest[c] - rest[j]
+        alpha = np.clip((v - rest[j]) @ bone / (bone @ bone), 0.0, 1.0)
+        B[:, j] += w * (1 - alpha)
+        B[:, c] += w * alpha
+    return B
+
+
+def scaled_joints(rest_joints, parents, scales) -> np.ndarray:
+    """[J, 3] rest joints with each offset J_j − J_p(j) scaled by scales[j] (numpy)."""
+    rest = np.asarray(rest_joints, np.float64)
+    out = rest.copy()
+    for j in range(1, len(rest)):
+        p = parents[j]
+        out[j] = out[p] + scales[j] * (rest[j] - rest[p])
+    return out
+
+
+def personalize_mesh(vertices, weights, rest_joints, parents, scales, offsets=None):
+    """Rest vertices [V, 3] of the personalized template (bone scales, then offsets)."""
+    new_joints = scaled_joints(rest_joints, parents, scales)
+    B = displacement_basis(vertices, weights, rest_joints, parents)
+    out = np.asarray(vertices, np.float64) + B @ (new_joints - np.asarray(rest_joints))
+    if offsets is not None:
+        out = out + offsets
+    return out
+
+
+def _scaled_joints_torch(rest, parents, scales):
+    import torch
+    out = [rest[0]]
+    for j in range(1, rest.shape[0]):
+        p = int(parents[j])
+        out.append(out[p] + scales[j] * (rest[j] - rest[p]))
+    return torch.stack(out)
+
+
+# ----------------------------------------------------------------------------- initialization
+
+def _kabsch(src, dst, w):
+    """Weighted rigid R, t with R·src + t ≈ dst ([K, 3] each, weights [K])."""
+    w = w / max(w.sum(), 1e-12)
+    cs, cd = w @ src, w @ dst
+    H = ((src - cs) * w[:, None]).T @ (dst - cd)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1, 1, d]) @ U.T
+    return R, cd - R @ cs
+
+
+def _robust_global(rest, target, conf, idx, sigma=0.01, iters=8):
+    """IRLS Kabsch of rest joints ``idx`` onto targets (Geman–McClure weights)."""
+    src, dst = rest[idx], target[idx]
+    w0 = conf[idx].astype(np.float64)
+    if (w0 > 0).sum() < 3:
+        return np.eye(3), (w0 @ (dst - src)) / max(w0.sum(), 1e-12) if w0.sum() > 0 else np.zeros(3)
+    w = w0.copy()
+    for _ in range(iters):
+        R, t = _kabsch(src, dst, w)
+        r2 = np.sum((src @ R.T + t - dst) ** 2, 1)
+        w = w0 * (sigma**2 / (sigma**2 + r2)) ** 2
+    return R, t
+
+
+def _swing(a, b):
+    """Axis-angle of the minimal rotation taking direction a to direction b."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis)
+    c = np.clip(a @ b, -1, 1)
+    if s < 1e-9:
+        return np.zeros(3)
+    return axis / s * np.arctan2(s, c)
+
+
+def _ik_init(rest, parents, target, conf, R0):
+    """Local rotations turning each bone onto its keypoint direction (swing only)."""
+    from .skinning import rodrigues
+
+    child = primary_children(parents)
+    poses = np.zeros((len(rest), 3))
+    glob = [None] * len(rest)
+    glob[0] = R0
+    for j in range(1, len(rest)):
+        Rp = glob[parents[j]]
+        c = child[j]
+        if c >= 0 and conf[j] > 0 and conf[c] > 0:
+            want = Rp.T @ (target[c] - target[j])
+            if np.linalg.norm(want) > 1e-6:
+                poses[j] = _swing(rest[c] - rest[j], want)
+        glob[j] = Rp @ rodrigues(poses[j])
+    return poses
+
+
+# ----------------------------------------------------------------------------- fitting
+
+def fit(template, keypoints=None, confidence=None, scans=None, options: FitOptions | None = None,
+        side: str | None = None, progress=None) -> FitResult:
+    """Fit poses and personalization of ``template`` (HandData) to the targets.
+
+    Args:
+        template: HandData (its first frame's pose is ignored; the rest pose is used).
+        keypoints: [N, J, 3] metres, or None.
+        confidence: [N, J] in [0, 1] (0 = missing), or None (all 1).
+        scans: list of N point arrays [P_n, 3] (sampled from scan meshes), or None.
+        options: FitOptions.
+        side: handedness for joint axes (default template.side).
+        progress: optional callable(stage: str, step: int, total: int).
+    """
+    import torch
+
+    # Tensors here are tiny ([N, 25, 3]); thread hand-offs cost more than they
+    # save (10× slower with 2 threads on a busy 2-core machine).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _fit(template, keypoints, confidence, scans, options, side, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit(template, keypoints, confidence, scans, options, side, progress):
+    import torch
+
+    opt = options or FitOptions()
+    torch.manual_seed(opt.seed)
+    rng = np.random.default_rng(opt.seed)
+    side = side or template.side
+    parents = np.asarray(template.parents)
+    rest = np.asarray(template.rest_joints, np.float64)
+    J = len(rest)
+    if keypoints is None and scans is None:
+        raise ValueError("need keypoints, scans or both")
+    N = len(keypoints) if keypoints is not None else len(scans)
+    if keypoints is not None and confidence is None:
+        confidence = np.ones(keypoints.shape[:2])
+    axes = joint_axes(rest, side, parents)
+    limits = joint_limits()
+    child = primary_children(parents)
+    free = np.array([child[j] >= 0 or j == 0 for j in range(J)])        # leaves unobservable
+    # Scales of bones ending in a joint: observable if any keypoint pair sees them.
+    dtype = torch.float64
+
+    # --- initialization (numpy, per frame)
+    palm = [0, 1, 5, 6, 10, 11, 15, 16, 20, 21] if J == N_JOINTS else list(range(min(J, 4)))
+    init_a = np.zeros((N, J, 3))
+    init_b = np.zeros((N, J, 3))
+    relaxed = named_pose("relaxed", side, rest)
+    trans0 = np.zeros((N, 3))
+    from scipy.spatial.transform import Rotation
+    for n in range(N):
+        if keypoints is not None:
+            R0, t0 = _robust_global(rest, keypoints[n], confidence[n], palm)
+        else:
+            pts = scans[n]
+            R0, t0 = np.eye(3), pts.mean(0) - rest.mean(0)
+        # Our t is applied after rotating about J_0: x = R0·(x − J_0) + J_0 + t.
+        t_ours = t0 + R0 @ rest[0] - rest[0]
+        theta0 = Rotation.from_matrix(R0).as_rotvec()
+        init_b[n] = relaxed
+        init_b[n, 0] = theta0
+        if keypoints is not None:
+            init_a[n] = _ik_init(rest, parents, keypoints[n], confidence[n], R0)
+        else:
+            init_a[n] = relaxed
+        init_a[n, 0] = theta0
+        trans0[n] = t_ours
+    init_a[:, ~free] = 0
+    init_b[:, ~free] = 0
+
+    t_rest = torch.tensor(rest, dtype=dtype)
+    t_axes = torch.tensor(axes, dtype=dtype)
+    t_lo = torch.tensor(limits[..., 0], dtype=dtype)
+    t_hi = torch.tensor(limits[..., 1], dtype=dtype)
+    t_free = torch.tensor(free[:, None], dtype=dtype)
+    limited = torch.ones(J, 1, dtype=dtype)
+    limited[0] = 0.0
+    kp = None if keypoints is None else torch.tensor(keypoints, dtype=dtype)
+    cf = None if keypoints is None else torch.tensor(confidence, dtype=dtype)
+
+    mesh = template.coarse
+    need_mesh = scans is not None
+    if need_mesh:
+        verts0 = torch.tensor(mesh.vertices, dtype=dtype)
+        weights = torch.tensor(mesh.weights, dtype=dtype)
+        basis = torch.tensor(displacement_basis(mesh.vertices, mesh.weights, rest, parents),
+                             dtype=dtype)
+        faces = torch.tensor(mesh.faces, dtype=torch.int64)
+        lap = _laplacian(len(mesh.vertices), mesh.faces)
+        scan_t = [torch.tensor(s, dtype=dtype) for s in scans]
+
+    from .skinning import forward_kinematics_torch, lbs_torch
+
+    def energy(poses, trans, log_scales, offsets, sigma, per_frame=False, per_joint=False):
+        scales = torch.exp(log_scales)
+        joints_rest = _scaled_joints_torch(t_rest, parents, scales)
+        poses = poses * t_free
+        terms = torch.zeros(poses.shape[0], dtype=dtype)
+        if need_mesh:
+            v = verts0 + basis @ (joints_rest - t_rest)
+            if offsets is not None:
+                v = v + offsets
+            posed_v, posed_j = lbs_torch(v, weights, joints_rest, parents, poses, trans)
+        else:
+            _, pj = forward_kinematics_torch(poses, joints_rest, parents)
+            posed_j = pj + trans[:, None, :]
+        if kp is not None:
+            r2 = ((posed_j - kp) ** 2).sum(-1)
+            rho = r2 / (r2 + sigma**2)
+            joint_terms = cf * rho / cf.sum(1, keepdim=True).clamp_min(1e-9)   # [N, J]
+            terms = terms + joint_terms.sum(1)
+        if need_mesh:
+            terms = terms + opt.w_scan * _scan_energy(posed_v, faces, scan_t, sigma, rng,
+                                                       opt.scan_points)
+        angles = torch.einsum("jab,njb->nja", t_axes, poses)
+        excess = torch.relu(t_lo - angles) + torch.relu(angles - t_hi)
+        limit_terms = opt.w_limits * ((excess**2) * limited).sum(2)         # [N, J]
+        terms = terms + limit_terms.sum(1)
+        if per_joint:
+            return limit_terms + (joint_terms if kp is not None else 0.0)
+        if opt.w_smooth > 0 and poses.shape[0] > 1:
+            d = ((poses[1:] - poses[:-1]) ** 2).sum((1, 2)) + ((trans[1:] - trans[:-1]) / 0.01).pow(2).sum(1)
+            terms = terms + opt.w_smooth * torch.cat([d, d.new_zeros(1)])
+        if per_frame:
+            return terms
+        total = terms.mean() + opt.w_scale * (log_scales**2).sum()
+        if offsets is not None:
+            total = total + opt.w_laplacian * (torch.sparse.mm(lap, offsets) ** 2).sum() / 1e-6 \
+                + 1e-2 * (offsets**2).sum() / 1e-6
+        return total
+
+    def run(poses_init, trans_init, iters, fit_scales, fit_offsets, log_scales_init=None,
+            offsets_init=None, stage=""):
+        poses = torch.tensor(poses_init, dtype=dtype, requires_grad=True)
+        trans = torch.tensor(trans_init, dtype=dtype, requires_grad=True)
+        log_scales = torch.zeros(J, dtype=dtype) if log_scales_init is None else log_scales_init.clone()
+        log_scales.requires_grad_(fit_scales)
+        offsets = None
+        if fit_offsets:
+            offsets = (torch.zeros(len(mesh.vertices), 3, dtype=dtype) if offsets_init is None
+                       else offsets_init.clone())
+            offsets.requires_grad_(True)
+        groups = [([poses], 0.03), ([trans], 0.002)]
+        if fit_scales:
+            groups.append(([log_scales], 0.01))
+        if offsets is not None:
+            groups.append(([offsets], 0.0005))
+        adam = _Adam(groups, iters)
+        history = []
+        for it in range(iters):
+            frac = it / max(iters - 1, 1)
+            sigma = 0.030 if frac < 0.25 else (0.015 if frac < 0.5 else 0.008)
+            adam.zero_grad()
+            e = energy(poses, trans, log_scales, offsets, sigma)
+            e.backward()
+            adam.step()
+            history.append(float(e.detach()))
+            if progress is not None:
+                progress(stage, it + 1, iters)
+        with torch.no_grad():
+            final = energy(poses, trans, log_scales, offsets, 0.008, per_frame=True)
+            joint_final = (energy(poses, trans, log_scales, offsets, 0.008, per_joint=True)
+                           if kp is not None else None)
+        return poses.detach(), trans.detach(), log_scales.detach(), \
+            None if offsets is None else offsets.detach(), final, history, joint_final
+
+    # Stage 1: pose only, from several starts (swing IK, relaxed, open, fist);
+    # fingers are independent given the palm, so each finger of each frame
+    # keeps the start that fits it best, and the wrist/translation come from
+    # the start with the lowest energy overall.
+    starts = [init_a, init_b]
+    if keypoints is not None:
+        for name in ("open", "fist"):
+            extra = init_b.copy()
+            extra[:, 1:] = named_pose(name, side, rest)[1:]
+            extra[:, ~free] = 0
+            starts.append(extra)
+    S = len(starts)
+    all_p = np.concatenate(starts)
+    all_t = np.concatenate([trans0] * S)
+    if scans is not None:
+        scan_t = scan_t * S  # noqa: F841  (same scans for every start)
+    if keypoints is not None:
+        kp = torch.cat([kp] * S)
+        cf = torch.cat([cf] * S)
+    pre = max(opt.iterations // 3, 1)
+    saved_smooth = opt.w_smooth
+    opt.w_smooth = 0.0  # the starts are stacked: no smoothness across them
+    p1, t1, _, _, e1, hist1, j1 = run(all_p, all_t, pre, False, False, stage="initial poses")
+    opt.w_smooth = saved_smooth
+    p1 = p1.numpy().reshape(S, N, J, 3)
+    t1 = t1.numpy().reshape(S, N, 3)
+    best = e1.numpy().reshape(S, N).argmin(0)                           # [N]
+    frames = np.arange(N)
+    poses_init = p1[best, frames].copy()
+    trans_init = t1[best, frames].copy()
+    if j1 is not None:
+        j1 = j1.numpy().reshape(S, N, J)
+        for chain in _finger_chains(parents):
+            pick = j1[:, :, chain].sum(2).argmin(0)                     # [N]
+            poses_init[:, chain] = p1[pick[:, None], frames[:, None], np.asarray(chain)[None]]
+    if keypoints is not None:
+        kp, cf = kp[:N], cf[:N]
+    if scans is not None:
+        scan_t = scan_t[:N]
+    # Stage 2: everything.
+    p2, t2, ls2, off2, e2, hist2, _ = run(poses_init, trans_init, opt.iterations, opt.fit_bone_scales,
+                                       opt.fit_offsets and need_mesh, stage="fit")
+    poses = (p2 * t_free).numpy()
+    trans = t2.numpy()
+    scales = np.exp(ls2.numpy())
+    scales[0] = 1.0
+    new_rest = scaled_joints(rest, parents, scales)
+    from .skinning import posed_joints
+    pj = posed_joints(poses, trans, new_rest, parents)
+    if keypoints is not None:
+        err = np.linalg.norm(pj - keypoints, axis=-1) * 1000
+        obs = confidence > 0
+        mean_mm = np.array([err[n][obs[n]].mean() if obs[n].any() else np.nan for n in range(N)])
+        med_mm = np.array([np.median(err[n][obs[n]]) if obs[n].any() else np.nan for n in range(N)])
+    else:
+        mean_mm = med_mm = np.full(N, np.nan)
+    offsets = None if off2 is None else off2.numpy()
+    scan_mm = None
+    if scans is not None:
+        from .skinning import lbs, vertex_normals
+        v = personalize_mesh(mesh.vertices, mesh.weights, rest, parents, scales, offsets)
+        scan_mm = np.zeros(N)
+        from scipy.spatial import cKDTree
+        for n in range(N):
+            pv = lbs(v, mesh.weights, new_rest, parents, poses[n], trans[n])
+            nrm = vertex_normals(pv, mesh.faces)
+            _, idx = cKDTree(pv).query(scans[n])
+            scan_mm[n] = np.abs(np.einsum("ij,ij->i", scans[n] - pv[idx], nrm[idx])).mean() * 1000
+    return FitResult(poses, trans, scales, offsets, new_rest, mean_mm, med_mm, scan_mm,
+                     e2.numpy(), hist1 + hist2)
+
+
+class _Adam:
+    """Adam with a cosine learning-rate decay (to 1e-3 of the start).
+
+    A few lines instead of torch.optim: importing torch.optim pulls in
+    torch._dynamo, which costs seconds per process on small machines.
+    """
+
+    def __init__(self, groups, iterations, betas=(0.9, 0.999), eps=1e-12):
+        import torch
+        self.groups = groups
+        self.iterations = max(iterations, 1)
+        self.betas, self.eps = betas, eps
+        self.t = 0
+        self.m = [[torch.zeros_like(p) for p in ps] for ps, _ in groups]
+        self.v = [[torch.zeros_like(p) for p in ps] for ps, _ in groups]
+
+    def zero_grad(self):
+        for ps, _ in self.groups:
+            for p in ps:
+                p.grad = None
+
+    def step(self):
+        import torch
+        b1, b2 = self.betas
+        decay = 1e-3 + (1 - 1e-3) * 0.5 * (1 + np.cos(np.pi * min(self.t, self.iterations) / self.iterations))
+        self.t += 1
+        with torch.no_grad():
+            for gi, (ps, lr) in enumerate(self.groups):
+                for k, p in enumerate(ps):
+                    if p.grad is None:
+                        continue
+                    m, v = self.m[gi][k], self.v[gi][k]
+                    m.mul_(b1).add_(p.grad, alpha=1 - b1)
+                    v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+                    mhat = m / (1 - b1**self.t)
+                    vhat = v / (1 - b2**self.t)
+                    p.sub_(lr * decay * mhat / (vhat.sqrt() + self.eps))
+
+
+def _finger_chains(parents) -> list[list[int]]:
+    """Joint sets of each chain leaving the root (each finger with its metacarpal)."""
+    parents = np.asarray(parents)
+    chains = []
+    for start in np.nonzero(parents == 0)[0]:
+        chain, frontier = [], [int(start)]
+        while frontier:
+            j = frontier.pop()
+            chain.append(j)
+            frontier += [int(c) for c in np.nonzero(parents == j)[0]]
+        chains.append(sorted(chain))
+    return chains
+
+
+def _laplacian(n_vertices, faces):
+    """Uniform graph Laplacian L = I − D⁻¹A as a torch sparse [V, V] tensor."""
+    import torch
+
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.unique(np.sort(e, 1), axis=0)
+    i = np.concatenate([e[:, 0], e[:, 1]])
+    j = np.concatenate([e[:, 1], e[:, 0]])
+    deg = np.bincount(i, minlength=n_vertices).astype(np.float64)
+    vals = -1.0 / deg[i]
+    idx = np.concatenate([np.stack([i, j]), np.stack([np.arange(n_vertices)] * 2)], 1)
+    vals = np.concatenate([vals, np.ones(n_vertices)])
+    return torch.sparse_coo_tensor(torch.tensor(idx), torch.tensor(vals), (n_vertices, n_vertices)).coalesce()
+
+
+def _scan_energy(posed_v, faces, scans, sigma, rng, n_points):
+    """Per-frame robust point-to-plane (scan→model) + chamfer (model→scan) energy."""
+    import torch
+
+    out = []
+    f = faces
+    for n, pts in enumerate(scans):
+        v = posed_v[n]
+        fn = torch.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]], dim=1)
+        vn = torch.zeros_like(v).index_add_(0, f[:, 0], fn).index_add_(0, f[:, 1], fn) \
+            .index_add_(0, f[:, 2], fn)
+        vn = vn / vn.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        if len(pts) > n_points:
+            pts = pts[torch.as_tensor(rng.choice(len(pts), n_points, replace=False))]
+        with torch.no_grad():
+            d = torch.cdist(pts, v)                                       # [P, V]
+            nearest_v = d.argmin(1)
+            nearest_p = d.argmin(0)
+        r = ((pts - v[nearest_v]) * vn[nearest_v]).sum(1)
+        plane = (r**2 / (r**2 + sigma**2)).mean()
+        c2 = ((v - pts[nearest_p]) ** 2).sum(1)
+        chamfer = (c2 / (c2 + sigma**2)).mean()
+        out.append(plane + chamfer)
+    return torch.stack(out)
