@@ -140,15 +140,12 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     env_maps = []
     for spec in envs:
         env_maps.append(load_envmap(spec))
+    rough_map = None if rough_value is not None else _read_roughness_map(roughness)
     log(f"read {hand}: {len(data.hands)} hand(s), {n_frames} frame(s); "
         f"{len(envs)} env map(s)", quiet)
     t0 = time.perf_counter()
     discrete = [F.discretize_env(e, env_h, env_w) for e in env_maps]
     env_seconds = time.perf_counter() - t0
-
-    rough_map = None
-    if rough_value is None:
-        rough_map = _read_roughness_map(roughness)
 
     from relight_cli.hand.scene import posed_meshes, preview_camera
     from relight_cli.uvraster import rasterize_uv

@@ -209,3 +209,29 @@ def test_no_clobber(tmp_path):
                *SMALL)
     assert r.exit_code == 2
     assert out.read_bytes() == b"keep"
+
+
+def test_roughness_map_and_camera_match_scalar_and_eye(tmp_path):
+    # A constant UV roughness map equals the scalar; a camera file equals --eye at its centre.
+    from relight_cli.formats.camera import Camera, write_cameras
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.formats.features_exr import read_features
+    rough = tmp_path / "rough.exr"
+    write_exr(str(rough), {"Y": np.full((8, 8), 0.3, np.float32)})
+    cam = Camera.look_at([0.1, 0.3, 0.5], [0, 0.08, 0])
+    cam_path = tmp_path / "cam.json"
+    write_cameras(str(cam_path), [cam])
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    assert invoke("bake-features", "builtin:right", "builtin:studio", "-o", a, "--specular", "ggx",
+                  "--roughness", rough, "--camera", cam_path, "-q", *SMALL).exit_code == 0
+    eye = ",".join(repr(float(x)) for x in cam.center)
+    assert invoke("bake-features", "builtin:right", "builtin:studio", "-o", b, "--specular", "ggx",
+                  "--roughness", "0.3", "--eye", eye, "-q", *SMALL).exit_code == 0
+    ga, gb = read_features(str(a)).layers["ggx"], read_features(str(b)).layers["ggx"]
+    assert ga.max() > 0
+    # float32 map value 0.3 vs float64 0.3: ~1e-8 relative difference in roughness.
+    np.testing.assert_allclose(ga, gb, rtol=1e-5, atol=1e-7)
+    bad = tmp_path / "badrough.exr"
+    write_exr(str(bad), {"Y": np.full((8, 8), 1.5, np.float32)})
+    assert "badrough.exr" in _bad(tmp_path, "builtin:right", "builtin:sky", "--specular", "ggx",
+                                  "--roughness", bad, code=1)
