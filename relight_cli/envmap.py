@@ -283,7 +283,8 @@ def _resample_latlong_exact(src: np.ndarray, height: int, width: int, shift: flo
         lon_w += _interval_overlap(d_lon[:, 1], d_lon[:, 0],
                                    lo_s + 2 * math.pi * k, hi_s + 2 * math.pi * k)
     dst_omega = latlong_solid_angles(height, width)
-    power_grid = np.einsum("ij,jkc,lk->ilc", lat_w, src.astype(np.float64), lon_w)
+    rows = np.tensordot(lat_w, src.astype(np.float64), axes=(1, 0))          # [H', W, 3]
+    power_grid = np.tensordot(rows, lon_w, axes=(1, 1)).transpose(0, 2, 1)   # [H', W', 3]
     return power_grid / dst_omega[..., None]
 
 
