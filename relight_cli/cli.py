@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "bake-features": "relight_cli.commands.bake_features:command",
     "dgsm-build": "relight_cli.commands.dgsm_build:command",
     "envmap": "relight_cli.commands.envmap:command",
+    "fit-geometry": "relight_cli.commands.fit_geometry:command",
     "metrics": "relight_cli.commands.metrics:command",
     "relight": "relight_cli.commands.relight:command",
     "sh-probe": "relight_cli.commands.sh_probe:command",

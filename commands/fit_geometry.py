@@ -1,0 +1,342 @@
+"""``relight fit-geometry``: write a posed hand (hand.npz), or fit one to keypoints and scans."""
+
+from __future__ import annotations
+
+import click
+
+from relight_cli.clitools import (check_input, check_output, dumps_json, log, no_clobber_option,
+                                  parse_size, quiet_option, seed_option)
+
+
+@click.command("fit-geometry", short_help="Pose or fit the articulated hand; write hand.npz.")
+@click.option("-o", "--output", required=True, help="Output hand.npz.")
+@click.option("--template", default="builtin:right", show_default=True,
+              help="builtin:right, builtin:left, a skinned glTF/GLB hand, or a hand.npz.")
+@click.option("--pose", default=None,
+              help="Without targets: a named pose (open relaxed fist point pinch ok spread claw), "
+                   "'random', or a JSON file of poses. Default: relaxed.")
+@click.option("--frames", type=int, default=1, show_default=True,
+              help="Number of frames for --pose random.")
+@click.option("--keypoints", default=None,
+              help="3D keypoints to fit: JSON or .npy, (N, 25, 3) or (N, 25, 4) with confidence "
+                   "(0 = missing), metres, template joint order (formats/keypoints.md).")
+@click.option("--scans", default=None,
+              help="Scan meshes to fit (PLY/OBJ/STL), one per frame in sorted order; a glob "
+                   "pattern like 'scan_*.ply' (quote it).")
+@click.option("--interpolate", is_flag=True,
+              help="Fill the frames between fitted keyframes (keypoint 'frames' numbers) by "
+                   "quaternion slerp.")
+@click.option("--iterations", type=int, default=300, show_default=True,
+              help="Optimizer iterations of the joint stage (a pose-only stage runs a third).")
+@click.option("--no-bone-scales", is_flag=True, help="Keep bone lengths of the template.")
+@click.option("--offsets", is_flag=True,
+              help="Also fit per-vertex offsets (Laplacian-regularized; needs --scans).")
+@click.option("--smooth", type=float, default=0.0, show_default=True,
+              help="Weight of temporal smoothness between consecutive frames.")
+@click.option("--two-hands", is_flag=True,
+              help="Add the mirrored other hand beside the first one (for two-hand scenes).")
+@click.option("--report", default=None,
+              help="Write a JSON report of per-frame residuals (MPJPE, scan distance in mm); "
+                   "'-' for stdout.")
+@click.option("--preview", default=None, help="Also write a tone-mapped PNG of frame 0.")
+@click.option("--preview-size", default="320x320", show_default=True, help="Preview WxH.")
+@seed_option
+@no_clobber_option
+@quiet_option
+def command(output, template, pose, frames, keypoints, scans, interpolate, iterations,
+            no_bone_scales, offsets, smooth, two_hands, report, preview, preview_size, seed,
+            no_clobber, quiet):
+    """Write the articulated hand as hand.npz: posed (--pose) or fitted to 3D
+    keypoints and/or scan meshes (--keypoints, --scans).
+
+    Fitting estimates per-frame pose and translation plus shared per-bone
+    length scales (and optional per-vertex offsets) with a robust loss,
+    joint-limit priors and optional temporal smoothness.
+
+    \b
+    Examples:
+      relight fit-geometry --pose fist -o hand.npz --preview hand.png
+      relight fit-geometry --pose random --frames 10 --seed 3 -o poses.npz
+      relight fit-geometry --template hand.glb --keypoints kp.npy -o fit.npz --report fit.json
+      relight fit-geometry --keypoints kp.json --scans 'scan_*.ply' --offsets -o fit.npz
+    """
+    import glob as globmod
+
+    from relight_cli.errors import UsageProblem
+
+    check_output(output, no_clobber)
+    if output == "-":
+        raise UsageProblem("hand.npz is binary and cannot go to stdout; give a file name")
+    if report is not None:
+        check_output(report, no_clobber, text=True)
+    if preview is not None:
+        check_output(preview, no_clobber)
+        size = parse_size(preview_size, "--preview-size")
+    fitting = keypoints is not None or scans is not None
+    if fitting and pose is not None:
+        raise UsageProblem("--pose poses the template; it cannot be combined with "
+                           "--keypoints/--scans")
+    if frames < 1:
+        raise UsageProblem("--frames must be at least 1")
+    if frames != 1 and pose != "random":
+        raise UsageProblem("--frames applies to --pose random only")
+    if iterations < 1:
+        raise UsageProblem("--iterations must be at least 1")
+    if offsets and scans is None:
+        raise UsageProblem("--offsets needs --scans (keypoints alone cannot see the surface)")
+    if interpolate and keypoints is None:
+        raise UsageProblem("--interpolate needs --keypoints with frame numbers")
+    if smooth < 0:
+        raise UsageProblem("--smooth must be non-negative")
+    scan_paths = None
+    if scans is not None:
+        scan_paths = sorted(globmod.glob(scans)) if any(c in scans for c in "*?[") else [scans]
+        if not scan_paths:
+            raise UsageProblem(f"--scans {scans!r} matches no files")
+        for p in scan_paths:
+            check_input(p)
+    if keypoints is not None:
+        check_input(keypoints)
+
+    from relight_cli.formats.hand_npz import FORMAT, VERSION, write_hand
+    from relight_cli.provenance import provenance
+
+    hand = _load_template(template)
+    log(f"template {template}: {hand.side} hand, coarse {len(hand.coarse.vertices)} / fine "
+        f"{len(hand.fine.vertices)} vertices", quiet)
+    inputs = {} if template.startswith("builtin:") else {"template": template}
+    settings = {"template": template, "seed": seed, "two_hands": two_hands}
+    report_obj = None
+    if not fitting:
+        poses, trans = _poses_for(pose or "relaxed", frames, seed, hand)
+        hand.hands[0].poses, hand.hands[0].translations = poses, trans
+        settings.update(pose=pose or "relaxed", frames=int(len(poses)))
+        if pose is not None and pose.endswith(".json"):
+            inputs["pose"] = pose
+    else:
+        hand, report_obj = _fit(hand, keypoints, scan_paths, interpolate, iterations,
+                                not no_bone_scales, offsets, smooth, seed, quiet)
+        if keypoints is not None:
+            inputs["keypoints"] = keypoints
+        for i, p in enumerate(scan_paths or []):
+            inputs[f"scan{i}"] = p
+        settings.update(iterations=iterations, bone_scales=not no_bone_scales,
+                        offsets=offsets, smooth=smooth, interpolate=interpolate)
+    if two_hands:
+        from relight_cli.hand.scene import two_hands as add_other
+        hand = add_other(hand)
+    write_hand(output, hand, provenance(FORMAT, VERSION, inputs, settings))
+    log(f"wrote {output}: {len(hand.hands)} hand(s), {hand.n_frames} frame(s)", quiet)
+    if report is not None:
+        from relight_cli.provenance import write_text_atomic
+        if report_obj is None:
+            report_obj = {"frames": hand.n_frames, "fitted": False}
+        write_text_atomic(report, dumps_json(report_obj))
+    if preview is not None:
+        from relight_cli.formats.image import write_preview
+        from relight_cli.hand.scene import posed_meshes, preview_camera, render_preview
+        meshes = posed_meshes(hand, 0, "fine")
+        camera = preview_camera(meshes, *size)
+        image = render_preview(meshes, camera)
+        write_preview(preview, image, exposure=2.0)
+        log(f"wrote {preview}", quiet)
+
+
+def _load_template(spec: str):
+    from relight_cli.errors import DataError, UsageProblem
+
+    if spec.startswith("builtin:"):
+        side = spec.split(":", 1)[1]
+        if side not in ("right", "left"):
+            raise UsageProblem(f"unknown built-in template {spec!r}; use builtin:right or "
+                               "builtin:left")
+        from relight_cli.hand.model import builtin_hand
+        return builtin_hand(side, pose=None)
+    check_input(spec)
+    lower = spec.lower()
+    if lower.endswith((".glb", ".gltf")):
+        from relight_cli.hand.gltf import import_gltf
+        return import_gltf(spec)
+    if lower.endswith(".npz"):
+        import numpy as np
+
+        from relight_cli.formats.hand_npz import read_hand
+        hand = read_hand(spec)
+        hand.hands = hand.hands[:1]
+        hand.hands[0].poses = np.zeros((1,) + hand.hands[0].poses.shape[1:])
+        hand.hands[0].translations = np.zeros((1, 3))
+        return hand
+    raise DataError("unknown template type (expected builtin:right|left, .glb/.gltf or .npz)",
+                    spec)
+
+
+def _poses_for(pose: str, frames: int, seed: int, hand):
+    import json
+
+    import numpy as np
+
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.hand import poses as P
+
+    J = hand.n_joints
+    rest = hand.rest_joints
+    if pose == "random":
+        p = P.random_poses(frames, seed=seed, side=hand.side, rest_joints=rest)
+        return p, np.zeros((frames, 3))
+    if pose in P.POSE_NAMES:
+        return P.named_pose(pose, hand.side, rest)[None], np.zeros((1, 3))
+    if pose.endswith(".json"):
+        check_input(pose)
+        try:
+            with open(pose, encoding="utf-8") as f:
+                obj = json.load(f)
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise DataError(f"not valid JSON: {exc}", pose) from None
+        if isinstance(obj, dict) and "names" in obj:
+            try:
+                p = np.stack([P.named_pose(n, hand.side, rest) for n in obj["names"]])
+            except (KeyError, TypeError) as exc:
+                raise DataError(f"bad pose name: {exc}", pose) from None
+            if len(p) == 0:
+                raise DataError("'names' is empty", pose)
+            return p, np.zeros((len(p), 3))
+        poses_list = obj.get("poses") if isinstance(obj, dict) else obj
+        try:
+            p = np.asarray(poses_list, np.float64)
+            t = (np.asarray(obj["translations"], np.float64)
+                 if isinstance(obj, dict) and "translations" in obj else np.zeros((len(p), 3)))
+        except (TypeError, ValueError):
+            raise DataError("'poses' must be an N × J × 3 array of numbers", pose) from None
+        if p.ndim == 2:
+            p = p[None]
+        if p.ndim != 3 or p.shape[1:] != (J, 3) or len(p) == 0:
+            raise DataError(f"'poses' must have shape (N, {J}, 3) axis-angle, got {p.shape}", pose)
+        if t.shape != (len(p), 3):
+            raise DataError(f"'translations' must have shape ({len(p)}, 3), got {t.shape}", pose)
+        if not (np.isfinite(p).all() and np.isfinite(t).all()):
+            raise DataError("poses or translations hold NaN/Inf", pose)
+        return p, t
+    raise UsageProblem(f"--pose must be one of {', '.join(P.POSE_NAMES)}, 'random' or a "
+                       f".json file, got {pose!r}")
+
+
+def _read_scan(path: str, rng):
+    """Points [P, 3] sampled on a scan mesh (or its vertices for point clouds)."""
+    import numpy as np
+    import trimesh
+
+    from relight_cli.errors import DataError
+
+    try:
+        geom = trimesh.load(path, force=None, process=False)
+    except Exception as exc:  # trimesh raises many types for damaged files
+        raise DataError(f"unreadable scan: {type(exc).__name__}: {exc}", path) from None
+    if isinstance(geom, trimesh.Scene):
+        geom = geom.dump(concatenate=True) if geom.geometry else None
+    if geom is None:
+        raise DataError("scan is empty", path)
+    if isinstance(geom, trimesh.Trimesh) and len(geom.faces):
+        if geom.area <= 0:
+            raise DataError("scan mesh has zero area", path)
+        pts, _ = trimesh.sample.sample_surface(geom, 5000, seed=int(rng.integers(2**31)))
+    else:
+        pts = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))))
+    pts = np.asarray(pts, np.float64)
+    if len(pts) < 10:
+        raise DataError(f"scan has only {len(pts)} points", path)
+    if not np.isfinite(pts).all():
+        raise DataError("scan holds NaN/Inf coordinates", path)
+    return pts
+
+
+def _fit(hand, keypoints, scan_paths, interpolate, iterations, bone_scales, offsets, smooth,
+         seed, quiet):
+    import numpy as np
+
+    from relight_cli.clitools import progress
+    from relight_cli.errors import DataError
+    from relight_cli.formats.keypoints import read_keypoints
+    from relight_cli.hand.fitting import FitOptions, fit, personalize_mesh
+    from relight_cli.hand.poses import interpolate_poses
+
+    rng = np.random.default_rng(seed)
+    kp = None
+    if keypoints is not None:
+        kp = read_keypoints(keypoints, hand.n_joints)
+    scans = None
+    if scan_paths is not None:
+        scans = [_read_scan(p, rng) for p in scan_paths]
+        if kp is not None and len(scans) != len(kp.positions):
+            raise DataError(f"{len(scans)} scans for {len(kp.positions)} keypoint frames; "
+                            "give one scan per frame", scan_paths[0])
+    n = len(kp.positions) if kp is not None else len(scans)
+    bar = progress(total=n, desc="fit frames", quiet=quiet)
+    state = {"done": 0}
+
+    def on_progress(stage, step, total):
+        # Frames are optimized jointly; advance the frame bar with the joint stage.
+        if stage == "fit":
+            target = int(n * step / total)
+            bar.update(target - state["done"])
+            state["done"] = target
+
+    options = FitOptions(iterations=iterations, fit_bone_scales=bone_scales, fit_offsets=offsets,
+                         w_smooth=smooth, seed=seed)
+    result = fit(hand, None if kp is None else kp.positions,
+                 None if kp is None else kp.confidence, scans, options, progress=on_progress)
+    bar.close()
+    # Bake the personalization into the template.
+    parents = hand.parents
+    for which in ("coarse", "fine"):
+        m = hand.mesh(which)
+        off = result.offsets if (which == "coarse" and result.offsets is not None) else None
+        if which == "fine" and result.offsets is not None:
+            off = _transfer_offsets(hand.coarse, hand.fine, result.offsets)
+        m.vertices = personalize_mesh(m.vertices, m.weights, hand.rest_joints, parents,
+                                      result.bone_scales, off)
+    hand.rest_joints = result.rest_joints
+    hand.bone_scales = result.bone_scales
+    poses, trans = result.poses, result.translations
+    frame_ids = kp.frames if kp is not None else np.arange(n)
+    if interpolate and len(frame_ids) > 1:
+        all_frames = np.arange(frame_ids[0], frame_ids[-1] + 1)
+        poses, trans = interpolate_poses(frame_ids, poses, trans, all_frames)
+        out_frames = all_frames
+    else:
+        out_frames = frame_ids
+    hand.hands = hand.hands[:1]
+    hand.hands[0].poses, hand.hands[0].translations = poses, trans
+    per_frame = []
+    for i in range(n):
+        row = {"frame": int(frame_ids[i])}
+        if kp is not None:
+            row["mpjpe_mm"] = _num(result.joint_error_mm[i])
+            row["median_joint_error_mm"] = _num(result.joint_median_mm[i])
+            row["observed_joints"] = int((kp.confidence[i] > 0).sum())
+        if result.scan_mm is not None:
+            row["scan_mm"] = _num(result.scan_mm[i])
+        per_frame.append(row)
+    report = {
+        "fitted_frames": n,
+        "output_frames": [int(f) for f in out_frames],
+        "bone_scales": {name: float(s) for name, s in zip(hand.joint_names, result.bone_scales)},
+        "per_frame": per_frame,
+    }
+    if kp is not None:
+        report["mpjpe_mm"] = _num(np.nanmean(result.joint_error_mm))
+    if result.scan_mm is not None:
+        report["scan_mm"] = _num(np.mean(result.scan_mm))
+    return hand, report
+
+
+def _num(x):
+    import math
+    x = float(x)
+    return None if math.isnan(x) else round(x, 4)
+
+
+def _transfer_offsets(coarse, fine, offsets):
+    """Coarse-vertex offsets [Vc, 3] carried to the fine mesh by nearest coarse vertex."""
+    from scipy.spatial import cKDTree
+    _, idx = cKDTree(coarse.vertices).query(fine.vertices)
+    return offsets[idx]
