@@ -154,23 +154,26 @@ def _angles_table(name: str) -> np.ndarray:
     elif name == "fist":
         for f in FINGERS:
             finger(f, *fist, cmc={"ring": 0.12, "pinky": 0.22}.get(f, 0.0))
-        thumb(0.75, -0.30, 0.30, 0.55, 0.60)
+        # Solved so the thumb tip rests 14 mm from the middle finger's middle
+        # phalanx and its IP joint 16 mm from the index's: wrapped over the fingers.
+        thumb(-0.09, 0.39, -0.12, 0.80, 0.56)
     elif name == "point":
         finger("index", 0.0, 0.05, 0.0)
         for f in FINGERS[1:]:
             finger(f, *fist, cmc={"ring": 0.12, "pinky": 0.22}.get(f, 0.0))
-        thumb(0.75, -0.30, 0.30, 0.55, 0.60)
+        thumb(-0.09, 0.39, -0.12, 0.80, 0.56)  # as in "fist"
     elif name == "pinch":
         finger("index", 0.70, 0.80, 0.35)
         for f in FINGERS[1:]:
             finger(f, *relaxed[f])
-        thumb(0.70, -0.05, 0.25, 0.20, 0.25)
+        # Thumb angles solved so the thumb and index tip joints are 11 mm apart (pads touch).
+        thumb(0.31, 0.14, 0.16, 0.12, 0.19)
     elif name == "ok":
         finger("index", 0.75, 0.95, 0.40)
         finger("middle", 0.10, 0.10, 0.05, abd=0.05)
         finger("ring", 0.12, 0.12, 0.05, abd=0.15)
         finger("pinky", 0.15, 0.12, 0.05, abd=0.28)
-        thumb(0.75, -0.05, 0.25, 0.25, 0.30)
+        thumb(0.35, 0.08, 0.17, 0.20, 0.26)  # solved like "pinch"
     elif name == "spread":
         finger("index", 0.0, 0.0, 0.0, abd=-0.28)
         finger("middle", 0.0, 0.0, 0.0, abd=-0.05)
