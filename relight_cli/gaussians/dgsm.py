@@ -409,7 +409,7 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
             stats["gaussians_used"].append(0)
             continue
         tau = _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, tm, h, w, cull,
-                                   trunc, dtype, chunk, stats)
+                                   trunc, dtype, chunk, stats, layout)
         table[li, k0:k1 + 1].reshape(k1 - k0 + 1, h * w)[:, texels] = np.exp(-tau.T)
         stats["texels_computed"] += int(len(texels))
         stats["bins_computed"] += int(k1 - k0 + 1)
@@ -418,7 +418,7 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
 
 
 def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cull, trunc,
-                         dtype, chunk, stats):
+                         dtype, chunk, stats, layout="octahedral"):
     """[T, k1−k0+1] optical depth for the given texels and bins of one light."""
     n_bins = k1 - k0 + 1
     t_centres = (np.arange(k0, k1 + 1) + 0.5) * t_max / bins
@@ -437,7 +437,11 @@ def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cu
         candidates = np.flatnonzero(usable)
     else:
         candidates = np.arange(len(mix))
+    stats["gaussians_used"].append(int(len(candidates)))   # after radial culling
     pair_tex, pair_g = [], []
+    if cull and len(candidates) and layout == "octahedral":
+        candidates = _octahedral_direct_pairs(gdir, half_angle, candidates, texels, h, w,
+                                              pair_tex, pair_g, stats, dirs)
     if cull and len(candidates):
         # Tiles of 8×8 texels holding at least one needed texel.
         ty, tx = np.divmod(texels, w)
@@ -479,7 +483,6 @@ def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cu
         stats["pairs_tested"] += int(len(candidates)) * len(texels)
         pair_tex.append(np.repeat(np.arange(len(texels)), len(candidates)))
         pair_g.append(np.tile(candidates, len(texels)))
-    stats["gaussians_used"].append(int(len(candidates)))
     tau = np.zeros((len(texels), n_bins))
     if not pair_tex:
         return tau
@@ -503,6 +506,67 @@ def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cu
     stats["pairs_kept"] += kept
     step = step.reshape(len(texels), n_bins + 1)[:, :n_bins]
     return np.cumsum(step, axis=1) + direct.reshape(len(texels), n_bins)
+
+
+def _octahedral_direct_pairs(gdir, half_angle, candidates, texels, h, w, pair_tex, pair_g,
+                             stats, dirs):
+    """Texel candidates of small Gaussian cones straight from their octahedral bbox.
+
+    Each atlas coordinate of the octahedral map is Lipschitz on the unit sphere
+    with constant 1 + √3·max(|x|, |z|) over the cone (u = x/|ω|₁ and the fold
+    u = (1 − |z|/|ω|₁)·sgn x are both of that form), and the map is continuous
+    except across the upper hemisphere's x = 0 and z = 0 half-planes.  A cone of
+    half-angle θ that avoids those seams therefore lands inside ±L·θ·(W/2, H/2)
+    texels of its centre.  Returns the candidates left for the tile path (seams,
+    wide cones).
+    """
+    gd = gdir[candidates]
+    th = half_angle[candidates]
+    sin_t = np.sin(np.minimum(th, np.pi / 2))
+    seam = (gd[:, 1] > -sin_t) & ((np.abs(gd[:, 0]) < sin_t) | (np.abs(gd[:, 2]) < sin_t))
+    direct = (th < 0.2) & ~seam
+    if not direct.any():
+        return candidates
+    idx = candidates[direct]
+    pix = atlas_pixel(gd[direct], "octahedral", h, w)
+    # per-cone Lipschitz bound: |d(x/n)| ≤ (|dx| + |x/n|·|dn|)/n ≤ (1 + √3·max|x|)·|dω|
+    # (n = |ω|₁ ≥ 1, |dn| ≤ √3|dω|; likewise z; the fold swaps the roles of x and z)
+    gdd = gd[direct]
+    sdir = sin_t[direct]
+    lip = 1 + np.sqrt(3) * np.minimum(1.0, np.maximum(np.abs(gdd[:, 0]), np.abs(gdd[:, 2])) + sdir)
+    rx = lip * th[direct] * (w / 2) * 1.0001 + 1e-6
+    ry = lip * th[direct] * (h / 2) * 1.0001 + 1e-6
+    x_lo = np.clip(np.ceil(pix[:, 0] - rx), 0, w - 1).astype(np.int64)
+    x_hi = np.clip(np.floor(pix[:, 0] + rx), 0, w - 1).astype(np.int64)
+    y_lo = np.clip(np.ceil(pix[:, 1] - ry), 0, h - 1).astype(np.int64)
+    y_hi = np.clip(np.floor(pix[:, 1] + ry), 0, h - 1).astype(np.int64)
+    nx = np.maximum(x_hi - x_lo + 1, 0)
+    ny = np.maximum(y_hi - y_lo + 1, 0)
+    # a bbox that hit the clip entirely on one side is empty
+    nx = np.where((pix[:, 0] + rx < 0) | (pix[:, 0] - rx > w - 1), 0, nx)
+    ny = np.where((pix[:, 1] + ry < 0) | (pix[:, 1] - ry > h - 1), 0, ny)
+    count = nx * ny
+    total = int(count.sum())
+    stats["pairs_tested"] += total
+    if total:
+        local = np.full(h * w, -1, np.int64)
+        local[texels] = np.arange(len(texels))
+        rep = np.repeat(np.arange(len(idx)), count)
+        j = np.arange(total) - np.repeat(np.cumsum(count) - count, count)
+        xx = x_lo[rep] + j % nx[rep]
+        yy = y_lo[rep] + j // nx[rep]
+        tex = yy * w + xx
+        t_local = local[tex]
+        ok = t_local >= 0
+        tex, t_local, rep = tex[ok], t_local[ok], rep[ok]
+        # texel-level cone test (float32 with a conservative 1e-5 slack)
+        d32 = dirs[tex].astype(np.float32)
+        g32 = gd[direct][rep].astype(np.float32)
+        cosang = np.einsum("pi,pi->p", d32, g32)
+        ok = cosang >= (np.cos(th[direct]) - 1e-5).astype(np.float32)[rep]
+        pair_tex.append(t_local[ok])
+        pair_g.append(idx[rep[ok]])
+    return candidates[~direct]
 
 
 def _accumulate(terms: TR.PairTerms, ti, t_max, bins, k0, k1, step, direct):
