@@ -193,10 +193,14 @@ def read_hand(path: str) -> HandData:
     try:
         with open(path, "rb") as f:
             blob = f.read()
+        if not blob.startswith(b"PK"):
+            raise DataError("not a readable npz file (no zip header)", path)
         with np.load(io.BytesIO(blob), allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
+    except DataError:
+        raise
     except ValueError as exc:
-        raise DataError(f"not a valid npz (or holds pickled objects): {exc}", path) from None
+        raise DataError(f"npz holds pickled objects, which are never loaded: {exc}", path) from None
     except (OSError, EOFError) as exc:
         raise DataError(f"not a readable npz file: {exc}", path) from None
     except Exception as exc:  # zipfile.BadZipFile and friends
@@ -364,6 +368,8 @@ def validate(hand: HandData, path: str = "<in memory>") -> None:
         "hand_mirror": np.array([bool(h.mirror) for h in hand.hands], bool),
         "hand_roots": np.stack([np.asarray(h.root, np.float64) for h in hand.hands]),
     }
+    if len({np.shape(h.poses)[0] for h in hand.hands}) > 1:
+        raise DataError("all hands must have the same number of frames", path)
     if len(hand.hands) > 1:
         try:
             arrays["other_poses"] = np.stack([np.asarray(h.poses) for h in hand.hands[1:]])
