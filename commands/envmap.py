@@ -62,27 +62,38 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
     if exr_out == "-":
         raise UsageProblem("EXR output cannot go to stdout; give a file name")
 
+    # Validate every option before reading anything (usage errors exit 2 fast).
+    requested = None
+    if size is not None:
+        w, h = parse_size(size)
+        if layout == "cube":
+            if "x" in size.lower():
+                raise UsageProblem("--size for a cube map is one face size N, e.g. --size 64")
+            requested = (w, 6 * w)
+        else:
+            if "x" not in size.lower():
+                w, h = 2 * w, w  # a single number for lat-long means its height
+            if w < 2 or h < 2:
+                raise UsageProblem("lat-long maps need at least 2x2 texels")
+            requested = (w, h)
+
     env = load_envmap(input, nonfinite=nonfinite)
     log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
     target = layout or env.layout
-    if size is None:
-        if target == env.layout:
-            w, h = env.width, env.height
-        elif target == "latlong":
-            w, h = 4 * env.width, 2 * env.width
-        else:
-            w = max(1, env.height // 2)
-            h = 6 * w
+    if requested is not None and layout is None and target == "cube":
+        # The input is a cube and stays one: --size is its face size.
+        if "x" in size.lower():
+            raise UsageProblem("--size for a cube map is one face size N, e.g. --size 64")
+        requested = (parse_size(size)[0], 6 * parse_size(size)[0])
+    if requested is not None:
+        w, h = requested
+    elif target == env.layout:
+        w, h = env.width, env.height
+    elif target == "latlong":
+        w, h = 4 * env.width, 2 * env.width
     else:
-        w, h = parse_size(size)
-        if target == "cube":
-            if "x" in size.lower():
-                raise UsageProblem("--size for a cube map is one face size N, e.g. --size 64")
-            h = 6 * w
-        elif "x" not in size.lower():
-            w, h = 2 * w, w  # a single number for lat-long means its height
-        if target == "latlong" and (w < 2 or h < 2):
-            raise UsageProblem("lat-long maps need at least 2x2 texels")
+        w = max(1, env.height // 2)
+        h = 6 * w
     changed = (target != env.layout or (w, h) != (env.width, env.height)
                or math.fmod(rotate_y, 360.0) != 0.0)
     result = env

@@ -9,8 +9,11 @@ anything the library rejects becomes a one-line :class:`DataError`.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,6 +82,43 @@ def _plain(value):
     return str(value)
 
 
+@contextlib.contextmanager
+def _capture_library_output():
+    """Silence what the OpenEXR library prints on stdout and stderr.
+
+    The bindings report damage as a Python exception too, and the user gets
+    that as one line; the library's own messages (some on stdout, which may be
+    carrying JSON) would bury it.  Both the C-level file descriptors and
+    Python's sys.stdout/sys.stderr are redirected.
+    """
+    import sys
+    import tempfile
+    saved = []
+    try:
+        for stream, fd in ((sys.stdout, 1), (sys.stderr, 2)):
+            try:
+                stream.flush()
+            except (AttributeError, OSError, ValueError):
+                pass
+            saved.append((fd, os.dup(fd)))
+    except OSError:
+        for _, dup in saved:
+            os.close(dup)
+        saved = []
+    with tempfile.TemporaryFile() as sink:
+        for fd, _ in saved:
+            os.dup2(sink.fileno(), fd)
+        try:
+            with contextlib.redirect_stdout(io.StringIO()), \
+                    contextlib.redirect_stderr(io.StringIO()), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                yield
+        finally:
+            for fd, dup in saved:
+                os.dup2(dup, fd)
+                os.close(dup)
+
+
 def read_exr(path: str) -> ExrImage:
     """Read every channel of part 0, level 0, as float32.  Raises DataError."""
     import OpenEXR
@@ -93,9 +133,11 @@ def read_exr(path: str) -> ExrImage:
     if magic != b"\x76\x2f\x31\x01":
         raise DataError("not an OpenEXR file (bad magic number)", path)
     try:
-        exr = OpenEXR.File(path, separate_channels=True)
-        header = exr.header()
-        raw = exr.channels()
+        with _capture_library_output():
+            exr = OpenEXR.File(path, separate_channels=True)
+            header = exr.header()
+            raw = exr.channels()
+            del exr  # the bindings may print warnings on destruction
         channels = {}
         for name, ch in raw.items():
             pixels = np.asarray(ch.pixels)
@@ -108,7 +150,7 @@ def read_exr(path: str) -> ExrImage:
         raise DataError("damaged EXR file (implausible size)", path) from None
     except Exception as exc:  # the bindings raise RuntimeError/ValueError/... on damage
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        msg = msg.replace(path, "").replace("''", "").strip(" :'")
+        msg = " ".join(msg.replace(path, "").replace("''", "").split()).strip(" :'")
         raise DataError(f"damaged or unsupported EXR file: {msg[:160]}", path) from None
     if not channels:
         raise DataError("EXR file has no channels", path)

@@ -19,9 +19,10 @@ def write_png(path: str, display: np.ndarray) -> None:
 
     from relight_cli.provenance import atomic_path
 
-    pixels = np.clip(np.rint(np.asarray(display) * 255.0), 0, 255).astype(np.uint8)
+    pixels = np.ascontiguousarray(np.clip(np.rint(np.asarray(display) * 255.0), 0, 255).astype(np.uint8))
     if pixels.ndim == 2:
         pixels = pixels[..., None]
+    pixels = np.ascontiguousarray(pixels)
     h, w, c = pixels.shape
     with atomic_path(path, suffix=".png") as tmp:
         out = oiio.ImageOutput.create(tmp)

@@ -42,8 +42,10 @@ class RelightGroup(click.Group):
         return getattr(importlib.import_module(module_name), attr)
 
     def invoke(self, ctx):
+        from .provenance import output_transaction
         try:
-            return super().invoke(ctx)
+            with output_transaction():
+                return super().invoke(ctx)
         except RelightError as exc:
             _report(ctx, exc, exc.exit_code)
         except click.exceptions.Exit:

@@ -70,6 +70,34 @@ def provenance(format_name: str, version: int, inputs: dict[str, str] | None = N
     return record
 
 
+# Outputs staged by the running command: all are renamed into place together
+# when it succeeds, and all removed when it fails (see output_transaction).
+_PENDING: list[tuple[str, Path]] | None = None
+
+
+@contextlib.contextmanager
+def output_transaction() -> Iterator[None]:
+    """All-or-nothing outputs: atomic_path() writes inside this block are renamed
+    into place only when the whole block succeeds (a command with an EXR and a
+    PNG output never leaves one without the other)."""
+    global _PENDING
+    if _PENDING is not None:  # nested: the outer transaction decides
+        yield
+        return
+    _PENDING = []
+    try:
+        yield
+        staged, _PENDING = _PENDING, None
+        for tmp, target in staged:
+            os.replace(tmp, target)
+    except BaseException:
+        staged, _PENDING = _PENDING or [], None
+        for tmp, _ in staged:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        raise
+
+
 @contextlib.contextmanager
 def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterator[str]:
     """Yield a temporary path in the target's folder; rename it onto the target on success.
@@ -92,7 +120,10 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterato
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get normal permissions
-        os.replace(tmp, target)
+        if _PENDING is not None:
+            _PENDING.append((tmp, target))
+        else:
+            os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)

@@ -1,0 +1,154 @@
+"""`relight envmap` end to end: CliRunner and the installed console script, bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from conftest import SHARED_DATA, run_relight, shared_path
+from relight_cli.formats.envmap import read_envmap
+from relight_cli.formats.exr import read_exr
+
+
+def _assert_clean_failure(result, code, out_dir, *needles):
+    """One line on stderr, the exit code, no traceback, nothing written."""
+    stderr = result.stderr if hasattr(result, "stderr") else result.output
+    lines = [l for l in stderr.strip().splitlines() if l.strip()]
+    assert result.exit_code if hasattr(result, "exit_code") else result.returncode
+    code_got = result.exit_code if hasattr(result, "exit_code") else result.returncode
+    assert code_got == code, stderr
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("relight envmap: error:"), stderr
+    assert "Traceback" not in stderr
+    for needle in needles:
+        assert needle in lines[0]
+    assert not [p for p in os.listdir(out_dir) if p.startswith(("out", ".out"))], os.listdir(out_dir)
+
+
+def test_convert_builtin_to_cube_and_back(run_cli, tmp_path):
+    cube = tmp_path / "sky_cube.exr"
+    r = run_cli("envmap", "builtin:sky", "--to", "cube", "--size", "16", "-o", cube, "--quiet")
+    assert r.exit_code == 0, r.output
+    env = read_envmap(str(cube))
+    assert env.layout == "cube" and env.radiance.shape == (96, 16, 3)
+    prov = read_exr(str(cube)).provenance()
+    assert prov["format"] == "relight/envmap" and prov["version"] == 1
+    assert prov["inputs"]["input"]["path"] == "builtin:sky"
+    assert "envmap builtin:sky" in prov["command"]
+    lat = tmp_path / "sky_lat.exr"
+    r = run_cli("envmap", cube, "--to", "latlong", "--size", "32x16", "-o", lat, "--quiet")
+    assert r.exit_code == 0, r.output
+    assert read_envmap(str(lat)).radiance.shape == (16, 32, 3)
+
+
+def test_info_json_on_stdout(run_cli):
+    r = run_cli("envmap", "builtin:point", "--info", "--quiet")
+    assert r.exit_code == 0
+    info = json.loads(r.stdout)
+    for key in ("width", "height", "layout", "min", "max", "mean", "power", "dominant_direction"):
+        assert key in info
+    assert info["layout"] == "latlong"
+    np.testing.assert_allclose(info["power"], 10.0, rtol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(info["dominant_direction"]), 1.0, rtol=1e-9)
+
+
+def test_identical_inputs_give_identical_outputs(run_cli, tmp_path, monkeypatch):
+    # Same command line (the provenance records it), run twice.
+    monkeypatch.chdir(tmp_path)
+    outputs = []
+    for _ in range(2):
+        assert run_cli("envmap", "builtin:studio", "--size", "32x16", "-o", "a.exr", "-q").exit_code == 0
+        outputs.append((tmp_path / "a.exr").read_bytes())
+    assert outputs[0] == outputs[1]
+
+
+def test_console_script_end_to_end(tmp_path):
+    out = tmp_path / "rot.exr"
+    png = tmp_path / "rot.png"
+    r = run_relight("envmap", "builtin:studio", "--size", "64x32", "--rotate-y", "90",
+                    "-o", out, "--preview", png)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == ""  # logs go to stderr only
+    assert out.exists() and png.read_bytes()[:4] == b"\x89PNG"
+    info = run_relight("envmap", out, "--info", "-q")
+    assert json.loads(info.stdout)["width"] == 64
+
+
+def test_no_clobber(run_cli, tmp_path):
+    out = tmp_path / "x.exr"
+    out.write_bytes(b"keep")
+    r = run_cli("envmap", "builtin:uniform", "-o", out, "--no-clobber")
+    assert r.exit_code == 2 and out.read_bytes() == b"keep"
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--size", "abc"], "--size"),
+    (["--to", "cube", "--size", "8x4"], "face size"),
+    (["--size", "1x1"], "2x2"),
+])
+def test_usage_errors_exit_2(run_cli, tmp_path, args, needle):
+    r = run_cli("envmap", "builtin:sky", *args, "-o", tmp_path / "out.exr")
+    _assert_clean_failure(r, 2, tmp_path, needle)
+
+
+def test_unknown_builtin(run_cli, tmp_path):
+    r = run_cli("envmap", "builtin:moon", "-o", tmp_path / "out.exr")
+    _assert_clean_failure(r, 2, tmp_path, "builtin:sky")
+
+
+def test_missing_file_and_directory(run_cli, tmp_path):
+    _assert_clean_failure(run_cli("envmap", tmp_path / "nope.exr", "-o", tmp_path / "out.exr"),
+                          1, tmp_path, "no such file", "nope.exr")
+    _assert_clean_failure(run_cli("envmap", tmp_path, "-o", tmp_path / "out.exr"),
+                          1, tmp_path, "directory")
+
+
+def test_unreadable_format(run_cli, tmp_path):
+    bad = tmp_path / "garbage.hdr"
+    bad.write_bytes(b"this is not an image at all\n" * 10)
+    _assert_clean_failure(run_cli("envmap", bad, "-o", tmp_path / "out.exr"), 1, tmp_path, "garbage.hdr")
+
+
+def test_truncated_file_written_by_us(run_cli, tmp_path):
+    good = tmp_path / "good.exr"
+    assert run_cli("envmap", "builtin:sky", "--size", "64x32", "-o", good, "-q").exit_code == 0
+    data = good.read_bytes()
+    for cut in (8, len(data) // 3, len(data) - 50):
+        bad = tmp_path / f"trunc{cut}.exr"
+        bad.write_bytes(data[:cut])
+        _assert_clean_failure(run_cli("envmap", bad, "-o", tmp_path / "out.exr"), 1, tmp_path,
+                              bad.name)
+
+
+def test_nan_inf_image_is_refused_with_count(run_cli, tmp_path):
+    src = shared_path("images", "BrightRingsNanInf.exr")
+    r = run_cli("envmap", src, "-o", tmp_path / "out.exr")
+    _assert_clean_failure(r, 1, tmp_path, "pixel(s) hold NaN or Inf", "BrightRingsNanInf.exr")
+    r = run_cli("envmap", src, "--nonfinite", "clamp", "--size", "64x32", "-o", tmp_path / "ok.exr", "-q")
+    assert r.exit_code == 0
+    assert np.isfinite(read_envmap(str(tmp_path / "ok.exr")).radiance).all()
+
+
+def _damaged():
+    folder = SHARED_DATA / "damaged-exr"
+    return sorted(folder.iterdir()) if folder.is_dir() else []
+
+
+@pytest.mark.skipif(not _damaged(), reason="../shared/data/damaged-exr not available")
+def test_every_damaged_exr_is_a_clean_error(run_cli, tmp_path):
+    """OpenEXR's fuzzed/truncated files: exit 1, one line naming the file, no output."""
+    for path in _damaged():
+        r = run_cli("envmap", path, "-o", tmp_path / "out.exr")
+        _assert_clean_failure(r, 1, tmp_path, path.name)
+
+
+@pytest.mark.skipif(not _damaged(), reason="../shared/data/damaged-exr not available")
+def test_damaged_exr_through_console_script(tmp_path):
+    for path in _damaged()[:3]:
+        r = run_relight("envmap", path, "-o", tmp_path / "out.exr")
+        assert r.returncode == 1 and "Traceback" not in r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+        assert not (tmp_path / "out.exr").exists()
