@@ -563,6 +563,9 @@ class FeatureBaker:
         if self.settings.visibility:
             from relight_cli.raytrace import RayScene
             scene = RayScene(geometry)
+            # embree builds its BVH on the first query: do it here so the "scene" stage
+            # holds the build and "trace" only ray traversal.
+            scene.occluded(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
         self.stats.add_time("scene", time.perf_counter() - t0)
         if grid is None:
             h, w = self.env_res
