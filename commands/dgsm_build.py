@@ -9,9 +9,16 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
-@click.argument("occluders", metavar="OCCLUDERS.ply")
-@click.option("--receivers", default=None, metavar="SCENE.ply",
+@click.argument("occluders", metavar="OCCLUDERS")
+@click.option("--receivers", default=None, metavar="SCENE",
               help="Scene Gaussians that receive shadows: they drive the ROI and t_max.")
+@click.option("--translate", default=None, metavar="X,Y,Z",
+              help="Move the occluders by this offset (metres) first.")
+@click.option("--occluders-out", default=None, metavar="FILE.ply",
+              help="Also write the occluder Gaussians used (after --translate; handy for "
+                   "builtin: and mesh inputs).")
+@click.option("--receivers-out", default=None, metavar="FILE.ply",
+              help="Also write the receiver Gaussians used.")
 @click.option("--lights", "lights_spec", required=True, metavar="LIGHTS.json|auto:K",
               help="Point lights (relight/lights JSON), or auto:K to estimate K lights "
                    "from the receivers' scene.")
@@ -49,12 +56,16 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @seed_option
 @no_clobber_option
 @quiet_option
-def command(occluders, receivers, lights_spec, lights_out, output, size, bins, atlas, mapping,
+def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
             allow_light_inside, half, seed, no_clobber, quiet):
     """Tabulate the transmittance from each light through the OCCLUDERS Gaussians
     (closed-form erf optical depth, T = exp(−τ)) on K radial shells over an
     octahedral atlas of directions (Mir et al., Deep Gaussian Shadow Maps).
+
+    OCCLUDERS and SCENE are 3DGS PLY files, triangle meshes (.obj .glb .gltf
+    .stl .off, turned into flat surface Gaussians with their texture or face
+    colours), or builtin:hand | builtin:room | builtin:sphere.
 
     Only what the receivers need is computed: receivers that can be shadowed at
     all mark the atlas texels and radial bins that lookups will read (everything
@@ -66,6 +77,8 @@ def command(occluders, receivers, lights_spec, lights_out, output, size, bins, a
       relight dgsm-build avatar.ply --receivers room.ply --lights lights.json -o shadows.exr
       relight dgsm-build hand.ply --receivers floor.ply --lights lights.json \\
           --atlas cube --mapping mass -o shadows-cube.exr
+      relight dgsm-build builtin:hand --translate 0,0.3,0 --receivers builtin:room \\
+          --lights lights.json -o shadows.exr --occluders-out hand.ply --receivers-out room.ply
     """
     import math
     import time
@@ -74,7 +87,11 @@ def command(occluders, receivers, lights_spec, lights_out, output, size, bins, a
 
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.dgsm_exr import FORMAT, VERSION, write_dgsm
-    from relight_cli.formats.gaussians_ply import read_gaussians
+    from relight_cli.clitools import parse_vector
+    from relight_cli.formats.gaussians_ply import FORMAT as GFORMAT
+    from relight_cli.formats.gaussians_ply import VERSION as GVERSION
+    from relight_cli.formats.gaussians_ply import write_gaussians
+    from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.formats.lights_json import FORMAT as LFORMAT
     from relight_cli.formats.lights_json import VERSION as LVERSION
     from relight_cli.formats.lights_json import Lights, read_lights, write_lights
@@ -88,6 +105,12 @@ def command(occluders, receivers, lights_spec, lights_out, output, size, bins, a
         raise UsageProblem("the EXR output cannot go to stdout; give a file name")
     if lights_out is not None:
         check_output(lights_out, no_clobber, text=True)
+    for extra_out in (occluders_out, receivers_out):
+        if extra_out is not None:
+            check_output(extra_out, no_clobber)
+            if extra_out == "-":
+                raise UsageProblem("PLY outputs cannot go to stdout; give a file name")
+    offset = None if translate is None else np.array(parse_vector(translate, 3, "--translate"))
     try:
         h, w = _parse_hw(size)
     except ValueError:
@@ -107,13 +130,15 @@ def command(occluders, receivers, lights_spec, lights_out, output, size, bins, a
         raise UsageProblem("--lights auto:K estimates lights from the scene: give --receivers")
 
     check_input(occluders)
-    occ = read_gaussians(occluders)
+    occ = load_gaussians(occluders)
     if len(occ) == 0:
         raise DataError("no occluder Gaussians", occluders)
+    if offset is not None:
+        occ.means = occ.means + offset
     scene = None
     if receivers is not None:
         check_input(receivers)
-        scene = read_gaussians(receivers)
+        scene = load_gaussians(receivers)
         log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
     log(f"read {occluders}: {len(occ)} occluder Gaussians", quiet)
 
@@ -166,9 +191,17 @@ def command(occluders, receivers, lights_spec, lights_out, output, size, bins, a
     settings = {"size": [h, w], "bins": bins, "atlas": atlas, "mapping": mapping, "kappa": kappa,
                 "t_max": t_max, "roi": roi, "roi_radius": roi_radius, "cull": cull,
                 "cull_tolerance": cull_tolerance, "footprint": footprint, "samples": samples,
-                "seed": seed, "lights": lights_spec, "half": half}
+                "seed": seed, "lights": lights_spec, "half": half, "translate": translate}
     write_dgsm(output, shadow_map, provenance(FORMAT, VERSION, inputs, settings), half=half)
     log(f"wrote {output} ({time.perf_counter() - start:.2f} s)", quiet)
+    if occluders_out is not None:
+        write_gaussians(occluders_out, occ, provenance(GFORMAT, GVERSION, {"occluders": occluders},
+                                                       {"translate": translate}))
+        log(f"wrote {occluders_out}", quiet)
+    if receivers_out is not None and scene is not None:
+        write_gaussians(receivers_out, scene, provenance(GFORMAT, GVERSION,
+                                                         {"receivers": receivers}, {}))
+        log(f"wrote {receivers_out}", quiet)
     if lights_out is not None:
         write_lights(lights_out, Lights(lights.positions, lights.colors, lights.intensities,
                                         lights.names, lights.extra),

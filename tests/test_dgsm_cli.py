@@ -244,3 +244,41 @@ def test_dgsm_exr_rejects_damage(tmp_path):
     write_exr(rng_, img2, attributes=attrs, provenance=provenance("relight/dgsm", 1))
     with pytest.raises(DataError, match="outside"):
         read_dgsm(rng_)
+
+
+def test_builtin_and_mesh_inputs_with_outputs(tmp_path):
+    import trimesh
+    lights = tmp_path / "l.json"
+    write_lights(str(lights), Lights([[0.2, 1.2, 0.3]]))
+    out = str(tmp_path / "s.exr")
+    occ_out = str(tmp_path / "sphere.ply")
+    rec_out = str(tmp_path / "room.ply")
+    r = _run(["dgsm-build", "builtin:sphere", "--translate", "0,0.4,0", "--receivers",
+              "builtin:room", "--lights", str(lights), "-o", out, "--size", "32", "--bins", "16",
+              "--footprint", "centre", "--occluders-out", occ_out, "--receivers-out", rec_out, "-q"])
+    assert r.exit_code == 0, r.output
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    sphere = read_gaussians(occ_out)
+    assert abs(sphere.means[:, 1].mean() - 0.4) < 1e-3
+    room = read_gaussians(rec_out)
+    m = read_dgsm(out)
+    T = D.sample_transmittance(m, room.means, light_index=0)
+    # the floor point straight under the sphere along the light ray is in shadow
+    L = m.lights[0]
+    under = L + (np.array([0, 0.4, 0]) - L) * (L[1] / (L[1] - 0.4))
+    nearest = np.argmin(np.linalg.norm(room.means - under, axis=1))
+    assert T[nearest] < 0.1 and np.median(T) > 0.99
+    # a mesh file as occluders
+    mesh = trimesh.creation.box(extents=[0.2, 0.05, 0.2])
+    mesh.apply_translation([0, 0.5, 0])
+    obj = str(tmp_path / "box.obj")
+    mesh.export(obj)
+    r = _run(["dgsm-build", obj, "--receivers", rec_out, "--lights", str(lights), "-o", out,
+              "--size", "16", "--bins", "8", "-q"])
+    assert r.exit_code == 0, r.output
+    _fails(["dgsm-build", "builtin:nothing", "--receivers", rec_out, "--lights", str(lights),
+            "-o", out], 1, "unknown built-in")
+    bad = tmp_path / "bad.obj"
+    bad.write_text("this is not a mesh\n")
+    _fails(["dgsm-build", str(bad), "--receivers", rec_out, "--lights", str(lights), "-o", out],
+           1, "bad.obj")

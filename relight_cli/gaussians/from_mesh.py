@@ -168,3 +168,73 @@ def _broadcast_colors(colors, n: int) -> np.ndarray:
     if c.shape != (n, 3):
         raise ValueError(f"face colours must be an RGB triple or [{n}, 3], got {c.shape}")
     return c
+
+
+BUILTINS = ("hand", "room", "sphere")
+
+
+def builtin_gaussians(name: str) -> Gaussians:
+    """Small built-in Gaussian assets (for demos and tests), metres, +Y up.
+
+    * ``hand``: the procedural right hand (relight_cli.hand, fine mesh, relaxed
+      pose) as flat Gaussians, skin colour; about 20 cm, near the origin.
+    * ``room``: a 2 m × 2 m floor at y = 0 (x, z ∈ [−1, 1]) with a back wall
+      (z = −1) and a left wall (x = −1), 1.5 m high, as flat Gaussians
+      (≈ 4 cm triangles); warm grey floor, off-white walls.
+    * ``sphere``: a 10 cm radius sphere at the origin.
+    """
+    import trimesh
+
+    if name == "hand":
+        from relight_cli.hand.model import builtin_hand
+        from relight_cli.hand.scene import posed_meshes
+        pm = posed_meshes(builtin_hand(), 0, "fine")[0]
+        return gaussians_from_mesh(pm.vertices, pm.faces, (0.62, 0.38, 0.28))
+    if name == "sphere":
+        s = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
+        return gaussians_from_mesh(s.vertices, s.faces, (0.7, 0.7, 0.7))
+    if name == "room":
+        from relight_cli.formats.gaussians_ply import concatenate
+
+        def quad(corners, color):
+            v = np.asarray(corners, np.float64)
+            return gaussians_from_mesh(v, [[0, 1, 2], [0, 2, 3]], color, max_edge=0.04)
+
+        floor = quad([[-1, 0, -1], [-1, 0, 1], [1, 0, 1], [1, 0, -1]], (0.45, 0.40, 0.35))
+        back = quad([[-1, 0, -1], [1, 0, -1], [1, 1.5, -1], [-1, 1.5, -1]], (0.75, 0.75, 0.72))
+        left = quad([[-1, 0, 1], [-1, 0, -1], [-1, 1.5, -1], [-1, 1.5, 1]], (0.70, 0.72, 0.75))
+        return concatenate([floor, back, left])
+    raise ValueError(f"unknown built-in Gaussians {name!r}; choose from {', '.join(BUILTINS)}")
+
+
+MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".stl", ".off")
+
+
+def load_gaussians(spec: str) -> Gaussians:
+    """Gaussians from ``builtin:NAME``, a mesh file (.obj .glb .gltf .stl .off → flat
+    Gaussians with texture/face colours), or a 3DGS PLY.  Raises DataError."""
+    from relight_cli.errors import DataError
+    from relight_cli.formats.gaussians_ply import read_gaussians
+
+    if spec.startswith("builtin:"):
+        name = spec.split(":", 1)[1]
+        try:
+            return builtin_gaussians(name)
+        except ValueError as exc:
+            raise DataError(str(exc), spec) from None
+    if spec.lower().endswith(MESH_SUFFIXES):
+        import trimesh
+        try:
+            mesh = trimesh.load(spec, force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many types on damaged files
+            raise DataError(f"cannot read mesh: {type(exc).__name__}: {str(exc)[:120]}",
+                            spec) from None
+        if len(getattr(mesh, "faces", [])) == 0:
+            raise DataError("mesh has no faces", spec)
+        if not np.isfinite(np.asarray(mesh.vertices)).all():
+            raise DataError("mesh vertices hold NaN/Inf", spec)
+        g = gaussians_from_trimesh(mesh)
+        if len(g) == 0:
+            raise DataError("mesh has only degenerate (zero-area) faces", spec)
+        return g
+    return read_gaussians(spec)
