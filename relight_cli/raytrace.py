@@ -74,7 +74,8 @@ class RayScene:
         if n == 0 or self.n_meshes == 0:
             return out
         if t_far is not None:
-            t_far = np.broadcast_to(np.asarray(t_far, np.float32), (n,))
+            # a writable copy: embree refuses read-only (broadcast) buffers
+            t_far = np.array(np.broadcast_to(np.asarray(t_far, np.float32), (n,)))
         for start in range(0, n, _CHUNK):
             sl = slice(start, min(n, start + _CHUNK))
             o = np.ascontiguousarray(origins[sl])
@@ -117,24 +118,32 @@ class RayScene:
 
 
 def occluded_reference(vertices, faces, origins, directions, t_far=None) -> np.ndarray:
-    """Slow twin of :meth:`RayScene.occluded` using trimesh's numpy ray-triangle test.
+    """Slow twin of :meth:`RayScene.occluded`: brute-force Möller–Trumbore in float64.
 
-    For tests only: O(N·F) memory in chunks.  Same argument meanings.
+    For tests only: every ray against every triangle, in chunks (O(N·F) work).
+    Same argument meanings as :meth:`RayScene.occluded`.
     """
-    from trimesh.ray.ray_triangle import ray_triangle_id
-    from trimesh import Trimesh
-
-    mesh = Trimesh(np.asarray(vertices, np.float64), np.asarray(faces), process=False)
-    origins = np.asarray(origins, np.float64)
-    directions = np.asarray(directions, np.float64)
-    tri_idx, ray_idx, locations = ray_triangle_id(mesh.triangles, origins, directions,
-                                                  multiple_hits=True)
-    out = np.zeros(len(origins), bool)
-    if len(ray_idx) == 0:
-        return out
-    dist = np.einsum("ij,ij->i", locations - origins[ray_idx], directions[ray_idx])
-    limit = np.inf if t_far is None else np.broadcast_to(np.asarray(t_far, np.float64),
-                                                         (len(origins),))[ray_idx]
-    good = (dist > 0) & (dist < limit)
-    out[ray_idx[good]] = True
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]      # [F, 3, 3]
+    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    origins = np.asarray(origins, np.float64).reshape(-1, 3)
+    directions = np.asarray(directions, np.float64).reshape(-1, 3)
+    n = len(origins)
+    limit = np.full(n, np.inf) if t_far is None else np.broadcast_to(
+        np.asarray(t_far, np.float64), (n,))
+    out = np.zeros(n, bool)
+    chunk = max(1, 2_000_000 // max(1, len(tri)))
+    for start in range(0, n, chunk):
+        o = origins[start:start + chunk, None, :]                           # [c, 1, 3]
+        d = directions[start:start + chunk, None, :]
+        p = np.cross(d, e2[None])                                           # [c, F, 3]
+        det = np.einsum("cfk,fk->cf", p, e1)
+        ok = np.abs(det) > 1e-14
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = o - v0[None]
+        u = np.einsum("cfk,cfk->cf", s, p) * inv
+        q = np.cross(s, e1[None])
+        v = np.einsum("cfk,cfk->cf", np.broadcast_to(d, q.shape), q) * inv
+        t = np.einsum("cfk,fk->cf", q, e2) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < limit[start:start + chunk, None])
+        out[start:start + chunk] = hit.any(axis=1)
     return out
