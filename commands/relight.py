@@ -2,9 +2,11 @@
 
 The first input decides the mode: a Gaussians PLY (``.ply``) is relit with an
 SH probe and optionally shadowed with a DGSM (paper Sec. 3.4); a hand
-(``.npz``) will be relit by the neural hand models (not available yet).  Each
+(``.npz`` or ``builtin:right|left|two[:POSE]``) is rendered under an env map
+and/or point lights from a camera.  Each
 mode is one function below; options that belong to one mode are refused in
-the other.
+the other.  Hand mode ``--model physical`` is the physically based renderer of
+``relight_cli.render`` (URHand's physical-only baseline).
 """
 
 from __future__ import annotations
@@ -17,8 +19,9 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 
 @click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows), or a hand.")
 @click.argument("input", metavar="IN")
+@click.argument("env", metavar="[ENV]", required=False, default=None)
 @click.option("-o", "--output", required=True,
-              help="Relit Gaussians PLY, or with --render an EXR image.")
+              help="Relit Gaussians PLY, or with --render an EXR image; for a hand the EXR image.")
 @click.option("--probe", default=None, metavar="PROBE.json",
               help="[Gaussians] SH light probe (relight sh-probe) lighting the avatar.")
 @click.option("--dgsm", default=None, metavar="SHADOWS.exr",
@@ -49,13 +52,48 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
               help="Render a view (receivers + relit avatar) to -o as an EXR (R, G, B, A).")
 @click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
               help="Background radiance of --render.")
-@click.option("--preview", default=None, metavar="PNG", help="With --render: a tone-mapped PNG too.")
+@click.option("--model", default=None, metavar="NAME",
+              help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS) "
+                   "[default: physical].")
+@click.option("--camera", "hand_camera", default=None, metavar="CAMERA.json",
+              help="[hand] OpenCV camera of the view (default: framing the hands from the front).")
+@click.option("--size", "hand_size", default=None, metavar="WxH",
+              help="[hand] Image size of the default camera [default: 256x256].")
+@click.option("--lights", "hand_lights", default=None, metavar="LIGHTS.json",
+              help="[hand] Point lights (relight/lights JSON): radiance falls as 1/r².")
+@click.option("--frame", "hand_frame", type=int, default=None,
+              help="[hand] Frame of HAND to render [default: 0].")
+@click.option("--mesh", "hand_mesh", type=click.Choice(["fine", "coarse"]), default=None,
+              help="[hand] Mesh rendered (and shadowing) [default: fine].")
+@click.option("--env-res", "env_res", default=None, metavar="HxW",
+              help="[hand] Lat-long grid the env map is integrated over, exactly as "
+                   "bake-features --env-res [default: 16x32].")
+@click.option("--tex-res", "tex_res", type=int, default=None,
+              help="[hand] Texture-space lighting/SSS map size N (N×N) [default: 256].")
+@click.option("--aa", type=int, default=None,
+              help="[hand] Stratified sub-pixel samples per axis (aa² per pixel) [default: 2].")
+@click.option("--no-shadows", is_flag=True, help="[hand] Ablation: no shadow rays.")
+@click.option("--no-specular", is_flag=True, help="[hand] Ablation: diffuse only.")
+@click.option("--no-sss", is_flag=True, help="[hand] Ablation: no subsurface scattering.")
+@click.option("--sss-scale", type=float, default=None,
+              help="[hand] Scale of the skin profile's widths [default: 1].")
+@click.option("--bounce", is_flag=True, help="[hand] Add one bounce of interreflection.")
+@click.option("--albedo", "albedo_map", default=None, metavar="IMAGE",
+              help="[hand] UV albedo map (EXR/PNG, linear) instead of the procedural skin.")
+@click.option("--roughness", "roughness_map", default=None, metavar="IMAGE|VALUE",
+              help="[hand] GGX roughness: a UV map (EXR channel Y or R) or a number in (0, 1].")
+@click.option("--aov", default=None, metavar="LIST",
+              help="[hand] Extra EXR layers: comma-separated from normal, uv, depth.")
+@click.option("--preview", default=None, metavar="PNG",
+              help="With --render (or for a hand): a tone-mapped PNG too.")
 @seed_option
 @no_clobber_option
 @quiet_option
-def command(input, output, probe, dgsm, receivers, receivers_out, footprint, samples,
-            shadow_strength, lobe, intensity, t_max, normals, render_camera, background, preview,
-            seed, no_clobber, quiet):
+def command(input, env, output, probe, dgsm, receivers, receivers_out, footprint, samples,
+            shadow_strength, lobe, intensity, t_max, normals, render_camera, background, model,
+            hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
+            no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
+            preview, seed, no_clobber, quiet):
     """Relight IN under new lighting.
 
     \b
@@ -66,23 +104,39 @@ def command(input, output, probe, dgsm, receivers, receivers_out, footprint, sam
     shadow-map transmittance.  Writes the relit avatar PLY, or with --render
     an EXR view of receivers + avatar.
 
-    IN = HAND.npz: the neural hand relighting (not available yet).
+    IN = HAND.npz (or builtin:right|left|two[:POSE]) with --model physical:
+    render the posed hand(s) under the env map ENV (EXR/HDR or
+    builtin:sky|studio|uniform|point) and/or --lights, seen by --camera.
+    Lambert + GGX (F0 0.04), embree shadows, texture-space subsurface
+    scattering, optional one bounce.  Writes an EXR with R, G, B, A (mask) and
+    optional AOV layers.
 
     \b
     Examples:
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
       relight relight avatar.ply --probe probe.json --dgsm shadows.exr \\
           --receivers room.ply --render cam.json -o view.exr --preview view.png
+      relight relight hand.npz builtin:sky --model physical --camera cam.json -o img.exr
     """
     from relight_cli.errors import UsageProblem
 
     lower = input.lower()
     if lower.endswith(".ply"):
+        hand_only = {"ENV": env, "--model": model, "--camera": hand_camera, "--size": hand_size,
+                     "--lights": hand_lights, "--frame": hand_frame, "--mesh": hand_mesh,
+                     "--env-res": env_res, "--tex-res": tex_res, "--aa": aa,
+                     "--no-shadows": no_shadows or None, "--no-specular": no_specular or None,
+                     "--no-sss": no_sss or None, "--sss-scale": sss_scale,
+                     "--bounce": bounce or None, "--albedo": albedo_map,
+                     "--roughness": roughness_map, "--aov": aov}
+        given = [k for k, v in hand_only.items() if v is not None]
+        if given:
+            raise UsageProblem(f"{', '.join(given)} only apply to a hand (IN = HAND.npz)")
         return _relight_gaussians(**locals())
-    if lower.endswith(".npz"):
+    if lower.endswith(".npz") or lower.startswith("builtin:"):
         return _relight_hand(**locals())
-    raise UsageProblem("IN must be a Gaussians .ply (or a hand .npz); cannot tell what this is",
-                       input)
+    raise UsageProblem("IN must be a Gaussians .ply or a hand .npz (or builtin:right|left|two); "
+                       "cannot tell what this is", input)
 
 
 def _relight_gaussians(input, output, probe, dgsm, receivers, receivers_out, footprint, samples,
@@ -190,11 +244,172 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, receivers_out, foo
         log(f"wrote {preview}", quiet)
 
 
-def _relight_hand(input, **_):
-    """Hand mode (hand.npz + model + env map + camera → image): added by the hand relighting work."""
+def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, render_camera,
+                  model, hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res,
+                  tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map,
+                  roughness_map, aov, background, preview, seed, no_clobber, quiet, **_):
+    """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image."""
+    import math
+    import time
+
+    import numpy as np
+
+    from relight_cli.errors import DataError, UsageProblem
+
+    # ---- usage checks before any work
+    gaussian_only = {"--probe": probe, "--dgsm": dgsm, "--receivers": receivers,
+                     "--receivers-out": receivers_out, "--render": render_camera}
+    given = [k for k, v in gaussian_only.items() if v is not None]
+    if given:
+        raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply); "
+                           f"a hand's view is --camera")
+    model = model or "physical"
+    if model != "physical":
+        raise UsageProblem(f"--model {model!r} is not available; use --model physical (the "
+                           f"neural hand models come with train-teacher/distill)")
+    if env is None and hand_lights is None:
+        raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
+    if not output.lower().endswith(".exr"):
+        raise UsageProblem("-o is the rendered EXR image (name it .exr)", output)
+    if hand_camera is not None and hand_size is not None:
+        raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
+    width, height = 256, 256
+    if hand_size is not None:
+        from relight_cli.clitools import parse_size
+        width, height = parse_size(hand_size, "--size")
+        if width > 8192 or height > 8192:
+            raise UsageProblem(f"--size must be at most 8192, got {hand_size!r}")
+    frame = 0 if hand_frame is None else hand_frame
+    if frame < 0:
+        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
+    env_h, env_w = _parse_env_res(env_res or "16x32")
+    tex = 256 if tex_res is None else tex_res
+    if not 8 <= tex <= 4096:
+        raise UsageProblem(f"--tex-res must be in [8, 4096], got {tex}")
+    samples_axis = 2 if aa is None else aa
+    if not 1 <= samples_axis <= 8:
+        raise UsageProblem(f"--aa must be in [1, 8], got {samples_axis}")
+    scale = 1.0 if sss_scale is None else sss_scale
+    if not (scale > 0 and math.isfinite(scale)):
+        raise UsageProblem(f"--sss-scale must be a positive finite number, got {sss_scale}")
+    aovs = [a.strip() for a in aov.split(",") if a.strip()] if aov else []
+    bad = [a for a in aovs if a not in ("normal", "uv", "depth")]
+    if bad:
+        raise UsageProblem(f"--aov takes normal, uv, depth; unknown: {', '.join(bad)}")
+    rough_value = None
+    if roughness_map is not None:
+        try:
+            rough_value = float(roughness_map)
+        except ValueError:
+            check_input(roughness_map)
+        else:
+            if not 0 < rough_value <= 1:
+                raise UsageProblem(f"--roughness must be in (0, 1], got {roughness_map}")
+    bg = parse_vector(background, 3, "--background")
+    for path in (output, preview):
+        check_output(path, no_clobber)
+    for path in (hand_camera, hand_lights, albedo_map):
+        if path is not None:
+            check_input(path)
+
+    # ---- inputs (data errors)
+    start = time.perf_counter()
+    from relight_cli.commands.bake_features import _load_hand, _read_roughness_map
+    from relight_cli.hand.scene import posed_meshes, preview_camera
+    from relight_cli.render import appearance as A
+    from relight_cli.render.shading import HandRenderer, PointLights, RenderSettings
+    from relight_cli.provenance import provenance
+
+    from ._inputs import load_envmap
+
+    data = _load_hand(input)
+    if frame >= data.n_frames:
+        raise UsageProblem(f"--frame {frame} is out of range: {input} has {data.n_frames} frame(s)")
+    envmap = load_envmap(env) if env is not None else None
+    lights = None
+    if hand_lights is not None:
+        from relight_cli.formats.lights_json import read_lights
+        raw = read_lights(hand_lights)
+        lights = PointLights(raw.positions, raw.colors * raw.intensities[:, None])
+    albedo = None
+    if albedo_map is not None:
+        from relight_cli.formats.image import read_image
+        pixels, _names = read_image(albedo_map)
+        if pixels.shape[2] < 3:
+            raise DataError("albedo map needs 3 colour channels", albedo_map)
+        albedo = pixels[..., :3]
+    rough = rough_value
+    if roughness_map is not None and rough_value is None:
+        rough = _read_roughness_map(roughness_map)
+    mesh_name = hand_mesh or "fine"
+    try:
+        meshes = posed_meshes(data, frame, mesh_name)
+    except (IndexError, ValueError) as exc:
+        raise DataError(f"cannot pose frame {frame}: {exc}", input) from None
+    for pm in meshes:
+        if not np.isfinite(pm.vertices).all():
+            raise DataError(f"frame {frame}: posed vertices hold NaN/Inf", input)
+    if hand_camera is not None:
+        from relight_cli.formats.camera import read_camera
+        camera = read_camera(hand_camera)
+    else:
+        camera = preview_camera(meshes, width, height)
+    try:
+        materials = A.hand_materials(data, mesh_name, max(tex, 256), seed, albedo, rough)
+    except ValueError as exc:
+        raise DataError(str(exc), albedo_map or roughness_map) from None
+    log(f"read {input}: {len(meshes)} hand(s), frame {frame}; "
+        f"{'env ' + env if env else 'no env'}, {0 if lights is None else len(lights)} point "
+        f"light(s)", quiet)
+
+    # ---- render
+    settings = RenderSettings(tex_res=tex, aa=samples_axis, shadows=not no_shadows,
+                              specular=not no_specular, sss=not no_sss, sss_scale=scale,
+                              env_res=(env_h, env_w), bounce=bounce)
+    renderer = HandRenderer(meshes, materials, settings)
+    lighting = renderer.light(lights, envmap)
+    result = renderer.render(camera, lighting, background=bg)
+    channels = {"R": result.image[..., 0], "G": result.image[..., 1], "B": result.image[..., 2],
+                "A": result.mask}
+    if "normal" in aovs:
+        channels.update({f"normal.{c}": result.normal[..., i] for i, c in enumerate("XYZ")})
+    if "uv" in aovs:
+        channels.update({"uv.U": result.uv[..., 0], "uv.V": result.uv[..., 1]})
+    if "depth" in aovs:
+        channels["depth.Z"] = result.depth
+    inputs = {"hand": input}
+    if env is not None:
+        inputs["env"] = env
+    for role, path in (("camera", hand_camera), ("lights", hand_lights), ("albedo", albedo_map)):
+        if path is not None:
+            inputs[role] = path
+    if roughness_map is not None and rough_value is None:
+        inputs["roughness"] = roughness_map
+    record = provenance("relight/render", 1, inputs, {
+        "model": model, "frame": frame, "mesh": mesh_name, "env_res": [env_h, env_w],
+        "tex_res": tex, "aa": samples_axis, "shadows": not no_shadows,
+        "specular": not no_specular, "sss": not no_sss, "sss_scale": scale, "bounce": bounce,
+        "roughness": roughness_map, "seed": seed, "background": list(bg)})
+    seconds = {**renderer.stats, **lighting.stats, **result.stats}
+    from relight_cli.formats.exr import write_exr
+    write_exr(output, channels, attributes={
+        "relight.model": model, "relight.camera": camera.to_json(),
+        "relight.seconds": {k: round(float(v), 6) for k, v in seconds.items()}},
+        provenance=record)
+    if preview is not None:
+        from relight_cli.formats.image import write_preview
+        write_preview(preview, result.image)
+    log(f"wrote {output} ({camera.width}x{camera.height}, {time.perf_counter() - start:.2f} s: "
+        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
+
+
+def _parse_env_res(text: str) -> tuple[int, int]:
+    from relight_cli.commands.bake_features import _parse_hw
     from relight_cli.errors import UsageProblem
-    raise UsageProblem("hand relighting is not available yet; IN must be a Gaussians .ply for now",
-                       input)
+    h, w = _parse_hw(text, "--env-res")
+    if h < 2 or w < 2:
+        raise UsageProblem("--env-res needs at least 2x2 directions")
+    return h, w
 
 
 def _read_dgsm(path: str):
