@@ -209,7 +209,7 @@ def test_cli_subprocess(files):
 
 
 @pytest.mark.parametrize("args, code, message", [
-    (["hand.npz"], 2, "hand relighting is not available yet"),
+    (["hand.npz"], 2, "give an env map ENV"),   # hand mode: lighting is required
     (["thing.obj", "--probe", "probe.json"], 2, "IN must be a Gaussians .ply"),
     (["avatar.ply"], 2, "needs --probe"),
     (["avatar.ply", "--probe", "probe.json", "--dgsm", "x.exr"], 2, "give --receivers"),
