@@ -180,3 +180,13 @@ def test_sample_transmittance_footprint_modes():
     # footprints blur: same mean shadow to within a few %, never identical to the centre
     assert abs(st.mean() - centre[1].mean()) < 0.05
     assert np.abs(st - centre[1]).max() > 0
+
+
+def test_exact_transmittance_matches_dense_twin():
+    mix = TR.prepare(*_blob(n=200, seed=9))
+    recv = np.concatenate([_floor(40, 1.5), _blob(n=50, seed=3)[0]])  # floor + points inside
+    for light in (LIGHT, _blob(n=200, seed=9)[0][7]):               # outside and inside the blob
+        fast = D.exact_transmittance(mix, light, recv)
+        slow = TR.transmittance_between(mix, light, recv)
+        assert np.abs(fast - slow).max() <= CULL_TOL
+        assert slow.min() < 0.3
