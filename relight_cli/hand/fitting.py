@@ -289,6 +289,9 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
 
     mesh = template.coarse
     need_mesh = scans is not None
+    # With keypoints, the multi-start pose stage ignores the scans (the keypoints
+    # choose among starts; nearest-neighbour scan terms are the expensive part).
+    use_scans = [True]
     if need_mesh:
         verts0 = torch.tensor(mesh.vertices, dtype=dtype)
         weights = torch.tensor(mesh.weights, dtype=dtype)
@@ -297,6 +300,8 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
         faces = torch.tensor(mesh.faces, dtype=torch.int64)
         lap = _laplacian(len(mesh.vertices), mesh.faces)
         scan_t = [torch.tensor(s, dtype=dtype) for s in scans]
+        from scipy.spatial import cKDTree
+        scan_trees = [cKDTree(s) for s in scans]
 
     from .skinning import forward_kinematics_torch, lbs_torch
 
@@ -318,9 +323,9 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
             rho = r2 / (r2 + sigma**2)
             joint_terms = cf * rho / cf.sum(1, keepdim=True).clamp_min(1e-9)   # [N, J]
             terms = terms + joint_terms.sum(1)
-        if need_mesh:
+        if need_mesh and use_scans[0]:
             terms = terms + opt.w_scan * _scan_energy(posed_v, faces, scan_t, sigma, rng,
-                                                       opt.scan_points)
+                                                       opt.scan_points, scan_trees)
         angles = torch.einsum("jab,njb->nja", t_axes, poses)
         excess = torch.relu(t_lo - angles) + torch.relu(angles - t_hi)
         limit_terms = opt.w_limits * ((excess**2) * limited).sum(2)         # [N, J]
@@ -334,8 +339,11 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
             return terms
         total = terms.mean() + opt.w_scale * (log_scales**2).sum()
         if offsets is not None:
-            total = total + opt.w_laplacian * (torch.sparse.mm(lap, offsets) ** 2).sum() / 1e-6 \
-                + 1e-2 * (offsets**2).sum() / 1e-6
+            # Means over vertices (independent of the tessellation), in units of σ²
+            # like the (near-quadratic) robust data terms, so the balance between
+            # data and regularizer does not change as σ anneals.
+            total = total + (opt.w_laplacian * (torch.sparse.mm(lap, offsets) ** 2).sum(1).mean()
+                             + 1e-2 * (offsets**2).sum(1).mean()) / sigma**2
         return total
 
     def run(poses_init, trans_init, iters, fit_scales, fit_offsets, log_scales_init=None,
@@ -395,7 +403,9 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
     pre = max(opt.iterations // 3, 1)
     saved_smooth = opt.w_smooth
     opt.w_smooth = 0.0  # the starts are stacked: no smoothness across them
+    use_scans[0] = keypoints is None
     p1, t1, _, _, e1, hist1, j1 = run(all_p, all_t, pre, False, False, stage="initial poses")
+    use_scans[0] = True
     opt.w_smooth = saved_smooth
     p1 = p1.numpy().reshape(S, N, J, 3)
     t1 = t1.numpy().reshape(S, N, 3)
@@ -510,12 +520,19 @@ def _laplacian(n_vertices, faces):
     vals = -1.0 / deg[i]
     idx = np.concatenate([np.stack([i, j]), np.stack([np.arange(n_vertices)] * 2)], 1)
     vals = np.concatenate([vals, np.ones(n_vertices)])
-    return torch.sparse_coo_tensor(torch.tensor(idx), torch.tensor(vals), (n_vertices, n_vertices)).coalesce()
+    return torch.sparse_coo_tensor(torch.tensor(idx), torch.tensor(vals), (n_vertices, n_vertices),
+                                   check_invariants=False).coalesce()
 
 
-def _scan_energy(posed_v, faces, scans, sigma, rng, n_points):
-    """Per-frame robust point-to-plane (scan→model) + chamfer (model→scan) energy."""
+def _scan_energy(posed_v, faces, scans, sigma, rng, n_points, trees):
+    """Per-frame robust point-to-plane (scan→model) + chamfer (model→scan) energy.
+
+    Correspondences are nearest neighbours found with KD-trees outside the
+    autograd graph (the scan's tree is built once per frame, the posed model's
+    each call); the energy is differentiable in the model vertices.
+    """
     import torch
+    from scipy.spatial import cKDTree
 
     out = []
     f = faces
@@ -525,15 +542,16 @@ def _scan_energy(posed_v, faces, scans, sigma, rng, n_points):
         vn = torch.zeros_like(v).index_add_(0, f[:, 0], fn).index_add_(0, f[:, 1], fn) \
             .index_add_(0, f[:, 2], fn)
         vn = vn / vn.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        sample = pts
         if len(pts) > n_points:
-            pts = pts[torch.as_tensor(rng.choice(len(pts), n_points, replace=False))]
-        with torch.no_grad():
-            d = torch.cdist(pts, v)                                       # [P, V]
-            nearest_v = d.argmin(1)
-            nearest_p = d.argmin(0)
-        r = ((pts - v[nearest_v]) * vn[nearest_v]).sum(1)
+            sample = pts[torch.as_tensor(rng.choice(len(pts), n_points, replace=False))]
+        v_np = v.detach().numpy()
+        _, nearest_v = cKDTree(v_np).query(sample.numpy())
+        _, nearest_p = trees[n % len(trees)].query(v_np)
+        nearest_v = torch.as_tensor(nearest_v)
+        r = ((sample - v[nearest_v]) * vn[nearest_v]).sum(1)
         plane = (r**2 / (r**2 + sigma**2)).mean()
-        c2 = ((v - pts[nearest_p]) ** 2).sum(1)
+        c2 = ((v - pts[torch.as_tensor(nearest_p)]) ** 2).sum(1)
         chamfer = (c2 / (c2 + sigma**2)).mean()
         out.append(plane + chamfer)
     return torch.stack(out)
