@@ -19,13 +19,36 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# The main job on built-in data; results under demo/.
+# The main job on built-in data; results under demo/.  Steps that use the real
+# data in ../shared/data run only when it is present.
+SHARED := ../shared/data
 demo: install
 	mkdir -p demo
+	# environment maps: convert, resample, inspect
 	$(RELIGHT) envmap builtin:sky --to latlong --size 32x16 -o demo/sky_32x16.exr --preview demo/sky.png
 	$(RELIGHT) envmap builtin:studio --to cube --size 64 -o demo/studio_cube.exr --preview demo/studio_cube.png
-	$(RELIGHT) envmap builtin:point --size 64x32 -o demo/point.exr
 	$(RELIGHT) envmap demo/studio_cube.exr --info -o demo/studio_info.json
+	# the default hand (built-in model, fist pose) and a preview
+	$(RELIGHT) fit-geometry --pose fist -o demo/hand.npz --preview demo/hand.png
+	# texel-aligned, visibility-aware shading features under two environments (visibility traced once)
+	$(RELIGHT) bake-features demo/hand.npz builtin:sky builtin:studio -o 'demo/feats_{env}.exr' \
+		--per-vertex 'demo/feats_{env}.npz' --preview 'demo/feats_{env}.png' --specular both
+	$(RELIGHT) bake-features builtin:two:fist builtin:sky -o demo/feats_two_fist.exr --preview demo/feats_two_fist.png
+	# spherical-harmonic light probes
+	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json
+	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json
+	# quality metrics of a cube round trip against direct resampling, and the regression gate
+	$(RELIGHT) envmap builtin:sky --to cube --size 32 -o demo/sky_cube.exr
+	$(RELIGHT) envmap demo/sky_cube.exr --to latlong --size 128x64 -o demo/sky_back.exr
+	$(RELIGHT) envmap builtin:sky --to latlong --size 128x64 -o demo/sky_direct.exr
+	$(RELIGHT) metrics image demo/sky_back.exr demo/sky_direct.exr --space srgb -o demo/metrics_envmap.json
+	# the real donut (if ../shared/data is here) relit by two probes
+	if [ -f $(SHARED)/gaussians/donut-fused.ply ]; then \
+	  $(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/donut_cam.json', [Camera.look_at([0,0.25,0.3],[0,0,0.03],width=256,height=192,fov_y_deg=45)])" && \
+	  $(RELIGHT) sh-probe builtin:uniform --degree 0 -o demo/uniform_probe.json && \
+	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/uniform_probe.json --render demo/donut_cam.json -o demo/donut_before.exr --preview demo/donut_before.png && \
+	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/studio_probe.json --intensity 2 --render demo/donut_cam.json -o demo/donut_after.exr --preview demo/donut_after.png; \
+	fi
 	@echo "demo outputs are in demo/"
 
 test: install
