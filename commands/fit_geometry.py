@@ -102,20 +102,22 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
     from relight_cli.provenance import provenance
 
     hand = _load_template(template)
-    log(f"template {template}: {hand.side} hand, coarse {len(hand.coarse.vertices)} / fine "
-        f"{len(hand.fine.vertices)} vertices", quiet)
+    # Logged only once every input has been read: a bad input gets one line only.
+    template_line = (f"template {template}: {hand.side} hand, coarse {len(hand.coarse.vertices)}"
+                     f" / fine {len(hand.fine.vertices)} vertices")
     inputs = {} if template.startswith("builtin:") else {"template": template}
     settings = {"template": template, "seed": seed, "two_hands": two_hands}
     report_obj = None
     if not fitting:
         poses, trans = _poses_for(pose or "relaxed", frames, seed, hand)
+        log(template_line, quiet)
         hand.hands[0].poses, hand.hands[0].translations = poses, trans
         settings.update(pose=pose or "relaxed", frames=int(len(poses)))
         if pose is not None and pose.endswith(".json"):
             inputs["pose"] = pose
     else:
         hand, report_obj = _fit(hand, keypoints, scan_paths, interpolate, iterations,
-                                not no_bone_scales, offsets, smooth, seed, quiet)
+                                not no_bone_scales, offsets, smooth, seed, quiet, template_line)
         if keypoints is not None:
             inputs["keypoints"] = keypoints
         for i, p in enumerate(scan_paths or []):
@@ -250,7 +252,7 @@ def _read_scan(path: str, rng):
 
 
 def _fit(hand, keypoints, scan_paths, interpolate, iterations, bone_scales, offsets, smooth,
-         seed, quiet):
+         seed, quiet, template_line):
     import numpy as np
 
     from relight_cli.clitools import progress
@@ -270,6 +272,10 @@ def _fit(hand, keypoints, scan_paths, interpolate, iterations, bone_scales, offs
             raise DataError(f"{len(scans)} scans for {len(kp.positions)} keypoint frames; "
                             "give one scan per frame", scan_paths[0])
     n = len(kp.positions) if kp is not None else len(scans)
+    from relight_cli.clitools import log
+    log(template_line, quiet)
+    log(f"fitting {n} frame(s)" + (f" to {keypoints}" if keypoints else "")
+        + (f" and {len(scans)} scan(s)" if scans else ""), quiet)
     bar = progress(total=n, desc="fit frames", quiet=quiet)
     state = {"done": 0}
 

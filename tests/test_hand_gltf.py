@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import shared_path
+from conftest import shared_path
 
 from relight_cli.errors import DataError
 from relight_cli.hand.gltf import (_accessor, _load, _node_world_matrices, import_gltf,
