@@ -25,6 +25,7 @@ COMMANDS: dict[str, str] = {
     "metrics": "relight_cli.commands.metrics:command",
     "relight": "relight_cli.commands.relight:command",
     "sh-probe": "relight_cli.commands.sh_probe:command",
+    "synth-capture": "relight_cli.commands.synth_capture:command",
 }
 
 

@@ -1,0 +1,299 @@
+"""Light-stage captures: ``capture.json`` + per-frame EXR images (spec: ``formats/capture.md``).
+
+A capture folder holds ``capture.json`` (format ``relight/capture``), the
+ground-truth ``hand.npz`` (model + per-frame poses), the images
+``images/{frame:06d}/{camera}.exr`` (R, G, B linear radiance, A = hand mask)
+and optionally held-out evaluation renders under env maps.
+
+This module reads, validates and writes those files; it does not render.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from relight_cli.errors import DataError
+
+FORMAT = "relight/capture"
+VERSION = 1
+IMAGE_FORMAT = "relight/capture-image"
+IMAGE_VERSION = 1
+INDEX = "capture.json"
+
+
+@dataclass
+class CaptureFrame:
+    """One time step of the capture.
+
+    Attributes:
+        index: frame number (images live in ``images/{index:06d}/``).
+        time: seconds since the start.
+        pose: index of the pose in the capture's hand.npz frames.
+        lit: "full" (every light on) or "group" (a few neighbouring lights).
+        lights_on: indices of the lights that are on.
+        images: names of the cameras whose image of this frame exists.
+    """
+
+    index: int
+    time: float
+    pose: int
+    lit: str
+    lights_on: list
+    images: list = field(default_factory=list)
+
+
+@dataclass
+class Capture:
+    """A light-stage capture.
+
+    Attributes:
+        cameras: list of ``relight_cli.formats.camera.Camera`` with unique names.
+        light_positions: [L, 3] float64 metres, world.
+        light_intensity: [L, 3] float64 linear RGB radiant intensity (irradiance I/r²).
+        light_names: L names.
+        frames: list of :class:`CaptureFrame`.
+        hand: path of the hand.npz relative to the folder.
+        fps: frame rate (frames per second).
+        evaluation: held-out renders: {"hand": path, "envs": {name: path},
+            "renders": [{"pose", "env", "camera", "image"}]} or None.
+        key: fingerprint of what was rendered (settings + inputs); images carry it too,
+            so a resumed run trusts only images of the same capture.
+        complete: every planned image exists.
+        settings: generator settings (free-form JSON object).
+        provenance: provenance record.
+    """
+
+    cameras: list
+    light_positions: np.ndarray
+    light_intensity: np.ndarray
+    light_names: list
+    frames: list
+    hand: str = "hand.npz"
+    fps: float = 30.0
+    evaluation: dict | None = None
+    key: str = ""
+    complete: bool = False
+    settings: dict = field(default_factory=dict)
+    provenance: dict | None = None
+
+    def camera(self, name: str):
+        for cam in self.cameras:
+            if cam.name == name:
+                return cam
+        raise KeyError(name)
+
+
+def image_path(frame: int, camera: str) -> str:
+    """Path of a capture image relative to the capture folder."""
+    return os.path.join("images", f"{int(frame):06d}", f"{camera}.exr")
+
+
+def to_json(capture: Capture) -> dict:
+    out = {
+        "format": FORMAT, "version": VERSION,
+        "hand": capture.hand, "fps": float(capture.fps), "key": capture.key,
+        "complete": bool(capture.complete),
+        "cameras": [c.to_json() for c in capture.cameras],
+        "lights": [{"name": n, "position": [float(v) for v in p],
+                    "intensity": [float(v) for v in i]}
+                   for n, p, i in zip(capture.light_names, capture.light_positions,
+                                      capture.light_intensity)],
+        "frames": [{"index": f.index, "time": float(f.time), "pose": f.pose, "lit": f.lit,
+                    "lights_on": [int(i) for i in f.lights_on], "images": list(f.images)}
+                   for f in capture.frames],
+    }
+    if capture.evaluation is not None:
+        out["evaluation"] = capture.evaluation
+    if capture.settings:
+        out["settings"] = capture.settings
+    if capture.provenance is not None:
+        out["provenance"] = capture.provenance
+    return out
+
+
+def write_capture(path: str, capture: Capture) -> None:
+    """Write ``capture.json`` atomically (rounding-free floats)."""
+    from relight_cli.provenance import write_text_atomic
+    validate(capture, path)
+    write_text_atomic(path, json.dumps(to_json(capture), indent=1, allow_nan=False) + "\n")
+
+
+def _int(value, what, path, lo=0, hi=None):
+    if not isinstance(value, int) or isinstance(value, bool) or value < lo or (
+            hi is not None and value >= hi):
+        rng = f"[{lo}, {hi})" if hi is not None else f"≥ {lo}"
+        raise DataError(f"{what} must be an integer in {rng}, got {value!r}", path)
+    return value
+
+
+def _finite_list(value, n, what, path):
+    if (not isinstance(value, list) or len(value) != n
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            or not all(math.isfinite(v) for v in value)):
+        raise DataError(f"{what} must be a list of {n} finite numbers", path)
+    return [float(v) for v in value]
+
+
+def capture_from_json(obj, path: str = "") -> Capture:
+    from relight_cli.formats.camera import camera_from_json
+
+    if not isinstance(obj, dict):
+        raise DataError("expected a JSON object", path)
+    if obj.get("format") != FORMAT:
+        raise DataError(f"not a {FORMAT} file (format is {obj.get('format')!r})", path)
+    version = obj.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise DataError("missing or invalid 'version'", path)
+    if version > VERSION:
+        raise DataError(f"{FORMAT} version {version} is newer than this relight understands "
+                        f"(≤ {VERSION})", path, hint="upgrade relight")
+    for key in ("cameras", "lights", "frames"):
+        if not isinstance(obj.get(key), list):
+            raise DataError(f"'{key}' must be a list", path)
+    if not obj["cameras"]:
+        raise DataError("'cameras' is empty", path)
+    cameras = [camera_from_json(c, path, i) for i, c in enumerate(obj["cameras"])]
+    lights = obj["lights"]
+    positions, intensity, names = [], [], []
+    for i, item in enumerate(lights):
+        if not isinstance(item, dict) or "position" not in item:
+            raise DataError(f"lights[{i}] must be an object with a position", path)
+        positions.append(_finite_list(item["position"], 3, f"lights[{i}].position", path))
+        inten = _finite_list(item.get("intensity", [1.0, 1.0, 1.0]), 3,
+                             f"lights[{i}].intensity", path)
+        if min(inten) < 0:
+            raise DataError(f"lights[{i}].intensity must be non-negative", path)
+        intensity.append(inten)
+        names.append(str(item.get("name", f"light{i:03d}")))
+    n_lights = len(lights)
+    frames = []
+    for i, item in enumerate(obj["frames"]):
+        if not isinstance(item, dict):
+            raise DataError(f"frames[{i}] must be an object", path)
+        index = _int(item.get("index"), f"frames[{i}].index", path)
+        t = item.get("time", index / 30.0)
+        if not isinstance(t, (int, float)) or not math.isfinite(t):
+            raise DataError(f"frames[{i}].time must be a finite number", path)
+        pose = _int(item.get("pose"), f"frames[{i}].pose", path)
+        lit = item.get("lit", "group")
+        if lit not in ("full", "group"):
+            raise DataError(f"frames[{i}].lit must be 'full' or 'group', got {lit!r}", path)
+        on = item.get("lights_on", [])
+        if not isinstance(on, list):
+            raise DataError(f"frames[{i}].lights_on must be a list", path)
+        on = [_int(v, f"frames[{i}].lights_on", path, 0, n_lights) for v in on]
+        images = item.get("images", [])
+        if not isinstance(images, list) or not all(isinstance(s, str) for s in images):
+            raise DataError(f"frames[{i}].images must be a list of camera names", path)
+        frames.append(CaptureFrame(index, float(t), pose, lit, on, images))
+    cap = Capture(cameras, np.array(positions, np.float64).reshape(-1, 3),
+                  np.array(intensity, np.float64).reshape(-1, 3), names, frames,
+                  hand=str(obj.get("hand", "hand.npz")), fps=float(obj.get("fps", 30.0)),
+                  evaluation=obj.get("evaluation"), key=str(obj.get("key", "")),
+                  complete=bool(obj.get("complete", False)),
+                  settings=obj.get("settings") or {}, provenance=obj.get("provenance"))
+    validate(cap, path)
+    return cap
+
+
+def validate(capture: Capture, path: str = "") -> None:
+    names = [c.name for c in capture.cameras]
+    if any(not n for n in names):
+        raise DataError("every camera needs a name (images are named after it)", path)
+    if len(set(names)) != len(names):
+        raise DataError("camera names must be unique", path)
+    bad = [n for n in names if "/" in n or "\\" in n or n in (".", "..")]
+    if bad:
+        raise DataError(f"camera name {bad[0]!r} cannot be a file name", path)
+    indices = [f.index for f in capture.frames]
+    if len(set(indices)) != len(indices):
+        raise DataError("frame indices must be unique", path)
+    for f in capture.frames:
+        unknown = [n for n in f.images if n not in names]
+        if unknown:
+            raise DataError(f"frame {f.index} lists images of unknown camera {unknown[0]!r}", path)
+
+
+def read_capture(path: str) -> Capture:
+    """Read ``capture.json`` (or a folder holding it).  Raises DataError naming the file."""
+    if os.path.isdir(path):
+        path = os.path.join(path, INDEX)
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            obj = json.load(f)
+    except UnicodeDecodeError:
+        raise DataError("not a text (UTF-8 JSON) file", path) from None
+    except json.JSONDecodeError as exc:
+        raise DataError(f"invalid JSON: {exc.msg} at line {exc.lineno}", path) from None
+    return capture_from_json(obj, path)
+
+
+# ---------------------------------------------------------------- images
+
+
+@contextlib.contextmanager
+def immediate_writes():
+    """Let atomic writes inside this block land at once, even inside a command's
+    all-or-nothing output transaction: a resumable capture must keep every finished
+    frame when a later one fails or the run is interrupted."""
+    from relight_cli import provenance as P
+    saved = P._PENDING
+    P._PENDING = None
+    try:
+        yield
+    finally:
+        P._PENDING = saved
+
+
+def write_image(path: str, rgb: np.ndarray, mask: np.ndarray, key: str,
+                attributes: dict | None = None, provenance: dict | None = None) -> None:
+    """Write one capture image: R, G, B (linear radiance, half floats) and A (mask)."""
+    from relight_cli.formats.exr import write_exr
+    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
+    attrs = {"relight.capture_key": key, **(attributes or {})}
+    record = dict(provenance or {}, format=IMAGE_FORMAT, version=IMAGE_VERSION)
+    write_exr(path, channels, attributes=attrs, half=True, provenance=record)
+
+
+def read_image(path: str, camera=None) -> tuple[np.ndarray, np.ndarray]:
+    """([H, W, 3] float32 radiance, [H, W] float32 mask) of a capture image.
+
+    Raises DataError for a damaged file, missing channels, non-finite pixels, or a
+    size different from ``camera``'s.
+    """
+    from relight_cli.formats.exr import read_exr
+    image = read_exr(path)
+    missing = [c for c in "RGBA" if c not in image.channels]
+    if missing:
+        raise DataError(f"capture image lacks channel(s) {', '.join(missing)}", path)
+    rgb = np.stack([image.channels[c] for c in "RGB"], -1)
+    mask = image.channels["A"]
+    if camera is not None and rgb.shape[:2] != (camera.height, camera.width):
+        raise DataError(f"image is {rgb.shape[1]}x{rgb.shape[0]}, camera {camera.name!r} is "
+                        f"{camera.width}x{camera.height}", path)
+    if not (np.isfinite(rgb).all() and np.isfinite(mask).all()):
+        raise DataError("capture image holds NaN/Inf pixels", path)
+    return rgb, mask
+
+
+def image_is_valid(path: str, camera, key: str) -> bool:
+    """True when ``path`` is a complete, readable image of this capture (``key``) and size."""
+    from relight_cli.formats.exr import read_exr
+    if not os.path.isfile(path):
+        return False
+    try:
+        image = read_exr(path)
+        if image.attributes.get("relight.capture_key") != key:
+            return False
+        read_image(path, camera)
+    except DataError:
+        return False
+    return True
