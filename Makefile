@@ -37,6 +37,15 @@ demo: install
 	# spherical-harmonic light probes
 	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json
 	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json
+	# Gaussian avatar in a Gaussian room: a deep Gaussian shadow map, then relighting with shadows
+	printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [0.35, 1.3, 0.45], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}\n' > demo/lights.json
+	$(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/room_cam.json', [Camera.look_at([0.45,0.55,0.6],[0,0.15,0],width=320,height=240,fov_y_deg=45)])"
+	$(RELIGHT) dgsm-build builtin:hand --translate 0,0.25,0 --receivers builtin:room --lights demo/lights.json \
+		--size 512 -o demo/shadows.exr --occluders-out demo/hand_gaussians.ply --receivers-out demo/room.ply
+	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/sky_probe.json --receivers demo/room.ply \
+		--render demo/room_cam.json -o demo/room_before.exr --preview demo/room_before.png
+	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/sky_probe.json --dgsm demo/shadows.exr \
+		--receivers demo/room.ply --render demo/room_cam.json -o demo/room_after.exr --preview demo/room_after.png
 	# quality metrics of a cube round trip against direct resampling, and the regression gate
 	$(RELIGHT) envmap builtin:sky --to cube --size 32 -o demo/sky_cube.exr
 	$(RELIGHT) envmap demo/sky_cube.exr --to latlong --size 128x64 -o demo/sky_back.exr
