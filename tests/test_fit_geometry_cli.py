@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 from conftest import run_relight, shared_path
 
 from relight_cli.formats.hand_npz import read_hand

@@ -185,7 +185,6 @@ class _Tube:
                + (radial * b)[:, None, None] * fz[..., None] * e2[:, None, :])
         out_dir = _unit(fx[..., None] * b[:, None, None] * e1[:, None, :]
                         + fz[..., None] * a[:, None, None] * e2[:, None, :] + 1e-12)
-        s0, _, _ = self.body_coordinates(np.array([0.0, 1.0]))
         c_ends, T_ends, _, _ = self.frames(np.array([0.0, self.length]))
         pole0 = c_ends[0] - self.cap0 * T_ends[0]
         pole1 = c_ends[1] + self.cap1 * T_ends[1]
@@ -327,7 +326,6 @@ def _palm_weights(p, J):
 def _part_attributes(part, g, J):
     """Per-vertex (grid rows × columns, flattened with the poles) weights and labels."""
     M = g["pos"].shape[1]
-    R = g["pos"].shape[0]
     pos = np.concatenate([g["pole0"][None], g["pos"].reshape(-1, 3), g["pole1"][None]])
     s = np.concatenate([[g["s"][0]], np.repeat(g["s"], M), [g["s"][-1]]])
     palmar = np.concatenate([[0.0], g["palmar"].ravel(), [0.0]])
@@ -345,7 +343,6 @@ def _part_attributes(part, g, J):
         labels[nail] = NAIL
         for cs in part["crease_s"]:
             labels[(np.abs(s - cs) < 0.0012) & (palmar > 0.5) & in_body] = CREASE
-    del R
     return pos, W, labels
 
 
