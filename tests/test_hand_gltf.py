@@ -139,3 +139,25 @@ def test_bad_gltf_files(tmp_path):
     g.save(str(plain))
     with pytest.raises(DataError, match="no skinned mesh"):
         import_gltf(str(plain))
+
+
+def test_accessor_reads_interleaved_and_normalized_views():
+    """byteStride > element size (interleaved attributes) and normalized integers."""
+    from types import SimpleNamespace as NS
+
+    pos = np.arange(12, dtype=np.float32).reshape(4, 3)
+    weights = np.array([[255, 0, 0, 0], [128, 127, 0, 0], [0, 0, 255, 0], [1, 2, 3, 249]], np.uint8)
+    # Interleave: 12 bytes of position + 4 bytes of weights per vertex (stride 16).
+    blob = b"".join(p.tobytes() + w.tobytes() for p, w in zip(pos, weights))
+    gltf = NS(buffers=[NS(uri=None)], binary_blob=lambda: b"\0" * 8 + blob,
+              bufferViews=[NS(buffer=0, byteOffset=8, byteStride=16)],
+              accessors=[NS(bufferView=0, byteOffset=0, componentType=5126, type="VEC3",
+                            count=4, normalized=False),
+                         NS(bufferView=0, byteOffset=12, componentType=5121, type="VEC4",
+                            count=4, normalized=True)])
+    np.testing.assert_array_equal(_accessor(gltf, 0, "x"), pos)
+    np.testing.assert_allclose(_accessor(gltf, 1, "x"), weights / 255.0)
+    # A view running past its buffer is a data error, not a crash.
+    gltf.accessors[0].count = 5
+    with pytest.raises(DataError, match="past the end"):
+        _accessor(gltf, 0, "x")

@@ -73,12 +73,9 @@ def _accessor(gltf, index: int, path: str) -> np.ndarray:
     stride = view.byteStride or item
     if start + stride * (a.count - 1) + item > len(data):
         raise DataError(f"accessor {index} runs past the end of its buffer", path)
-    if stride == item:
-        out = np.frombuffer(data, dtype, a.count * width, start).reshape(a.count, width)
-    else:
-        raw = np.frombuffer(data, np.uint8, stride * (a.count - 1) + item, start)
-        out = np.stack([np.frombuffer(raw[i * stride:i * stride + item].tobytes(), dtype)
-                        for i in range(a.count)])
+    # Interleaved views (byteStride > element size) read as a strided array.
+    out = np.ndarray((a.count, width), dtype, buffer=data, offset=start,
+                     strides=(stride, dtype.itemsize)).copy()
     if a.normalized and dtype.kind in "iu":
         out = out.astype(np.float64) / np.iinfo(dtype).max
     return out
