@@ -131,6 +131,7 @@ class TexelSurface:
         inside: [N, N] bool texel centre lies on the surface.
         points: [K, 3] float64 world positions of the inside texels (row-major order).
         normals: [K, 3] float64 unit shading normals there.
+        face_normals: [K, 3] float64 unit geometric normals of the triangles under them.
         uv: [K, 2] float64 texel-centre UVs.
         fill_index: ([N, N], [N, N]) row/col of the nearest inside texel of every texel.
         metres_per_uv: world length of one UV unit (√(surface area / UV area)).
@@ -140,6 +141,7 @@ class TexelSurface:
     inside: np.ndarray
     points: np.ndarray
     normals: np.ndarray
+    face_normals: np.ndarray
     uv: np.ndarray
     fill_index: tuple
     metres_per_uv: float
@@ -175,12 +177,15 @@ def texel_surface(mesh, resolution: int, raster=None) -> TexelSurface:
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     uv = texel_centers(*inside.shape)[inside]
     tri = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)]
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    face_n /= np.maximum(np.linalg.norm(face_n, axis=1, keepdims=True), 1e-300)
     area3 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
     t = np.asarray(mesh.uv, np.float64)[np.asarray(mesh.faces_uv)]
     e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
     area2 = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
     scale = math.sqrt(area3 / area2) if area2 > 0 else 1.0
-    return TexelSurface(raster, inside, points, normals, uv, _raster_fill_index(inside), scale)
+    return TexelSurface(raster, inside, points, normals, face_n[raster.face[inside]], uv,
+                        _raster_fill_index(inside), scale)
 
 
 def sss_diffuse(irradiance_map: np.ndarray, inside: np.ndarray, texel_mm: float,
@@ -426,7 +431,7 @@ class HandRenderer:
         """One bounce of diffuse interreflection: [K, 3] extra irradiance per hand.
 
         From each texel, rays along the ``bounce_res`` lat-long directions above its
-        tangent plane find other hand surface; the radiance arriving from there is
+        tangent planes find other hand surface; the radiance arriving from there is
         the first-bounce diffuse exitance albedo/π · E_direct at the hit.
         """
         from relight_cli import envmap as E
@@ -439,7 +444,10 @@ class HandRenderer:
         out = []
         for k, surf in enumerate(self.surfaces):
             cos = surf.normals @ dirs.T                                   # [K, M]
-            ii, mm = np.nonzero(cos > 0)
+            # Only directions above both the shading and the geometric tangent plane:
+            # below the triangle's own plane a ray would find the texel's neighbours
+            # (a tessellation artefact, not interreflection), so convex shapes get none.
+            ii, mm = np.nonzero((cos > 0) & (surf.face_normals @ dirs.T > 0))
             origins = surf.points[ii] + self.offsets[k] * surf.normals[ii]
             hits = self.scene.intersect(origins, dirs[mm])
             gathered = np.zeros((len(ii), 3))
