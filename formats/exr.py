@@ -222,14 +222,6 @@ def _header_value(value):
 
 def check_format(image: ExrImage, format_name: str, max_version: int) -> int:
     """Require ``relight.format == format_name`` and a known major version; return it."""
-    found = image.attributes.get(FORMAT_KEY)
-    if found != format_name:
-        raise DataError(f"not a {format_name} file (format attribute is {found!r})", image.path)
-    version = image.attributes.get(VERSION_KEY)
-    if not isinstance(version, int) or version < 1:
-        raise DataError(f"missing or invalid {VERSION_KEY} attribute", image.path)
-    if version > max_version:
-        raise DataError(f"{format_name} version {version} is newer than this relight "
-                        f"understands (≤ {max_version})", image.path,
-                        hint="upgrade relight")
-    return version
+    from ._common import check_format_version
+    return check_format_version(image.attributes.get(FORMAT_KEY), image.attributes.get(VERSION_KEY),
+                                format_name, max_version, image.path)

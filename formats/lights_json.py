@@ -11,6 +11,8 @@ import numpy as np
 
 from relight_cli.errors import DataError
 
+from ._common import check_format_version
+
 FORMAT = "relight/lights"
 VERSION = 1
 
@@ -89,14 +91,7 @@ def _vector(value, n, what, path, nonneg=False):
 def lights_from_json(obj, path: str = "") -> Lights:
     if not isinstance(obj, dict):
         raise DataError("expected a JSON object", path)
-    if obj.get("format") != FORMAT:
-        raise DataError(f"not a {FORMAT} file (format is {obj.get('format')!r})", path)
-    version = obj.get("version")
-    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-        raise DataError("missing or invalid 'version'", path)
-    if version > VERSION:
-        raise DataError(f"{FORMAT} version {version} is newer than this relight understands "
-                        f"(≤ {VERSION})", path, hint="upgrade relight")
+    check_format_version(obj.get("format"), obj.get("version"), FORMAT, VERSION, path)
     items = obj.get("lights")
     if not isinstance(items, list) or not items:
         raise DataError("'lights' must be a non-empty list", path)

@@ -18,6 +18,8 @@ import os
 
 from relight_cli.errors import DataError
 
+from ._common import check_format_version
+
 FORMAT = "relight/metrics"
 VERSION = 1
 KINDS = ("image", "shadow", "lighting", "gate")
@@ -93,14 +95,7 @@ def loads(text: str, path: str = "<string>") -> dict:
         raise DataError(f"not valid JSON: {str(exc).splitlines()[0]}", path) from None
     if not isinstance(record, dict):
         raise DataError("metrics JSON must hold an object", path)
-    if record.get("format") != FORMAT:
-        raise DataError(f"not a {FORMAT} file (format is {record.get('format')!r})", path)
-    version = record.get("version")
-    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-        raise DataError("missing or invalid 'version'", path)
-    if version > VERSION:
-        raise DataError(f"{FORMAT} version {version} is newer than this relight understands "
-                        f"(≤ {VERSION})", path, hint="upgrade relight")
+    check_format_version(record.get("format"), record.get("version"), FORMAT, VERSION, path)
     metrics = record.get("metrics")
     if not isinstance(metrics, dict):
         raise DataError("missing 'metrics' object", path)

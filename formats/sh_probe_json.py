@@ -11,6 +11,8 @@ import numpy as np
 
 from relight_cli.errors import DataError
 
+from ._common import check_format_version
+
 FORMAT = "relight/sh-probe"
 VERSION = 1
 
@@ -62,14 +64,7 @@ def write_probe(path: str, probe: ShProbe) -> None:
 def probe_from_json(obj, path: str = "") -> ShProbe:
     if not isinstance(obj, dict):
         raise DataError("expected a JSON object", path)
-    if obj.get("format") != FORMAT:
-        raise DataError(f"not a {FORMAT} file (format is {obj.get('format')!r})", path)
-    version = obj.get("version")
-    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-        raise DataError("missing or invalid 'version'", path)
-    if version > VERSION:
-        raise DataError(f"{FORMAT} version {version} is newer than this relight understands "
-                        f"(≤ {VERSION})", path, hint="upgrade relight")
+    check_format_version(obj.get("format"), obj.get("version"), FORMAT, VERSION, path)
     degree = obj.get("degree")
     if not isinstance(degree, int) or isinstance(degree, bool) or not 0 <= degree <= 20:
         raise DataError(f"'degree' must be an integer in 0..20, got {degree!r}", path)

@@ -6,7 +6,6 @@ Command modules import this at top level; it must stay light so that
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import sys

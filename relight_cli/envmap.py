@@ -294,7 +294,6 @@ def _subcells(layout: str, height: int, width: int, n: int):
     Returns directions [P, 3], solid angles [P] and texel flat index [P]
     (P = H·W·n²), generated lazily per chunk of rows to bound memory.
     """
-    t = (np.arange(n) + 0.5) / n
     edges = np.arange(n + 1) / n
     if layout == "latlong":
         lat, lon = _latlong_edges(height, width)

@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from conftest import ROOT, run_relight
-from relight_cli.cli import COMMANDS, cli
+from relight_cli.cli import COMMANDS
 
 
 def test_version(run_cli):
