@@ -239,3 +239,17 @@ def test_stage_env_cube_and_latlong_agree():
     small_lat = E.resample(lat, "latlong", 64, 128)
     small_cube = E.resample(cube, "latlong", 64, 128)
     np.testing.assert_allclose(E.irradiance(small_cube, AXES), E.irradiance(small_lat, AXES), rtol=0.02)
+
+
+def test_radiance_hdr_reads_as_latlong(tmp_path):
+    """Non-EXR environments go through OpenImageIO as lat-long (RGBE keeps ~1% precision)."""
+    import OpenImageIO as oiio
+    rad = (np.random.default_rng(5).random((8, 16, 3)) * 100 + 0.01).astype(np.float32)
+    path = str(tmp_path / "env.hdr")
+    out = oiio.ImageOutput.create(path)
+    assert out.open(path, oiio.ImageSpec(16, 8, 3, oiio.FLOAT))
+    assert out.write_image(rad)
+    out.close()
+    env = read_envmap(path)
+    assert env.layout == "latlong" and env.radiance.shape == (8, 16, 3)
+    np.testing.assert_allclose(env.radiance, rad, rtol=0.01)
