@@ -242,7 +242,10 @@ def test_stage_env_cube_and_latlong_agree():
 
 
 def test_radiance_hdr_reads_as_latlong(tmp_path):
-    """Non-EXR environments go through OpenImageIO as lat-long (RGBE keeps ~1% precision)."""
+    """Non-EXR environments go through OpenImageIO as lat-long.
+
+    RGBE shares one exponent per pixel, so each channel is exact only to
+    2⁻⁷ of the pixel's largest channel."""
     import OpenImageIO as oiio
     rad = (np.random.default_rng(5).random((8, 16, 3)) * 100 + 0.01).astype(np.float32)
     path = str(tmp_path / "env.hdr")
@@ -252,4 +255,4 @@ def test_radiance_hdr_reads_as_latlong(tmp_path):
     out.close()
     env = read_envmap(path)
     assert env.layout == "latlong" and env.radiance.shape == (8, 16, 3)
-    np.testing.assert_allclose(env.radiance, rad, rtol=0.01)
+    assert (np.abs(env.radiance - rad) <= rad.max(axis=-1, keepdims=True) * 2 ** -7).all()
