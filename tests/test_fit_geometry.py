@@ -184,3 +184,22 @@ def test_temporal_smoothness_reduces_jitter(template):
         jitter[w] = np.linalg.norm(np.diff(fj, axis=0), axis=-1).mean()
     # Independent fits jitter by about the noise (≈ 3 mm); smoothing must cut that clearly.
     assert jitter[5.0] < 0.7 * jitter[0.0], jitter
+
+
+def test_fit_scan_only_any_orientation(template):
+    """Without keypoints, a rigid PCA + ICP start finds the hand in any orientation."""
+    import trimesh
+
+    from scipy.spatial.transform import Rotation
+
+    pose = P.named_pose("point")
+    pose[0] = Rotation.from_euler("xyz", [100, -40, 150], degrees=True).as_rotvec()
+    m = template.coarse
+    v = lbs(m.vertices, m.weights, template.rest_joints, PARENTS, pose, [0.3, -0.1, 0.5])
+    pts, _ = trimesh.sample.sample_surface(trimesh.Trimesh(v, m.faces, process=False), 3000, seed=0)
+    result = fit(template, None, None, [np.asarray(pts)],
+                 FitOptions(iterations=120, fit_bone_scales=False))
+    assert result.scan_mm[0] < 1.0, result.scan_mm
+    fitted = posed_joints(result.poses, result.translations, template.rest_joints, PARENTS)
+    truth = posed_joints(pose, [0.3, -0.1, 0.5], template.rest_joints, PARENTS)
+    assert np.linalg.norm(fitted - truth, axis=-1).mean() * 1000 < 6.0

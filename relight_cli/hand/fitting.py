@@ -19,10 +19,13 @@ Energy (each term normalized per observation):
       + w_lap·|L·o|²     uniform Laplacian of the vertex offsets o
 
 Initialization: a robust (IRLS) Kabsch alignment of the palm joints gives
-the wrist rotation and t; local rotations start both from swing-only IK
-(each bone turned onto its keypoint direction) and from the relaxed pose;
-a pose-only stage runs both and keeps, per frame, the one with lower energy,
-then all unknowns are optimized jointly.
+the wrist rotation and t (without keypoints: PCA axes + trimmed ICP of the
+relaxed template onto the scan); local rotations start from swing-only IK
+(each bone turned onto its keypoint direction), the relaxed, the open and
+the fist pose.  A pose-only stage runs all starts; fingers are independent
+given the palm, so each finger of each frame keeps the start whose energy on
+that finger (keypoint terms, or scan terms of the vertices it dominates) is
+lowest.  Then all unknowns are optimized jointly.
 """
 
 from __future__ import annotations
@@ -170,6 +173,43 @@ def _robust_global(rest, target, conf, idx, sigma=0.01, iters=8):
     return R, t
 
 
+def _rigid_scan_init(source, target, iterations=25):
+    """Rigid R, t aligning template points ``source`` [V, 3] to scan points ``target`` [P, 3].
+
+    Tries the four proper rotations that map the principal axes of one onto
+    the other, refines each by trimmed point-to-point ICP (the 80% closest
+    pairs, both directions), and keeps the one with the lowest symmetric
+    mean distance.  Used when no keypoints fix the wrist.
+    """
+    from scipy.spatial import cKDTree
+
+    src = np.asarray(source, np.float64)
+    dst = np.asarray(target, np.float64)
+    cs, cd = src.mean(0), dst.mean(0)
+    _, _, vs = np.linalg.svd(src - cs, full_matrices=False)
+    _, _, vd = np.linalg.svd(dst - cd, full_matrices=False)
+    tree_dst, best = cKDTree(dst), None
+    for signs in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]):
+        R = vd.T @ np.diag(signs) @ vs
+        if np.linalg.det(R) < 0:
+            R = vd.T @ np.diag(signs) @ np.diag([1, 1, -1]) @ vs
+        t = cd - R @ cs
+        for _ in range(iterations):
+            moved = src @ R.T + t
+            d1, i1 = tree_dst.query(moved)
+            d2, i2 = cKDTree(moved).query(dst)
+            a = np.concatenate([src, src[i2]])
+            b = np.concatenate([dst[i1], dst])
+            dist = np.concatenate([d1, d2])
+            keep = dist <= np.quantile(dist, 0.8)
+            R, t = _kabsch(a[keep], b[keep], np.ones(keep.sum()))
+        moved = src @ R.T + t
+        cost = tree_dst.query(moved)[0].mean() + cKDTree(moved).query(dst)[0].mean()
+        if best is None or cost < best[0]:
+            best = (cost, R, t)
+    return best[1], best[2]
+
+
 def _swing(a, b):
     """Axis-angle of the minimal rotation taking direction a to direction b."""
     a = a / np.linalg.norm(a)
@@ -257,12 +297,15 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
     relaxed = named_pose("relaxed", side, rest)
     trans0 = np.zeros((N, 3))
     from scipy.spatial.transform import Rotation
+    if keypoints is None:
+        from .skinning import lbs as _lbs
+        relaxed_vertices = _lbs(template.coarse.vertices, template.coarse.weights, rest, parents,
+                                relaxed)
     for n in range(N):
         if keypoints is not None:
             R0, t0 = _robust_global(rest, keypoints[n], confidence[n], palm)
         else:
-            pts = scans[n]
-            R0, t0 = np.eye(3), pts.mean(0) - rest.mean(0)
+            R0, t0 = _rigid_scan_init(relaxed_vertices, scans[n])
         # Our t is applied after rotating about J_0: x = R0·(x − J_0) + J_0 + t.
         t_ours = t0 + R0 @ rest[0] - rest[0]
         theta0 = Rotation.from_matrix(R0).as_rotvec()
@@ -299,6 +342,8 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
                              dtype=dtype)
         faces = torch.tensor(mesh.faces, dtype=torch.int64)
         lap = _laplacian(len(mesh.vertices), mesh.faces)
+        vertex_owner = torch.nn.functional.one_hot(
+            torch.as_tensor(mesh.weights.argmax(1)), J).to(dtype)                # [V, J]
         scan_t = [torch.tensor(s, dtype=dtype) for s in scans]
         from scipy.spatial import cKDTree
         scan_trees = [cKDTree(s) for s in scans]
@@ -323,15 +368,20 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
             rho = r2 / (r2 + sigma**2)
             joint_terms = cf * rho / cf.sum(1, keepdim=True).clamp_min(1e-9)   # [N, J]
             terms = terms + joint_terms.sum(1)
+        scan_joint_terms = None
         if need_mesh and use_scans[0]:
-            terms = terms + opt.w_scan * _scan_energy(posed_v, faces, scan_t, sigma, rng,
-                                                       opt.scan_points, scan_trees)
+            scan_terms, per_vertex = _scan_energy(posed_v, faces, scan_t, sigma, rng,
+                                                  opt.scan_points, scan_trees)
+            terms = terms + opt.w_scan * scan_terms
+            if per_joint:   # each vertex's share goes to its dominant joint
+                scan_joint_terms = opt.w_scan * per_vertex @ vertex_owner
         angles = torch.einsum("jab,njb->nja", t_axes, poses)
         excess = torch.relu(t_lo - angles) + torch.relu(angles - t_hi)
         limit_terms = opt.w_limits * ((excess**2) * limited).sum(2)         # [N, J]
         terms = terms + limit_terms.sum(1)
         if per_joint:
-            return limit_terms + (joint_terms if kp is not None else 0.0)
+            out = limit_terms + (joint_terms if kp is not None else 0.0)
+            return out if scan_joint_terms is None else out + scan_joint_terms
         if opt.w_smooth > 0 and poses.shape[0] > 1:
             d = ((poses[1:] - poses[:-1]) ** 2).sum((1, 2)) + ((trans[1:] - trans[:-1]) / 0.01).pow(2).sum(1)
             terms = terms + opt.w_smooth * torch.cat([d, d.new_zeros(1)])
@@ -376,22 +426,20 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
                 progress(stage, it + 1, iters)
         with torch.no_grad():
             final = energy(poses, trans, log_scales, offsets, 0.008, per_frame=True)
-            joint_final = (energy(poses, trans, log_scales, offsets, 0.008, per_joint=True)
-                           if kp is not None else None)
+            joint_final = energy(poses, trans, log_scales, offsets, 0.008, per_joint=True)
         return poses.detach(), trans.detach(), log_scales.detach(), \
             None if offsets is None else offsets.detach(), final, history, joint_final
 
-    # Stage 1: pose only, from several starts (swing IK, relaxed, open, fist);
+    # Stage 1: pose only, from several starts ((swing IK,) relaxed, open, fist);
     # fingers are independent given the palm, so each finger of each frame
     # keeps the start that fits it best, and the wrist/translation come from
     # the start with the lowest energy overall.
-    starts = [init_a, init_b]
-    if keypoints is not None:
-        for name in ("open", "fist"):
-            extra = init_b.copy()
-            extra[:, 1:] = named_pose(name, side, rest)[1:]
-            extra[:, ~free] = 0
-            starts.append(extra)
+    starts = [init_a, init_b] if keypoints is not None else [init_b]
+    for name in ("open", "fist"):
+        extra = init_b.copy()
+        extra[:, 1:] = named_pose(name, side, rest)[1:]
+        extra[:, ~free] = 0
+        starts.append(extra)
     S = len(starts)
     all_p = np.concatenate(starts)
     all_t = np.concatenate([trans0] * S)
@@ -413,7 +461,7 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
     frames = np.arange(N)
     poses_init = p1[best, frames].copy()
     trans_init = t1[best, frames].copy()
-    if j1 is not None:
+    if isinstance(j1, torch.Tensor) and j1.dim() == 2:
         j1 = j1.numpy().reshape(S, N, J)
         for chain in _finger_chains(parents):
             pick = j1[:, :, chain].sum(2).argmin(0)                     # [N]
@@ -525,7 +573,8 @@ def _laplacian(n_vertices, faces):
 
 
 def _scan_energy(posed_v, faces, scans, sigma, rng, n_points, trees):
-    """Per-frame robust point-to-plane (scan→model) + chamfer (model→scan) energy.
+    """Per-frame robust point-to-plane (scan→model) + chamfer (model→scan) energy [N],
+    and its split over model vertices [N, V] (each plane term goes to its nearest vertex).
 
     Correspondences are nearest neighbours found with KD-trees outside the
     autograd graph (the scan's tree is built once per frame, the posed model's
@@ -534,7 +583,7 @@ def _scan_energy(posed_v, faces, scans, sigma, rng, n_points, trees):
     import torch
     from scipy.spatial import cKDTree
 
-    out = []
+    out, per_vertex = [], []
     f = faces
     for n, pts in enumerate(scans):
         v = posed_v[n]
@@ -550,8 +599,10 @@ def _scan_energy(posed_v, faces, scans, sigma, rng, n_points, trees):
         _, nearest_p = trees[n % len(trees)].query(v_np)
         nearest_v = torch.as_tensor(nearest_v)
         r = ((sample - v[nearest_v]) * vn[nearest_v]).sum(1)
-        plane = (r**2 / (r**2 + sigma**2)).mean()
+        plane_terms = r**2 / (r**2 + sigma**2)                               # [P]
         c2 = ((v - pts[torch.as_tensor(nearest_p)]) ** 2).sum(1)
-        chamfer = (c2 / (c2 + sigma**2)).mean()
-        out.append(plane + chamfer)
-    return torch.stack(out)
+        chamfer_terms = c2 / (c2 + sigma**2)                                 # [V]
+        out.append(plane_terms.mean() + chamfer_terms.mean())
+        per_vertex.append(chamfer_terms / len(v) + torch.zeros_like(chamfer_terms).index_add_(
+            0, nearest_v, plane_terms / len(sample)))
+    return torch.stack(out), torch.stack(per_vertex)
