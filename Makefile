@@ -30,6 +30,7 @@ demo: install
 	$(RELIGHT) envmap demo/studio_cube.exr --info -o demo/studio_info.json
 	# the default hand (built-in model, fist pose) and a preview
 	$(RELIGHT) fit-geometry --pose fist -o demo/hand.npz --preview demo/hand.png
+	$(RELIGHT) fit-geometry --pose relaxed --two-hands -o demo/hands2.npz --preview demo/hands2.png
 	# texel-aligned, visibility-aware shading features under two environments (visibility traced once)
 	$(RELIGHT) bake-features demo/hand.npz builtin:sky builtin:studio -o 'demo/feats_{env}.exr' \
 		--per-vertex 'demo/feats_{env}.npz' --preview 'demo/feats_{env}.png' --specular both
