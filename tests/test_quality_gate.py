@@ -57,9 +57,36 @@ def envmap_cube_roundtrip(work: Path) -> Path:
     return out
 
 
+def dgsm_shadow_resolution(work: Path) -> Path:
+    """The built-in hand as Gaussians over a Gaussian room, one light: the relit render
+    with a 128² DGSM atlas against the same render with a 512² atlas (the reference)."""
+    lights = work / "lights.json"
+    lights.write_text(json.dumps({"format": "relight/lights", "version": 1, "lights": [
+        {"position": [0.35, 1.3, 0.45], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}))
+    from relight_cli.formats.camera import Camera, write_cameras
+    write_cameras(str(work / "cam.json"), [Camera.look_at([0.45, 0.55, 0.6], [0, 0.15, 0],
+                                                          width=96, height=72, fov_y_deg=45)])
+    _ok(run_relight("sh-probe", "builtin:sky", "--degree", "2", "-o", work / "probe.json", "-q"))
+    renders = {}
+    for size in (128, 512):
+        shadows = work / f"shadows{size}.exr"
+        _ok(run_relight("dgsm-build", "builtin:hand", "--translate", "0,0.25,0", "--receivers",
+                        "builtin:room", "--lights", lights, "--size", str(size), "--bins", "32",
+                        "-o", shadows, "--occluders-out", work / "hand.ply",
+                        "--receivers-out", work / "room.ply", "-q"))
+        renders[size] = work / f"render{size}.exr"
+        _ok(run_relight("relight", work / "hand.ply", "--probe", work / "probe.json", "--dgsm", shadows,
+                        "--receivers", work / "room.ply", "--render", work / "cam.json",
+                        "-o", renders[size], "-q"))
+    out = work / "dgsm_shadow_resolution.json"
+    _ok(run_relight("metrics", "image", renders[128], renders[512], "--space", "srgb", "-o", out, "-q"))
+    return out
+
+
 # One entry per pipeline stage; later stages append here.
 STAGES: list[Stage] = [
     Stage("envmap_cube_roundtrip", envmap_cube_roundtrip),
+    Stage("dgsm_shadow_resolution", dgsm_shadow_resolution),
 ]
 
 
