@@ -293,8 +293,11 @@ def test_texel_visibility_matches_slow_twin(hand_scene):
     facing = (surf.normals * l).sum(1) > 0
     ref = ~occluded_reference(meshes[0].vertices, meshes[0].faces, surf.points + off * surf.normals,
                               l, r - off) & facing
+    # Buried texels (inside another part) take their exposed neighbours' values by design.
+    exposed = surf.exposed[surf.inside]
+    assert 0.5 < exposed.mean() < 1
     # float32 embree vs float64 reference: rays grazing an edge may differ (≤ 0.5%).
-    assert np.mean(vis.astype(bool) != ref) <= 5e-3
+    assert np.mean(vis.astype(bool)[exposed] != ref[exposed]) <= 5e-3
 
 
 # ---------------------------------------------------------------- SSS, bounce
@@ -372,7 +375,8 @@ def test_gbuffer_plane_depth_uv_and_coverage():
 def test_torch_path_matches_numpy_and_has_gradients(hand_scene):
     import torch
     meshes, material, cam, c = hand_scene
-    renderer = HandRenderer(meshes, material, RenderSettings(tex_res=64, aa=2, specular=False))
+    renderer = HandRenderer(meshes, material, RenderSettings(tex_res=64, aa=2, specular=False,
+                                                             direct="texel"))
     lighting = renderer.light(PointLights([c + [0.2, 0.3, 0.4]], 1.0))
     result = renderer.render(cam, lighting)
     albedo = torch.tensor(material[0].albedo, dtype=torch.float64, requires_grad=True)

@@ -207,6 +207,9 @@ def plan_capture(hand, settings: StageSettings, motion=None) -> Plan:
 class FrameRenderer:
     """Renders capture frames: one lighting pass per frame, then every camera.
 
+    Shadows come from the texture-space visibility maps (``direct="texel"``): traced
+    once per frame for all lights, shared by every camera.
+
     Args:
         plan: the :class:`Plan`.
         materials: one Material per hand of the motion.
@@ -232,7 +235,8 @@ class FrameRenderer:
         meshes = posed_meshes(hand or self.plan.motion, pose, "fine")
         return HandRenderer(meshes, self.materials,
                             RenderSettings(tex_res=s.tex_res, aa=s.aa, sss=s.sss,
-                                           bounce=s.bounce), rasters=self.rasters)
+                                           bounce=s.bounce, direct="texel"),
+                            rasters=self.rasters)
 
     def frame(self, frame, cameras=None):
         """Yield (camera, RenderResult) for ``frame`` (a CaptureFrame) and ``cameras``."""

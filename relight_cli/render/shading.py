@@ -19,13 +19,17 @@ up to the global scale of the light units):
   with the sum-of-Gaussians skin profile :data:`SKIN_PROFILE` whose RGB weights sum
   to 1, so uniform irradiance is unchanged (energy conserving) and it is linear.
 
-Where things are computed: diffuse irradiance and point-light visibility live in
-UV texture space (``tex_res``², one value per texel centre inside the UV charts,
-camera independent, so a light-stage frame lights once and renders every camera
-from it); point-light GGX is evaluated per pixel sample (sharp highlights) with the
-visibility looked up bilinearly from the texel maps; env-map GGX is integrated per
-texel for the camera's eye.  Texels outside the charts copy their nearest inside
-texel, so bilinear lookups at chart edges never pull in zeros.
+Where things are computed: diffuse irradiance lives in UV texture space
+(``tex_res``², one value per texel centre inside the UV charts), where SSS blurs it
+and the bounce gathers it.  With ``direct="pixel"`` (default) point-light shadows are
+also traced per G-buffer sample (a ray per sample and light) for the specular lobe,
+and, when neither SSS nor bounce is on, for the diffuse term, which is then exact
+per sample; ``direct="texel"`` looks everything up from the texel maps,
+which are camera independent, so a light-stage frame traces its lights once and
+renders every camera from them.  Point-light GGX is evaluated per sample (sharp
+highlights); env-map transport per mesh vertex (bake-features' receivers) or per
+texel, for the camera's eye.  Texels outside the charts, or buried inside another
+part, copy their nearest exposed texel, so bilinear lookups never pull in zeros.
 """
 
 from __future__ import annotations
@@ -102,6 +106,11 @@ class RenderSettings:
         env_res: (H, W) lat-long grid of env-map integration (bake-features' --env-res).
         bounce: add one bounce of diffuse interreflection between hand surfaces.
         bounce_res: (H, W) direction grid gathering the bounce.
+        direct: where point-light shadows are evaluated: "pixel" (exact, a shadow ray per
+            G-buffer sample and light, for the specular lobe, and for the diffuse term too
+            when neither SSS nor bounce needs texture space) or "texel" (looked up from
+            the texture-space maps: camera independent, so a light-stage frame traces
+            its lights once).
         env_space: where env-map transport is integrated: "vertices" of the rendered mesh
             (bake-features' receivers; interpolated to texels) or "texels".
         ray_offset: metres to lift shadow-ray origins; None = 1e-4 × the mesh's diagonal.
@@ -119,6 +128,7 @@ class RenderSettings:
     bounce: bool = False
     bounce_res: tuple = (8, 16)
     env_space: str = "vertices"
+    direct: str = "pixel"
     ray_offset: float | None = None
 
 
@@ -133,8 +143,11 @@ class TexelSurface:
         normals: [K, 3] float64 unit shading normals there.
         face_normals: [K, 3] float64 unit geometric normals of the triangles under them.
         uv: [K, 2] float64 texel-centre UVs.
-        fill_index: ([N, N], [N, N]) row/col of the nearest inside texel of every texel.
+        fill_index: ([N, N], [N, N]) row/col of the nearest *exposed* texel of every texel.
         metres_per_uv: world length of one UV unit (√(surface area / UV area)).
+        exposed: [N, N] bool inside texels not buried inside another part of the
+            scene (the built-in hand's finger tubes start inside the palm); only these
+            feed subsurface scattering and lookups (see :meth:`HandRenderer.__init__`).
     """
 
     raster: object
@@ -145,10 +158,18 @@ class TexelSurface:
     uv: np.ndarray
     fill_index: tuple
     metres_per_uv: float
+    exposed: np.ndarray | None = None
+
+    def set_buried(self, buried: np.ndarray) -> None:
+        """Mark inside texels [K] as buried: lookups and SSS then ignore them."""
+        self.exposed = self.inside.copy()
+        self.exposed[self.inside] = ~np.asarray(buried, bool)
+        self.fill_index = _raster_fill_index(self.exposed if self.exposed.any() else self.inside)
 
     def to_map(self, values: np.ndarray) -> np.ndarray:
-        """Scatter [K, C] inside-texel values to an [N, N, C] map, outside texels filled
-        with their nearest inside texel (so bilinear lookups near edges stay on-surface)."""
+        """Scatter [K, C] inside-texel values to an [N, N, C] map; texels outside the
+        charts (or buried) copy their nearest exposed texel, so bilinear lookups near
+        chart edges and part intersections stay on the visible surface."""
         values = np.asarray(values)
         n = self.inside.shape[0]
         out = np.zeros((n, self.inside.shape[1]) + values.shape[1:], values.dtype)
@@ -238,6 +259,9 @@ class Lighting:
         irradiance: per hand [N, N, 3] float64 diffuse irradiance after SSS (filled).
         direct: per hand [K, 3] irradiance at the inside texels before SSS and bounce.
         visibility: per hand [N, N, L] float32 point-light visibility (filled), or None.
+        point_maps: per hand [N, N, 3] point-light direct irradiance before SSS/bounce
+            (filled), or None; ``direct="pixel"`` rendering swaps it for exact per-sample
+            irradiance and keeps only the SSS/bounce difference from texture space.
         lights: the point lights (or None).
         env: the discretized env map (``features.DiscreteEnv``) or None.
         stats: seconds per stage and rays traced.
@@ -249,6 +273,7 @@ class Lighting:
     lights: PointLights | None
     env: object | None
     stats: dict = field(default_factory=dict)
+    point_maps: list | None = None
 
 
 @dataclass
@@ -308,6 +333,31 @@ class HandRenderer:
         self.offsets = [offset if offset is not None
                         else 1e-4 * scene_diagonal([(m.vertices, m.faces)]) for m in meshes]
         self._env_cache = {}
+        t0 = time.perf_counter()
+        self._mark_buried()
+        self.stats["buried"] = time.perf_counter() - t0
+
+    def _mark_buried(self):
+        """Find texels inside another closed part (e.g. a finger tube's root inside the
+        palm): a ray along the normal that first meets a surface from its back side
+        (geometric normal along the ray) starts inside a volume.  Such texels are dark
+        (everything occludes them) and invisible; without this their darkness would
+        bleed through bilinear lookups and SSS into the visible seam."""
+        normals = []
+        for m in self.meshes:
+            tri = np.asarray(m.vertices, np.float64)[np.asarray(m.faces)]
+            fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            normals.append(fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300))
+        face_normals = np.concatenate(normals) if normals else np.zeros((0, 3))
+        for k, surf in enumerate(self.surfaces):
+            if not len(surf.points):
+                surf.set_buried(np.zeros(0, bool))
+                continue
+            hits = self.scene.intersect(surf.points + self.offsets[k] * surf.normals, surf.normals)
+            back = np.zeros(len(surf.points), bool)
+            ok = hits.hit
+            back[ok] = np.einsum("ij,ij->i", face_normals[hits.face[ok]], surf.normals[ok]) > 0
+            surf.set_buried(back)
 
     # ---------------------------------------------------------------- lighting
 
@@ -398,13 +448,17 @@ class HandRenderer:
         stats = {}
         t0 = time.perf_counter()
         denv = None if env is None else self.discretize(env)
-        direct, vis_maps = [], [] if lights is not None and len(lights) else None
+        has_lights = lights is not None and len(lights) > 0
+        direct = []
+        vis_maps = [] if has_lights else None
+        point_maps = [] if has_lights else None
         for k, surf in enumerate(self.surfaces):
             irr = np.zeros((len(surf.points), 3))
-            if lights is not None and len(lights):
+            if has_lights:
                 e, vis = self._point_irradiance(k, lights)
                 irr += e
                 vis_maps.append(surf.to_map(vis))
+                point_maps.append(surf.to_map(e))
             if denv is not None:
                 irr += self._env_transport(k, denv, np.zeros(3), specular=False)["diffuse"]
             direct.append(irr)
@@ -422,10 +476,10 @@ class HandRenderer:
             emap[surf.inside] = total[k]
             if self.settings.sss:
                 texel_mm = 1000.0 * surf.metres_per_uv / surf.inside.shape[0]
-                emap = sss_diffuse(emap, surf.inside, texel_mm, self.settings.sss_scale)
+                emap = sss_diffuse(emap, surf.exposed, texel_mm, self.settings.sss_scale)
             maps.append(surf.to_map(emap[surf.inside]))
         stats["sss" if self.settings.sss else "maps"] = time.perf_counter() - t0
-        return Lighting(maps, direct, vis_maps, lights, denv, stats)
+        return Lighting(maps, direct, vis_maps, lights, denv, stats, point_maps)
 
     def _bounce(self, direct):
         """One bounce of diffuse interreflection: [K, 3] extra irradiance per hand.
@@ -489,12 +543,23 @@ class HandRenderer:
             if not len(sel):
                 continue
             uv = gb.uv[sel]
-            radiance[sel] = mat.albedo_at(uv) / math.pi * bilinear(lighting.irradiance[k], uv)
+            irradiance = bilinear(lighting.irradiance[k], uv)
+            has_lights = lighting.lights is not None and len(lighting.lights) > 0
+            vis = None
+            if has_lights and s.direct == "pixel":
+                exact, vis = self._point_irradiance_samples(gb, sel, lighting.lights, k)
+                if not (s.sss or s.bounce):
+                    # Swap the texture-space point-light irradiance for the exact one.  (With
+                    # SSS or bounce the diffuse irradiance stays in texture space: adding
+                    # their texture-space difference to exact irradiance goes negative where
+                    # texel and pixel shadows disagree.)
+                    irradiance += exact - bilinear(lighting.point_maps[k], uv)
+            radiance[sel] = mat.albedo_at(uv) / math.pi * irradiance
             if s.specular and mat.specular > 0:
                 spec = np.zeros((len(sel), 3))
                 rough = mat.roughness_at(uv)
-                if lighting.lights is not None and len(lighting.lights):
-                    spec += self._point_specular(gb, sel, rough, mat.f0, lighting, k)
+                if has_lights:
+                    spec += self._point_specular(gb, sel, rough, mat.f0, lighting, k, vis)
                 if lighting.env is not None:
                     env_spec = self._env_transport(k, lighting.env, gb.eye, specular=True)["ggx"]
                     spec += bilinear(self.surfaces[k].to_map(env_spec), uv)
@@ -506,13 +571,36 @@ class HandRenderer:
                             gb.average_hits(np.where(gb.hit, gb.depth, 0.0)).astype(np.float32),
                             gb, radiance, stats)
 
-    def _point_specular(self, gb, sel, rough, f0, lighting, k):
-        """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k."""
+    def _point_irradiance_samples(self, gb, sel, lights: PointLights, k: int):
+        """Exact point-light irradiance [S, 3] and visibility [S, L] at G-buffer samples
+        ``sel`` of hand k (one shadow ray per sample and light facing it)."""
+        x, n = gb.position[sel], gb.normal[sel]
+        irr = np.zeros((len(sel), 3))
+        vis = np.zeros((len(sel), len(lights)))
+        origins = x + self.offsets[k] * n
+        for j in range(len(lights)):
+            d = lights.positions[j][None] - x
+            r2 = np.einsum("ij,ij->i", d, d)
+            r = np.sqrt(r2)
+            l = d / np.maximum(r, 1e-12)[:, None]
+            cos = np.einsum("ij,ij->i", n, l)
+            h = cos > 0
+            if self.settings.shadows and h.any():
+                idx = np.nonzero(h)[0]
+                h[idx[self.scene.occluded(origins[idx], l[idx], r[idx] - self.offsets[k])]] = False
+            vis[:, j] = h
+            irr += (h * np.clip(cos, 0, None) / np.maximum(r2, 1e-300))[:, None] * lights.intensity[j]
+        return irr, vis
+
+    def _point_specular(self, gb, sel, rough, f0, lighting, k, vis=None):
+        """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k.
+
+        ``vis`` [S, L]: per-sample visibility; None looks it up in the texel maps."""
         lights = lighting.lights
         x, n, v = gb.position[sel], gb.normal[sel], gb.view[sel]
-        vis = bilinear(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
-                       gb.uv[sel])                                          # [S, L]
-        vis = vis.reshape(len(sel), len(lights))
+        if vis is None:
+            vis = bilinear(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
+                           gb.uv[sel]).reshape(len(sel), len(lights))       # [S, L]
         out = np.zeros((len(sel), 3))
         for start in range(0, len(lights), _LIGHT_BLOCK):
             stop = min(len(lights), start + _LIGHT_BLOCK)
