@@ -283,7 +283,8 @@ class RenderResult:
     Attributes:
         image: [H, W, 3] float32 linear radiance (background where no hand).
         mask: [H, W] float32 pixel coverage.
-        normal, uv, depth: [H, W, 3] / [H, W, 2] / [H, W] float32 AOVs (mean over hit samples).
+        normal, uv, depth: (properties) [H, W, 3] / [H, W, 2] / [H, W] float32 AOVs, the
+            mean over a pixel's samples that hit.
         gbuffer: the :class:`~relight_cli.render.gbuffer.GBuffer`.
         samples: [P, 3] float64 per-sample radiance (before the pixel filter).
         stats: seconds per stage.
@@ -291,12 +292,22 @@ class RenderResult:
 
     image: np.ndarray
     mask: np.ndarray
-    normal: np.ndarray
-    uv: np.ndarray
-    depth: np.ndarray
     gbuffer: object
     samples: np.ndarray
     stats: dict = field(default_factory=dict)
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self.gbuffer.average_hits(self.gbuffer.normal).astype(np.float32)
+
+    @property
+    def uv(self) -> np.ndarray:
+        return self.gbuffer.average_hits(self.gbuffer.uv).astype(np.float32)
+
+    @property
+    def depth(self) -> np.ndarray:
+        gb = self.gbuffer
+        return gb.average_hits(np.where(gb.hit, gb.depth, 0.0)).astype(np.float32)
 
 
 class HandRenderer:
@@ -545,9 +556,14 @@ class HandRenderer:
             uv = gb.uv[sel]
             irradiance = bilinear(lighting.irradiance[k], uv)
             has_lights = lighting.lights is not None and len(lighting.lights) > 0
-            vis = None
+            spec = np.zeros((len(sel), 3))
+            specular = s.specular and mat.specular > 0
+            rough = mat.roughness_at(uv) if specular else None
             if has_lights and s.direct == "pixel":
-                exact, vis = self._point_irradiance_samples(gb, sel, lighting.lights, k)
+                exact, point_spec = self._point_samples(gb, sel, lighting.lights, k, rough,
+                                                        mat.f0)
+                if specular:
+                    spec += point_spec
                 if not (s.sss or s.bounce):
                     # Swap the texture-space point-light irradiance for the exact one.  (With
                     # SSS or bounce the diffuse irradiance stays in texture space: adding
@@ -555,28 +571,24 @@ class HandRenderer:
                     # texel and pixel shadows disagree.)
                     irradiance += exact - bilinear(lighting.point_maps[k], uv)
             radiance[sel] = mat.albedo_at(uv) / math.pi * irradiance
-            if s.specular and mat.specular > 0:
-                spec = np.zeros((len(sel), 3))
-                rough = mat.roughness_at(uv)
-                if has_lights:
-                    spec += self._point_specular(gb, sel, rough, mat.f0, lighting, k, vis)
+            if specular:
+                if has_lights and s.direct != "pixel":
+                    spec += self._point_specular(gb, sel, rough, mat.f0, lighting, k)
                 if lighting.env is not None:
                     env_spec = self._env_transport(k, lighting.env, gb.eye, specular=True)["ggx"]
                     spec += bilinear(self.surfaces[k].to_map(env_spec), uv)
                 radiance[sel] += mat.specular * spec
         stats["shade"] = time.perf_counter() - t0
         image = gb.resolve(radiance, background).astype(np.float32)
-        return RenderResult(image, gb.mask, gb.average_hits(gb.normal).astype(np.float32),
-                            gb.average_hits(gb.uv).astype(np.float32),
-                            gb.average_hits(np.where(gb.hit, gb.depth, 0.0)).astype(np.float32),
-                            gb, radiance, stats)
+        return RenderResult(image, gb.mask, gb, radiance, stats)
 
-    def _point_irradiance_samples(self, gb, sel, lights: PointLights, k: int):
-        """Exact point-light irradiance [S, 3] and visibility [S, L] at G-buffer samples
-        ``sel`` of hand k (one shadow ray per sample and light facing it)."""
-        x, n = gb.position[sel], gb.normal[sel]
+    def _point_samples(self, gb, sel, lights: PointLights, k: int, rough=None, f0=0.04):
+        """Exact point-light irradiance [S, 3] at G-buffer samples ``sel`` of hand k (one
+        shadow ray per sample and light facing it) and, given ``rough`` [S], the GGX
+        radiance [S, 3] with the same rays (else None)."""
+        x, n, v = gb.position[sel], gb.normal[sel], gb.view[sel]
         irr = np.zeros((len(sel), 3))
-        vis = np.zeros((len(sel), len(lights)))
+        spec = None if rough is None else np.zeros((len(sel), 3))
         origins = x + self.offsets[k] * n
         for j in range(len(lights)):
             d = lights.positions[j][None] - x
@@ -588,19 +600,19 @@ class HandRenderer:
             if self.settings.shadows and h.any():
                 idx = np.nonzero(h)[0]
                 h[idx[self.scene.occluded(origins[idx], l[idx], r[idx] - self.offsets[k])]] = False
-            vis[:, j] = h
-            irr += (h * np.clip(cos, 0, None) / np.maximum(r2, 1e-300))[:, None] * lights.intensity[j]
-        return irr, vis
+            falloff = h / np.maximum(r2, 1e-300)                            # [S] h / r²
+            irr += (falloff * np.clip(cos, 0, None))[:, None] * lights.intensity[j]
+            if spec is not None:
+                spec += (ggx_cosine(n, v, l, rough, f0) * falloff)[:, None] * lights.intensity[j]
+        return irr, spec
 
-    def _point_specular(self, gb, sel, rough, f0, lighting, k, vis=None):
-        """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k.
-
-        ``vis`` [S, L]: per-sample visibility; None looks it up in the texel maps."""
+    def _point_specular(self, gb, sel, rough, f0, lighting, k):
+        """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k,
+        visibility looked up in the texel maps (``direct="texel"``)."""
         lights = lighting.lights
         x, n, v = gb.position[sel], gb.normal[sel], gb.view[sel]
-        if vis is None:
-            vis = bilinear(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
-                           gb.uv[sel]).reshape(len(sel), len(lights))       # [S, L]
+        vis = bilinear(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
+                       gb.uv[sel]).reshape(len(sel), len(lights))           # [S, L]
         out = np.zeros((len(sel), 3))
         for start in range(0, len(lights), _LIGHT_BLOCK):
             stop = min(len(lights), start + _LIGHT_BLOCK)
