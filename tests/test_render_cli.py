@@ -116,3 +116,28 @@ def test_bad_input(run_cli, files, monkeypatch, args, code, message):
     assert message in r.output, r.output
     assert len(r.output.strip().splitlines()) == 1 and "Traceback" not in r.output
     assert not (files / "o.exr").exists() and not (files / "o.png").exists()
+
+
+def test_image_maps(run_cli, files):
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.formats.image import write_png
+    write_png(str(files / "grey.png"), np.full((8, 8, 3), 0.5))
+    write_png(str(files / "white.png"), np.full((8, 8, 3), 1.0))
+    write_exr(str(files / "rough.exr"), {"Y": np.full((8, 8), 0.3, np.float32)})
+    write_exr(str(files / "hot.exr"), {"R": np.full((8, 8), 2.0, np.float32),
+                                       "G": np.ones((8, 8), np.float32),
+                                       "B": np.ones((8, 8), np.float32)})
+    base = ["relight", "builtin:right", "builtin:uniform", "--camera", files / "cam.json",
+            "--no-specular", "--no-sss", *FAST, "-q"]
+    for name in ("grey", "white"):
+        r = run_cli(*base, "--albedo", files / f"{name}.png", "--roughness", files / "rough.exr",
+                    "-o", files / f"{name}.exr")
+        assert r.exit_code == 0, r.output
+    grey = read_exr(str(files / "grey.exr")).layer("")
+    white = read_exr(str(files / "white.exr")).layer("")
+    lit = white > 1e-4
+    # Diffuse only: radiance is exactly proportional to the albedo (8-bit 128/255 vs 1).
+    np.testing.assert_allclose(grey[lit] / white[lit], 128 / 255, rtol=1e-5)
+    r = run_cli(*base, "--albedo", files / "hot.exr", "-o", files / "hot_out.exr")
+    assert r.exit_code == 1 and "albedo map values" in r.output and "hot.exr" in r.output
+    assert not (files / "hot_out.exr").exists()
