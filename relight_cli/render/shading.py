@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .appearance import Material, bilinear
+from .appearance import bilinear
 from .brdf import ggx_cosine
 
 # d'Eon & Luebke (GPU Gems 3, ch. 14) six-Gaussian fit of a three-layer skin
