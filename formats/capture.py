@@ -10,7 +10,6 @@ This module reads, validates and writes those files; it does not render.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
@@ -239,18 +238,12 @@ def read_capture(path: str) -> Capture:
 # ---------------------------------------------------------------- images
 
 
-@contextlib.contextmanager
 def immediate_writes():
-    """Let atomic writes inside this block land at once, even inside a command's
-    all-or-nothing output transaction: a resumable capture must keep every finished
-    frame when a later one fails or the run is interrupted."""
-    from relight_cli import provenance as P
-    saved = P._PENDING
-    P._PENDING = None
-    try:
-        yield
-    finally:
-        P._PENDING = saved
+    """Writes inside this block land at once, even inside a command's all-or-nothing
+    output transaction: a resumable capture must keep every finished frame when a
+    later one fails or the run is interrupted."""
+    from relight_cli.provenance import outside_transaction
+    return outside_transaction()
 
 
 def write_image(path: str, rgb: np.ndarray, mask: np.ndarray, key: str,

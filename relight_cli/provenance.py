@@ -99,6 +99,18 @@ def output_transaction() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def outside_transaction() -> Iterator[None]:
+    """Let atomic writes in this block land at once, even inside a command's
+    output transaction (a resumable job keeps each finished piece)."""
+    global _PENDING
+    saved, _PENDING = _PENDING, None
+    try:
+        yield
+    finally:
+        _PENDING = saved
+
+
+@contextlib.contextmanager
 def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterator[str]:
     """Yield a temporary path in the target's folder; rename it onto the target on success.
 
