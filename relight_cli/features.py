@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from relight_cli.brdf import MIN_ROUGHNESS, ggx_cosine, ggx_cosine_torch
 from relight_cli.formats.envmap import EnvMap
 
 # Shading works on [receivers, directions] blocks of at most this many entries
@@ -44,9 +45,6 @@ _BLOCK = 1 << 16
 # Transport weights (N·M per feature, float64) are kept between env maps up to
 # this many entries (128 MiB); beyond it they are streamed and recomputed.
 _TRANSPORT_CACHE = 1 << 24
-# Roughness below this makes the GGX lobe narrower than any env texel; clamp
-# (also keeps α² > 0 so D stays finite).
-MIN_ROUGHNESS = 1e-3
 SPECULAR_MODELS = ("phong", "ggx", "both", "none")
 # Phong lobes are truncated where max(r·ω, 0)^α < 1e-30 (relative to the lobe's
 # peak of 1): that bounds the relative error by 1e-30 per texel, far below
@@ -334,22 +332,8 @@ def ggx_weights(normals: np.ndarray, view: np.ndarray, directions: np.ndarray,
     Args:
         normals, view: [N, 3] unit.  directions: [M, 3] unit.  roughness: [N].
     """
-    rho = np.clip(np.asarray(roughness, np.float64), MIN_ROUGHNESS, 1.0)[:, None]
-    a2 = rho ** 4
-    k = (rho + 1) ** 2 / 8
-    nl = normals @ directions.T                                   # [N, M]
-    nv = np.einsum("ij,ij->i", normals, view)[:, None]            # [N, 1]
-    half = view[:, None, :] + directions[None, :, :]              # [N, M, 3]
-    hlen = np.linalg.norm(half, axis=-1)
-    hlen = np.where(hlen > 1e-12, hlen, 1.0)
-    nh = np.einsum("ij,imj->im", normals, half) / hlen
-    vh = np.clip(np.einsum("ij,imj->im", view, half) / hlen, 0, 1)
-    D = a2 / (math.pi * (nh * nh * (a2 - 1) + 1) ** 2)
-    F = f0 + (1 - f0) * (1 - vh) ** 5
-    nlp = np.clip(nl, 0, None)
-    nvp = np.clip(nv, 0, None)
-    w = D * F * nlp / (4 * (nlp * (1 - k) + k) * (nvp * (1 - k) + k))
-    return np.where((nl > 0) & (nv > 0), w, 0.0)
+    rho = np.asarray(roughness, np.float64).reshape(-1, 1)                   # [N, 1]
+    return ggx_cosine(normals[:, None, :], view[:, None, :], directions[None, :, :], rho, f0)
 
 
 def transport_blocks(receivers: Receivers, view: np.ndarray, directions: np.ndarray,
@@ -745,23 +729,9 @@ def ggx_specular_torch(normals, view, directions, weighted_radiance, visibility,
     """
     import torch
 
-    n = torch.nn.functional.normalize(normals, dim=-1)
-    rho = torch.clamp(torch.as_tensor(roughness, dtype=n.dtype, device=n.device),
-                      MIN_ROUGHNESS, 1.0)
+    rho = torch.as_tensor(roughness, dtype=normals.dtype, device=normals.device)
     rho = rho.reshape(-1, 1) if rho.ndim else rho
-    a2 = rho ** 4
-    k = (rho + 1) ** 2 / 8
-    nl = n @ directions.T                                         # [N, M]
-    nv = (n * view).sum(-1, keepdim=True)                         # [N, 1]
-    half = torch.nn.functional.normalize(view[:, None, :] + directions[None, :, :], dim=-1)
-    nh = (n[:, None, :] * half).sum(-1)
-    vh = torch.clamp((view[:, None, :] * half).sum(-1), 0, 1)
-    D = a2 / (math.pi * (nh * nh * (a2 - 1) + 1) ** 2)
-    F = f0 + (1 - f0) * (1 - vh) ** 5
-    nlp = torch.clamp(nl, min=0)
-    nvp = torch.clamp(nv, min=0)
-    w = D * F * nlp / (4 * (nlp * (1 - k) + k) * (nvp * (1 - k) + k))
-    w = torch.where((nl > 0) & (nv > 0), w, torch.zeros_like(w))
+    w = ggx_cosine_torch(normals[:, None, :], view[:, None, :], directions[None, :, :], rho, f0)
     return (visibility.detach() * w) @ weighted_radiance
 
 

@@ -11,7 +11,7 @@ from relight_cli import envmap as E
 from relight_cli import features as F
 from relight_cli.formats.camera import Camera
 from relight_cli.render import appearance as A
-from relight_cli.render.brdf import ggx_cosine, ggx_cosine_torch
+from relight_cli.brdf import ggx_cosine, ggx_cosine_torch
 from relight_cli.render.gbuffer import render_gbuffer
 from relight_cli.render.shading import (SKIN_PROFILE, HandRenderer, PointLights, RenderSettings,
                                         diffuse_image_torch, lookup_torch, sss_diffuse)

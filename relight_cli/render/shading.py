@@ -14,7 +14,7 @@ up to the global scale of the light units):
   :func:`relight_cli.features.transport_blocks`, so a render is exactly linear in
   the env map and consistent with the features a neural model is given.
 * h is binary visibility from embree shadow rays against every hand of the scene.
-* f_s is the GGX lobe of URHand (:mod:`relight_cli.render.brdf`, F0 = 0.04).
+* f_s is the GGX lobe of URHand (:mod:`relight_cli.brdf`, F0 = 0.04).
 * E_sss is E diffused in texture space (d'Eon & Luebke's texture-space diffusion)
   with the sum-of-Gaussians skin profile :data:`SKIN_PROFILE` whose RGB weights sum
   to 1, so uniform irradiance is unchanged (energy conserving) and it is linear.
@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .appearance import bilinear
-from .brdf import ggx_cosine
+from relight_cli.brdf import ggx_cosine
 
 # d'Eon & Luebke (GPU Gems 3, ch. 14) six-Gaussian fit of a three-layer skin
 # profile: (variance in mm², RGB weights).  Each colour's weights sum to 1.

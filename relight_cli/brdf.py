@@ -17,7 +17,9 @@ import math
 
 import numpy as np
 
-from relight_cli.features import MIN_ROUGHNESS
+# Perceptual roughness floor: below it the lobe is narrower than any env texel, and
+# clamping keeps α² > 0 so D stays finite.
+MIN_ROUGHNESS = 1e-3
 
 
 def ggx_cosine(normal, view, light, roughness, f0: float = 0.04) -> np.ndarray:
