@@ -35,6 +35,11 @@ demo: install
 	$(RELIGHT) bake-features demo/hand.npz builtin:sky builtin:studio -o 'demo/feats_{env}.exr' \
 		--per-vertex 'demo/feats_{env}.npz' --preview 'demo/feats_{env}.png' --specular both
 	$(RELIGHT) bake-features builtin:two:fist builtin:sky -o demo/feats_two_fist.exr --preview demo/feats_two_fist.png
+	# the physically based render of the default hand (the URHand physical baseline), with AOVs
+	$(RELIGHT) relight demo/hand.npz builtin:studio --model physical -o demo/hand_physical.exr \
+		--preview demo/hand_physical.png --aov normal,uv,depth
+	# a small synthetic light-stage capture (fully lit + grouped-light frames, held-out env renders)
+	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --lights 32 --frames 6 --res 96 --eval-poses 1 --eval-cameras 2
 	# spherical-harmonic light probes
 	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json
 	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json
