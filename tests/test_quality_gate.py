@@ -83,10 +83,30 @@ def dgsm_shadow_resolution(work: Path) -> Path:
     return out
 
 
+def hand_render_env_resolution(work: Path) -> Path:
+    """The default hand (fist) rendered with the physical model under builtin:studio:
+    the default 16×32 env discretization against a 32×64 reference, foreground only."""
+    _ok(run_relight("fit-geometry", "--pose", "fist", "-o", work / "hand.npz", "-q"))
+    renders = {}
+    for res in ("16x32", "32x64"):
+        renders[res] = work / f"render_{res}.exr"
+        _ok(run_relight("relight", work / "hand.npz", "builtin:studio", "--model", "physical",
+                        "--size", "96x96", "--env-res", res, "-o", renders[res], "-q"))
+    from relight_cli.formats.exr import read_exr
+    from relight_cli.formats.image import write_png
+    mask = read_exr(str(renders["32x64"])).channels["A"]
+    write_png(str(work / "mask.png"), mask[..., None])
+    out = work / "hand_render_env_resolution.json"
+    _ok(run_relight("metrics", "image", renders["16x32"], renders["32x64"], "--mask", work / "mask.png",
+                    "-o", out, "-q"))
+    return out
+
+
 # One entry per pipeline stage; later stages append here.
 STAGES: list[Stage] = [
     Stage("envmap_cube_roundtrip", envmap_cube_roundtrip),
     Stage("dgsm_shadow_resolution", dgsm_shadow_resolution),
+    Stage("hand_render_env_resolution", hand_render_env_resolution),
 ]
 
 
