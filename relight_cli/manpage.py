@@ -48,12 +48,11 @@ def _option_lines(command: click.Command, ctx: click.Context) -> list[str]:
     return lines
 
 
-def render_page(name: str, command: click.Command, parent: click.Context | None) -> str:
-    full = "relight" if parent is None else f"relight {name}"
-    settings = {} if parent else dict(command.context_settings)
-    ctx = click.Context(command, info_name=name if parent else "relight", parent=parent, **settings)
+def render_page(words: list[str], command: click.Command, ctx: click.Context) -> str:
+    """One man page for the command whose full name is ``" ".join(words)``."""
+    full = " ".join(words)
     usage = " ".join(command.collect_usage_pieces(ctx))
-    page = [f'.TH "{full.upper().replace(" ", "-")}" 1 "" "relight" "relight manual"',
+    page = [f'.TH "{"-".join(words).upper()}" 1 "" "relight" "relight manual"',
             ".SH NAME", f"{_escape(full)} \\- {_escape(command.get_short_help_str(200))}",
             ".SH SYNOPSIS", f"\\fB{_escape(full)}\\fR {_escape(usage)}",
             ".SH DESCRIPTION", _paragraphs(command.help or "")]
@@ -64,26 +63,34 @@ def render_page(name: str, command: click.Command, parent: click.Context | None)
         page.append(".SH COMMANDS")
         for sub in command.list_commands(ctx):
             cmd = command.get_command(ctx, sub)
-            page.append(f".TP\n\\fBrelight {sub}\\fR\n{_escape(cmd.get_short_help_str(200))}\n"
-                        f"See \\fBrelight\\-{_escape(sub)}\\fR(1).")
-        page += [".SH EXIT STATUS",
-                 "0 success; 1 bad input data; 2 usage error; "
-                 "3 a metrics regression found by \\fBrelight metrics compare\\fR.",
-                 ".SH FILES", "File formats are specified in the formats/ folder of the source tree."]
+            page.append(f".TP\n\\fB{_escape(full)} {_escape(sub)}\\fR\n"
+                        f"{_escape(cmd.get_short_help_str(200))}\n"
+                        f"See \\fB{_escape('-'.join(words + [sub]))}\\fR(1).")
+    page += [".SH EXIT STATUS",
+             "0 success; 1 bad input data; 2 usage error"
+             + ("; 3 a metrics regression found by \\fBrelight metrics compare\\fR."
+                if len(words) == 1 or "metrics" in words else ".")]
+    if len(words) == 1:
+        page += [".SH FILES", "File formats are specified in the formats/ folder of the source tree."]
     else:
-        page += [".SH EXIT STATUS", "0 success; 1 bad input data; 2 usage error.",
-                 ".SH SEE ALSO", "\\fBrelight\\fR(1)"]
+        page += [".SH SEE ALSO", f"\\fB{_escape('-'.join(words[:-1]))}\\fR(1)"]
     return "\n".join(page) + "\n"
 
 
+def _walk(command: click.Command, ctx: click.Context, words: list[str]):
+    yield words, command, ctx
+    if isinstance(command, click.Group):
+        for sub in command.list_commands(ctx):
+            cmd = command.get_command(ctx, sub)
+            yield from _walk(cmd, click.Context(cmd, info_name=sub, parent=ctx), words + [sub])
+
+
 def generate() -> dict[str, str]:
-    """{file name: page text} for relight and every registered subcommand."""
+    """{file name: page text} for relight and every registered (sub)command."""
     from relight_cli.cli import cli
-    pages = {"relight.1": render_page("relight", cli, None)}
     root = click.Context(cli, info_name="relight", **cli.context_settings)
-    for name in cli.list_commands(root):
-        pages[f"relight-{name}.1"] = render_page(name, cli.get_command(root, name), root)
-    return pages
+    return {"-".join(words) + ".1": render_page(words, command, ctx)
+            for words, command, ctx in _walk(cli, root, ["relight"])}
 
 
 def main(argv: list[str] | None = None) -> int:
