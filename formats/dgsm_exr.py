@@ -23,8 +23,10 @@ TEXEL_MAPPING = ("octahedral: column x -> u = 2(x+0.5)/W - 1, row y (top 0) -> v
                  "(x,z)/|w|_1; cube: OpenEXR ImfEnvmap cube, faces +X -X +Y -Y +Z -Z stacked")
 
 
-def channel_name(light: int, k: int) -> str:
-    return f"light{light}.t{k:03d}"
+def channel_name(light: int, k: int, group: int | None = None) -> str:
+    """``light{i}.t{k:03d}`` (the product over groups), or ``group{j}.light{i}.t{k:03d}``."""
+    name = f"light{light}.t{k:03d}"
+    return name if group is None else f"group{group}.{name}"
 
 
 def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = False) -> None:
@@ -36,6 +38,14 @@ def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = Fal
         raise DataError("transmittance table holds NaN/Inf (a bug; nothing written)", path)
     n_lights, K = table.shape[:2]
     channels = {channel_name(i, k): table[i, k] for i in range(n_lights) for k in range(K)}
+    groups = getattr(dgsm, "groups", None)
+    if groups is not None:
+        groups = np.asarray(groups)
+        if not np.isfinite(groups).all():
+            raise DataError("group transmittance holds NaN/Inf (a bug; nothing written)", path)
+        for j in range(len(groups)):
+            channels.update({channel_name(i, k, j): groups[j, i, k]
+                             for i in range(n_lights) for k in range(K)})
     attributes = {
         PREFIX + "layout": str(dgsm.layout),
         PREFIX + "lights": int(n_lights),
@@ -48,6 +58,9 @@ def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = Fal
         PREFIX + "build_seconds": float(dgsm.build_seconds),
         PREFIX + "texel_mapping": TEXEL_MAPPING,
     }
+    if groups is not None:
+        names = list(getattr(dgsm, "group_names", []) or [f"group{j}" for j in range(len(groups))])
+        attributes[PREFIX + "groups"] = json.dumps([str(n) for n in names])
     write_exr(path, channels, attributes=attributes, half=half, provenance=provenance)
 
 
@@ -118,6 +131,27 @@ def read_dgsm(path: str):
         raise DataError("transmittance holds NaN/Inf", path)
     if table.min() < -1e-3 or table.max() > 1 + 1e-3:
         raise DataError(f"transmittance outside [0, 1] ({table.min():.4g}..{table.max():.4g})", path)
+    groups, group_names = None, []
+    if PREFIX + "groups" in attrs:
+        group_names = _json_attr(image, "groups", path)
+        if not (isinstance(group_names, list) and group_names
+                and all(isinstance(n, str) for n in group_names)):
+            raise DataError(f"header attribute {PREFIX}groups must be a list of names", path)
+        wanted = [channel_name(i, k, j) for j in range(len(group_names))
+                  for i in range(n_lights) for k in range(K)]
+        absent = [c for c in wanted if c not in names]
+        if absent:
+            raise DataError(f"missing group channel(s) {', '.join(absent[:3])}"
+                            f"{' …' if len(absent) > 3 else ''}", path)
+        groups = np.empty((len(group_names), n_lights, K, h, w), np.float32)
+        for j in range(len(group_names)):
+            for i in range(n_lights):
+                for k in range(K):
+                    groups[j, i, k] = image.channels[channel_name(i, k, j)]
+        if not np.isfinite(groups).all() or groups.min() < -1e-3 or groups.max() > 1 + 1e-3:
+            raise DataError("group transmittance must be finite and in [0, 1]", path)
+        groups = np.clip(groups, 0, 1)
     seconds = attrs.get(PREFIX + "build_seconds", 0.0)
     return DGSM(np.clip(table, 0, 1), lights, t_max, layout, mapping, float(kappa), roi,
-                float(seconds) if isinstance(seconds, (int, float)) else 0.0, {})
+                float(seconds) if isinstance(seconds, (int, float)) else 0.0, {},
+                groups, group_names)

@@ -67,6 +67,10 @@ class DGSM:
             ``receivers`` (count in the ROI), ``texels`` (count computed).
         build_seconds: wall time of :func:`build_dgsm`.
         stats: counters (pairs tested/kept, Gaussians after culling ...).
+        groups: None, or [J, L, K, H, W] float32 per-occluder-group tables (from
+            :func:`build_dgsm_groups`); then ``transmittance`` is their product
+            (optical depths add over disjoint sets of Gaussians).
+        group_names: J labels of the groups (e.g. the occluder specs).
     """
 
     transmittance: np.ndarray
@@ -78,6 +82,22 @@ class DGSM:
     roi: list = field(default_factory=list)
     build_seconds: float = 0.0
     stats: dict = field(default_factory=dict)
+    groups: np.ndarray | None = None
+    group_names: list = field(default_factory=list)
+
+    def others(self, group: int) -> "DGSM":
+        """The shadow map of every group except ``group`` (what that group receives).
+
+        Its own table is left out because a Gaussian looked up in the table of
+        its own object would be shadowed by itself (half its own optical depth).
+        """
+        if self.groups is None:
+            raise ValueError("this shadow map has no occluder groups")
+        rest = [j for j in range(len(self.groups)) if j != group]
+        table = (np.prod(self.groups[rest], axis=0, dtype=np.float32) if rest
+                 else np.ones_like(self.transmittance))
+        return DGSM(table, self.lights, self.t_max, self.layout, self.mapping, self.kappa,
+                    self.roi, self.build_seconds, self.stats)
 
     @property
     def bins(self) -> int:
@@ -415,6 +435,90 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
         stats["bins_computed"] += int(k1 - k0 + 1)
     return DGSM(table, lights, t_maxes, layout, mix.mapping, mix.kappa, rois,
                 time.perf_counter() - start, stats)
+
+
+def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, names=None,
+                      t_max=None, progress=None, **kwargs) -> DGSM:
+    """One shadow map per occluder group (several objects in one scene), sharing t_max.
+
+    Group j's table is built from its own Gaussians only, for the receivers
+    ``receivers`` plus every OTHER group's ``group_receivers`` (so objects
+    shadow each other where the table covers them); ``transmittance`` is the
+    product over groups, which equals the table of the concatenated set
+    bin for bin (τ adds over disjoint Gaussians; tested) wherever each group's
+    ROI covers what the combined ROI covers.
+
+    Args:
+        groups: J ``Gaussians`` (or prepared Mixtures), world frame.
+        lights: [L, 3] metres, world.
+        receivers: [M, 3] scene receiver points or None.
+        group_receivers: None or J arrays [M_j, 3] (points of group j that receive
+            the others' shadows: its centres or footprint samples).
+        names: J labels stored with the map.
+        t_max: as :func:`build_dgsm`; default: the farthest ROI receiver of any
+            group sits at the last bin centre.
+        **kwargs: passed to :func:`build_dgsm` (size, bins, layout, mapping,
+            kappa, roi, roi_radius, cull, cull_tolerance, dtype).
+    Returns:
+        :class:`DGSM` with ``groups`` [J, L, K, H, W].
+    """
+    start = time.perf_counter()
+    mixes = [g if isinstance(g, TR.Mixture)
+             else TR.from_gaussians(g, kwargs.get("mapping", "eq5"), kwargs.get("kappa", 1.0))
+             for g in groups]
+    lights = np.asarray(lights, np.float64).reshape(-1, 3)
+    n = len(mixes)
+    if n == 0:
+        raise ValueError("no occluder groups")
+    extra = [np.zeros((0, 3)) if group_receivers is None
+             else np.asarray(group_receivers[j], np.float64).reshape(-1, 3) for j in range(n)]
+    base = np.zeros((0, 3)) if receivers is None else np.asarray(receivers, np.float64).reshape(-1, 3)
+    per_group = [np.concatenate([base] + [extra[i] for i in range(n) if i != j]) for j in range(n)]
+    if receivers is None and group_receivers is None and t_max is None:
+        raise ValueError("without receivers, t_max must be given")
+    bins = int(kwargs.get("bins", 64))
+    if t_max is None:
+        t_max = np.zeros(len(lights))
+        for li, light in enumerate(lights):
+            far = 0.0
+            for j in range(n):
+                recv = per_group[j]
+                if not len(recv):
+                    continue
+                if kwargs.get("roi", True):
+                    mask, _ = receiver_roi(mixes[j], light, recv, kwargs.get("roi_radius"),
+                                           kwargs.get("cull_tolerance", 1e-7))
+                    recv = recv[mask] if mask.any() else recv
+                far = max(far, float(np.linalg.norm(recv - light, axis=1).max()))
+            t_max[li] = max(far * bins / (bins - 0.5), 1e-6)
+    maps = []
+    iterator = range(n) if progress is None else progress(range(n), n)
+    for j in iterator:
+        maps.append(build_dgsm(mixes[j], lights, per_group[j] if len(per_group[j]) else None,
+                               t_max=t_max, **kwargs))
+    table = np.prod(np.stack([m.transmittance for m in maps]), axis=0, dtype=np.float32)
+    rois = []
+    for li in range(len(lights)):
+        infos = [m.roi[li] for m in maps]
+        used = [i for i in infos if i["texels"]]
+        rois.append({
+            "receivers": int(sum(i["receivers"] for i in infos)),
+            "texels": int(sum(i["texels"] for i in infos)),
+            "bins": ([min(i["bins"][0] for i in used), max(i["bins"][1] for i in used)]
+                     if used else [0, -1]),
+            "pixels": ([min(i["pixels"][0] for i in used), min(i["pixels"][1] for i in used),
+                        max(i["pixels"][2] for i in used), max(i["pixels"][3] for i in used)]
+                       if used else [0, 0, -1, -1]),
+            "groups": infos})
+    stats = {"pairs_tested": sum(m.stats["pairs_tested"] for m in maps),
+             "pairs_kept": sum(m.stats["pairs_kept"] for m in maps),
+             "gaussians": sum(m.stats["gaussians"] for m in maps),
+             "groups": [m.stats for m in maps]}
+    first = maps[0]
+    return DGSM(table, lights, first.t_max, first.layout, first.mapping, first.kappa, rois,
+                time.perf_counter() - start, stats,
+                np.stack([m.transmittance for m in maps]),
+                list(names) if names is not None else [f"group{j}" for j in range(n)])
 
 
 def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cull, trunc,
