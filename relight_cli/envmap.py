@@ -255,6 +255,15 @@ def rotation_y(degrees: float) -> np.ndarray:
 _MAX_SUBCELLS = 8_000_000
 # Sub-cells per target texel aimed for when splatting.
 _SUBCELLS_PER_TEXEL = 256
+# Source texels brighter than this multiple of the map's mean luminance are
+# "peaks" whose power splatting keeps exactly.
+_PEAK_FACTOR = 64.0
+
+
+def _peaks(env: EnvMap, flat: np.ndarray) -> np.ndarray:
+    """[H·W] bool: texels brighter than _PEAK_FACTOR × the map's mean luminance."""
+    mean_luminance = float(luminance(flat.T @ solid_angles(env).reshape(-1)) / (4 * math.pi))
+    return luminance(flat) > _PEAK_FACTOR * max(mean_luminance, 1e-30)
 
 
 def _interval_overlap(lo_a, hi_a, lo_b, hi_b):
@@ -288,17 +297,20 @@ def _resample_latlong_exact(src: np.ndarray, height: int, width: int, shift: flo
     return power_grid / dst_omega[..., None]
 
 
-def _subcells(layout: str, height: int, width: int, n: int):
+def _subcells(layout: str, height: int, width: int, n: int, rows=None):
     """Split every texel cell into n×n exact sub-cells.
 
     Returns directions [P, 3], solid angles [P] and texel flat index [P]
-    (P = H·W·n²), generated lazily per chunk of rows to bound memory.
+    (P = H·W·n²), generated lazily per chunk of rows to bound memory.  ``rows``
+    (a set of row indices) restricts the work to those image rows.
     """
     edges = np.arange(n + 1) / n
     if layout == "latlong":
         lat, lon = _latlong_edges(height, width)
         s_top, s_bot = np.sin(lat[:, 0]), np.sin(lat[:, 1])
         for row in range(height):
+            if rows is not None and row not in rows:
+                continue
             s_edges = s_top[row] + (s_bot[row] - s_top[row]) * edges      # equal-area in sin φ
             s_mid = 0.5 * (s_edges[:-1] + s_edges[1:])
             band = np.abs(np.diff(s_edges))                                 # [n]
@@ -322,6 +334,8 @@ def _subcells(layout: str, height: int, width: int, n: int):
         rows_per_chunk = max(1, (1 << 20) // max(1, size * n * n))
         for r0 in range(0, 6 * size, rows_per_chunk):
             sl = slice(r0, min(6 * size, r0 + rows_per_chunk))
+            if rows is not None and not any(r in rows for r in range(sl.start, sl.stop)):
+                continue
             fa0, fa1, fb0, fb1, ff = a0[sl], a1[sl], b0[sl], b1[sl], face[sl]
             ae = fa0[..., None] + (fa1 - fa0)[..., None] * edges                # [r, N, n+1]
             be = fb0[..., None] + (fb1 - fb0)[..., None] * edges
@@ -334,8 +348,8 @@ def _subcells(layout: str, height: int, width: int, n: int):
             d /= np.linalg.norm(d, axis=-1, keepdims=True)
             omega = _rect_solid_angle(ae[..., :-1, None], ae[..., 1:, None],
                                       be[..., None, :-1], be[..., None, 1:])
-            rows = np.arange(sl.start, sl.stop)
-            idx = (rows[:, None] * size + np.arange(size)[None, :])
+            chunk_rows = np.arange(sl.start, sl.stop)
+            idx = (chunk_rows[:, None] * size + np.arange(size)[None, :])
             idx = np.repeat(idx.reshape(-1), n * n)
             yield d.reshape(-1, 3), omega.reshape(-1), idx
 
@@ -352,9 +366,10 @@ def resample(env: EnvMap, layout: str, height: int, width: int,
     * otherwise by splatting: every source texel is cut into n×n exact
       sub-cells whose power goes to the target texel containing the
       sub-cell's direction, so a single bright texel is never lost; the
-      target texel takes the mean radiance of what lands in it.  With ~256
-      sub-cells per target texel (within a budget of 8M sub-cells) power is
-      preserved to ~1e-3 on smooth maps and ~1% for a single-texel source.
+      target texel takes the mean radiance of what lands in it, except that
+      peaks (texels > 64× the mean luminance, e.g. a sun) keep their power
+      exactly.  With ~256 sub-cells per target texel (within a budget of 8M
+      sub-cells) power is preserved to ~1e-5 on smooth maps.
       Texels no sub-cell reaches take the source radiance at their centre.
     * large upsampling beyond the budget gathers instead: each target texel
       is cut into n×n sub-cells that take the radiance of the source texel
@@ -389,32 +404,60 @@ def resample(env: EnvMap, layout: str, height: int, width: int,
         n = supersample or n_fine
         if supersample is None and n_src * n * n > _MAX_SUBCELLS:
             n = max(1, int(math.sqrt(_MAX_SUBCELLS / n_src)))
-        # Each target texel gets the solid-angle-weighted mean radiance of the
-        # sub-cells that land in it: Σ L ω / Σ ω.  Dividing by the exact target
-        # solid angle instead would preserve power to rounding but adds
-        # per-texel noise (sub-cells straddling texel borders) of several percent.
+        # Smooth content: each target texel gets the solid-angle-weighted mean
+        # radiance of the sub-cells that land in it, Σ L ω / Σ ω (dividing by
+        # the exact target solid angle instead would add several percent of
+        # per-texel noise from sub-cells straddling texel borders).  Peaks
+        # (texels far brighter than the map's mean, e.g. a sun) keep their
+        # power exactly: it is divided by the exact target solid angle and
+        # only the rest of the texel takes the mean of the smooth content.
+        peak = _peaks(env, flat)
         acc = np.zeros((n_dst, 3))
         received = np.zeros(n_dst)
+        acc_peak = np.zeros((n_dst, 3))
+        received_peak = np.zeros(n_dst)
         for d, omega, idx in _subcells(env.layout, env.height, env.width, n):
             target = pixel_index(d @ rot.T, layout, height, width)
             p = flat[idx] * omega[:, None]
-            for c in range(3):
-                acc[:, c] += np.bincount(target, weights=p[:, c], minlength=n_dst)
-            received += np.bincount(target, weights=omega, minlength=n_dst)
-        empty = received == 0
-        out = acc / np.where(empty, 1.0, received)[:, None]
+            is_peak = peak[idx]
+            for mask, a, r in ((~is_peak, acc, received), (is_peak, acc_peak, received_peak)):
+                if not mask.any():
+                    continue
+                for c in range(3):
+                    a[:, c] += np.bincount(target[mask], weights=p[mask, c], minlength=n_dst)
+                r += np.bincount(target[mask], weights=omega[mask], minlength=n_dst)
+        empty = (received + received_peak) == 0
+        smooth_mean = acc / np.where(received > 0, received, 1.0)[:, None]
+        rest_area = np.clip(dst_omega - received_peak, 0, None)
+        out = (smooth_mean * rest_area[:, None] + acc_peak) / dst_omega[:, None]
         if empty.any():
             centres = (latlong_directions(height, width) if layout == "latlong"
                        else cube_directions(width)).reshape(-1, 3)[empty]
             out[empty] = lookup(env, centres @ rot)  # R⁻¹ = Rᵀ; row-vector form
     else:
+        # Gathering: target sub-cells take the radiance of the source texel that
+        # contains them.  Peaks are left out of the gather and splatted finely
+        # with their exact power instead, so a sun keeps its power.
+        peak = _peaks(env, flat)
         n = int(max(1, min(8, math.sqrt(_MAX_SUBCELLS / n_dst))))
+        rest = np.where(peak[:, None], 0.0, flat)
         acc = np.zeros((n_dst, 3))
         for d, omega, idx in _subcells(layout, height, width, n):
             source = pixel_index(d @ rot, env.layout, env.height, env.width)
-            p = flat[source] * omega[:, None]
+            p = rest[source] * omega[:, None]
             for c in range(3):
                 acc[:, c] += np.bincount(idx, weights=p[:, c], minlength=n_dst)
+        peak_texels = np.nonzero(peak)[0]
+        if len(peak_texels):
+            n_peak = int(max(2, min(64, math.sqrt(_MAX_SUBCELLS / len(peak_texels)),
+                                    math.ceil(4 * math.sqrt(n_dst / n_src)))))
+            rows = set((peak_texels // env.width).tolist())
+            for d, omega, idx in _subcells(env.layout, env.height, env.width, n_peak, rows):
+                keep = peak[idx]
+                target = pixel_index(d[keep] @ rot.T, layout, height, width)
+                p = flat[idx[keep]] * omega[keep, None]
+                for c in range(3):
+                    acc[:, c] += np.bincount(target, weights=p[:, c], minlength=n_dst)
         out = acc / dst_omega[:, None]
     return EnvMap(out.reshape(height, width, 3).astype(np.float32), layout, env.name)
 
