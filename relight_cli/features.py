@@ -31,6 +31,7 @@ feature (visibility fixed) for URHand's physical branch.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -42,6 +43,8 @@ from relight_cli.formats.envmap import EnvMap
 # Shading works on [receivers, directions] blocks of at most this many entries
 # (float64: 8 bytes each, a handful alive at once) to bound memory.
 _BLOCK = 1 << 16
+# OpenBLAS multithreads a GEMM above 4·65536 multiply-adds; stay below (see _apply_stacked).
+_GEMM_SINGLE = 1 << 17
 # Transport weights (N·M per feature, float64) are kept between env maps up to
 # this many entries (128 MiB); beyond it they are streamed and recomputed.
 _TRANSPORT_CACHE = 1 << 24
@@ -240,12 +243,56 @@ def reflect(view: np.ndarray, normals: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------- visibility
 
 
+def trace_threads() -> int:
+    """Worker threads for ray tracing: the CPUs this process may run on.
+
+    embreex's occlusion query runs without the GIL, so threads tracing disjoint
+    chunks of one batch scale with cores (1.7× on 2 cores for the default bake).
+    """
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:          # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+# Rays per traced chunk: small enough that every worker gets several (load balance,
+# bounded peak memory for the per-ray origin/direction arrays), large enough that
+# the per-call Python overhead (~50 µs) is noise.
+_MIN_CHUNK = 1 << 15
+_MAX_CHUNK = 1 << 20
+
+
+def _row_chunks(per_row: np.ndarray, workers: int) -> list[slice]:
+    """Split rows into contiguous slices of about equal total ``per_row`` (rays)."""
+    total = int(per_row.sum())
+    target = min(_MAX_CHUNK, max(_MIN_CHUNK, -(-total // (4 * workers))))
+    bounds = np.searchsorted(np.cumsum(per_row), np.arange(target, total, target), side="left")
+    edges = np.unique(np.concatenate([[0], bounds + 1, [len(per_row)]]))
+    edges = edges[edges <= len(per_row)]
+    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+_POOLS: dict = {}
+
+
+def _pool(workers: int):
+    """A process-wide thread pool of ``workers`` threads, started once (starting threads
+    per pose costs milliseconds on a busy machine; idle workers cost nothing)."""
+    if workers not in _POOLS:
+        from concurrent.futures import ThreadPoolExecutor
+        _POOLS[workers] = ThreadPoolExecutor(workers, thread_name_prefix="relight-trace")
+    return _POOLS[workers]
+
+
 class VisibilityCache:
     """Binary visibility h[i, m] of receivers towards env directions, traced on demand.
 
     ``require(need)`` traces exactly the pairs asked for that were not traced
-    before, in one large embree batch, so a pose's visibility is traced once and
-    reused by every env map, shininess and specular model.
+    before, in large embree batches (chunks of receivers traced concurrently by
+    ``threads`` workers), so a pose's visibility is traced once and reused by
+    every env map, shininess and specular model.  The result does not depend on
+    ``threads`` or chunking: every ray is independent (tests check it equals one
+    flat :meth:`~relight_cli.raytrace.RayScene.occluded` call).
 
     Args:
         scene: a :class:`~relight_cli.raytrace.RayScene` of every occluding mesh, or
@@ -254,9 +301,11 @@ class VisibilityCache:
         directions: [M, 3] unit directions.
         ray_offset: metres (scalar or [N]) to lift ray origins along the normal (avoids hitting the
             receiver's own triangles through rounding).
+        threads: worker threads (None = :func:`trace_threads`; 1 = trace on the caller's thread).
     """
 
-    def __init__(self, scene, receivers: Receivers, directions: np.ndarray, ray_offset):
+    def __init__(self, scene, receivers: Receivers, directions: np.ndarray, ray_offset,
+                 threads: int | None = None):
         self.scene = scene
         self.receivers = receivers
         self.directions = np.asarray(directions, np.float64)
@@ -267,36 +316,67 @@ class VisibilityCache:
         self.visible = np.zeros(shape, bool)
         self.rays_traced = 0
         self.seconds = 0.0
+        self.threads = trace_threads() if threads is None else max(1, int(threads))
         self._origins = None
         self._dirs32 = None
+
+    def ray_origins(self) -> np.ndarray:
+        """[N, 3] float32 ray origins (receiver lifted along its normal), metres, world."""
+        if self._origins is None:
+            self._origins = (self.receivers.points + self.ray_offset
+                             * self.receivers.normals).astype(np.float32)
+            self._dirs32 = self.directions.astype(np.float32)
+        return self._origins
 
     def require(self, need: np.ndarray) -> int:
         """Trace every pair of ``need`` ([N, M] bool) not traced yet; return how many."""
         t0 = time.perf_counter()
         todo = need & ~self.traced                                # [N, M]
-        count = int(todo.sum())
+        per_row = np.count_nonzero(todo, axis=1)
+        count = int(per_row.sum())
         if count:
             if self.scene is None:
                 self.visible |= todo
             else:
-                if self._origins is None:
-                    self._origins = (self.receivers.points + self.ray_offset
-                                     * self.receivers.normals).astype(np.float32)
-                    self._dirs32 = self.directions.astype(np.float32)
-                # Row-major pair order: origins repeat per receiver (no gather), and the
-                # boolean-mask assignment below walks the same order.
-                _, mm = np.nonzero(todo)
-                origins = np.repeat(self._origins, todo.sum(axis=1), axis=0)
-                blocked = self.scene.occluded(origins, self._dirs32[mm])
-                self.visible[todo] = ~blocked
+                self._trace(todo, per_row)
                 self.rays_traced += count
             self.traced |= todo
         self.seconds += time.perf_counter() - t0
         return count
 
+    def _trace(self, todo: np.ndarray, per_row: np.ndarray):
+        origins = self.ray_origins()
+        dirs = self._dirs32
+        scene = self.scene
+        counted = scene.rays_traced
+        chunks = _row_chunks(per_row, self.threads)
+
+        def work(rows: slice):
+            # Row-major pair order: origins repeat per receiver (no gather), and the
+            # boolean-mask assignment walks the same order.  Rows are disjoint between
+            # chunks, so workers write disjoint parts of ``visible``.
+            sub = todo[rows]
+            _, mm = np.nonzero(sub)
+            o = np.repeat(origins[rows], per_row[rows], axis=0)
+            d = np.take(dirs, mm, axis=0)
+            blocked = scene.occluded(o, d)
+            self.visible[rows][sub] = ~blocked
+
+        workers = min(self.threads, len(chunks))
+        if workers > 1:
+            # embree builds the BVH on the first query; do that once, before threads race to it.
+            scene.occluded(origins[:1], dirs[:1])
+            list(_pool(workers).map(work, chunks))
+        else:
+            for rows in chunks:
+                work(rows)
+        # RayScene's counter is not thread-safe (+= from several workers); set it once.
+        scene.rays_traced = counted + int(per_row.sum())
+
 
 def needed_pairs(receivers: Receivers, reflected: np.ndarray | None, directions: np.ndarray,
-                 lit: np.ndarray, settings: FeatureSettings) -> np.ndarray:
+                 lit: np.ndarray, settings: FeatureSettings,
+                 cosines: np.ndarray | None = None) -> np.ndarray:
     """[N, M] bool: the (receiver, direction) pairs whose visibility can change a feature.
 
     * n·ω > 0 (above the tangent plane): diffuse, GGX and the visibility channel;
@@ -305,8 +385,9 @@ def needed_pairs(receivers: Receivers, reflected: np.ndarray | None, directions:
       r·ω ≤ c = :func:`lobe_cutoff`, and L = 0 on unlit texels).  Only pairs below
       the tangent plane are new here.
     Receivers with undefined normals need nothing (their features are 0).
+    ``cosines`` optionally passes n·ω [N, M] already computed.
     """
-    cos = receivers.normals @ directions.T                       # [N, M]
+    cos = receivers.normals @ directions.T if cosines is None else cosines   # [N, M]
     need = cos > 0
     if settings.phong and reflected is not None:
         need |= ((reflected @ directions.T) > lobe_cutoff(settings.phong)) & lit[None, :]
@@ -338,7 +419,7 @@ def ggx_weights(normals: np.ndarray, view: np.ndarray, directions: np.ndarray,
 
 def transport_blocks(receivers: Receivers, view: np.ndarray, directions: np.ndarray,
                      solid_angle: np.ndarray, visible: np.ndarray, settings: FeatureSettings,
-                     roughness: np.ndarray | None = None):
+                     roughness: np.ndarray | None = None, cosines: np.ndarray | None = None):
     """Yield the env-independent light-transport weights, a block of receivers at a time.
 
     Every feature is linear in the env map: feature_i = Σ_m W_i,m · L(ω_m)Δω_m.  This
@@ -346,36 +427,95 @@ def transport_blocks(receivers: Receivers, view: np.ndarray, directions: np.ndar
       W_diffuse = h·max(n·ω, 0),  W_phongα = (α+2)/(2π)·h·max(r·ω, 0)^α,
       W_ggx = h·f_s·max(n·ω, 0), and the cosine-weighted visibility channel.
     Pairs never traced have zero weight (guaranteed by :func:`needed_pairs`).
+    ``cosines`` optionally passes n·ω [N, M] already computed (e.g. by :func:`needed_pairs`).
+    """
+    for sl, names, stacked, vis in _transport_stacked(receivers, view, directions, solid_angle,
+                                                      visible, settings, roughness, cosines):
+        yield sl, dict(zip(names, stacked)), vis
+
+
+def _transport_stacked(receivers, view, directions, solid_angle, visible, settings,
+                       roughness=None, cosines=None):
+    """:func:`transport_blocks` with each block's weights stacked: (slice, names, [K, b, M], vis).
+
+    Stacking lets :func:`_apply_stacked` shade a block with one matrix product, and
+    the in-place arithmetic below avoids allocating a fresh [b, M] array per step.
+    Bit-identical to the formulas in :func:`transport_blocks`: h ∈ {0, 1}, so
+    (h·x)^α = h·x^α for α > 0 and h·x = x or 0 exactly.
     """
     n = len(receivers)
     m = len(directions)
     if roughness is None:
         roughness = np.broadcast_to(np.asarray(settings.roughness, np.float64), (n,))
-    reflected = reflect(view, receivers.normals)
+    reflected = reflect(view, receivers.normals) if settings.phong else None
     cutoff = lobe_cutoff(settings.phong)
+    names = feature_names(settings)[:-1]
+    phong_at = {a: names.index(phong_name(a)) for a in settings.phong}
     step = max(1, _BLOCK // max(1, m))
+    d_t = np.ascontiguousarray(directions.T)
     for s in range(0, n, step):
         sl = slice(s, min(n, s + step))
-        nrm = receivers.normals[sl]
-        h = visible[sl].astype(np.float64)                        # [b, M]
-        cos = np.clip(nrm @ directions.T, 0, None)                # [b, M]
-        hc = h * cos
-        weights = {"diffuse": hc}
-        if settings.phong:
-            ref = reflected[sl] @ directions.T
-            lobe = np.where(ref > cutoff, ref, 0.0)
-            for alpha, power in zip(settings.phong, _powers(lobe, settings.phong)):
-                weights[phong_name(alpha)] = (h * power) * ((alpha + 2) / (2 * math.pi))
-        if settings.ggx:
-            weights["ggx"] = h * ggx_weights(nrm, view[sl], directions, roughness[sl], settings.f0)
+        b = sl.stop - sl.start
+        out = np.empty((len(names), b, m))
+        h = visible[sl]                                           # [b, M] bool
+        cos = out[0]
+        if cosines is None:
+            np.matmul(receivers.normals[sl], d_t, out=cos)
+        else:
+            cos[...] = cosines[sl]
+        np.maximum(cos, 0, out=cos)
         denom = cos @ solid_angle
-        vis = np.divide(hc @ solid_angle, denom, out=np.zeros_like(denom), where=denom > 0)
+        np.multiply(cos, h, out=cos)                              # W_diffuse = h·max(n·ω, 0)
+        vis = np.divide(cos @ solid_angle, denom, out=np.zeros_like(denom), where=denom > 0)
+        if settings.phong:
+            lobe = reflected[sl] @ d_t                            # [b, M] r·ω
+            lobe *= lobe > cutoff                                 # the lobe's support
+            positive = [a for a in settings.phong if a > 0]
+            if positive:
+                hl = lobe * h
+                for alpha, power in zip(positive, _powers(hl, positive)):
+                    np.multiply(power, (alpha + 2) / (2 * math.pi), out=out[phong_at[alpha]])
+            for alpha in settings.phong:
+                if alpha <= 0:   # x^0 = 1 even where the lobe is 0: visibility only
+                    np.multiply(np.power(lobe, alpha), h, out=out[phong_at[alpha]])
+                    out[phong_at[alpha]] *= (alpha + 2) / (2 * math.pi)
+        if settings.ggx:
+            g = out[names.index("ggx")]
+            g[...] = ggx_weights(receivers.normals[sl], view[sl], directions, roughness[sl],
+                                 settings.f0)
+            np.multiply(g, h, out=g)
         undefined = ~receivers.defined[sl]
         if undefined.any():
-            for w in weights.values():
-                w[undefined] = 0
+            out[:, undefined] = 0
             vis[undefined] = 0
-        yield sl, weights, vis
+        yield sl, names, out, vis
+
+
+def _apply_stacked(blocks, n: int, envs: list[DiscreteEnv]) -> list[dict]:
+    """:func:`apply_transport` for :func:`_transport_stacked` blocks: one product per block."""
+    omega = envs[0].solid_angle
+    weighted = np.concatenate([e.radiance * omega[:, None] for e in envs], axis=1)   # [M, 3E]
+    out = None
+    for sl, names, stacked, vis in blocks:
+        k, b, m = stacked.shape
+        if out is None:
+            out = [{name: np.zeros((n, 3)) for name in names} for _ in envs]
+            for o in out:
+                o["visibility"] = np.zeros(n)
+        # Products of at most _GEMM_SINGLE multiply-adds: OpenBLAS runs those on one
+        # thread, and its thread hand-off costs more than it saves on these memory-bound
+        # tall-skinny products (3-10× slower on a busy 2-core machine, measured).
+        rows = max(1, _GEMM_SINGLE // (m * weighted.shape[1]))
+        for i, name in enumerate(names):
+            for r in range(0, b, rows):
+                res = stacked[i, r:r + rows] @ weighted                         # [r, 3E]
+                for j, o in enumerate(out):
+                    o[name][sl.start + r:sl.start + r + len(res)] = res[:, 3 * j:3 * j + 3]
+        for o in out:
+            o["visibility"][sl] = vis
+    if out is None:   # no receivers
+        return apply_transport([], n, envs)
+    return out
 
 
 def apply_transport(blocks, n: int, envs: list[DiscreteEnv]) -> list[dict]:
@@ -489,10 +629,13 @@ class FeatureBaker:
         env_res: (H, W) of the lat-long grid env maps are discretized to.
         grid: instead of ``env_res``, use this DiscreteEnv's directions; env maps
             passed to :meth:`bake` must then be DiscreteEnvs with these directions.
+        threads: ray-tracing worker threads (None = every CPU available, see
+            :func:`trace_threads`); results do not depend on it.
     """
 
     def __init__(self, meshes: list[PoseMesh], settings: FeatureSettings | None = None,
-                 env_res: tuple[int, int] = (16, 32), grid: DiscreteEnv | None = None):
+                 env_res: tuple[int, int] = (16, 32), grid: DiscreteEnv | None = None,
+                 threads: int | None = None):
         from relight_cli import envmap as E
 
         self.meshes = meshes
@@ -536,7 +679,8 @@ class FeatureBaker:
             self.directions = np.asarray(grid.directions, np.float64)
         self.solid_angle = (E.latlong_solid_angles(*self.env_res).reshape(-1) if grid is None
                             else np.asarray(grid.solid_angle, np.float64))
-        self.cache = VisibilityCache(scene, self.receivers, self.directions, offset)
+        self.cache = VisibilityCache(scene, self.receivers, self.directions, offset, threads)
+        self._cosines = None            # n·ω [N, M]: pose-only, shared by culling and shading
         self._transport = None          # cached transport blocks for (eye, roughness)
         self._transport_key = None
         self._lit_covered = np.zeros(len(self.directions), bool)
@@ -579,7 +723,10 @@ class FeatureBaker:
             view = view_directions(self.receivers.points, eye)
             reflected = reflect(view, self.receivers.normals)
             lit_all = lit | (self._lit_covered if self._transport_key == key else False)
-            need = needed_pairs(self.receivers, reflected, self.directions, lit_all, self.settings)
+            if self._cosines is None:
+                self._cosines = self.receivers.normals @ self.directions.T
+            need = needed_pairs(self.receivers, reflected, self.directions, lit_all, self.settings,
+                                self._cosines)
             self.stats.add_time("cull", time.perf_counter() - t0)
             before = self.cache.seconds
             self.cache.require(need)
@@ -588,8 +735,9 @@ class FeatureBaker:
             self.stats.rays_possible += len(self.receivers) * len(self.directions) * (
                 1 if self.settings.visibility else 0)
             t0 = time.perf_counter()
-            blocks = transport_blocks(self.receivers, view, self.directions, self.solid_angle,
-                                      self.cache.visible, self.settings, roughness)
+            blocks = _transport_stacked(self.receivers, view, self.directions, self.solid_angle,
+                                        self.cache.visible, self.settings, roughness,
+                                        self._cosines)
             size = len(self.receivers) * len(self.directions) * len(feature_names(self.settings))
             if size <= _TRANSPORT_CACHE:
                 blocks = list(blocks)
@@ -600,7 +748,7 @@ class FeatureBaker:
         else:
             blocks = self._transport
         t0 = time.perf_counter()
-        per_env = apply_transport(blocks, len(self.receivers), discrete)
+        per_env = _apply_stacked(blocks, len(self.receivers), discrete)
         self.stats.add_time("shade", time.perf_counter() - t0)
         return [[{k: v[sl] for k, v in feats.items()} for sl in self.slices] for feats in per_env]
 
