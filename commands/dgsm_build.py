@@ -9,14 +9,14 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
-@click.argument("occluders", metavar="OCCLUDERS")
+@click.argument("occluders", metavar="OCCLUDER...", nargs=-1, required=True)
 @click.option("--receivers", default=None, metavar="SCENE",
               help="Scene Gaussians that receive shadows: they drive the ROI and t_max.")
 @click.option("--translate", default=None, metavar="X,Y,Z",
-              help="Move the occluders by this offset (metres) first.")
+              help="Move every occluder by this offset (metres), after its own placement.")
 @click.option("--occluders-out", default=None, metavar="FILE.ply",
-              help="Also write the occluder Gaussians used (after --translate; handy for "
-                   "builtin: and mesh inputs).")
+              help="Also write the occluder Gaussians used, all occluders in one PLY (after "
+                   "placement and --translate; handy for builtin: and mesh inputs).")
 @click.option("--receivers-out", default=None, metavar="FILE.ply",
               help="Also write the receiver Gaussians used.")
 @click.option("--lights", "lights_spec", required=True, metavar="LIGHTS.json|auto:K",
@@ -59,13 +59,24 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
             allow_light_inside, half, seed, no_clobber, quiet):
-    """Tabulate the transmittance from each light through the OCCLUDERS Gaussians
+    """Tabulate the transmittance from each light through the OCCLUDER Gaussians
     (closed-form erf optical depth, T = exp(−τ)) on K radial shells over an
     octahedral atlas of directions (Mir et al., Deep Gaussian Shadow Maps).
 
-    OCCLUDERS and SCENE are 3DGS PLY files, triangle meshes (.obj .glb .gltf
-    .stl .off, turned into flat surface Gaussians with their texture or face
-    colours), or builtin:hand | builtin:room | builtin:sphere.
+    Each OCCLUDER and SCENE is a 3DGS PLY file, a triangle mesh (.obj .glb
+    .gltf .stl .off, turned into flat surface Gaussians with their texture or
+    face colours), or builtin:hand | builtin:room | builtin:sphere.  An
+    OCCLUDER may carry its own placement, SOURCE:KEY=VALUE;...  with keys
+    fit=SIZE (scale the opacity-weighted 1-99 % box of its centres to SIZE
+    metres on its largest side and centre it at the origin), centre, scale=S,
+    rotate-x|y|z=DEG, on-floor (rest that box's bottom on y = 0) and
+    translate=X,Y,Z, applied in that order whatever the order written.
+
+    With several OCCLUDERs, one table per occluder is built (all sharing t_max)
+    and stored besides their product: scene receivers read the product, and
+    `relight relight` shadows each object by the OTHER objects' tables (each
+    object's Gaussians are receivers of the others' tables here).  An object
+    does not shadow itself.
 
     Only what the receivers need is computed: receivers that can be shadowed at
     all mark the atlas texels and radial bins that lookups will read (everything
@@ -79,6 +90,9 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
           --atlas cube --mapping mass -o shadows-cube.exr
       relight dgsm-build builtin:hand --translate 0,0.3,0 --receivers builtin:room \\
           --lights lights.json -o shadows.exr --occluders-out hand.ply --receivers-out room.ply
+      relight dgsm-build 'builtin:hand:translate=0,0.25,0' \\
+          'donut.ply:fit=0.15;rotate-y=30;on-floor;translate=-0.1,0,-0.05' \\
+          --receivers builtin:room --lights lights.json -o shadows.exr
     """
     import math
     import time
@@ -91,6 +105,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     from relight_cli.formats.gaussians_ply import FORMAT as GFORMAT
     from relight_cli.formats.gaussians_ply import VERSION as GVERSION
     from relight_cli.formats.gaussians_ply import write_gaussians
+    from relight_cli.formats.gaussians_ply import concatenate
     from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.formats.lights_json import FORMAT as LFORMAT
     from relight_cli.formats.lights_json import VERSION as LVERSION
@@ -129,18 +144,21 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     if auto_k is not None and receivers is None:
         raise UsageProblem("--lights auto:K estimates lights from the scene: give --receivers")
 
-    check_input(occluders)
-    occ = load_gaussians(occluders)
-    if len(occ) == 0:
-        raise DataError("no occluder Gaussians", occluders)
-    if offset is not None:
-        occ.means = occ.means + offset
+    parsed = [parse_occluder(spec, "OCCLUDER") for spec in occluders]
+    if receivers is not None:
+        check_input(receivers)
+    objects = []
+    for spec, (source, placement) in zip(occluders, parsed):
+        check_input(source)
+        objects.append(load_placed(source, placement, spec, offset))
+    occ = objects[0] if len(objects) == 1 else concatenate(objects)
     scene = None
     if receivers is not None:
         check_input(receivers)
         scene = load_gaussians(receivers)
         log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
-    log(f"read {occluders}: {len(occ)} occluder Gaussians", quiet)
+    for spec, obj in zip(occluders, objects):
+        log(f"read {spec}: {len(obj)} occluder Gaussians", quiet)
 
     if auto_k is None:
         check_input(lights_spec)
@@ -155,7 +173,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         message = (f"light {li} at {_fmt(lights.positions[li])} lies inside occluder Gaussian "
                    f"{gi} (Mahalanobis distance {m:.2f} < 1)")
         if not allow_light_inside:
-            raise DataError(message, lights_spec if auto_k is None else occluders,
+            raise DataError(message, lights_spec if auto_k is None else ", ".join(occluders),
                             hint="move the light, or pass --allow-light-inside")
         log(f"warning: {message}; its shadows are dominated by that Gaussian", quiet)
 
@@ -167,10 +185,19 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         if not np.isfinite(recv_points).all():
             raise DataError("receiver positions hold NaN/Inf", receivers)
 
-    bar = (lambda it, total: progress(it, total=total, desc="lights", quiet=quiet))
-    shadow_map = D.build_dgsm(mix, lights.positions, recv_points, size=(h, w), bins=bins,
-                              layout=atlas, t_max=t_max, roi=roi, roi_radius=roi_radius,
-                              cull=cull, cull_tolerance=cull_tolerance, progress=bar)
+    options = dict(size=(h, w), bins=bins, layout=atlas, t_max=t_max, roi=roi,
+                   roi_radius=roi_radius, cull=cull, cull_tolerance=cull_tolerance)
+    if len(objects) == 1:
+        bar = (lambda it, total: progress(it, total=total, desc="lights", quiet=quiet))
+        shadow_map = D.build_dgsm(mix, lights.positions, recv_points, progress=bar, **options)
+    else:
+        # each object receives the others' shadows: its footprint samples join their ROIs
+        group_points = [D.footprint_samples(o.means, o.scales, o.rotations, footprint, samples,
+                                            seed)[0].reshape(-1, 3) for o in objects]
+        bar = (lambda it, total: progress(it, total=total, desc="occluders", quiet=quiet))
+        shadow_map = D.build_dgsm_groups(
+            [TR.from_gaussians(o, mapping, kappa) for o in objects], lights.positions,
+            recv_points, group_points, names=list(occluders), progress=bar, **options)
     for li, info in enumerate(shadow_map.roi):
         if scene is not None and roi and info["receivers"] == 0:
             log(f"warning: light {li}: no receivers in the ROI (none can be shadowed by the "
@@ -183,7 +210,8 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     log(f"built in {shadow_map.build_seconds:.3f} s ({st['pairs_kept']} ray/Gaussian pairs kept "
         f"of {st['pairs_tested']} tested)", quiet)
 
-    inputs = {"occluders": occluders}
+    inputs = {"occluders": parsed[0][0]} if len(occluders) == 1 else {
+        f"occluder{j}": source for j, (source, _) in enumerate(parsed)}
     if receivers is not None:
         inputs["receivers"] = receivers
     if auto_k is None:
@@ -191,12 +219,14 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     settings = {"size": [h, w], "bins": bins, "atlas": atlas, "mapping": mapping, "kappa": kappa,
                 "t_max": t_max, "roi": roi, "roi_radius": roi_radius, "cull": cull,
                 "cull_tolerance": cull_tolerance, "footprint": footprint, "samples": samples,
-                "seed": seed, "lights": lights_spec, "half": half, "translate": translate}
+                "seed": seed, "lights": lights_spec, "half": half, "translate": translate,
+                "occluders": list(occluders)}
     write_dgsm(output, shadow_map, provenance(FORMAT, VERSION, inputs, settings), half=half)
     log(f"wrote {output} ({time.perf_counter() - start:.2f} s)", quiet)
     if occluders_out is not None:
-        write_gaussians(occluders_out, occ, provenance(GFORMAT, GVERSION, {"occluders": occluders},
-                                                       {"translate": translate}))
+        write_gaussians(occluders_out, occ, provenance(GFORMAT, GVERSION, inputs,
+                                                       {"translate": translate,
+                                                        "occluders": list(occluders)}))
         log(f"wrote {occluders_out}", quiet)
     if receivers_out is not None and scene is not None:
         write_gaussians(receivers_out, scene, provenance(GFORMAT, GVERSION,
@@ -283,3 +313,33 @@ def _lights_inside(mix, positions, threshold: float = 1.0):
 
 def _fmt(v) -> str:
     return "(" + ", ".join(f"{float(x):.3g}" for x in v) + ")"
+
+
+def parse_occluder(spec: str, what: str):
+    """``SOURCE[:PLACEMENT]`` → (source, Placement); a bad spec is a usage error (exit 2)."""
+    from relight_cli.errors import UsageProblem
+    from relight_cli.gaussians.placement import USAGE, parse_spec
+    try:
+        return parse_spec(spec)
+    except ValueError as exc:
+        raise UsageProblem(f"bad {what} placement: {exc}; expected {USAGE}", spec) from None
+
+
+def load_placed(source: str, placement, spec: str, offset=None):
+    """Load Gaussians (PLY, mesh or builtin:) and apply the placement, then ``offset`` [3]."""
+    import numpy as np
+
+    from relight_cli.errors import DataError
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    from relight_cli.gaussians.placement import place
+
+    g = load_gaussians(source)
+    if len(g) == 0:
+        raise DataError("no Gaussians", source)
+    try:
+        g = place(g, placement)
+    except ValueError as exc:
+        raise DataError(f"cannot place it: {exc}", spec) from None
+    if offset is not None:
+        g.means = g.means + np.asarray(offset, np.float64)
+    return g

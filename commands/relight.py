@@ -28,6 +28,11 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
               help="[Gaussians] Deep Gaussian Shadow Map (relight dgsm-build) darkening --receivers.")
 @click.option("--receivers", default=None, metavar="SCENE.ply",
               help="[Gaussians] Scene Gaussians: shadowed by --dgsm, and rendered with --render.")
+@click.option("--object", "objects", multiple=True, metavar="SPEC",
+              help="[Gaussians] Another object inserted beside IN (repeatable): a PLY, mesh or "
+                   "builtin:, with a placement SOURCE:KEY=VALUE;... as in dgsm-build. Relit "
+                   "by --probe like IN; with a grouped --dgsm, IN and the objects (in this "
+                   "order, matching dgsm-build's OCCLUDERs) shadow each other.")
 @click.option("--receivers-out", default=None, metavar="PLY",
               help="[Gaussians] Also write the shadowed receivers as a PLY.")
 @click.option("--footprint", type=click.Choice(["centre", "stencil", "mc"]), default="stencil",
@@ -89,7 +94,7 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @seed_option
 @no_clobber_option
 @quiet_option
-def command(input, env, output, probe, dgsm, receivers, receivers_out, footprint, samples,
+def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
             shadow_strength, lobe, intensity, t_max, normals, render_camera, background, model,
             hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
@@ -97,12 +102,16 @@ def command(input, env, output, probe, dgsm, receivers, receivers_out, footprint
     """Relight IN under new lighting.
 
     \b
-    IN = AVATAR.ply (3DGS Gaussians): per-Gaussian SH radiance transfer from
-    --probe (paper Eq. 9-10): colour = γ · albedo · clip(S(n), 0, t_max), S the
-    cosine-lobe (exponent q) weighted mean probe radiance around the normal n.
-    With --dgsm and --receivers, the receivers' colours are multiplied by the
-    shadow-map transmittance.  Writes the relit avatar PLY, or with --render
-    an EXR view of receivers + avatar.
+    IN = AVATAR.ply (3DGS Gaussians; also a mesh or builtin:hand|room|sphere,
+    optionally placed as SOURCE:KEY=VALUE;... like dgsm-build's OCCLUDERs):
+    per-Gaussian SH radiance transfer from --probe (paper Eq. 9-10): colour =
+    γ · albedo · clip(S(n), 0, t_max), S the cosine-lobe (exponent q) weighted
+    mean probe radiance around the normal n (normals per object).  --object
+    inserts more objects, relit the same way.  With --dgsm and --receivers, the
+    receivers' colours are multiplied by the shadow-map transmittance; with a
+    DGSM of several OCCLUDERs, each object is also multiplied by the
+    transmittance through the OTHER objects (never its own).  Writes the relit
+    objects as one PLY, or with --render an EXR view of receivers + objects.
 
     IN = HAND.npz (or builtin:right|left|two[:POSE]) with --model physical:
     render the posed hand(s) under the env map ENV (EXR/HDR or
@@ -116,12 +125,17 @@ def command(input, env, output, probe, dgsm, receivers, receivers_out, footprint
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
       relight relight avatar.ply --probe probe.json --dgsm shadows.exr \\
           --receivers room.ply --render cam.json -o view.exr --preview view.png
+      relight relight 'builtin:hand:translate=0,0.25,0' --object 'donut.ply:fit=0.15;on-floor' \\
+          --probe probe.json --dgsm shadows.exr --receivers room.ply --render cam.json -o view.exr
       relight relight hand.npz builtin:sky --model physical --camera cam.json -o img.exr
     """
     from relight_cli.errors import UsageProblem
 
-    lower = input.lower()
-    if lower.endswith(".ply"):
+    from relight_cli.gaussians.placement import split_spec
+
+    lower = split_spec(input)[0].lower()
+    if (lower.endswith((".ply", ".obj", ".glb", ".gltf", ".stl", ".off")) or objects
+            or lower in ("builtin:hand", "builtin:room", "builtin:sphere")):
         hand_only = {"ENV": env, "--model": model, "--camera": hand_camera, "--size": hand_size,
                      "--lights": hand_lights, "--frame": hand_frame, "--mesh": hand_mesh,
                      "--env-res": env_res, "--tex-res": tex_res, "--aa": aa,
@@ -135,11 +149,12 @@ def command(input, env, output, probe, dgsm, receivers, receivers_out, footprint
         return _relight_gaussians(**locals())
     if lower.endswith(".npz") or lower.startswith("builtin:"):
         return _relight_hand(**locals())
-    raise UsageProblem("IN must be a Gaussians .ply or a hand .npz (or builtin:right|left|two); "
-                       "cannot tell what this is", input)
+    raise UsageProblem("IN must be a Gaussians .ply (or a mesh, builtin:hand|room|sphere) or a "
+                       "hand .npz (or builtin:right|left|two); cannot tell what this is", input)
 
 
-def _relight_gaussians(input, output, probe, dgsm, receivers, receivers_out, footprint, samples,
+def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers_out, footprint,
+                       samples,
                        shadow_strength, lobe, intensity, t_max, normals, render_camera, background,
                        preview, seed, no_clobber, quiet, **_):
     import math
@@ -148,7 +163,8 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, receivers_out, foo
     import numpy as np
 
     from relight_cli.errors import DataError, UsageProblem
-    from relight_cli.formats.gaussians_ply import FORMAT, VERSION, read_gaussians, write_gaussians
+    from relight_cli.formats.gaussians_ply import FORMAT, VERSION, write_gaussians
+    from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.formats.sh_probe_json import read_probe
     from relight_cli.gaussians import transfer as TF
     from relight_cli.provenance import provenance
@@ -177,24 +193,31 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, receivers_out, foo
                            "-o IMAGE.exr", output)
     for path in (output, receivers_out, preview):
         check_output(path, no_clobber)
-    for path in (input, probe, dgsm, receivers, render_camera):
+    from relight_cli.commands.dgsm_build import load_placed, parse_occluder
+
+    specs = [input] + list(objects)
+    parsed = [parse_occluder(spec, "IN/--object") for spec in specs]
+    for path in [source for source, _ in parsed] + [probe, dgsm, receivers, render_camera]:
         if path is not None:
             check_input(path)
 
     start = time.perf_counter()
-    avatar = read_gaussians(input)
     sh_probe = read_probe(probe)
-    log(f"read {input}: {len(avatar)} Gaussians; probe degree {sh_probe.degree}", quiet)
-    try:
-        relit = TF.relight_gaussians(avatar, sh_probe.coefficients, q=lobe, intensity=intensity,
-                                     t_max=math.inf if t_max is None else t_max,
-                                     normal_method=normals)
-    except ValueError as exc:  # e.g. --normals stored on a file without normals
-        raise DataError(str(exc), input) from None
+    relit_objects = []
+    for spec, (source, placement) in zip(specs, parsed):
+        avatar = load_placed(source, placement, spec)
+        log(f"read {spec}: {len(avatar)} Gaussians", quiet)
+        try:
+            relit_objects.append(TF.relight_gaussians(
+                avatar, sh_probe.coefficients, q=lobe, intensity=intensity,
+                t_max=math.inf if t_max is None else t_max, normal_method=normals))
+        except ValueError as exc:  # e.g. --normals stored on a file without normals
+            raise DataError(str(exc), source) from None
+    log(f"probe degree {sh_probe.degree}", quiet)
 
     scene = None
     if receivers is not None:
-        scene = read_gaussians(receivers)
+        scene = load_gaussians(receivers)   # PLY, mesh or builtin:
         log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
     if dgsm is not None:
         shadow_map = _read_dgsm(dgsm)
@@ -205,15 +228,36 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, receivers_out, foo
         scene = TF.attenuate(scene, factor)
         log(f"shadowed receivers: mean factor {factor.mean():.3f}, "
             f"{int((factor < 0.99).sum())} of {len(factor)} darkened", quiet)
+        if shadow_map.groups is not None:
+            if len(shadow_map.groups) != len(relit_objects):
+                raise DataError(f"the shadow map has {len(shadow_map.groups)} occluder groups "
+                                f"({', '.join(shadow_map.group_names)}) but {len(relit_objects)} "
+                                f"object(s) were given (IN + --object, in dgsm-build's order)",
+                                dgsm)
+            for j, obj in enumerate(relit_objects):
+                T = sample_transmittance(shadow_map.others(j), obj.means, obj.scales,
+                                         obj.rotations, footprint=footprint, samples=samples,
+                                         seed=seed)
+                factor = TF.shadow_factor(T, None, shadow_strength)
+                relit_objects[j] = TF.attenuate(obj, factor)
+                log(f"shadowed object {j} by the others: mean factor {factor.mean():.3f}, "
+                    f"{int((factor < 0.99).sum())} of {len(factor)} darkened", quiet)
+        elif len(relit_objects) > 1:
+            log("note: the shadow map has no occluder groups, so the objects do not shadow "
+                "each other (build it from all objects: dgsm-build A B ...)", quiet)
 
-    inputs = {"input": input, "probe": probe}
+    from relight_cli.formats.gaussians_ply import concatenate
+    relit = relit_objects[0] if len(relit_objects) == 1 else concatenate(relit_objects)
+    inputs = {"input": parsed[0][0], "probe": probe}
+    for j, (source, _) in enumerate(parsed[1:]):
+        inputs[f"object{j}"] = source
     if receivers:
         inputs["receivers"] = receivers
     if dgsm:
         inputs["dgsm"] = dgsm
     settings = {"lobe": lobe, "intensity": intensity, "t_max": t_max, "normals": normals,
                 "footprint": footprint, "samples": samples, "seed": seed,
-                "shadow_strength": shadow_strength}
+                "shadow_strength": shadow_strength, "objects": specs}
     if receivers_out is not None:
         write_gaussians(receivers_out, scene, provenance(FORMAT, VERSION, inputs,
                                                          dict(settings, role="receivers")))
@@ -225,7 +269,6 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, receivers_out, foo
 
     from relight_cli.formats.camera import read_camera
     from relight_cli.formats.exr import write_exr
-    from relight_cli.formats.gaussians_ply import concatenate
     from relight_cli.gaussians.splat import render
 
     camera = read_camera(render_camera)

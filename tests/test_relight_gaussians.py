@@ -210,7 +210,11 @@ def test_cli_subprocess(files):
 
 @pytest.mark.parametrize("args, code, message", [
     (["hand.npz"], 2, "give an env map ENV"),   # hand mode: lighting is required
-    (["thing.obj", "--probe", "probe.json"], 2, "IN must be a Gaussians .ply"),
+    (["thing.xyz", "--probe", "probe.json"], 2, "IN must be a Gaussians .ply"),
+    (["thing.obj", "--probe", "probe.json"], 1, "no such file"),   # meshes are Gaussian inputs
+    (["avatar.ply:scale=0", "--probe", "probe.json"], 2, "scale must be > 0"),
+    (["avatar.ply", "--object", "avatar.ply:spin=3", "--probe", "probe.json"], 2,
+     "unknown placement key 'spin'"),
     (["avatar.ply"], 2, "needs --probe"),
     (["avatar.ply", "--probe", "probe.json", "--dgsm", "x.exr"], 2, "give --receivers"),
     (["avatar.ply", "--probe", "probe.json", "--lobe", "0"], 2, "--lobe must be"),
