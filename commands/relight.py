@@ -134,8 +134,12 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     from relight_cli.gaussians.placement import split_spec
 
     lower = split_spec(input)[0].lower()
-    if (lower.endswith((".ply", ".obj", ".glb", ".gltf", ".stl", ".off")) or objects
-            or lower in ("builtin:hand", "builtin:room", "builtin:sphere")):
+    gaussian_in = (lower.endswith((".ply", ".obj", ".glb", ".gltf", ".stl", ".off"))
+                   or lower in ("builtin:hand", "builtin:room", "builtin:sphere"))
+    if objects and not gaussian_in:
+        raise UsageProblem("--object inserts Gaussian objects beside IN = AVATAR.ply (or a mesh, "
+                           "builtin:hand|room|sphere); it does not apply to a hand .npz", input)
+    if gaussian_in:
         hand_only = {"ENV": env, "--model": model, "--camera": hand_camera, "--size": hand_size,
                      "--lights": hand_lights, "--frame": hand_frame, "--mesh": hand_mesh,
                      "--env-res": env_res, "--tex-res": tex_res, "--aa": aa,

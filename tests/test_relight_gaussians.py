@@ -212,6 +212,7 @@ def test_cli_subprocess(files):
     (["hand.npz"], 2, "give an env map ENV"),   # hand mode: lighting is required
     (["thing.xyz", "--probe", "probe.json"], 2, "IN must be a Gaussians .ply"),
     (["thing.obj", "--probe", "probe.json"], 1, "no such file"),   # meshes are Gaussian inputs
+    (["hand.npz", "--object", "avatar.ply"], 2, "--object inserts Gaussian objects"),
     (["avatar.ply:scale=0", "--probe", "probe.json"], 2, "scale must be > 0"),
     (["avatar.ply", "--object", "avatar.ply:spin=3", "--probe", "probe.json"], 2,
      "unknown placement key 'spin'"),
