@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -43,7 +44,9 @@ from relight_cli.formats.envmap import EnvMap
 # Shading works on [receivers, directions] blocks of at most this many entries
 # (float64: 8 bytes each, a handful alive at once) to bound memory.
 _BLOCK = 1 << 16
-# OpenBLAS multithreads a GEMM above 4·65536 multiply-adds; stay below (see _apply_stacked).
+# Entries per block of dot3's temporaries (256 KiB of float64: stays in L2).
+_DOT_BLOCK = 1 << 15
+# OpenBLAS multithreads a GEMM above 4·65536 multiply-adds; stay below (see _shade_stacked).
 _GEMM_SINGLE = 1 << 17
 # Transport weights (N·M per feature, float64) are kept between env maps up to
 # this many entries (128 MiB); beyond it they are streamed and recomputed.
@@ -259,6 +262,10 @@ def trace_threads() -> int:
 # bounded peak memory for the per-ray origin/direction arrays), large enough that
 # the per-call Python overhead (~50 µs) is noise.
 _MIN_CHUNK = 1 << 15
+# (receiver, direction) entries per ray-building step (12 MiB of tiled float32 directions).
+_TILE = 1 << 20
+# One float32 xyz triple as a single 12-byte record, for memcpy-speed repeat/compress.
+_VEC3 = np.dtype((np.void, 12))
 _MAX_CHUNK = 1 << 20
 
 
@@ -319,17 +326,22 @@ class VisibilityCache:
         self.threads = trace_threads() if threads is None else max(1, int(threads))
         self._origins = None
         self._dirs32 = None
+        self._warm = False
+        self._tiled = None
+        self._lock = threading.Lock()
 
     def ray_origins(self) -> np.ndarray:
         """[N, 3] float32 ray origins (receiver lifted along its normal), metres, world."""
-        if self._origins is None:
+        if self._origins is None:   # directions first: a thread seeing origins finds both
+            self._dirs32 = self.directions.astype(np.float32)
             self._origins = (self.receivers.points + self.ray_offset
                              * self.receivers.normals).astype(np.float32)
-            self._dirs32 = self.directions.astype(np.float32)
         return self._origins
 
     def require(self, need: np.ndarray) -> int:
-        """Trace every pair of ``need`` ([N, M] bool) not traced yet; return how many."""
+        """Trace every pair of ``need`` ([N, M] bool) not traced yet; return how many.
+
+        Chunks of receivers are traced concurrently on ``threads`` workers."""
         t0 = time.perf_counter()
         todo = need & ~self.traced                                # [N, M]
         per_row = np.count_nonzero(todo, axis=1)
@@ -338,40 +350,109 @@ class VisibilityCache:
             if self.scene is None:
                 self.visible |= todo
             else:
-                self._trace(todo, per_row)
+                chunks = _row_chunks(per_row, self.threads)
+                workers = min(self.threads, len(chunks))
+                counted = self.scene.rays_traced
+                if workers > 1:
+                    self.warm_up()
+                    list(_pool(workers).map(
+                        lambda rows: self._trace_rows(rows, todo[rows], per_row[rows]), chunks))
+                else:
+                    for rows in chunks:
+                        self._trace_rows(rows, todo[rows], per_row[rows])
+                # RayScene's counter is not thread-safe (+= from several workers): set it once.
+                self.scene.rays_traced = counted + count
                 self.rays_traced += count
             self.traced |= todo
         self.seconds += time.perf_counter() - t0
         return count
 
-    def _trace(self, todo: np.ndarray, per_row: np.ndarray):
-        origins = self.ray_origins()
-        dirs = self._dirs32
-        scene = self.scene
-        counted = scene.rays_traced
-        chunks = _row_chunks(per_row, self.threads)
+    def require_rows(self, rows: slice, need: np.ndarray) -> int:
+        """:meth:`require` for receivers ``rows`` only (``need`` [len(rows), M] bool), traced
+        on the calling thread.  Calls for disjoint rows may run concurrently (after
+        :meth:`warm_up`); the counters are then updated under a lock, except
+        ``scene.rays_traced``, which the caller must correct (see :meth:`require`)."""
+        t0 = time.perf_counter()
+        traced = self.traced[rows]
+        todo = need & ~traced
+        per_row = np.count_nonzero(todo, axis=1)
+        count = int(per_row.sum())
+        if count:
+            if self.scene is None:   # nothing occludes: visible, and no ray traced
+                self.visible[rows] |= todo
+                count = 0
+            else:
+                self._trace_rows(rows, todo, per_row)
+            traced |= todo
+        with self._lock:
+            self.rays_traced += count
+            self.seconds += time.perf_counter() - t0
+        return count
 
-        def work(rows: slice):
-            # Row-major pair order: origins repeat per receiver (no gather), and the
-            # boolean-mask assignment walks the same order.  Rows are disjoint between
-            # chunks, so workers write disjoint parts of ``visible``.
-            sub = todo[rows]
-            _, mm = np.nonzero(sub)
-            o = np.repeat(origins[rows], per_row[rows], axis=0)
-            d = np.take(dirs, mm, axis=0)
-            blocked = scene.occluded(o, d)
-            self.visible[rows][sub] = ~blocked
+    def warm_up(self):
+        """Build embree's BVH (done on the first query) before threads race to it."""
+        if self.scene is not None and not self._warm:
+            counted = self.scene.rays_traced
+            self.scene.occluded(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
+            self.scene.rays_traced = counted
+            self._warm = True
 
-        workers = min(self.threads, len(chunks))
-        if workers > 1:
-            # embree builds the BVH on the first query; do that once, before threads race to it.
-            scene.occluded(origins[:1], dirs[:1])
-            list(_pool(workers).map(work, chunks))
-        else:
-            for rows in chunks:
-                work(rows)
-        # RayScene's counter is not thread-safe (+= from several workers); set it once.
-        scene.rays_traced = counted + int(per_row.sum())
+    def _trace_rows(self, rows: slice, todo: np.ndarray, per_row: np.ndarray):
+        """Trace ``todo`` ([len(rows), M] bool) of receivers ``rows``; write ``visible[rows]``."""
+        origins = self.ray_origins().view(_VEC3).reshape(-1)        # [N] 12-byte records
+        m = len(self.directions)
+        step = max(1, _TILE // max(1, m))
+        for s in range(0, len(per_row), step):
+            t = todo[s:s + step]
+            b = len(t)
+            tiled = self._tiled_dirs(b)
+            # Row-major pair order: origins repeat per receiver and directions are a
+            # boolean compress of the tiled grid (both memcpy-like; a fancy-index gather of
+            # [rays, 3] floats was 5× slower), and the mask assignment walks the same order.
+            o = np.repeat(origins[rows.start + s:rows.start + s + b], per_row[s:s + b])
+            d = tiled[:b * m][np.ascontiguousarray(t).reshape(-1)]
+            blocked = self.scene.occluded(o.view(np.float32).reshape(-1, 3),
+                                          d.view(np.float32).reshape(-1, 3))
+            self.visible[rows.start + s:rows.start + s + b][t] = ~blocked
+
+    def _tiled_dirs(self, rows: int) -> np.ndarray:
+        """[≥ rows·M] 12-byte records: the float32 direction grid repeated ``rows`` times."""
+        tiled = self._tiled
+        if tiled is None or len(tiled) < rows * len(self.directions):
+            base = np.ascontiguousarray(self._dirs32).view(_VEC3).reshape(-1)
+            tiled = np.tile(base, max(rows, 1))
+            self._tiled = tiled      # racing threads each build a valid one; either is kept
+        return tiled
+
+
+def dot3(vectors: np.ndarray, directions: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """[n, M] float64 dot products of ``vectors`` [n, 3] with ``directions`` [M, 3].
+
+    Three broadcast multiply-adds instead of a BLAS product: with an inner dimension
+    of 3 the work is memory-bound, and OpenBLAS would split it over threads, which
+    stalls when several worker threads call it at once.  Culling and shading both use
+    this one function, so a pair's n·ω and r·ω are bit-identical in both.
+    """
+    v = np.asarray(vectors, np.float64)
+    d = np.asarray(directions, np.float64)
+    if out is None:
+        out = np.empty((len(v), len(d)))
+    step = max(1, _DOT_BLOCK // max(1, len(d)))       # rows whose temporaries stay in cache
+    tmp = np.empty((min(step, len(v)), len(d)))
+    for s in range(0, len(v), step):
+        o = out[s:s + step]
+        t = tmp[:len(o)]
+        np.multiply(v[s:s + step, 0:1], d[:, 0], out=o)
+        np.multiply(v[s:s + step, 1:2], d[:, 1], out=t)
+        o += t
+        np.multiply(v[s:s + step, 2:3], d[:, 2], out=t)
+        o += t
+    return out
+
+
+def _matvec(a: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """a @ x ([b, M] · [M]) without BLAS (see :func:`dot3`)."""
+    return np.einsum("ij,j->i", a, x)
 
 
 def needed_pairs(receivers: Receivers, reflected: np.ndarray | None, directions: np.ndarray,
@@ -387,12 +468,20 @@ def needed_pairs(receivers: Receivers, reflected: np.ndarray | None, directions:
     Receivers with undefined normals need nothing (their features are 0).
     ``cosines`` optionally passes n·ω [N, M] already computed.
     """
-    cos = receivers.normals @ directions.T if cosines is None else cosines   # [N, M]
+    return _needed_pairs(receivers, reflected, directions, lit, settings, cosines)[0]
+
+
+def _needed_pairs(receivers, reflected, directions, lit, settings, cosines=None):
+    """:func:`needed_pairs` and the r·ω [N, M] it computed (None without Phong), which
+    :func:`_transport_stacked` reuses."""
+    cos = dot3(receivers.normals, directions) if cosines is None else cosines   # [N, M]
     need = cos > 0
+    lobes = None
     if settings.phong and reflected is not None:
-        need |= ((reflected @ directions.T) > lobe_cutoff(settings.phong)) & lit[None, :]
+        lobes = dot3(reflected, directions)
+        need |= (lobes > lobe_cutoff(settings.phong)) & lit[None, :]
     need &= receivers.defined[:, None]
-    return need
+    return need, lobes
 
 
 # ---------------------------------------------------------------- shading
@@ -435,13 +524,14 @@ def transport_blocks(receivers: Receivers, view: np.ndarray, directions: np.ndar
 
 
 def _transport_stacked(receivers, view, directions, solid_angle, visible, settings,
-                       roughness=None, cosines=None):
+                       roughness=None, cosines=None, lobes=None):
     """:func:`transport_blocks` with each block's weights stacked: (slice, names, [K, b, M], vis).
 
-    Stacking lets :func:`_apply_stacked` shade a block with one matrix product, and
-    the in-place arithmetic below avoids allocating a fresh [b, M] array per step.
+    One allocation per block holds every feature, and the in-place arithmetic below
+    avoids allocating a fresh [b, M] array per step.
     Bit-identical to the formulas in :func:`transport_blocks`: h ∈ {0, 1}, so
-    (h·x)^α = h·x^α for α > 0 and h·x = x or 0 exactly.
+    (h·x)^α = h·x^α for α > 0 and h·x = x or 0 exactly.  ``lobes`` optionally passes r·ω
+    [N, M] from :func:`_needed_pairs`; it is used as scratch space.
     """
     n = len(receivers)
     m = len(directions)
@@ -452,7 +542,6 @@ def _transport_stacked(receivers, view, directions, solid_angle, visible, settin
     names = feature_names(settings)[:-1]
     phong_at = {a: names.index(phong_name(a)) for a in settings.phong}
     step = max(1, _BLOCK // max(1, m))
-    d_t = np.ascontiguousarray(directions.T)
     for s in range(0, n, step):
         sl = slice(s, min(n, s + step))
         b = sl.stop - sl.start
@@ -460,15 +549,16 @@ def _transport_stacked(receivers, view, directions, solid_angle, visible, settin
         h = visible[sl]                                           # [b, M] bool
         cos = out[0]
         if cosines is None:
-            np.matmul(receivers.normals[sl], d_t, out=cos)
+            dot3(receivers.normals[sl], directions, out=cos)
         else:
             cos[...] = cosines[sl]
         np.maximum(cos, 0, out=cos)
-        denom = cos @ solid_angle
+        denom = _matvec(cos, solid_angle)
         np.multiply(cos, h, out=cos)                              # W_diffuse = h·max(n·ω, 0)
-        vis = np.divide(cos @ solid_angle, denom, out=np.zeros_like(denom), where=denom > 0)
+        vis = np.divide(_matvec(cos, solid_angle), denom, out=np.zeros_like(denom), where=denom > 0)
         if settings.phong:
-            lobe = reflected[sl] @ d_t                            # [b, M] r·ω
+            # [b, M] r·ω (``lobes`` from culling is overwritten in place: a scratch array)
+            lobe = dot3(reflected[sl], directions) if lobes is None else lobes[sl]
             lobe *= lobe > cutoff                                 # the lobe's support
             positive = [a for a in settings.phong if a > 0]
             if positive:
@@ -491,17 +581,27 @@ def _transport_stacked(receivers, view, directions, solid_angle, visible, settin
         yield sl, names, out, vis
 
 
-def _apply_stacked(blocks, n: int, envs: list[DiscreteEnv]) -> list[dict]:
-    """:func:`apply_transport` for :func:`_transport_stacked` blocks: one product per block."""
+def _weighted_radiance(envs: list[DiscreteEnv]) -> np.ndarray:
+    """[M, 3E] float64: L(ω_m)·Δω_m of every env map side by side."""
     omega = envs[0].solid_angle
-    weighted = np.concatenate([e.radiance * omega[:, None] for e in envs], axis=1)   # [M, 3E]
-    out = None
+    return np.concatenate([e.radiance * omega[:, None] for e in envs], axis=1)
+
+
+def _empty_features(names, n: int, count: int) -> list[dict]:
+    """``count`` dicts of zeroed outputs: name → [n, 3], ``visibility`` → [n]."""
+    out = [{name: np.zeros((n, 3)) for name in names} for _ in range(count)]
+    for o in out:
+        o["visibility"] = np.zeros(n)
+    return out
+
+
+def _shade_stacked(blocks, weighted: np.ndarray, out: list[dict]):
+    """Shade :func:`_transport_stacked` blocks into ``out`` (from :func:`_empty_features`).
+
+    Blocks write only their own rows, so disjoint blocks may be shaded concurrently.
+    """
     for sl, names, stacked, vis in blocks:
         k, b, m = stacked.shape
-        if out is None:
-            out = [{name: np.zeros((n, 3)) for name in names} for _ in envs]
-            for o in out:
-                o["visibility"] = np.zeros(n)
         # Products of at most _GEMM_SINGLE multiply-adds: OpenBLAS runs those on one
         # thread, and its thread hand-off costs more than it saves on these memory-bound
         # tall-skinny products (3-10× slower on a busy 2-core machine, measured).
@@ -513,9 +613,6 @@ def _apply_stacked(blocks, n: int, envs: list[DiscreteEnv]) -> list[dict]:
                     o[name][sl.start + r:sl.start + r + len(res)] = res[:, 3 * j:3 * j + 3]
         for o in out:
             o["visibility"][sl] = vis
-    if out is None:   # no receivers
-        return apply_transport([], n, envs)
-    return out
 
 
 def apply_transport(blocks, n: int, envs: list[DiscreteEnv]) -> list[dict]:
@@ -681,6 +778,7 @@ class FeatureBaker:
                             else np.asarray(grid.solid_angle, np.float64))
         self.cache = VisibilityCache(scene, self.receivers, self.directions, offset, threads)
         self._cosines = None            # n·ω [N, M]: pose-only, shared by culling and shading
+        self._cosines_done = None
         self._transport = None          # cached transport blocks for (eye, roughness)
         self._transport_key = None
         self._lit_covered = np.zeros(len(self.directions), bool)
@@ -719,38 +817,96 @@ class FeatureBaker:
         # costs one small matrix product per feature.
         reuse = (self._transport is not None and self._transport_key == key
                  and not (lit & ~self._lit_covered).any())
+        names = feature_names(self.settings)[:-1]
+        weighted = _weighted_radiance(discrete)
+        per_env = _empty_features(names, len(self.receivers), len(discrete))
+        workers = self.cache.threads
         if not reuse:
             view = view_directions(self.receivers.points, eye)
             reflected = reflect(view, self.receivers.normals)
             lit_all = lit | (self._lit_covered if self._transport_key == key else False)
-            if self._cosines is None:
-                self._cosines = self.receivers.normals @ self.directions.T
-            need = needed_pairs(self.receivers, reflected, self.directions, lit_all, self.settings,
-                                self._cosines)
+            size = len(self.receivers) * len(self.directions) * len(feature_names(self.settings))
+            keep = size <= _TRANSPORT_CACHE     # else stream (benchmark references)
+            if self._cosines is None and keep:
+                self._cosines = np.empty((len(self.receivers), len(self.directions)))
+                self._cosines_done = np.zeros(len(self.receivers), bool)
             self.stats.add_time("cull", time.perf_counter() - t0)
-            before = self.cache.seconds
-            self.cache.require(need)
-            self.stats.add_time("trace", self.cache.seconds - before)
+            self.cache.ray_origins()
+            self.cache.warm_up()
+            counted = None if self.cache.scene is None else self.cache.scene.rays_traced
+            traced_before = self.cache.rays_traced
+            timers = []
+
+            def pose_chunk(rows: slice):
+                # Every stage of a new pose is local to its receivers: cull, trace, transport
+                # and shade run per chunk of rows, chunks concurrently on the pool (numpy
+                # and embree both release the GIL), each writing only its own rows.
+                c0 = time.perf_counter()
+                sub = Receivers(self.receivers.points[rows], self.receivers.normals[rows],
+                                self.receivers.defined[rows])
+                if not keep:
+                    cos = dot3(sub.normals, self.directions)
+                else:
+                    cos = self._cosines[rows]
+                    if not self._cosines_done[rows].all():
+                        dot3(sub.normals, self.directions, out=cos)
+                        self._cosines_done[rows] = True
+                need, lobes = _needed_pairs(sub, reflected[rows], self.directions, lit_all,
+                                            self.settings, cos)
+                c1 = time.perf_counter()
+                self.cache.require_rows(rows, need)
+                c2 = time.perf_counter()
+                blocks = [(slice(sl.start + rows.start, sl.stop + rows.start), nm, w, vis)
+                          for sl, nm, w, vis in _transport_stacked(
+                              sub, view[rows], self.directions, self.solid_angle,
+                              self.cache.visible[rows], self.settings,
+                              None if roughness is None else roughness[rows], cos, lobes)]
+                c3 = time.perf_counter()
+                _shade_stacked(blocks, weighted, per_env)
+                timers.append((c1 - c0, c2 - c1, c3 - c2, time.perf_counter() - c3))
+                return blocks if keep else None
+
+            chunks = self._row_slices(workers)
+            if workers > 1 and len(chunks) > 1:
+                results = list(_pool(min(workers, len(chunks))).map(pose_chunk, chunks))
+            else:
+                results = [pose_chunk(rows) for rows in chunks]
+            if counted is not None:   # RayScene's counter is not thread-safe: set it once
+                self.cache.scene.rays_traced = counted + self.cache.rays_traced - traced_before
+            # Stage times summed over workers (thread-seconds; their sum exceeds the wall
+            # time when chunks run concurrently).
+            for stage, k in (("cull", 0), ("trace", 1), ("transport", 2), ("shade", 3)):
+                self.stats.add_time(stage, sum(t[k] for t in timers))
             self.stats.rays_traced = self.cache.rays_traced
             self.stats.rays_possible += len(self.receivers) * len(self.directions) * (
                 1 if self.settings.visibility else 0)
-            t0 = time.perf_counter()
-            blocks = _transport_stacked(self.receivers, view, self.directions, self.solid_angle,
-                                        self.cache.visible, self.settings, roughness,
-                                        self._cosines)
-            size = len(self.receivers) * len(self.directions) * len(feature_names(self.settings))
-            if size <= _TRANSPORT_CACHE:
-                blocks = list(blocks)
-                self._transport, self._transport_key, self._lit_covered = blocks, key, lit_all
-            else:  # too big to keep (benchmark references): stream, recompute next time
+            if keep:
+                self._transport = [b for blocks in results for b in blocks]
+                self._transport_key, self._lit_covered = key, lit_all
+            else:
                 self._transport, self._transport_key = None, None
-            self.stats.add_time("transport", time.perf_counter() - t0)
         else:
+            self.stats.add_time("cull", time.perf_counter() - t0)
+            t0 = time.perf_counter()
             blocks = self._transport
-        t0 = time.perf_counter()
-        per_env = _apply_stacked(blocks, len(self.receivers), discrete)
-        self.stats.add_time("shade", time.perf_counter() - t0)
+            groups = [blocks[i::workers] for i in range(workers)] if workers > 1 else [blocks]
+            groups = [g for g in groups if g]
+            if len(groups) > 1:
+                list(_pool(len(groups)).map(lambda g: _shade_stacked(g, weighted, per_env),
+                                            groups))
+            else:
+                _shade_stacked(blocks, weighted, per_env)
+            self.stats.add_time("shade", time.perf_counter() - t0)
         return [[{k: v[sl] for k, v in feats.items()} for sl in self.slices] for feats in per_env]
+
+    def _row_slices(self, workers: int) -> list[slice]:
+        """Receiver chunks for the pose pipeline: whole shading blocks, about 4 per worker."""
+        n = len(self.receivers)
+        step = max(1, _BLOCK // max(1, len(self.directions)))
+        blocks = -(-n // step)
+        per_chunk = max(1, -(-blocks // (4 * workers))) if workers > 1 else blocks
+        size = per_chunk * step
+        return [slice(s, min(n, s + size)) for s in range(0, n, size)]
 
 
 # ---------------------------------------------------------------- slow twin
