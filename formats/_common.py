@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import os
+
 from relight_cli.errors import DataError
 
 
@@ -20,3 +23,19 @@ def check_format_version(found_format, found_version, format_name: str, max_vers
         raise DataError(f"{format_name} version {found_version} is newer than this relight "
                         f"understands (≤ {max_version})", path, hint="upgrade relight")
     return found_version
+
+
+def read_json(path: str):
+    """Parse a JSON file; a missing file, a folder, non-UTF-8 bytes or bad JSON
+    raise one-line DataErrors naming the file."""
+    if not os.path.exists(path):
+        raise DataError("no such file", path)
+    if os.path.isdir(path):
+        raise DataError("is a directory, expected a JSON file", path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except UnicodeDecodeError:
+        raise DataError("not a text (UTF-8 JSON) file", path) from None
+    except json.JSONDecodeError as exc:
+        raise DataError(f"invalid JSON: {exc.msg} at line {exc.lineno}", path) from None

@@ -8,7 +8,6 @@ z forward).  A JSON list of such objects is a rig.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -99,13 +98,8 @@ def camera_from_json(obj, path: str = "", index: int | None = None) -> Camera:
 
 def read_cameras(path: str) -> list[Camera]:
     """Read one camera (object) or a rig (list, or {"cameras": [...]}) from JSON."""
-    if not os.path.exists(path):
-        raise DataError("no such file", path)
-    try:
-        with open(path, encoding="utf-8") as f:
-            obj = json.load(f)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"not valid JSON: {exc}", path) from None
+    from ._common import read_json
+    obj = read_json(path)
     if isinstance(obj, dict) and "cameras" in obj:
         obj = obj["cameras"]
     if isinstance(obj, list):

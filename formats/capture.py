@@ -223,15 +223,8 @@ def read_capture(path: str) -> Capture:
     """Read ``capture.json`` (or a folder holding it).  Raises DataError naming the file."""
     if os.path.isdir(path):
         path = os.path.join(path, INDEX)
-    if not os.path.exists(path):
-        raise DataError("no such file", path)
-    try:
-        with open(path, encoding="utf-8") as f:
-            obj = json.load(f)
-    except UnicodeDecodeError:
-        raise DataError("not a text (UTF-8 JSON) file", path) from None
-    except json.JSONDecodeError as exc:
-        raise DataError(f"invalid JSON: {exc.msg} at line {exc.lineno}", path) from None
+    from ._common import read_json
+    obj = read_json(path)
     return capture_from_json(obj, path)
 
 

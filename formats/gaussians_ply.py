@@ -132,7 +132,7 @@ def concatenate(parts: list[Gaussians]) -> Gaussians:
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
     """[N, 4] w-first quaternions (normalized here) → [N, 3, 3] rotation matrices."""
     q = np.asarray(q, np.float64).reshape(-1, 4)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-300)
     w, x, y, z = q.T
     return np.stack([
         np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),

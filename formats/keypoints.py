@@ -84,11 +84,8 @@ def read_keypoints(path: str, n_joints: int = 25) -> Keypoints:
         except (ValueError, OSError, EOFError) as exc:
             raise DataError(f"not a readable .npy array: {exc}", path) from None
         return keypoints_from_array(a, path, n_joints)
-    try:
-        with open(path, encoding="utf-8") as f:
-            obj = json.load(f)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"not valid JSON: {exc}", path) from None
+    from ._common import read_json
+    obj = read_json(path)
     frames = names = None
     if isinstance(obj, dict):
         if "format" in obj and obj["format"] != FORMAT:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -116,15 +115,8 @@ def lights_from_json(obj, path: str = "") -> Lights:
 
 def read_lights(path: str) -> Lights:
     """Read and validate a lights JSON file.  Raises DataError naming the file."""
-    if not os.path.exists(path):
-        raise DataError("no such file", path)
-    try:
-        with open(path, encoding="utf-8") as f:
-            obj = json.load(f)
-    except UnicodeDecodeError:
-        raise DataError("not a text (UTF-8 JSON) file", path) from None
-    except json.JSONDecodeError as exc:
-        raise DataError(f"invalid JSON: {exc.msg} at line {exc.lineno}", path) from None
+    from ._common import read_json
+    obj = read_json(path)
     return lights_from_json(obj, path)
 
 

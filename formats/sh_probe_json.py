@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -100,13 +99,6 @@ def probe_from_json(obj, path: str = "") -> ShProbe:
 def read_probe(path: str) -> ShProbe:
     """Read and validate a probe JSON file (DataError naming the file otherwise)."""
     path = str(path)
-    if not os.path.exists(path):
-        raise DataError("no such file", path)
-    if os.path.isdir(path):
-        raise DataError("is a directory, expected a probe JSON file", path)
-    try:
-        with open(path, encoding="utf-8") as f:
-            obj = json.load(f)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"not valid JSON: {exc}", path) from None
+    from ._common import read_json
+    obj = read_json(path)
     return probe_from_json(obj, path)

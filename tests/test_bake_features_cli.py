@@ -4,10 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
-import shutil
 import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,13 +20,8 @@ def invoke(*args):
 
 
 def relight_exe() -> str:
-    exe = Path(sys.executable).with_name("relight")
-    if exe.exists():
-        return str(exe)
-    found = shutil.which("relight")
-    if not found:
-        pytest.skip("the relight console script is not installed")
-    return found
+    from conftest import relight_executable
+    return relight_executable()
 
 
 @pytest.fixture(scope="module")

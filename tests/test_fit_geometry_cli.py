@@ -162,7 +162,7 @@ def test_bad_keypoints(run_cli, tmp_path):
                "21 joints")
     (tmp_path / "bad.json").write_text("{not json")
     _one_error(run_cli("fit-geometry", "--keypoints", tmp_path / "bad.json", "-o", out), 1,
-               "not valid JSON")
+               "invalid JSON")
     (tmp_path / "v2.json").write_text(json.dumps({"format": "relight/keypoints", "version": 2,
                                                   "keypoints": kp.tolist()}))
     _one_error(run_cli("fit-geometry", "--keypoints", tmp_path / "v2.json", "-o", out), 1,

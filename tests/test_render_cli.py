@@ -103,7 +103,7 @@ def test_subprocess(files):
     (["avatar.ply", "builtin:sky", "-o", "o.ply"], 2, "only apply to a hand"),
     (["builtin:right", "missing.exr", "-o", "o.exr"], 1, "no such file"),
     (["missing.npz", "builtin:sky", "-o", "o.exr"], 1, "no such file"),
-    (["builtin:right", "builtin:sky", "--camera", "bad.json", "-o", "o.exr"], 1, "not valid JSON"),
+    (["builtin:right", "builtin:sky", "--camera", "bad.json", "-o", "o.exr"], 1, "invalid JSON"),
     (["builtin:right", "builtin:sky", "--lights", "bad.json", "-o", "o.exr"], 1, "invalid JSON"),
     (["junk.npz", "builtin:sky", "-o", "o.exr"], 1, "junk.npz"),
 ])

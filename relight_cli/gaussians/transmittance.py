@@ -176,13 +176,8 @@ def from_gaussians(g, mapping: str = "eq5", kappa: float = 1.0) -> Mixture:
 
 
 def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-300)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)
+    from relight_cli.formats.gaussians_ply import quaternion_to_matrix
+    return quaternion_to_matrix(q)
 
 
 # ------------------------------------------------------------------ per-pair geometry
