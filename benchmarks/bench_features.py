@@ -4,15 +4,17 @@
    coarse proxy and on the fine mesh, against a brute-force reference (256×512 env,
    fine-mesh visibility, evaluated at texel centres on the fine surface) at a random
    subset of covered texels.  Error = relative RMS over those texels, per feature.
-2. Throughput: rays traced per second of the whole per-pose bake (cull + trace +
-   transport + shade) as a fraction of raw embree occlusion throughput on the very
-   same rays, measured in the same run.
-3. Amortized time per extra env map with the pose's visibility and transport cached.
+2. Speed at default settings (:func:`speed_study`): new-pose time, throughput of the
+   whole per-pose bake (scene + cull + trace + transport + shade) as a fraction of raw
+   embree occlusion throughput on the very same rays at the same thread count, and
+   the amortized time per extra env map with the pose's visibility and transport
+   cached; medians of interleaved rounds, with the load average printed.
 
 Writes ``features_time_vs_error.{md,csv,svg}`` under ``--out`` (default
 benchmarks/out/) and prints the tables.
 
     .venv/bin/python benchmarks/bench_features.py [--pose relaxed] [--texels 256] [--quick]
+    .venv/bin/python benchmarks/bench_features.py --speed-only [--rounds 15]
 """
 
 from __future__ import annotations
@@ -144,6 +146,117 @@ def write_svg(path: Path, rows: list[dict]):
     path.write_text("\n".join(parts) + "\n")
 
 
+def load_average() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "?"
+
+
+def speed_study(env, coarse, eye, settings, rounds: int) -> dict:
+    """New-pose time, extra-env time and throughput against raw embree, default settings.
+
+    Interleaved rounds (so a load spike from another process hits every configuration
+    alike); each round times, on the same rays:
+      * ``bake_T``: a new pose (FeatureBaker + bake, i.e. scene build, cull, trace,
+        transport, shade) with T = every available CPU as worker threads;
+      * ``bake_1``: the same with one thread;
+      * ``raw_1``: one flat ``RayScene.occluded`` call on the bake's rays, prebuilt;
+      * ``raw_T``: the same rays in 4·T equal contiguous chunks traced by T threads,
+        i.e. the most embree does on this machine with these rays;
+      * ``extra_T`` / ``extra_1``: one more env map on the cached pose.
+    Throughput fraction = raw seconds / bake seconds for the same thread count
+    (rays are identical, so that is the ratio of rays per second).
+    """
+    from concurrent.futures import ThreadPoolExecutor
+    threads = F.trace_threads()
+    env16 = F.discretize_env(env, 16, 32)
+    meshes = [F.PoseMesh(m.vertices, m.faces, m.normals, m.name) for m in coarse]
+    extra_envs = [F.DiscreteEnv(env16.directions, env16.solid_angle,
+                                env16.radiance * (1 + 0.1 * k) + k, 16, 32, f"v{k}")
+                  for k in range(1, 5)]
+    probe = F.FeatureBaker(meshes, settings, env_res=(16, 32), threads=1)
+    probe.bake([env16], eye)
+    todo = np.flatnonzero(probe.cache.traced)
+    m = len(probe.directions)
+    origins = np.ascontiguousarray(probe.cache.ray_origins()[todo // m])
+    dirs = np.ascontiguousarray(probe.directions.astype(np.float32)[todo % m])
+    rays = len(todo)
+    scene = RayScene([(mm.vertices, mm.faces) for mm in meshes])
+    scene.occluded(origins[:1], dirs[:1])   # BVH build (the bake's "scene" stage)
+    bounds = np.linspace(0, rays, 4 * threads + 1).astype(int)
+    chunks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    pool = ThreadPoolExecutor(threads)
+    list(pool.map(lambda sl: None, chunks))   # start the threads before timing
+    load_before = load_average()
+    times = {k: [] for k in ("bake_T", "bake_1", "raw_1", "raw_T", "extra_T", "extra_1")}
+    stages = {"bake_T": [], "bake_1": []}
+    for _ in range(rounds):
+        for key, th in (("bake_T", threads), ("bake_1", 1)):
+            t0 = time.perf_counter()
+            baker = F.FeatureBaker(meshes, settings, env_res=(16, 32), threads=th)
+            baker.bake([env16], eye)
+            times[key].append(time.perf_counter() - t0)
+            stages[key].append(dict(baker.stats.seconds))
+            assert baker.stats.rays_traced == rays
+            t0 = time.perf_counter()
+            for e in extra_envs:
+                baker.bake([e], eye)
+            times["extra" + key[4:]].append((time.perf_counter() - t0) / len(extra_envs))
+        t0 = time.perf_counter()
+        scene.occluded(origins, dirs)
+        times["raw_1"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        list(pool.map(lambda sl: scene.occluded(origins[sl], dirs[sl]), chunks))
+        times["raw_T"].append(time.perf_counter() - t0)
+    pool.shutdown()
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    stage_med = {key: {s: float(np.median([d.get(s, 0.0) for d in v])) for s in v[0]}
+                 for key, v in stages.items()}
+    # including discretizing the full-resolution env map each time
+    t0 = time.perf_counter()
+    for _ in range(4):
+        baker.bake([env], eye)
+    med["extra_full_1"] = (time.perf_counter() - t0) / 4
+    return {"threads": threads, "rounds": rounds, "rays": rays,
+            "pairs": len(probe.receivers) * m, "vertices": len(probe.receivers),
+            "median": med, "min": {k: float(np.min(v)) for k, v in times.items()},
+            "stages": stage_med, "load": (load_before, load_average())}
+
+
+def speed_lines(sp: dict, env) -> list[str]:
+    med, mn, T = sp["median"], sp["min"], sp["threads"]
+    st = sp["stages"]
+    fmt = ", ".join
+    return [
+        f"Speed at default settings (coarse proxy, {sp['vertices']} vertices, env 16x32, "
+        f"Phong 16/32/64): median of {sp['rounds']} interleaved rounds (min in brackets); "
+        f"load average {sp['load'][0]} before, {sp['load'][1]} after; {T} CPU(s).",
+        f"- new pose, {T} thread(s): {med['bake_T']:.3f} s ({mn['bake_T']:.3f}); "
+        f"1 thread: {med['bake_1']:.3f} s ({mn['bake_1']:.3f})  [target ≤ 0.5 s]",
+        f"- rays traced: {sp['rays']} of {sp['pairs']} pairs ({sp['rays'] / sp['pairs']:.0%})",
+        f"- raw embree on the same rays: {T} thread(s) {med['raw_T']:.3f} s "
+        f"({sp['rays'] / med['raw_T'] / 1e6:.2f} Mrays/s); 1 thread {med['raw_1']:.3f} s "
+        f"({sp['rays'] / med['raw_1'] / 1e6:.2f} Mrays/s)",
+        f"- whole-bake throughput as a fraction of raw embree at the same thread count: "
+        f"{T} thread(s) {med['raw_T'] / med['bake_T']:.0%}, 1 thread "
+        f"{med['raw_1'] / med['bake_1']:.0%}  [target ≥ 70 %]; "
+        f"{T}-thread bake vs 1-thread raw: {med['raw_1'] / med['bake_T']:.0%}",
+        f"- extra env map on the cached pose: {T} thread(s) {med['extra_T'] * 1000:.1f} ms, "
+        f"1 thread {med['extra_1'] * 1000:.1f} ms (pre-discretized)  [target ≤ 20 ms]; "
+        f"{med['extra_full_1'] * 1000:.1f} ms including discretizing the "
+        f"{env.height}x{env.width} source",
+        f"- stages of the 1-thread bake (s): {fmt(f'{k} {v:.3f}' for k, v in st['bake_1'].items())}",
+        f"- stages of the {T}-thread bake (thread-seconds, summed over workers): "
+        f"{fmt(f'{k} {v:.3f}' for k, v in st['bake_T'].items())}",
+    ]
+
+
+def print_speed(sp: dict, env):
+    print()
+    print("\n".join(speed_lines(sp, env)))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--env", default=str(DATA / "envmaps" / "StageEnvLatLong.exr"),
@@ -154,6 +267,10 @@ def main():
     ap.add_argument("--ref-env-res", default="256x512")
     ap.add_argument("--quick", action="store_true", help="fewer configurations (smoke run)")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "out"))
+    ap.add_argument("--rounds", type=int, default=9,
+                    help="interleaved rounds of the speed study (medians are reported)")
+    ap.add_argument("--speed-only", action="store_true",
+                    help="only the speed study at default settings (no reference, no files)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -168,6 +285,9 @@ def main():
     ref_res = tuple(int(v) for v in args.ref_env_res.split("x"))
     print(f"env {env_spec}; hand {args.pose}: coarse {len(coarse[0].vertices)} vertices, "
           f"fine {len(fine[0].vertices)}; eye {np.round(eye, 3).tolist()}")
+    if args.speed_only:
+        print_speed(speed_study(env, coarse, eye, settings, args.rounds), env)
+        return
 
     # -- reference at random covered texels of the fine mesh's surface
     rows, cols, points, normals = texel_samples(fine[0], args.res, args.texels, seed=0)
@@ -198,57 +318,9 @@ def main():
                   f"{row['rays']:>9d} rays ({row['rays'] / row['rays_possible']:.0%} of N·M), "
                   + ", ".join(f"{n} {row['err_' + n]:.3f}" for n in NAMES))
 
-    # -- throughput vs raw embree on the same rays (default settings, coarse)
-    env16 = F.discretize_env(env, 16, 32)
-    meshes = [F.PoseMesh(m.vertices, m.faces, m.normals, m.name) for m in coarse]
-    times = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        baker = F.FeatureBaker(meshes, settings, env_res=(16, 32))
-        baker.bake([env16], eye)
-        times.append(time.perf_counter() - t0)
-        if times[-1] == min(times):
-            stages = dict(baker.stats.seconds)
-    pose_seconds = min(times)
-    todo = np.flatnonzero(baker.cache.traced)
-    m = len(baker.directions)
-    origins = baker.cache._origins[todo // m]
-    dirs = baker.cache._dirs32[todo % m]
-    scene = RayScene([(mm.vertices, mm.faces) for mm in meshes])
-    scene.occluded(origins[:1], dirs[:1])  # BVH build (its cost is the bake's "scene" stage)
-    raw = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        scene.occluded(origins, dirs)
-        raw.append(time.perf_counter() - t0)
-    raw_seconds = min(raw)
-    rays = len(todo)
-    fraction = raw_seconds / pose_seconds
-    trace_fraction = raw_seconds / stages["trace"]
-    # -- amortized extra env maps (same pose and eye; visibility and transport cached)
-    extra_envs = [env16] + [F.DiscreteEnv(env16.directions, env16.solid_angle,
-                                          env16.radiance * (1 + 0.1 * k) + k, 16, 32, f"v{k}")
-                            for k in range(1, 8)]
-    t0 = time.perf_counter()
-    for e in extra_envs:
-        baker.bake([e], eye)
-    per_env = (time.perf_counter() - t0) / len(extra_envs)
-    # including discretizing a full-resolution env map each time
-    t0 = time.perf_counter()
-    for _ in range(4):
-        baker.bake([env], eye)
-    per_env_full = (time.perf_counter() - t0) / 4
-    n_pairs = len(baker.receivers) * m
-    print(f"\nnew pose at defaults (coarse, 16x32, phong 16/32/64): {pose_seconds:.3f} s "
-          f"(best of 3); stages {', '.join(f'{k} {v:.3f}' for k, v in stages.items())}")
-    print(f"rays traced {rays} of {n_pairs} pairs ({rays / n_pairs:.0%}); raw embree on the same "
-          f"rays {raw_seconds:.3f} s = {rays / raw_seconds / 1e6:.2f} Mrays/s; whole bake "
-          f"{rays / pose_seconds / 1e6:.2f} Mrays/s = {fraction:.0%} of raw; trace stage alone "
-          f"(ray building + embree) {trace_fraction:.0%} of raw")
-    print(f"extra env map (cached pose): {per_env * 1000:.1f} ms each (pre-discretized), "
-          f"{per_env_full * 1000:.1f} ms including discretizing the "
-          f"{env.height}x{env.width} source")
-
+    # -- speed at default settings (coarse, 16x32, phong 16/32/64): see speed_study
+    speed = speed_study(env, coarse, eye, settings, args.rounds)
+    print_speed(speed, env)
     # -- files
     keys = ["mesh", "env_res", "seconds", "rays", "rays_possible"] + ["err_" + n for n in NAMES]
     with open(out / "features_time_vs_error.csv", "w", newline="") as f:
@@ -265,11 +337,7 @@ def main():
     for r in results:
         lines.append(f"| {r['mesh']} | {r['env_res']} | {r['seconds']:.3f} | {r['rays']} | "
                      + " | ".join(f"{r['err_' + n]:.4f}" for n in NAMES) + " |")
-    lines += ["", f"New pose at defaults: {pose_seconds:.3f} s; {rays} rays "
-                  f"({rays / n_pairs:.0%} of N·M); raw embree {raw_seconds:.3f} s on the same rays; "
-                  f"whole-bake throughput {fraction:.0%} of raw (trace stage alone {trace_fraction:.0%}).",
-              f"Extra env map with cached visibility: {per_env * 1000:.1f} ms "
-              f"({per_env_full * 1000:.1f} ms including discretizing the full-size map)."]
+    lines += [""] + speed_lines(speed, env)
     (out / "features_time_vs_error.md").write_text("\n".join(lines) + "\n")
     write_svg(out / "features_time_vs_error.svg", results)
     print(f"\nwrote {out / 'features_time_vs_error.md'}, .csv, .svg")

@@ -285,10 +285,11 @@ _POOLS: dict = {}
 def _pool(workers: int):
     """A process-wide thread pool of ``workers`` threads, started once (starting threads
     per pose costs milliseconds on a busy machine; idle workers cost nothing)."""
-    if workers not in _POOLS:
+    key = (os.getpid(), workers)     # a forked child has no threads: it needs its own pool
+    if key not in _POOLS:
         from concurrent.futures import ThreadPoolExecutor
-        _POOLS[workers] = ThreadPoolExecutor(workers, thread_name_prefix="relight-trace")
-    return _POOLS[workers]
+        _POOLS[key] = ThreadPoolExecutor(workers, thread_name_prefix="relight-trace")
+    return _POOLS[key]
 
 
 class VisibilityCache:
@@ -838,33 +839,42 @@ class FeatureBaker:
             timers = []
 
             def pose_chunk(rows: slice):
-                # Every stage of a new pose is local to its receivers: cull, trace, transport
-                # and shade run per chunk of rows, chunks concurrently on the pool (numpy
-                # and embree both release the GIL), each writing only its own rows.
-                c0 = time.perf_counter()
-                sub = Receivers(self.receivers.points[rows], self.receivers.normals[rows],
-                                self.receivers.defined[rows])
-                if not keep:
-                    cos = dot3(sub.normals, self.directions)
-                else:
-                    cos = self._cosines[rows]
-                    if not self._cosines_done[rows].all():
-                        dot3(sub.normals, self.directions, out=cos)
-                        self._cosines_done[rows] = True
-                need, lobes = _needed_pairs(sub, reflected[rows], self.directions, lit_all,
-                                            self.settings, cos)
-                c1 = time.perf_counter()
-                self.cache.require_rows(rows, need)
-                c2 = time.perf_counter()
-                blocks = [(slice(sl.start + rows.start, sl.stop + rows.start), nm, w, vis)
-                          for sl, nm, w, vis in _transport_stacked(
-                              sub, view[rows], self.directions, self.solid_angle,
-                              self.cache.visible[rows], self.settings,
-                              None if roughness is None else roughness[rows], cos, lobes)]
-                c3 = time.perf_counter()
-                _shade_stacked(blocks, weighted, per_env)
-                timers.append((c1 - c0, c2 - c1, c3 - c2, time.perf_counter() - c3))
-                return blocks if keep else None
+                # Every stage of a new pose is local to its receivers, so each block of
+                # receivers goes through cull, trace, transport and shade in one go while
+                # its [b, M] arrays are still in cache; chunks of blocks run concurrently on
+                # the pool (numpy and embree release the GIL), each writing only its rows.
+                kept = []
+                spent = np.zeros(4)
+                step = max(1, _BLOCK // max(1, len(self.directions)))
+                for start in range(rows.start, rows.stop, step):
+                    sl = slice(start, min(rows.stop, start + step))
+                    c0 = time.perf_counter()
+                    sub = Receivers(self.receivers.points[sl], self.receivers.normals[sl],
+                                    self.receivers.defined[sl])
+                    if not keep:
+                        cos = dot3(sub.normals, self.directions)
+                    else:
+                        cos = self._cosines[sl]
+                        if not self._cosines_done[sl].all():
+                            dot3(sub.normals, self.directions, out=cos)
+                            self._cosines_done[sl] = True
+                    need, lobes = _needed_pairs(sub, reflected[sl], self.directions, lit_all,
+                                                self.settings, cos)
+                    c1 = time.perf_counter()
+                    self.cache.require_rows(sl, need)
+                    c2 = time.perf_counter()
+                    blocks = [(slice(b.start + start, b.stop + start), nm, w, vis)
+                              for b, nm, w, vis in _transport_stacked(
+                                  sub, view[sl], self.directions, self.solid_angle,
+                                  self.cache.visible[sl], self.settings,
+                                  None if roughness is None else roughness[sl], cos, lobes)]
+                    c3 = time.perf_counter()
+                    _shade_stacked(blocks, weighted, per_env)
+                    spent += (c1 - c0, c2 - c1, c3 - c2, time.perf_counter() - c3)
+                    if keep:
+                        kept += blocks
+                timers.append(spent)
+                return kept
 
             chunks = self._row_slices(workers)
             if workers > 1 and len(chunks) > 1:
