@@ -246,7 +246,8 @@ def speed_lines(sp: dict, env) -> list[str]:
         f"1 thread {med['extra_1'] * 1000:.1f} ms (pre-discretized)  [target ≤ 20 ms]; "
         f"{med['extra_full_1'] * 1000:.1f} ms including discretizing the "
         f"{env.height}x{env.width} source",
-        f"- stages of the 1-thread bake (s): {fmt(f'{k} {v:.3f}' for k, v in st['bake_1'].items())}",
+        "- stages of the 1-thread bake (s): "
+        f"{fmt(f'{k} {v:.3f}' for k, v in st['bake_1'].items())}",
         f"- stages of the {T}-thread bake (thread-seconds, summed over workers): "
         f"{fmt(f'{k} {v:.3f}' for k, v in st['bake_T'].items())}",
     ]

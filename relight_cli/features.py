@@ -551,25 +551,24 @@ def _transport_stacked(receivers, view, directions, solid_angle, visible, settin
         cos = out[0]
         if cosines is None:
             dot3(receivers.normals[sl], directions, out=cos)
+            np.maximum(cos, 0, out=cos)
         else:
-            cos[...] = cosines[sl]
-        np.maximum(cos, 0, out=cos)
+            np.maximum(cosines[sl], 0, out=cos)
         denom = _matvec(cos, solid_angle)
         np.multiply(cos, h, out=cos)                              # W_diffuse = h·max(n·ω, 0)
         vis = np.divide(_matvec(cos, solid_angle), denom, out=np.zeros_like(denom), where=denom > 0)
         if settings.phong:
             # [b, M] r·ω (``lobes`` from culling is overwritten in place: a scratch array)
             lobe = dot3(reflected[sl], directions) if lobes is None else lobes[sl]
-            lobe *= lobe > cutoff                                 # the lobe's support
+            support = lobe > cutoff                               # the lobe's support ...
+            support &= h                                          # ... where visible
+            hl = np.multiply(lobe, support, out=lobe)             # h·max(r·ω, 0), 0 off-lobe
             positive = [a for a in settings.phong if a > 0]
-            if positive:
-                hl = lobe * h
-                for alpha, power in zip(positive, _powers(hl, positive)):
-                    np.multiply(power, (alpha + 2) / (2 * math.pi), out=out[phong_at[alpha]])
+            for alpha, power in zip(positive, _powers(hl, positive)):
+                np.multiply(power, (alpha + 2) / (2 * math.pi), out=out[phong_at[alpha]])
             for alpha in settings.phong:
-                if alpha <= 0:   # x^0 = 1 even where the lobe is 0: visibility only
-                    np.multiply(np.power(lobe, alpha), h, out=out[phong_at[alpha]])
-                    out[phong_at[alpha]] *= (alpha + 2) / (2 * math.pi)
+                if alpha <= 0:   # x^0 = 1 even where the lobe is 0 (α ≥ 0 is validated)
+                    np.multiply(h, (alpha + 2) / (2 * math.pi), out=out[phong_at[alpha]])
         if settings.ggx:
             g = out[names.index("ggx")]
             g[...] = ggx_weights(receivers.normals[sl], view[sl], directions, roughness[sl],
