@@ -19,8 +19,13 @@ Speed: visibility depends on the pose, not the lighting, so :class:`VisibilityCa
 traces it once and every env map, shininess and specular model reuses it.  Only
 pairs (i, m) whose weight can be non-zero are traced: ω_m above i's tangent
 plane (diffuse, GGX, visibility channel) or, for Phong, inside the reflected
-lobe's support r_i·ω_m > 0 *and* lit by some env map.  All pairs go to embree
-in large batches through :class:`relight_cli.raytrace.RayScene`.
+lobe's support r_i·ω_m > 0 *and* lit by some env map.  Every stage of a new pose
+is local to its receivers, so :meth:`FeatureBaker.bake` runs cull → trace
+(embree through :class:`relight_cli.raytrace.RayScene`) → transport → shade per
+block of receivers while the block's arrays are in cache, with blocks spread over
+a thread pool (embree and numpy release the GIL); results do not depend on the
+thread count.  An extra env map reuses the cached transport weights: one small
+matrix product per feature.
 
 :func:`vertex_features_reference` is the slow twin (per-receiver loop, every
 direction traced with trimesh's numpy ray test, no culling) used by tests.
@@ -249,8 +254,9 @@ def reflect(view: np.ndarray, normals: np.ndarray) -> np.ndarray:
 def trace_threads() -> int:
     """Worker threads for ray tracing: the CPUs this process may run on.
 
-    embreex's occlusion query runs without the GIL, so threads tracing disjoint
-    chunks of one batch scale with cores (1.7× on 2 cores for the default bake).
+    embreex's occlusion query runs without the GIL (as do numpy's large array
+    operations), so threads working on disjoint receivers scale with cores: raw embree
+    on the default bake's rays ran 1.7× faster on 2 idle cores than on one.
     """
     try:
         return max(1, len(os.sched_getaffinity(0)))
@@ -262,11 +268,11 @@ def trace_threads() -> int:
 # bounded peak memory for the per-ray origin/direction arrays), large enough that
 # the per-call Python overhead (~50 µs) is noise.
 _MIN_CHUNK = 1 << 15
+_MAX_CHUNK = 1 << 20
 # (receiver, direction) entries per ray-building step (12 MiB of tiled float32 directions).
 _TILE = 1 << 20
 # One float32 xyz triple as a single 12-byte record, for memcpy-speed repeat/compress.
 _VEC3 = np.dtype((np.void, 12))
-_MAX_CHUNK = 1 << 20
 
 
 def _row_chunks(per_row: np.ndarray, workers: int) -> list[slice]:
@@ -703,7 +709,12 @@ class PoseMesh:
 
 @dataclass
 class FeatureStats:
-    """What the work cost: rays, seconds per stage."""
+    """What the work cost: rays, seconds per stage.
+
+    The per-pose stages (cull, trace, transport, shade) run per block of receivers on
+    several threads; their seconds are summed over threads (thread-seconds), so they
+    can add up to more than the wall time of the bake.
+    """
 
     rays_traced: int = 0
     rays_possible: int = 0        # N·M for every env grid used (what a naive tracer casts)
