@@ -52,8 +52,6 @@ _BLOCK = 1 << 16
 # (receiver, direction) entries per chunk of a pose's pipeline (whole blocks): with
 # K features, K·8 bytes each is the size of one allocation of kept weights.
 _CHUNK = 1 << 18
-# Entries per block of dot3's temporaries (256 KiB of float64: stays in L2).
-_DOT_BLOCK = 1 << 15
 # OpenBLAS multithreads a GEMM above 4·65536 multiply-adds; stay below (see _shade_stacked).
 _GEMM_SINGLE = 1 << 17
 # Transport weights (N·M per feature, float64) are kept between env maps up to
@@ -438,30 +436,25 @@ class VisibilityCache:
 def dot3(vectors: np.ndarray, directions: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """[n, M] float64 dot products of ``vectors`` [n, 3] with ``directions`` [M, 3].
 
-    Three broadcast multiply-adds instead of a BLAS product: with an inner dimension
-    of 3 the work is memory-bound, and OpenBLAS would split it over threads, which
-    stalls when several worker threads call it at once.  Culling and shading both use
-    this one function, so a pair's n·ω and r·ω are bit-identical in both.
+    Matrix products of at most ``_GEMM_SINGLE`` multiply-adds each: OpenBLAS runs
+    those on the calling thread, so worker threads calling this at once do not stall
+    on OpenBLAS's own thread pool (a whole [N, 3]·[3, M] product would be split over
+    threads).  Culling and shading both use this one function, so a pair's n·ω and
+    r·ω are bit-identical in both.
     """
     v = np.asarray(vectors, np.float64)
-    d = np.asarray(directions, np.float64)
+    d_t = np.asarray(directions, np.float64).T
     if out is None:
-        out = np.empty((len(v), len(d)))
-    step = max(1, _DOT_BLOCK // max(1, len(d)))       # rows whose temporaries stay in cache
-    tmp = np.empty((min(step, len(v)), len(d)))
+        out = np.empty((len(v), d_t.shape[1]))
+    step = max(1, _GEMM_SINGLE // max(1, 3 * d_t.shape[1]))
     for s in range(0, len(v), step):
-        o = out[s:s + step]
-        t = tmp[:len(o)]
-        np.multiply(v[s:s + step, 0:1], d[:, 0], out=o)
-        np.multiply(v[s:s + step, 1:2], d[:, 1], out=t)
-        o += t
-        np.multiply(v[s:s + step, 2:3], d[:, 2], out=t)
-        o += t
+        np.matmul(v[s:s + step], d_t, out=out[s:s + step])
     return out
 
 
 def _matvec(a: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """a @ x ([b, M] · [M]) without BLAS (see :func:`dot3`)."""
+    """a @ x ([b, M] · [M]) without BLAS, whose matrix-vector product goes multithreaded
+    at far smaller sizes than its matrix product (see :func:`dot3`)."""
     return np.einsum("ij,j->i", a, x)
 
 
