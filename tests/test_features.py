@@ -459,5 +459,5 @@ def test_dot3_equals_matrix_product():
     from relight_cli.features import dot3
     rng = np.random.default_rng(2)
     v, d = rng.normal(size=(1001, 3)), rng.normal(size=(77, 3))
-    # three products summed in a different order than BLAS: rounding only
+    # row blocks of BLAS products vs one product: the same sums, rounding only
     np.testing.assert_allclose(dot3(v, d), v @ d.T, rtol=1e-13, atol=1e-14)
