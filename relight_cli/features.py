@@ -97,8 +97,10 @@ class FeatureSettings:
         if self.specular not in SPECULAR_MODELS:
             raise ValueError(f"specular must be one of {SPECULAR_MODELS}, got {self.specular!r}")
         self.shininess = tuple(float(a) for a in self.shininess)
-        if any(not (a >= 0 and math.isfinite(a)) for a in self.shininess):
-            raise ValueError(f"shininess must be finite and ≥ 0, got {self.shininess}")
+        # α = 0 is no lobe at all (max(r·ω, 0)⁰ is a step whose value on the
+        # boundary is undefined), so exponents must be positive.
+        if any(not (a > 0 and math.isfinite(a)) for a in self.shininess):
+            raise ValueError(f"shininess exponents must be finite and > 0, got {self.shininess}")
 
     @property
     def phong(self) -> tuple:

@@ -188,6 +188,7 @@ def test_usage_errors(tmp_path, hand_file):
     _bad(tmp_path, hand_file, "builtin:sky", "builtin:studio", code=2)        # no {env}
     _bad(tmp_path, hand_file, "builtin:sky", "--frames", "all", code=2)        # no {frame}
     _bad(tmp_path, hand_file, "builtin:sky", "--shininess", "16,x", code=2)
+    _bad(tmp_path, hand_file, "builtin:sky", "--shininess", "16,0", code=2)
     _bad(tmp_path, hand_file, "builtin:sky", "--roughness", "0", code=2)
     _bad(tmp_path, hand_file, "builtin:sky", "--eye", "1,2", code=2)
     _bad(tmp_path, "builtin:middle", "builtin:sky", code=2)
