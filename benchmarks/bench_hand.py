@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from relight_cli.hand import poses as P  # noqa: E402
-from relight_cli.hand.fitting import FitOptions, fit, personalize_mesh, scaled_joints  # noqa: E402
+from relight_cli.hand.fitting import FitOptions, fit, personalize_mesh, synthetic_truth  # noqa: E402
 from relight_cli.hand.model import PARENTS, builtin_hand  # noqa: E402
 from relight_cli.hand.skinning import lbs, lbs_reference, lbs_torch, posed_joints  # noqa: E402
 
@@ -67,20 +67,9 @@ def bench_lbs():
 
 
 def _synthetic(template, n, seed):
-    rng = np.random.default_rng(seed)
-    poses = P.random_poses(n, seed=seed, global_rotation=True)
-    axes = P.joint_axes(template.rest_joints, "right")
-    lim = P.joint_limits()
-    hard = [P.named_pose("fist"), P.named_pose("claw"),
-            P.pose_from_angles(lim[:, :, 1] * [1, 0, 0], axes)]
-    for k in range(min(n, len(hard))):
-        poses[k, 1:] = hard[k][1:]
-    poses[:, [4, 9, 14, 19, 24]] = 0
-    trans = rng.normal(0, 0.1, (n, 3))
-    scales = np.ones(25)
-    scales[1:] = rng.uniform(0.95, 1.05, 24)
-    rest = scaled_joints(template.rest_joints, PARENTS, scales)
-    joints = posed_joints(poses, trans, rest, PARENTS)
+    """Known poses (hard cases first) plus keypoints with 2 mm noise and 10% outliers."""
+    poses, trans, scales, rest, joints = synthetic_truth(template, n, seed)
+    rng = np.random.default_rng(seed + 1)
     kp = joints + rng.normal(0, 0.002, joints.shape)
     out = rng.random(joints.shape[:2]) < 0.10
     kp[out] += rng.normal(0, 0.05, (out.sum(), 3))

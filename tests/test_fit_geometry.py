@@ -11,7 +11,7 @@ import pytest
 
 from relight_cli.hand import poses as P
 from relight_cli.hand.fitting import (FitOptions, displacement_basis, fit, personalize_mesh,
-                                      scaled_joints)
+                                      synthetic_truth)
 from relight_cli.hand.model import PARENTS, builtin_hand
 from relight_cli.hand.skinning import lbs, posed_joints
 
@@ -22,23 +22,7 @@ def template():
 
 
 def _truth(template, n, seed):
-    rng = np.random.default_rng(seed)
-    poses = P.random_poses(n, seed=seed, global_rotation=True)
-    axes = P.joint_axes(template.rest_joints, "right")
-    lim = P.joint_limits()
-    # Hard cases: fist (self-contact), claw, and every joint at its upper/lower limit.
-    hard = [P.named_pose("fist"), P.named_pose("claw"),
-            P.pose_from_angles(lim[:, :, 1] * [1, 0, 0], axes),
-            P.pose_from_angles(lim[:, :, 0] * [1, 1, 0], axes)]
-    for k in range(min(n, len(hard))):
-        poses[k, 1:] = hard[k][1:]
-    poses[:, [4, 9, 14, 19, 24]] = 0
-    trans = rng.normal(0, 0.1, (n, 3))
-    scales = np.ones(25)
-    scales[1:] = rng.uniform(0.95, 1.05, 24)
-    rest = scaled_joints(template.rest_joints, PARENTS, scales)
-    joints = posed_joints(poses, trans, rest, PARENTS)
-    return poses, trans, scales, rest, joints
+    return synthetic_truth(template, n, seed)
 
 
 def _vertices(template, poses, trans, scales, rest, offsets=None):

@@ -606,3 +606,41 @@ def _scan_energy(posed_v, faces, scans, sigma, rng, n_points, trees):
         per_vertex.append(chamfer_terms / len(v) + torch.zeros_like(chamfer_terms).index_add_(
             0, nearest_v, plane_terms / len(sample)))
     return torch.stack(out), torch.stack(per_vertex)
+
+
+def synthetic_truth(template, n: int, seed: int):
+    """Known-answer fitting targets: n random poses (the first ones replaced by hard
+    cases: fist with self-contact, claw, every joint at its upper limit, then at its
+    lower limits), translations ~ N(0, 0.1 m), bone scales in [0.95, 1.05].
+
+    Used by the fitting tests and benchmarks/bench_hand.py, which add their own
+    keypoint noise and outliers.
+
+    Args:
+        template: HandData of the right hand (rest joints are read).
+        n: frames; seed: random seed.
+
+    Returns:
+        (poses [n, J, 3], translations [n, 3] metres, bone scales [J],
+         scaled rest joints [J, 3], posed joints [n, J, 3] metres).
+    """
+    from .model import PARENTS
+    from .poses import pose_from_angles, random_poses
+    from .skinning import posed_joints
+
+    rng = np.random.default_rng(seed)
+    poses = random_poses(n, seed=seed, global_rotation=True)
+    axes = joint_axes(template.rest_joints, "right")
+    lim = joint_limits()
+    hard = [named_pose("fist"), named_pose("claw"),
+            pose_from_angles(lim[:, :, 1] * [1, 0, 0], axes),
+            pose_from_angles(lim[:, :, 0] * [1, 1, 0], axes)]
+    for k in range(min(n, len(hard))):
+        poses[k, 1:] = hard[k][1:]
+    poses[:, [4, 9, 14, 19, 24]] = 0  # fingertip joints have no rotation of their own
+    translations = rng.normal(0, 0.1, (n, 3))
+    scales = np.ones(N_JOINTS)
+    scales[1:] = rng.uniform(0.95, 1.05, N_JOINTS - 1)
+    rest = scaled_joints(template.rest_joints, PARENTS, scales)
+    joints = posed_joints(poses, translations, rest, PARENTS)
+    return poses, translations, scales, rest, joints
