@@ -372,6 +372,22 @@ class HandRenderer:
 
     # ---------------------------------------------------------------- lighting
 
+    def _light_ray(self, x, n, origins, position, k: int):
+        """Towards one point light from points x [P, 3] with normals n: unit directions
+        l [P, 3], n·l [P], squared distance r² [P] and visibility h [P] bool (facing the
+        light and, with shadows on, nothing of the scene in between)."""
+        d = position[None] - x
+        r2 = np.einsum("ij,ij->i", d, d)
+        r = np.sqrt(r2)
+        l = d / np.maximum(r, 1e-12)[:, None]
+        cos = np.einsum("ij,ij->i", n, l)
+        h = cos > 0
+        if self.settings.shadows and h.any():
+            idx = np.nonzero(h)[0]
+            # Stop at the light: a shadow is cast by what lies between, not beyond.
+            h[idx[self.scene.occluded(origins[idx], l[idx], r[idx] - self.offsets[k])]] = False
+        return l, cos, r2, h
+
     def _point_irradiance(self, k: int, lights: PointLights):
         """Irradiance [K, 3] and visibility [K, L] of hand k's texels from point lights."""
         surf = self.surfaces[k]
@@ -380,18 +396,7 @@ class HandRenderer:
         vis = np.zeros((len(x), len(lights)), np.float32)
         origins = x + self.offsets[k] * n
         for j in range(len(lights)):
-            d = lights.positions[j][None] - x
-            r2 = np.einsum("ij,ij->i", d, d)
-            r = np.sqrt(r2)
-            l = d / np.maximum(r, 1e-12)[:, None]
-            cos = np.einsum("ij,ij->i", n, l)
-            front = cos > 0
-            h = front.copy()
-            if self.settings.shadows and front.any():
-                idx = np.nonzero(front)[0]
-                # Stop at the light: a shadow is cast by what lies between, not beyond.
-                blocked = self.scene.occluded(origins[idx], l[idx], r[idx] - self.offsets[k])
-                h[idx[blocked]] = False
+            l, cos, r2, h = self._light_ray(x, n, origins, lights.positions[j], k)
             vis[:, j] = h
             irr += (h * np.clip(cos, 0, None) / np.maximum(r2, 1e-300))[:, None] * lights.intensity[j]
         return irr, vis
@@ -591,15 +596,7 @@ class HandRenderer:
         spec = None if rough is None else np.zeros((len(sel), 3))
         origins = x + self.offsets[k] * n
         for j in range(len(lights)):
-            d = lights.positions[j][None] - x
-            r2 = np.einsum("ij,ij->i", d, d)
-            r = np.sqrt(r2)
-            l = d / np.maximum(r, 1e-12)[:, None]
-            cos = np.einsum("ij,ij->i", n, l)
-            h = cos > 0
-            if self.settings.shadows and h.any():
-                idx = np.nonzero(h)[0]
-                h[idx[self.scene.occluded(origins[idx], l[idx], r[idx] - self.offsets[k])]] = False
+            l, cos, r2, h = self._light_ray(x, n, origins, lights.positions[j], k)
             falloff = h / np.maximum(r2, 1e-300)                            # [S] h / r²
             irr += (falloff * np.clip(cos, 0, None))[:, None] * lights.intensity[j]
             if spec is not None:
