@@ -22,7 +22,7 @@ from ._common import check_format_version
 
 FORMAT = "relight/metrics"
 VERSION = 1
-KINDS = ("image", "shadow", "lighting", "gate")
+KINDS = ("image", "shadow", "lighting", "gate", "validation")
 # The order keys are written in; anything else follows in insertion order.
 KEY_ORDER = ("format", "version", "kind", "metrics", "per_channel", "aggregate", "pairs",
              "frames", "details", "inputs", "settings", "provenance")

@@ -26,6 +26,7 @@ COMMANDS: dict[str, str] = {
     "relight": "relight_cli.commands.relight:command",
     "sh-probe": "relight_cli.commands.sh_probe:command",
     "synth-capture": "relight_cli.commands.synth_capture:command",
+    "train-teacher": "relight_cli.commands.train_teacher:command",
 }
 
 

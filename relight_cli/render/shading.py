@@ -388,6 +388,33 @@ class HandRenderer:
             h[idx[self.scene.occluded(origins[idx], l[idx], r[idx] - self.offsets[k])]] = False
         return l, cos, r2, h
 
+    def light_visibility(self, k: int, positions=None, directions=None) -> np.ndarray:
+        """[L, K] bool visibility of hand k's inside texels: facing the light and (with
+        shadows on) nothing of the scene in between — the renderer's own shadow rule.
+
+        Args:
+            positions: [L, 3] point lights (rays stop at the light), or
+            directions: [L, 3] unit directions towards distant lights (infinite rays).
+        """
+        surf = self.surfaces[k]
+        x, n = surf.points, surf.normals
+        origins = x + self.offsets[k] * n
+        if (positions is None) == (directions is None):
+            raise ValueError("give positions or directions")
+        if positions is not None:
+            positions = np.asarray(positions, np.float64).reshape(-1, 3)
+            out = np.zeros((len(positions), len(x)), bool)
+            for j in range(len(positions)):
+                out[j] = self._light_ray(x, n, origins, positions[j], k)[3]
+            return out
+        directions = np.asarray(directions, np.float64).reshape(-1, 3)
+        out = (directions @ n.T) > 0                                          # [L, K] facing
+        if self.settings.shadows and out.any():
+            jj, ii = np.nonzero(out)
+            blocked = self.scene.occluded(origins[ii], directions[jj])
+            out[jj[blocked], ii[blocked]] = False
+        return out
+
     def _point_irradiance(self, k: int, lights: PointLights):
         """Irradiance [K, 3] and visibility [K, L] of hand k's texels from point lights."""
         surf = self.surfaces[k]
@@ -640,8 +667,8 @@ def lookup_torch(texture, gbuffer, hand: int = 0):
     """
     import torch
 
-    sel = torch.as_tensor(gbuffer.hand == hand)
-    uv = torch.as_tensor(gbuffer.uv, dtype=texture.dtype)
+    sel = torch.as_tensor(gbuffer.hand == hand, device=texture.device)
+    uv = torch.as_tensor(gbuffer.uv, dtype=texture.dtype, device=texture.device)
     grid = torch.stack([2 * uv[:, 0] - 1, 1 - 2 * uv[:, 1]], -1)            # v = 0 at the bottom
     img = texture.permute(2, 0, 1)[None]                                     # [1, C, N, N]
     out = torch.nn.functional.grid_sample(img, grid[None, None], mode="bilinear",
@@ -654,8 +681,8 @@ def resolve_torch(samples, gbuffer, background=0.0):
     """Box-filter per-sample values [P, C] to [H, W, C] (background where samples miss)."""
     import torch
 
-    hit = torch.as_tensor(gbuffer.hit)[:, None]
-    bg = torch.as_tensor(background, dtype=samples.dtype).reshape(1, -1)
+    hit = torch.as_tensor(gbuffer.hit, device=samples.device)[:, None]
+    bg = torch.as_tensor(background, dtype=samples.dtype, device=samples.device).reshape(1, -1)
     values = torch.where(hit, samples, bg.expand_as(samples))
     return values.reshape(gbuffer.height, gbuffer.width, gbuffer.spp, -1).mean(2)
 

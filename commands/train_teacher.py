@@ -1,0 +1,177 @@
+"""``relight train-teacher``: RelightableHands' OLAT teacher (or its GGX baseline) from a capture."""
+
+from __future__ import annotations
+
+import click
+
+from relight_cli.clitools import log, no_clobber_option, quiet_option
+
+
+@click.command("train-teacher",
+               short_help="Train the OLAT teacher (or the GGX baseline) on a light-stage capture.")
+@click.argument("capture", metavar="CAPTURE")
+@click.option("-o", "--output", required=True, metavar="TEACHER.pt",
+              help="Checkpoint to write (relight/checkpoint, formats/checkpoint.md).")
+@click.option("--preset", type=click.Choice(["tiny", "paper"]), default="tiny", show_default=True,
+              help="tiny: seconds to minutes on a CPU (tests, demo); paper: RelightableHands' "
+                   "sizes and 100k iterations (a GPU).")
+@click.option("--config", "config_file", default=None, metavar="FILE.json",
+              help="JSON object of config fields overriding the preset (see formats/checkpoint.md).")
+@click.option("--model", type=click.Choice(["olat", "ggx"]), default=None,
+              help="olat: the neural OLAT teacher (App. A.1); ggx: the physically based "
+                   "baseline (App. B, Eq. 12) [default: olat].")
+@click.option("--iters", type=int, default=None, help="Adam iterations (overrides the preset).")
+@click.option("--batch", type=int, default=None, help="Samples (frame × camera) per step and rank.")
+@click.option("--lr", type=float, default=None, help="Adam learning rate.")
+@click.option("--tex-res", type=int, default=None, help="Texture size N of the U-Net (N×N).")
+@click.option("--no-visibility", is_flag=True,
+              help="Ablation (RelightableHands Table 1): no ray-traced visibility input.")
+@click.option("--vgg-weights", default=None, metavar="VGG16.pth",
+              help="Local torchvision vgg16 state dict enabling the VGG loss (Eq. 5); nothing "
+                   "is downloaded: copy e.g. vgg16-397923af.pth from a machine that has it. "
+                   "Without it λ_VGG is 0.")
+@click.option("--resume", default=None, metavar="CKPT.pt",
+              help="Continue a run from its checkpoint, exactly (weights, Adam, step, RNG).")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto",
+              show_default=True, help="Where to train. Under torchrun: DDP over the processes.")
+@click.option("--metrics-out", default=None, metavar="VAL.json",
+              help="Validation metrics (relight/metrics, kind validation): held-out poses, "
+                   "fully lit frames, env-map ground truth, per validation step.")
+@click.option("--seed", type=int, default=None, help="Seed (initialization, sampling) [default: 0].")
+@no_clobber_option
+@quiet_option
+def command(capture, output, preset, config_file, model, iters, batch, lr, tex_res, no_visibility,
+            vgg_weights, resume, device, metrics_out, seed, no_clobber, quiet):
+    """Train RelightableHands' teacher on CAPTURE (a relight/capture folder, e.g. from
+    synth-capture) and write the checkpoint -o.
+
+    Per light, texel-aligned maps of the light and view directions in each texel's
+    tangent frame and that light's ray-traced visibility go through a U-Net with the
+    pose at its bottleneck to a texture and a shadow map (App. A.1, Eq. 10); a frame
+    lit by several LEDs is their intensity-weighted sum (Eq. 2), rendered into every
+    camera through the fine mesh's G-buffer and compared with the image inside the
+    hand mask (Eq. 5: MSE, VGG with --vgg-weights, L_neg).  Trains on the grouped-light
+    frames of the training poses; validates on held-out poses, fully lit frames and the
+    capture's env-map ground truth.
+
+    Data-parallel: torchrun --nproc_per_node=N $(which relight) train-teacher ...
+    (gloo on CPU, NCCL on CUDA; rank 0 writes).
+
+    \b
+    Examples:
+      relight train-teacher capture/ -o teacher.pt --preset tiny
+      relight train-teacher capture/ -o ggx.pt --model ggx --iters 500
+      relight train-teacher capture/ -o teacher.pt --resume teacher_5k.pt --iters 10000
+    """
+    import os
+
+    from relight_cli.clitools import check_input, check_output
+    from relight_cli.errors import UsageProblem
+
+    # ---- usage checks before any work
+    if not output.lower().endswith((".pt", ".pth")):
+        raise UsageProblem("-o is a checkpoint (name it .pt)", output)
+    check_output(output, no_clobber)
+    if metrics_out is not None:
+        if not metrics_out.lower().endswith(".json") and metrics_out != "-":
+            raise UsageProblem("--metrics-out is a JSON file (name it .json)", metrics_out)
+        check_output(metrics_out, no_clobber, text=True)
+    if iters is not None and iters < 1:
+        raise UsageProblem(f"--iters must be ≥ 1, got {iters}")
+    if not os.path.isdir(capture):
+        from relight_cli.errors import DataError
+        if os.path.exists(capture) and os.path.basename(capture) == "capture.json":
+            capture = os.path.dirname(capture) or "."
+        else:
+            raise DataError("CAPTURE must be a capture folder (with capture.json)", capture)
+    for path in (config_file, vgg_weights, resume):
+        if path is not None:
+            check_input(path)
+
+    import torch  # noqa: F401  (after usage checks: --help and usage errors stay fast)
+
+    from relight_cli.errors import DataError
+    from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
+    from relight_cli.neural.config import TeacherConfig, resolve_config
+    from relight_cli.neural.data import CaptureData
+    from relight_cli.neural.train import resolve_device, train
+    from relight_cli.provenance import outside_transaction, provenance
+
+    overrides = {"model": model, "iters": iters, "batch": batch, "lr": lr, "tex_res": tex_res,
+                 "seed": seed, "visibility": False if no_visibility else None}
+    ckpt = None
+    if resume is not None:
+        ckpt = read_checkpoint(resume, kind="teacher")
+        try:
+            config = TeacherConfig.from_dict(ckpt["config"], "checkpoint config")
+        except UsageProblem as exc:
+            raise DataError(exc.message, resume) from None
+        changed = {k: v for k, v in overrides.items()
+                   if v is not None and k != "iters" and getattr(config, k) != v}
+        if changed or config_file is not None:
+            raise UsageProblem("--resume continues the checkpoint's own configuration; only "
+                               "--iters may change (got " + ", ".join(sorted(changed) or
+                                                                     ["--config"]) + ")")
+        if iters is not None:
+            if iters <= int(ckpt["step"]):
+                raise UsageProblem(f"--iters {iters} is not beyond the checkpoint's step "
+                                   f"{ckpt['step']}")
+            config.iters = iters
+        elif int(ckpt["step"]) >= config.iters:
+            raise UsageProblem(f"the checkpoint already ran its {config.iters} iterations; give "
+                               f"--iters to continue further", resume)
+    else:
+        config = resolve_config(preset, config_file, overrides)
+    torch_device = resolve_device(device)
+
+    vgg = None
+    if vgg_weights is not None:
+        from relight_cli.neural.losses import load_vgg
+        vgg = load_vgg(vgg_weights).to(torch_device)
+    # ---- data (data errors)
+    data = CaptureData(capture, config.tex_res, config.aa, config.visibility, config.falloff,
+                       config.holdout, config.cache_poses)
+    if ckpt is not None and ckpt["capture_key"] != data.key:
+        raise DataError(f"checkpoint was trained on another capture (key {ckpt['capture_key']}, "
+                        f"this one is {data.key})", resume)
+    rank = int(os.environ.get("RANK", "0"))
+    quiet = quiet or rank != 0
+    splits = data.splits()
+    log(f"read {capture}: {len(splits['train'])} training, {len(splits['heldout'])} held-out, "
+        f"{len(splits['fully_lit'])} fully lit, {len(splits.get('env', []))} env-map samples; "
+        f"{data.n_hands} hand(s); model {config.model}, {config.tex_res}² texture, "
+        f"{config.iters} iterations on {torch_device}"
+        + ("" if vgg is not None else "; no VGG weights: λ_VGG = 0"), quiet)
+    if vgg is None:
+        config.lambda_vgg = 0.0 if ckpt is None else config.lambda_vgg
+    inputs = {"capture": data.index_path}
+    if vgg_weights is not None:
+        inputs["vgg_weights"] = vgg_weights
+    if resume is not None:
+        inputs["resume"] = resume
+    if config_file is not None:
+        inputs["config"] = config_file
+    record = provenance("relight/checkpoint", 1, inputs, {"preset": preset, **config.to_dict()})
+
+    def save(checkpoint):
+        # Periodic checkpoints land at once: an interrupted run keeps its progress.
+        with outside_transaction():
+            write_checkpoint(output, checkpoint)
+
+    result = train(data, config, torch_device, resume=ckpt, vgg=vgg, provenance=record,
+                   save=save if rank == 0 else None, show_progress=not quiet,
+                   log=lambda m: log(m, quiet))
+    if rank != 0:
+        return
+    write_checkpoint(output, result.checkpoint)
+    if metrics_out is not None:
+        from relight_cli.formats.metrics_json import make_record, write_metrics
+        write_metrics(metrics_out, make_record(
+            "validation", result.metrics and {k: v for k, v in result.metrics.items()
+                                              if k != "step"},
+            {"capture": {"path": data.index_path}}, config.to_dict(), record,
+            details={"history": result.history}))
+    its = result.steps_run / result.seconds if result.seconds > 0 else float("inf")
+    from relight_cli.neural.train import _summary
+    log(f"wrote {output}: {result.steps_run} step(s) in {result.seconds:.1f} s ({its:.2f} it/s); "
+        + _summary(result.history[-1] if result.history else {"step": config.iters}), quiet)

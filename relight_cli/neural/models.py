@@ -1,0 +1,190 @@
+"""The teacher networks: pose encoder J(θ), OLAT U-Net (App. A.1, Eq. 10), GGX baseline (App. B).
+
+Shapes: B = lights × hands in one pass, N = texture size, P = pose dimension.
+
+Pose encoder (App. A.1): the hand pose θ — the local axis-angle rotations of every
+joint but the wrist (the global rotation changes no texel frame, so it carries no
+appearance) — is tiled over the bottleneck's grid and passed through a 2-layer CNN
+(widths 16, 64).  RelightableHands tiles θ ∈ R²⁵; our skeleton is the 25-joint WebXR
+one, θ ∈ R^{24·3}.
+
+U-Net (App. A.1 with S = 1): encoder convs (7 → 64 → 64 → 64), each level after the
+first at half the previous resolution (bilinear); the pose features are concatenated
+at the bottleneck (64 + 64 = 128); decoder convs (128, 128, 128) back up (bilinear),
+each level concatenating the encoder's skip of the same resolution, to 4 channels:
+raw texture T (3) and shadow logit S (1).  The paper lists widths, not the number of
+resolution levels: we read "4-layer" as the input plus three levels, so a 1024²
+texture has its bottleneck at 256².  3×3 convolutions, LeakyReLU(0.2) between.
+
+Eq. 10:  C_i = σ(S_i) · (ReLU(λ_s T_i) + λ_b), with λ_s, λ_b converted from the paper's
+8-bit units (:data:`relight_cli.neural.config.PAPER_UNIT`).  C_i is radiance per unit
+irradiance (sr⁻¹).  A frame's texture is Eq. 2, Σ_i b_i C_i, where our b_i is the light's
+RGB intensity times its 1/r² falloff at the texel (``falloff="analytic"``), or the
+intensity alone (``"none"``, the paper's form).
+
+GGX baseline (App. B, Eq. 12): the same U-Net twice — a shadow U-Net on (local light
+direction, visibility) → S, and a material U-Net on the capture's mean texture T̄ →
+albedo (3), roughness (1), tangent-space normal (3) — then
+C_i = σ(S_i) · (A/π · max(n·l, 0) + f_GGX(n, v, l, ρ)·max(n·l, 0)), the lobe of
+:mod:`relight_cli.brdf` (F0 0.04).  The paper's separate normal/roughness decoders
+share one material U-Net here (same inputs, same architecture; one pass instead of
+three).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from .config import PAPER_UNIT, TeacherConfig
+
+N_INPUT = 7          # local light dir 3, local view dir 3, visibility 1
+
+
+def pose_vector(poses) -> torch.Tensor:
+    """[H, (J−1)·3] float32 pose features of H hands from their [H, J, 3] axis-angle poses."""
+    p = torch.as_tensor(poses, dtype=torch.float32)
+    return p[:, 1:].reshape(p.shape[0], -1)
+
+
+def _conv(cin: int, cout: int) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, 3, padding=1)
+
+
+def _resize(x: torch.Tensor, size: int) -> torch.Tensor:
+    return F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False)
+
+
+class PoseEncoder(nn.Module):
+    """J(θ): tiled pose → conv (16) → LeakyReLU → conv (64), on the bottleneck grid."""
+
+    def __init__(self, pose_dim: int, channels=(16, 64)):
+        super().__init__()
+        self.conv1 = _conv(pose_dim, channels[0])
+        self.conv2 = _conv(channels[0], channels[1])
+
+    def forward(self, pose: torch.Tensor, size: int) -> torch.Tensor:
+        """pose [H, P] → [H, C, size, size]."""
+        tiled = pose[:, :, None, None].expand(-1, -1, size, size)
+        return self.conv2(F.leaky_relu(self.conv1(tiled), 0.2))
+
+
+class UNet(nn.Module):
+    """The teacher's U-Net with the pose at its bottleneck.
+
+    Args:
+        cin: input channels.  cout: output channels.
+        encoder: widths per level (level i > 0 at N / 2^i).
+        decoder: widths per level, bottleneck first.
+        pose_dim, pose_channels: the pose encoder.
+    """
+
+    def __init__(self, cin: int, cout: int, encoder, decoder, pose_dim: int, pose_channels):
+        super().__init__()
+        self.enc = nn.ModuleList()
+        prev = cin
+        for width in encoder:
+            self.enc.append(_conv(prev, width))
+            prev = width
+        self.pose = PoseEncoder(pose_dim, pose_channels)
+        self.dec = nn.ModuleList()
+        prev = encoder[-1] + pose_channels[1]
+        levels = len(encoder)
+        for i, width in enumerate(decoder):
+            self.dec.append(_conv(prev, width))
+            # the next level up concatenates the encoder skip of its resolution
+            skip = encoder[levels - 2 - i] if i < levels - 1 else 0
+            prev = width + skip
+        self.head = nn.Conv2d(prev, cout, 3, padding=1)
+        self.levels = levels
+
+    def forward(self, x: torch.Tensor, pose: torch.Tensor, hand_of: torch.Tensor) -> torch.Tensor:
+        """x [B, cin, N, N], pose [H, P], hand_of [B] int64 (which pose row) → [B, cout, N, N]."""
+        n = x.shape[-1]
+        skips = []
+        h = x
+        for i, conv in enumerate(self.enc):
+            if i:
+                h = _resize(h, n >> i)
+            h = F.leaky_relu(conv(h), 0.2)
+            skips.append(h)
+        size = h.shape[-1]
+        joint = self.pose(pose, size)[hand_of]                                 # [B, C, s, s]
+        h = torch.cat([h, joint], 1)
+        for i, conv in enumerate(self.dec):
+            h = F.leaky_relu(conv(h), 0.2)
+            level = self.levels - 2 - i
+            if level >= 0:
+                h = _resize(h, n >> level)
+                h = torch.cat([h, skips[level]], 1)
+        return self.head(h)
+
+
+class OLATTeacher(nn.Module):
+    """RelightableHands' OLAT teacher on a mesh (App. A.1, Eq. 10; URHand supp. 10.1 Eq. 16)."""
+
+    kind = "olat"
+
+    def __init__(self, config: TeacherConfig, pose_dim: int):
+        super().__init__()
+        self.config = config
+        self.net = UNet(N_INPUT, 4, config.encoder, config.decoder, pose_dim, config.pose_channels)
+        self.lambda_s = config.lambda_s * PAPER_UNIT
+        self.lambda_b = config.lambda_b * PAPER_UNIT
+
+    def forward(self, inputs: torch.Tensor, pose: torch.Tensor, hand_of: torch.Tensor,
+                mean_texture=None, return_raw: bool = False):
+        """Per-light textures C_i [B, 3, N, N] (sr⁻¹) from inputs [B, 7, N, N] (Eq. 10);
+        with ``return_raw`` also the pre-ReLU λ_s T_i [B, 3, N, N] (for L_neg)."""
+        raw = self.net(inputs, pose, hand_of)
+        scaled, shadow = self.lambda_s * raw[:, :3], raw[:, 3:4]
+        colour = torch.sigmoid(shadow) * (F.relu(scaled) + self.lambda_b)
+        return (colour, scaled) if return_raw else colour
+
+
+class GGXTeacher(nn.Module):
+    """The physically based baseline of RelightableHands App. B (Eq. 12)."""
+
+    kind = "ggx"
+
+    def __init__(self, config: TeacherConfig, pose_dim: int):
+        super().__init__()
+        self.config = config
+        self.shadow_net = UNet(4, 1, config.encoder, config.decoder, pose_dim, config.pose_channels)
+        self.material_net = UNet(3, 7, config.encoder, config.decoder, pose_dim,
+                                 config.pose_channels)
+
+    def materials(self, mean_texture: torch.Tensor, pose: torch.Tensor):
+        """(albedo [H, 3, N, N] ∈ (0, 1), roughness [H, 1, N, N] ∈ (0, 1), tangent-space
+        unit normal [H, 3, N, N] with n_z > 0) from T̄ [H, 3, N, N]."""
+        hands = torch.arange(mean_texture.shape[0])
+        raw = self.material_net(mean_texture, pose, hands)
+        albedo = torch.sigmoid(raw[:, :3])
+        roughness = torch.sigmoid(raw[:, 3:4])
+        # tangent-space normal around +z (the interpolated normal): small tilts at init
+        tilt = torch.tanh(raw[:, 4:6])
+        normal = torch.cat([tilt, torch.ones_like(tilt[:, :1])], 1)
+        return albedo, roughness, F.normalize(normal, dim=1)
+
+    def forward(self, inputs: torch.Tensor, pose: torch.Tensor, hand_of: torch.Tensor,
+                mean_texture=None, return_raw: bool = False):
+        """Per-light textures C_i [B, 3, N, N] (Eq. 12); ``return_raw`` adds None (no
+        pre-activation can go negative here: L_neg does not apply)."""
+        from relight_cli.brdf import ggx_cosine_torch
+
+        light, view, vis = inputs[:, 0:3], inputs[:, 3:6], inputs[:, 6:7]
+        shadow = self.shadow_net(torch.cat([light, vis], 1), pose, hand_of)
+        albedo, rough, normal = self.materials(mean_texture, pose)
+        albedo, rough, normal = albedo[hand_of], rough[hand_of], normal[hand_of]
+        cos = torch.clamp((normal * light).sum(1, keepdim=True), min=0)
+        spec = ggx_cosine_torch(normal.permute(0, 2, 3, 1), view.permute(0, 2, 3, 1),
+                                light.permute(0, 2, 3, 1), rough[:, 0])[:, None]
+        colour = torch.sigmoid(shadow) * (albedo / math.pi * cos + spec)
+        return (colour, None) if return_raw else colour
+
+
+def build_model(config: TeacherConfig, pose_dim: int) -> nn.Module:
+    return (OLATTeacher if config.model == "olat" else GGXTeacher)(config, pose_dim)

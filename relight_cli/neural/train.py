@@ -1,0 +1,333 @@
+"""Training a teacher: Adam on (frame, camera) samples, deterministic, resumable, DDP-capable.
+
+* **Sampling**: step t draws its global batch of ``batch × world`` sample indices from
+  ``numpy.random.default_rng([seed, t])``: a pure function of (seed, step), so a resumed
+  run draws exactly what the uninterrupted run would, and each DDP rank takes its own
+  slice of the same draw.
+* **Determinism**: weights are initialized under ``torch.manual_seed(seed)``; CPU runs
+  repeat bit for bit (same thread count).  The checkpoint stores the model, Adam's
+  state, the step and the torch / numpy / python RNG states, so ``--resume`` after N
+  steps reproduces an uninterrupted 2N-step run exactly.
+* **Scale**: one process, or data-parallel under ``torchrun --nproc_per_node=N`` with
+  PyTorch DDP (gloo on CPU, NCCL on CUDA): gradients are averaged over ranks, every rank
+  ends with identical weights, only rank 0 writes files and shows progress.
+* **Loss** per sample (Eq. 5): λ_MSE·MSE inside the mask + λ_VGG·VGG (if weights were
+  given) + λ_neg·γ(t)·L_neg (see :mod:`relight_cli.neural.losses`); the batch loss is the
+  mean over samples, back-propagated one sample at a time (memory stays that of one
+  frame's lights).
+* **Validation** every ``val_every`` steps and at the end: masked MSE, PSNR, SSIM on
+  held-out poses, fully lit frames (novel illumination) and the capture's env-map
+  ground truth (:func:`evaluate`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import random
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from relight_cli.errors import DataError, UsageProblem
+
+from .config import TeacherConfig
+from .data import CaptureData
+from .losses import masked_mse, neg_weight, negativity
+from .models import build_model
+from .teacher import env_light_inputs, render_lights, render_sample
+
+
+@dataclass
+class TrainResult:
+    """What a training run produced (the checkpoint dict is written by the caller)."""
+
+    checkpoint: dict
+    history: list = field(default_factory=list)
+    metrics: dict = field(default_factory=dict)
+    steps_run: int = 0
+    seconds: float = 0.0
+    peak_memory_mb: float = 0.0
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` → CUDA when available, else CPU; ``cuda`` without a GPU is a usage error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise UsageProblem("--device cuda: no CUDA device is available (use auto or cpu)")
+    if name not in ("cpu", "cuda"):
+        raise UsageProblem(f"--device must be auto, cpu or cuda, got {name!r}")
+    return torch.device(name)
+
+
+def distributed_context(device: torch.device):
+    """(rank, world size, local device) — initializing torch.distributed when launched by
+    torchrun (WORLD_SIZE > 1): gloo on CPU, NCCL on CUDA."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1, device
+    import torch.distributed as dist
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    rank = dist.get_rank()
+    if device.type == "cuda":
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        device = torch.device("cuda", local)
+    return rank, dist.get_world_size(), device
+
+
+def batch_indices(seed: int, step: int, n_items: int, count: int) -> np.ndarray:
+    """The global batch of step ``step``: ``count`` indices in [0, n_items)."""
+    rng = np.random.default_rng([int(seed), int(step)])
+    return rng.integers(0, n_items, size=count)
+
+
+def rng_state() -> dict:
+    np_state = np.random.get_state()
+    return {"torch": torch.get_rng_state(),
+            "numpy": [np_state[0], np_state[1].tolist(), int(np_state[2]), int(np_state[3]),
+                      float(np_state[4])],
+            "python": _python_state()}
+
+
+def _python_state():
+    version, internal, gauss = random.getstate()
+    return [version, list(internal), gauss]
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np_state = json.loads(state["numpy"]) if isinstance(state["numpy"], str) else state["numpy"]
+    np.random.set_state((np_state[0], np.asarray(np_state[1], np.uint32), *np_state[2:]))
+    py = json.loads(state["python"]) if isinstance(state["python"], str) else state["python"]
+    random.setstate((py[0], tuple(py[1]), py[2]))
+
+
+def sample_loss(model, data: CaptureData, item, config: TeacherConfig, step: int, device,
+                vgg=None, mean_texture=None):
+    """(total loss, {mse, vgg, neg}) of one (frame, camera) sample (Eq. 5)."""
+    sample = data.sample(*item)
+    image, raw = render_sample(model, sample, device, mean_texture, return_raw=True)
+    target = torch.from_numpy(sample.image).to(device)
+    mask = torch.from_numpy((sample.mask > 0) | (sample.gbuffer.mask > 0)).to(device)
+    mse = masked_mse(image, target, mask)
+    total = config.lambda_mse * mse
+    parts = {"mse": float(mse.detach())}
+    if vgg is not None and config.lambda_vgg > 0:
+        perceptual = vgg(image, target, mask)
+        total = total + config.lambda_vgg * perceptual
+        parts["vgg"] = float(perceptual.detach())
+    if raw is not None and config.lambda_neg > 0:
+        gamma = neg_weight(step, config.iters, config.neg_eta, config.neg_start,
+                           config.neg_schedule)
+        texels = data.texels(sample.pose)
+        region = torch.from_numpy(np.stack([texels.inside(k) for k in sample.hand_of])
+                                  [:, None]).to(device)
+        neg = negativity(raw, region)
+        total = total + config.lambda_neg * gamma * neg
+        parts["neg"] = float(neg.detach())
+    return total, parts
+
+
+def _metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
+    from relight_cli.metrics.image import image_metrics
+    region = mask > 0.5
+    if not region.any():
+        return {}
+    m = image_metrics(pred, gt, region, win_size=min(7, (min(gt.shape[:2]) // 2) * 2 - 1))
+    return m["metrics"]
+
+
+def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=None,
+             mean_texture=None, env_res=(16, 32)) -> dict:
+    """Per split {mse, psnr, ssim, mae, samples}: means over at most ``val_samples``
+    evenly spaced samples, masked by the ground-truth hand mask (> 0.5)."""
+    from relight_cli.features import discretize_env
+
+    model.eval()
+    out = {}
+    all_splits = data.splits()
+    names = splits or [s for s in ("heldout", "fully_lit", "env") if all_splits.get(s)]
+    with torch.no_grad():
+        for name in names:
+            items = all_splits.get(name) or []
+            if not items:
+                continue
+            pick = np.unique(np.linspace(0, len(items) - 1, min(len(items), config.val_samples))
+                             .round().astype(int))
+            rows = []
+            for i in pick:
+                if name == "env":
+                    pose, env_name, camera, gt, mask = data.env_target(items[i][1])
+                    texels = data.texels(pose, held_out=True)
+                    gb = data.gbuffer(pose, camera, held_out=True)
+                    denv = discretize_env(data.env_map(env_name), *env_res)
+                    lights, weights = env_light_inputs(texels, denv, config.visibility)
+                    pred = render_lights(model, texels, gb, data.poses(pose, True), lights,
+                                         weights, config.visibility, "none", device,
+                                         mean_texture=mean_texture).cpu().numpy()
+                else:
+                    sample = data.sample(*items[i])
+                    pred = render_sample(model, sample, device, mean_texture).cpu().numpy()
+                    gt, mask = sample.image, sample.mask
+                m = _metrics(pred, gt, mask)
+                if m:
+                    rows.append(m)
+            if rows:
+                out[name] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+                out[name]["samples"] = len(rows)
+    model.train()
+    return out
+
+
+def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume: dict | None = None,
+          vgg=None, provenance: dict | None = None, save=None, show_progress: bool = True,
+          log=None) -> TrainResult:
+    """Train a teacher on ``data``.
+
+    Args:
+        data: the capture.  config: resolved configuration.
+        device: torch device (``resolve_device``).
+        resume: a checkpoint dict (``formats.checkpoint.read_checkpoint``) to continue.
+        vgg: optional :class:`~relight_cli.neural.losses.VGGLoss`.
+        provenance: stored in the checkpoint.
+        save: callable(checkpoint dict) for periodic saves (rank 0; ``save_every``).
+        show_progress: a tqdm bar on stderr (rank 0).
+        log: callable(str) for log lines.
+
+    Returns:
+        :class:`TrainResult` (its checkpoint is the final state).
+    """
+    from relight_cli.formats.checkpoint import make_checkpoint
+
+    rank, world, device = distributed_context(device)
+    items = data.splits()["train"]
+    if not items:
+        raise DataError("no training samples: the training frames list no images",
+                        data.index_path)
+    # A hand that does not match the images fails before any training.
+    data.check_alignment(data.sample(*items[0]))
+    torch.manual_seed(config.seed)
+    np.random.seed(config.seed % (2 ** 32))
+    random.seed(config.seed)
+    model = build_model(config, data.pose_dim).to(device)
+    mean_texture = None
+    if config.model == "ggx":
+        mean = data.mean_texture().mean(0, keepdims=True)               # [1, 3, N, N]
+        mean_texture = torch.from_numpy(mean).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    start = 0
+    if resume is not None:
+        model.load_state_dict({k: v.to(device) for k, v in resume["weights"].items()})
+        optimizer.load_state_dict(resume["optimizer"])
+        start = int(resume["step"])
+        set_rng_state(resume["rng"])
+        if "mean_texture" in resume.get("extra", {}):
+            mean_texture = resume["extra"]["mean_texture"].to(device)
+    net = model
+    if world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+        net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda"
+                                      else None)
+    bar = None
+    if show_progress and rank == 0:
+        from tqdm import tqdm
+        import sys
+        bar = tqdm(total=config.iters, initial=start, desc="train-teacher", file=sys.stderr,
+                   leave=False, dynamic_ncols=True, unit="it")
+    history = []
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    t_start = time.perf_counter()
+    model.train()
+
+    def checkpoint(step):
+        extra = {} if mean_texture is None else {"mean_texture": mean_texture.detach().cpu()}
+        return make_checkpoint("teacher", config.model, config.to_dict(), step,
+                               {k: v.detach().cpu() for k, v in model.state_dict().items()},
+                               optimizer.state_dict(), rng_state(), data.key, data.pose_dim,
+                               provenance or {}, extra)
+
+    for step in range(start, config.iters):
+        indices = batch_indices(config.seed, step, len(items), config.batch * world)
+        mine = indices[rank * config.batch:(rank + 1) * config.batch]
+        optimizer.zero_grad(set_to_none=True)
+        parts_sum = {}
+        for j, index in enumerate(mine):
+            sync = (j == len(mine) - 1) or world == 1
+            ctx = contextlib.nullcontext() if sync else net.no_sync()
+            with ctx:
+                loss, parts = sample_loss(net, data, items[int(index)], config, step, device, vgg,
+                                          mean_texture)
+                (loss / len(mine)).backward()
+            for k, v in parts.items():
+                parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
+        optimizer.step()
+        done = step + 1
+        if bar is not None:
+            bar.set_postfix({k: f"{v:.3g}" for k, v in parts_sum.items()}, refresh=False)
+            bar.update(1)
+        if config.val_every and done % config.val_every == 0 and done < config.iters and rank == 0:
+            record = {"step": done, **evaluate(model, data, config, device,
+                                               mean_texture=mean_texture)}
+            history.append(record)
+            if log:
+                log(_summary(record))
+        if save is not None and rank == 0 and config.save_every and done % config.save_every == 0 \
+                and done < config.iters:
+            save(checkpoint(done))
+    if bar is not None:
+        bar.close()
+    seconds = time.perf_counter() - t_start
+    final = {}
+    if rank == 0:
+        final = {"step": config.iters, **evaluate(model, data, config, device,
+                                                  mean_texture=mean_texture)}
+        history.append(final)
+    peak = (torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else
+            _peak_rss_mb())
+    return TrainResult(checkpoint(config.iters), history, final, config.iters - start, seconds, peak)
+
+
+def _peak_rss_mb() -> float:
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _summary(record: dict) -> str:
+    parts = [f"step {record['step']}"]
+    for split, m in record.items():
+        if isinstance(m, dict) and "psnr" in m:
+            parts.append(f"{split}: MSE {m['mse'] * 1e3:.3f}e-3 PSNR {m['psnr']:.2f} dB "
+                         f"SSIM {m['ssim']:.3f}")
+    return "; ".join(parts)
+
+
+def model_from_checkpoint(checkpoint: dict, device="cpu"):
+    """(model in eval mode, config, mean texture or None) from a read checkpoint dict.
+    Raises DataError (via the caller's path) on missing/mismatched tensors."""
+    config = TeacherConfig.from_dict(checkpoint["config"], "checkpoint config")
+    model = build_model(config, int(checkpoint["pose_dim"]))
+    expected = model.state_dict()
+    weights = checkpoint["weights"]
+    missing = [k for k in expected if k not in weights]
+    if missing:
+        raise ValueError(f"checkpoint lacks tensor {missing[0]} ({len(missing)} missing)")
+    unexpected = [k for k in weights if k not in expected]
+    if unexpected:
+        raise ValueError(f"checkpoint has unexpected tensor {unexpected[0]}")
+    for k, v in expected.items():
+        if tuple(weights[k].shape) != tuple(v.shape):
+            raise ValueError(f"tensor {k} has shape {tuple(weights[k].shape)}, the model "
+                             f"expects {tuple(v.shape)}")
+    model.load_state_dict(weights)
+    model.to(device).eval()
+    mean = checkpoint.get("extra", {}).get("mean_texture")
+    if config.model == "ggx" and mean is None:
+        raise ValueError("a ggx checkpoint needs its mean texture (extra.mean_texture)")
+    return model, config, (None if mean is None else mean.to(device))
