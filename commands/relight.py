@@ -58,8 +58,12 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
               help="Background radiance of --render.")
 @click.option("--model", default=None, metavar="NAME",
-              help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS) "
-                   "[default: physical].")
+              help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS) or "
+                   "'teacher' (a train-teacher checkpoint, --checkpoint) [default: physical].")
+@click.option("--checkpoint", default=None, metavar="CKPT.pt",
+              help="[hand] The learned model of --model teacher (relight/checkpoint).")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None,
+              help="[hand] Where a learned model runs [default: auto].")
 @click.option("--camera", "hand_camera", default=None, metavar="CAMERA.json",
               help="[hand] OpenCV camera of the view (default: framing the hands from the front).")
 @click.option("--size", "hand_size", default=None, metavar="WxH",
@@ -96,7 +100,7 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @quiet_option
 def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
             shadow_strength, lobe, intensity, t_max, normals, render_camera, background, model,
-            hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
+            checkpoint, device, hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
             preview, seed, no_clobber, quiet):
     """Relight IN under new lighting.
@@ -120,6 +124,12 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     scattering, optional one bounce.  Writes an EXR with R, G, B, A (mask) and
     optional AOV layers.
 
+    With --model teacher --checkpoint TEACHER.pt: RelightableHands' OLAT teacher
+    (or its GGX baseline) from train-teacher.  Point lights, near or far, take
+    one network pass each (their own 1/r² and visibility); an env map is the sum
+    over its --env-res directions (linearity of light transport), each a
+    distant light with its own ray-traced visibility; passes are batched.
+
     \b
     Examples:
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
@@ -128,6 +138,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
       relight relight 'builtin:hand:translate=0,0.25,0' --object 'donut.ply:fit=0.15;on-floor' \\
           --probe probe.json --dgsm shadows.exr --receivers room.ply --render cam.json -o view.exr
       relight relight hand.npz builtin:sky --model physical --camera cam.json -o img.exr
+      relight relight hand.npz builtin:sky --model teacher --checkpoint teacher.pt -o img.exr
     """
     from relight_cli.errors import UsageProblem
 
@@ -140,7 +151,8 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
         raise UsageProblem("--object inserts Gaussian objects beside IN = AVATAR.ply (or a mesh, "
                            "builtin:hand|room|sphere); it does not apply to a hand .npz", input)
     if gaussian_in:
-        hand_only = {"ENV": env, "--model": model, "--camera": hand_camera, "--size": hand_size,
+        hand_only = {"ENV": env, "--model": model, "--checkpoint": checkpoint,
+                     "--device": device, "--camera": hand_camera, "--size": hand_size,
                      "--lights": hand_lights, "--frame": hand_frame, "--mesh": hand_mesh,
                      "--env-res": env_res, "--tex-res": tex_res, "--aa": aa,
                      "--no-shadows": no_shadows or None, "--no-specular": no_specular or None,
@@ -291,8 +303,8 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         log(f"wrote {preview}", quiet)
 
 
-def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, render_camera,
-                  model, hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res,
+def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers, receivers_out,
+                  render_camera, model, hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res,
                   tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map,
                   roughness_map, aov, background, preview, seed, no_clobber, quiet, **_):
     """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image."""
@@ -311,9 +323,13 @@ def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, ren
         raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply); "
                            f"a hand's view is --camera")
     model = model or "physical"
-    if model != "physical":
-        raise UsageProblem(f"--model {model!r} is not available; use --model physical (the "
-                           f"neural hand models come with train-teacher/distill)")
+    if model not in ("physical", "teacher"):
+        raise UsageProblem(f"--model {model!r} is not available; use physical or teacher (the "
+                           f"student comes with distill)")
+    if model == "physical" and (checkpoint is not None or device is not None):
+        raise UsageProblem("--checkpoint and --device belong to a learned --model (teacher)")
+    if model == "teacher":
+        return _relight_hand_learned(**locals())
     if env is None and hand_lights is None:
         raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
     if not output.lower().endswith(".exr"):
@@ -448,6 +464,157 @@ def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, ren
         write_preview(preview, result.image)
     log(f"wrote {output} ({camera.width}x{camera.height}, {time.perf_counter() - start:.2f} s: "
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
+
+
+def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_camera, hand_size,
+                          hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa, no_shadows,
+                          no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
+                          background, preview, no_clobber, quiet, **_):
+    """Hand mode with a learned model: the teacher's per-light textures summed (Eq. 2)."""
+    import time
+
+    import numpy as np
+
+    from relight_cli.errors import DataError, UsageProblem
+
+    # ---- usage checks before any work
+    physical_only = {"--mesh": hand_mesh, "--tex-res": tex_res,
+                     "--no-shadows": no_shadows or None, "--no-specular": no_specular or None,
+                     "--no-sss": no_sss or None, "--sss-scale": sss_scale,
+                     "--bounce": bounce or None, "--albedo": albedo_map,
+                     "--roughness": roughness_map, "--aov": aov}
+    given = [k for k, v in physical_only.items() if v is not None]
+    if given:
+        raise UsageProblem(f"{', '.join(given)} only apply to --model physical (a learned "
+                           f"model has its own texture, materials and shadows)")
+    if checkpoint is None:
+        raise UsageProblem(f"--model {model} needs --checkpoint CKPT.pt (from train-teacher)")
+    if env is None and hand_lights is None:
+        raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
+    if not output.lower().endswith(".exr"):
+        raise UsageProblem("-o is the rendered EXR image (name it .exr)", output)
+    if hand_camera is not None and hand_size is not None:
+        raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
+    width, height = 256, 256
+    if hand_size is not None:
+        from relight_cli.clitools import parse_size
+        width, height = parse_size(hand_size, "--size")
+        if width > 8192 or height > 8192:
+            raise UsageProblem(f"--size must be at most 8192, got {hand_size!r}")
+    frame = 0 if hand_frame is None else hand_frame
+    if frame < 0:
+        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
+    env_h, env_w = _parse_env_res(env_res or "16x32")
+    if aa is not None and not 1 <= aa <= 8:
+        raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
+    bg = parse_vector(background, 3, "--background")
+    for path in (output, preview):
+        check_output(path, no_clobber)
+    for path in (checkpoint, hand_camera, hand_lights):
+        if path is not None:
+            check_input(path)
+
+    # ---- inputs (data errors)
+    start = time.perf_counter()
+    from relight_cli.commands.bake_features import _load_hand
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.hand.scene import posed_meshes, preview_camera
+    from relight_cli.neural import teacher as T
+    from relight_cli.neural.geometry import PoseTexels, uv_layout_digest
+    from relight_cli.neural.train import model_from_checkpoint, resolve_device
+    from relight_cli.provenance import provenance
+
+    from ._inputs import load_envmap
+
+    torch_device = resolve_device(device or "auto")
+    ckpt = read_checkpoint(checkpoint, kind="teacher")
+    try:
+        net, config, mean_texture = model_from_checkpoint(ckpt, torch_device)
+    except (ValueError, UsageProblem) as exc:
+        raise DataError(getattr(exc, "message", str(exc)), checkpoint) from None
+    data = _load_hand(input)
+    if frame >= data.n_frames:
+        raise UsageProblem(f"--frame {frame} is out of range: {input} has {data.n_frames} frame(s)")
+    if (data.n_joints - 1) * 3 != int(ckpt["pose_dim"]):
+        raise DataError(f"the hand has {data.n_joints} joints; the checkpoint's model was trained "
+                        f"on {int(ckpt['pose_dim']) // 3 + 1}", input)
+    layout = ckpt.get("extra", {}).get("uv_layout")
+    if layout is not None and layout != uv_layout_digest(data.mesh("fine")):
+        raise DataError("the hand's UV layout differs from the one the model learned its "
+                        "texture on (another hand model?)", input)
+    envmap = load_envmap(env) if env is not None else None
+    lights = None
+    if hand_lights is not None:
+        from relight_cli.formats.lights_json import read_lights
+        lights = read_lights(hand_lights)
+    try:
+        meshes = posed_meshes(data, frame, "fine")
+    except (IndexError, ValueError) as exc:
+        raise DataError(f"cannot pose frame {frame}: {exc}", input) from None
+    for pm in meshes:
+        if not np.isfinite(pm.vertices).all():
+            raise DataError(f"frame {frame}: posed vertices hold NaN/Inf", input)
+    if hand_camera is not None:
+        from relight_cli.formats.camera import read_camera
+        camera = read_camera(hand_camera)
+    else:
+        camera = preview_camera(meshes, width, height)
+    samples_axis = config.aa if aa is None else aa
+
+    # ---- render: one pass per light / direction, summed
+    from relight_cli.clitools import progress
+    from relight_cli.features import discretize_env
+    from relight_cli.render.gbuffer import render_gbuffer
+
+    timing = T.Timing()
+    t0 = time.perf_counter()
+    texels = PoseTexels(meshes, config.tex_res, shadows=config.visibility)
+    gbuffer = render_gbuffer(meshes, camera, samples_axis, scene=texels.renderer.scene)
+    timing.add("geometry", time.perf_counter() - t0)
+    passes = []
+    if lights is not None:
+        intensity = lights.colors * lights.intensities[:, None]
+        passes.append((T.point_light_inputs(texels, lights.positions, config.visibility, timing),
+                       np.asarray(intensity, np.float64)))
+    denv = None
+    if envmap is not None:
+        denv = discretize_env(envmap, env_h, env_w)
+        passes.append(T.env_light_inputs(texels, denv, config.visibility, timing))
+    total = sum(len(w) for _, w in passes)
+    poses = np.stack([inst.poses[frame] for inst in data.hands])
+    image = None
+    with progress(total=total, desc="relight (teacher passes)", quiet=quiet) as bar:
+        for light_inputs, weights in passes:
+            part = T.render_lights(net, texels, gbuffer, poses, light_inputs, weights,
+                                   config.visibility, config.falloff, torch_device,
+                                   mean_texture=mean_texture, progress=bar.update, timing=timing)
+            image = part if image is None else image + part
+    rgb = image.cpu().numpy().astype(np.float32)
+    mask = gbuffer.mask
+    # passes are composited over black; the background fills the uncovered sample fraction
+    rgb = rgb + np.asarray(bg, np.float32)[None, None] * (1 - mask[..., None])
+    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
+    inputs = {"hand": input, "checkpoint": checkpoint}
+    if env is not None:
+        inputs["env"] = env
+    for role, path in (("camera", hand_camera), ("lights", hand_lights)):
+        if path is not None:
+            inputs[role] = path
+    record = provenance("relight/render", 1, inputs, {
+        "model": model, "teacher": config.model, "frame": frame, "mesh": "fine",
+        "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
+        "visibility": config.visibility, "falloff": config.falloff,
+        "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
+    from relight_cli.formats.exr import write_exr
+    write_exr(output, channels, attributes={"relight.model": model,
+                                            "relight.camera": camera.to_json()},
+              provenance=record)
+    if preview is not None:
+        from relight_cli.formats.image import write_preview
+        write_preview(preview, rgb)
+    log(f"wrote {output} ({camera.width}x{camera.height}, {total} pass(es), "
+        f"{time.perf_counter() - start:.2f} s: "
+        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in timing.seconds.items()) + ")", quiet)
 
 
 def _parse_env_res(text: str) -> tuple[int, int]:

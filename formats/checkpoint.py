@@ -61,8 +61,12 @@ def read_checkpoint(path: str, kind: str | None = None, model: str | None = None
 
     if not os.path.isfile(path):
         raise DataError("no such checkpoint file", path)
+    import warnings
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():
+            # torch warns about foreign pickle protocols before refusing them: one line only
+            warnings.simplefilter("ignore")
+            obj = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         first = (str(exc).splitlines() or ["?"])[0][:120]
         raise DataError(f"refused: not a plain-data checkpoint (weights_only load failed: "

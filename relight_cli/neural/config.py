@@ -49,7 +49,8 @@ class TeacherConfig:
         lambda_s, lambda_b: Eq. 10's scale and bias in the paper's units (× PAPER_UNIT).
         iters, batch, lr: Adam iterations, samples (frame × camera) per step, learning rate.
         lambda_mse, lambda_vgg, lambda_neg: Eq. 5's weights (VGG only with local weights).
-        neg_eta, neg_start: Eq. 6's γ schedule η_neg and t_s (as a fraction of ``iters``).
+        neg_eta, neg_start: Eq. 6's γ schedule η_neg and t_s (an iteration, so that a run
+            extended by ``--resume --iters`` keeps the schedule it started with).
         neg_schedule: ``decay`` γ = exp(−max(η (t − t_s)/t, 0)) (1 until t_s, then decaying
             to e^−η: our reading of "starts decaying") or ``literal`` γ = exp(−max(η t/(t −
             t_s), 0)) as printed (1 until t_s, ≈ 0 just after, rising to e^−η).
@@ -79,7 +80,7 @@ class TeacherConfig:
     lambda_vgg: float = 1.0
     lambda_neg: float = 0.01
     neg_eta: float = 5.0
-    neg_start: float = 0.25
+    neg_start: int = 40
     neg_schedule: str = "decay"
     aa: int = 2
     holdout: float = 0.25
@@ -151,7 +152,7 @@ class TeacherConfig:
             finite(name, 0.0, 1e6, open_lo=name == "lambda_s")
         for name in ("lambda_mse", "lambda_vgg", "lambda_neg", "neg_eta"):
             finite(name, 0.0, 1e6)
-        finite("neg_start", 0.0, 1.0)
+        positive_int("neg_start", 0)
         finite("holdout", 0.0, 0.9)
         positive_int("aa", 1, 8)
         positive_int("val_every", 0)
@@ -167,7 +168,7 @@ PRESETS = {
     "tiny": {},
     "paper": {"tex_res": 1024, "encoder": (64, 64, 64), "decoder": (128, 128, 128),
               "pose_channels": (16, 64), "iters": 100_000, "batch": 2, "lr": 1e-3,
-              "val_every": 5000, "val_samples": 64, "save_every": 5000},
+              "neg_start": 25_000, "val_every": 5000, "val_samples": 64, "save_every": 5000},
 }
 
 

@@ -31,6 +31,16 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def uv_layout_digest(mesh) -> str:
+    """16-hex fingerprint of a mesh's UV layout (uv, faces_uv): a learned texture only
+    means something on the layout it was learned on."""
+    import hashlib
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(np.asarray(mesh.uv, np.float64)).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(mesh.faces_uv, np.int64)).tobytes())
+    return h.hexdigest()[:16]
+
+
 def uv_tangents(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
                 faces_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-UV-vertex ∂x/∂u and ∂x/∂v ([T, 3] each, unnormalized, area weighted).

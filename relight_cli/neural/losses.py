@@ -44,16 +44,15 @@ def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> 
     return (((pred - target) ** 2) * m).sum() / count
 
 
-def neg_weight(step: int, iters: int, eta: float, start_fraction: float,
-               schedule: str = "decay") -> float:
-    """γ of Eq. 6 at iteration ``step`` (t_s = start_fraction · iters).
+def neg_weight(step: int, eta: float, start: int, schedule: str = "decay") -> float:
+    """γ of Eq. 6 at iteration ``step`` (t_s = ``start``).
 
     ``decay``: exp(−max(η (t − t_s)/t, 0)) — 1 until t_s, then decaying towards e^−η.
     ``literal``: exp(−max(η t/(t − t_s), 0)) as printed — 1 before t_s, then ≈ 0 just
     after it, rising towards e^−η (we believe the printed fraction is inverted).
     """
     t = float(step)
-    ts = start_fraction * iters
+    ts = float(start)
     if schedule == "literal":
         if t <= ts:
             return 1.0

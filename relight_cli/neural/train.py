@@ -123,8 +123,7 @@ def sample_loss(model, data: CaptureData, item, config: TeacherConfig, step: int
         total = total + config.lambda_vgg * perceptual
         parts["vgg"] = float(perceptual.detach())
     if raw is not None and config.lambda_neg > 0:
-        gamma = neg_weight(step, config.iters, config.neg_eta, config.neg_start,
-                           config.neg_schedule)
+        gamma = neg_weight(step, config.neg_eta, config.neg_start, config.neg_schedule)
         texels = data.texels(sample.pose)
         region = torch.from_numpy(np.stack([texels.inside(k) for k in sample.hand_of])
                                   [:, None]).to(device)
@@ -169,7 +168,7 @@ def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=Non
                     denv = discretize_env(data.env_map(env_name), *env_res)
                     lights, weights = env_light_inputs(texels, denv, config.visibility)
                     pred = render_lights(model, texels, gb, data.poses(pose, True), lights,
-                                         weights, config.visibility, "none", device,
+                                         weights, config.visibility, config.falloff, device,
                                          mean_texture=mean_texture).cpu().numpy()
                 else:
                     sample = data.sample(*items[i])
@@ -247,7 +246,10 @@ def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume
     model.train()
 
     def checkpoint(step):
-        extra = {} if mean_texture is None else {"mean_texture": mean_texture.detach().cpu()}
+        from .geometry import uv_layout_digest
+        extra = {"uv_layout": uv_layout_digest(data.hand.mesh("fine"))}
+        if mean_texture is not None:
+            extra["mean_texture"] = mean_texture.detach().cpu()
         return make_checkpoint("teacher", config.model, config.to_dict(), step,
                                {k: v.detach().cpu() for k, v in model.state_dict().items()},
                                optimizer.state_dict(), rng_state(), data.key, data.pose_dim,
@@ -311,7 +313,9 @@ def _summary(record: dict) -> str:
 def model_from_checkpoint(checkpoint: dict, device="cpu"):
     """(model in eval mode, config, mean texture or None) from a read checkpoint dict.
     Raises DataError (via the caller's path) on missing/mismatched tensors."""
-    config = TeacherConfig.from_dict(checkpoint["config"], "checkpoint config")
+    raw = checkpoint["config"]
+    config = TeacherConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
+                                     "checkpoint config")
     model = build_model(config, int(checkpoint["pose_dim"]))
     expected = model.state_dict()
     weights = checkpoint["weights"]

@@ -1,0 +1,652 @@
+"""The OLAT teacher: texel frames, inputs, Eq. 10 head, linearity, training, resume, DDP, checkpoints."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from relight_cli.errors import DataError, UsageProblem  # noqa: E402
+from relight_cli.neural import geometry as G  # noqa: E402
+from relight_cli.neural.config import PAPER_UNIT, TeacherConfig, resolve_config  # noqa: E402
+
+# A capture small enough for seconds of training: 3 cameras, 12 LEDs, 8 frames (6 grouped).
+CAPTURE_ARGS = ["--cameras", "3", "--lights", "12", "--group", "3", "--frames", "8", "--res",
+                "32", "--tex-res", "64", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
+                "--eval-envs", "builtin:sky", "-q"]
+# The smallest teacher: 16² texture, 4-wide U-Net (resume/DDP/CLI tests need seconds only).
+SMALL = {"tex_res": 16, "encoder": [4, 4, 4], "decoder": [8, 8, 8], "pose_channels": [4, 4],
+         "val_samples": 2}
+
+
+@pytest.fixture(scope="session")
+def capture_dir(tmp_path_factory):
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+    out = tmp_path_factory.mktemp("teacher") / "capture"
+    r = CliRunner().invoke(cli, ["synth-capture", "-o", str(out), *CAPTURE_ARGS],
+                           catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    return out
+
+
+@pytest.fixture(scope="session")
+def small_config(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cfg") / "small.json"
+    path.write_text(json.dumps(SMALL))
+    return path
+
+
+def _data(capture_dir, tex_res=16, **kw):
+    from relight_cli.neural.data import CaptureData
+    return CaptureData(str(capture_dir), tex_res, aa=1, **kw)
+
+
+def _model(data, seed=0, **overrides):
+    from relight_cli.neural.models import build_model
+    torch.manual_seed(seed)
+    cfg = TeacherConfig.from_dict({**SMALL, "tex_res": data.tex_res, **overrides})
+    return build_model(cfg, data.pose_dim).eval(), cfg
+
+
+# ---------------------------------------------------------------- geometry
+
+
+def _plane(n=4, flip=False):
+    """A unit square in the z = 0 plane, UV = (x, y) (or mirrored x for ``flip``)."""
+    from relight_cli.hand.scene import PosedMesh
+    xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1))
+    v = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    uv = v[:, :2].copy()
+    faces = []
+    for r in range(n):
+        for c in range(n):
+            a = r * (n + 1) + c
+            faces += [[a, a + 1, a + n + 2], [a, a + n + 2, a + n + 1]]
+    faces = np.asarray(faces)
+    if flip:
+        v = v * [-1, 1, 1]
+        faces = faces[:, ::-1]
+    normals = np.tile([0.0, 0.0, 1.0], (len(v), 1))
+    return PosedMesh(v, faces, uv, faces.copy(), normals, "plane")
+
+
+def test_tangent_frames_follow_uv_derivatives():
+    m = _plane()
+    du, dv = G.uv_tangents(m.vertices, m.faces, m.uv, m.faces_uv)
+    frames = G.tangent_frames(m.normals, du, dv)
+    # UV = (x, y): t = +x, b = +y, n = +z exactly.
+    np.testing.assert_allclose(frames, np.broadcast_to(np.eye(3), frames.shape), atol=1e-12)
+    # Mirrored (x → −x): ∂x/∂u = −x, the frame is left-handed (det −1) with b still +y.
+    mm = _plane(flip=True)
+    du, dv = G.uv_tangents(mm.vertices, mm.faces, mm.uv, mm.faces_uv)
+    fm = G.tangent_frames(mm.normals, du, dv)
+    np.testing.assert_allclose(fm[:, 0], np.tile([-1.0, 0, 0], (len(fm), 1)), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(fm), -1, atol=1e-12)
+
+
+def test_tangent_frames_orthonormal_and_degenerate_uv():
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(200, 3))
+    du = rng.normal(size=(200, 3))
+    du[:20] = 0                                   # degenerate UV: no ∂x/∂u at all
+    du[20:40] = n[20:40] * 3                      # ∂x/∂u along the normal
+    frames = G.tangent_frames(n, du, rng.normal(size=(200, 3)))
+    assert np.isfinite(frames).all()
+    gram = np.einsum("kij,klj->kil", frames, frames)
+    np.testing.assert_allclose(gram, np.broadcast_to(np.eye(3), gram.shape), atol=1e-12)
+    np.testing.assert_allclose(frames[:, 2], n / np.linalg.norm(n, axis=1, keepdims=True),
+                               atol=1e-12)
+
+
+def test_local_directions_invariant_under_rigid_motion(capture_dir):
+    """Eq. 3–4 in texel frames: moving hand, light and eye rigidly together changes nothing."""
+    from scipy.spatial.transform import Rotation
+
+    from relight_cli.hand.scene import PosedMesh
+
+    data = _data(capture_dir, 32)
+    meshes = data.meshes(0)
+    R = Rotation.from_euler("xyz", [30, -50, 70], degrees=True).as_matrix()
+    shift = np.array([0.3, -0.1, 0.2])
+    moved = [PosedMesh(m.vertices @ R.T + shift, m.faces, m.uv, m.faces_uv, m.normals @ R.T,
+                       m.name) for m in meshes]
+    a = G.PoseTexels(meshes, 32, data.rasters())
+    b = G.PoseTexels(moved, 32, data.rasters())
+    light = np.array([[0.4, 1.1, 0.6], [-0.9, 0.2, 0.3]])
+    eye = np.array([0.1, 0.3, 1.2])
+    la, lb = a.point_lights(0, light), b.point_lights(0, light @ R.T + shift)
+    np.testing.assert_allclose(la.local_light, lb.local_light, atol=2e-5)
+    np.testing.assert_allclose(la.falloff, lb.falloff, rtol=1e-5)
+    np.testing.assert_allclose(a.local_view(0, eye), b.local_view(0, R @ eye + shift), atol=2e-5)
+    # visibility is a traced quantity: allow a few grazing texels to flip
+    assert np.mean(la.visibility != lb.visibility) < 0.01
+
+
+def test_visibility_matches_brute_force(capture_dir):
+    from relight_cli.raytrace import occluded_reference
+
+    data = _data(capture_dir, 16)
+    texels = data.texels(0)
+    surf = texels.surfaces[0]
+    light = data.capture.light_positions[:3]
+    vis = texels.point_lights(0, light).visibility.astype(bool)            # [3, K]
+    mesh = texels.meshes[0]
+    off = texels.renderer.offsets[0]
+    for j, p in enumerate(light):
+        d = p - surf.points
+        r = np.linalg.norm(d, axis=1)
+        d /= r[:, None]
+        facing = np.sum(d * surf.normals, 1) > 0
+        blocked = occluded_reference(mesh.vertices, mesh.faces, surf.points + off * surf.normals,
+                                     d, r - off)
+        ref = facing & ~blocked
+        # float32 embree vs float64 brute force: a ray grazing an edge may differ
+        assert np.mean(ref != vis[j]) < 0.005
+    # directional: along the direction, unbounded
+    dirs = np.array([[0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])
+    dv = texels.directional_lights(0, dirs).visibility.astype(bool)
+    for j, d in enumerate(dirs):
+        facing = surf.normals @ d > 0
+        blocked = occluded_reference(mesh.vertices, mesh.faces, surf.points + off * surf.normals,
+                                     np.broadcast_to(d, surf.points.shape))
+        assert np.mean((facing & ~blocked) != dv[j]) < 0.005
+
+
+# ---------------------------------------------------------------- model pieces
+
+
+def test_eq10_head_and_units():
+    from relight_cli.neural.models import OLATTeacher
+
+    cfg = TeacherConfig.from_dict(SMALL)
+    model = OLATTeacher(cfg, 6)
+    raw = torch.tensor([[-1.0, 0.0, 2.0, 0.5]]).reshape(1, 4, 1, 1).expand(1, 4, 16, 16)
+    model.net.forward = lambda x, pose, hand_of: raw
+    colour, scaled = model(torch.zeros(1, 7, 16, 16), torch.zeros(1, 6), torch.zeros(1, dtype=torch.long),
+                           return_raw=True)
+    ls, lb = 25 * PAPER_UNIT, 100 * PAPER_UNIT
+    sig = 1 / (1 + math.exp(-0.5))
+    expect = [sig * (max(0, ls * t) + lb) for t in (-1.0, 0.0, 2.0)]
+    np.testing.assert_allclose(colour[0, :, 0, 0].numpy(), expect, rtol=1e-6)
+    np.testing.assert_allclose(scaled[0, :, 0, 0].numpy(), [-ls, 0, 2 * ls], rtol=1e-6)
+    # 255 paper units = a white Lambertian facing the light: 1/π sr⁻¹
+    assert math.isclose(255 * PAPER_UNIT, 1 / math.pi)
+
+
+def test_neg_weight_schedules():
+    from relight_cli.neural.losses import neg_weight
+    assert neg_weight(10, 5.0, 25) == 1.0                               # before t_s
+    assert math.isclose(neg_weight(50, 5.0, 25), math.exp(-5 * 25 / 50))
+    assert neg_weight(10 ** 9, 5.0, 25) == pytest.approx(math.exp(-5), rel=1e-6)
+    # printed form: ≈ 0 just after t_s, rising towards e^−η
+    assert neg_weight(25.01, 5.0, 25, "literal") < 1e-50
+    assert math.isclose(neg_weight(50, 5.0, 25, "literal"), math.exp(-5 * 50 / 25))
+
+
+def test_unet_shapes_and_pose_dependence():
+    from relight_cli.neural.models import UNet
+    net = UNet(7, 4, (4, 6, 8), (8, 8, 8), 12, (4, 5))
+    x = torch.randn(3, 7, 16, 16)
+    pose = torch.randn(2, 12)
+    out = net(x, pose, torch.tensor([0, 1, 1]))
+    assert out.shape == (3, 4, 16, 16)
+    out2 = net(x, pose * 2, torch.tensor([0, 1, 1]))
+    assert not torch.allclose(out, out2)                  # the pose reaches the output
+
+
+def test_config_validation_and_presets(tmp_path):
+    assert resolve_config("tiny").tex_res == 32
+    paper = resolve_config("paper")
+    assert (paper.encoder, paper.decoder, paper.pose_channels) == ((64, 64, 64), (128, 128, 128),
+                                                                   (16, 64))
+    assert (paper.iters, paper.batch, paper.lr) == (100_000, 2, 1e-3)
+    with pytest.raises(UsageProblem):
+        resolve_config("huge")
+    for bad in ({"iters": 0}, {"lr": float("nan")}, {"tex_res": 30}, {"model": "mlp"},
+                {"bogus": 1}, {"batch": True}, {"encoder": []}):
+        with pytest.raises(UsageProblem):
+            TeacherConfig.from_dict(bad)
+    cfg = tmp_path / "c.json"
+    cfg.write_text('{"iters": 7, "lr": 0.01}')
+    assert resolve_config("tiny", str(cfg), {"iters": 9}).iters == 9
+
+
+# ---------------------------------------------------------------- linearity
+
+
+def _render(model, cfg, texels, gb, poses, inputs, weights):
+    from relight_cli.neural.teacher import render_lights
+    return render_lights(model, texels, gb, poses, inputs, weights, cfg.visibility, cfg.falloff,
+                         chunk=7).double()
+
+
+def test_point_lights_and_env_are_linear(capture_dir):
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.features import DiscreteEnv, discretize_env
+    from relight_cli.neural import teacher as T
+    from relight_cli.render.gbuffer import render_gbuffer
+
+    data = _data(capture_dir, 16)
+    model, cfg = _model(data)
+    texels = data.texels(1)
+    cam = data.capture.cameras[0]
+    gb = render_gbuffer(texels.meshes, cam, 1, scene=texels.renderer.scene)
+    poses = data.poses(1)
+    pos = data.capture.light_positions
+    inten = data.capture.light_intensity * np.linspace(0.5, 2, len(pos))[:, None]
+    a, b = slice(0, 5), slice(5, len(pos))
+    full = _render(model, cfg, texels, gb, poses, T.point_light_inputs(texels, pos, True), inten)
+    part_a = _render(model, cfg, texels, gb, poses, T.point_light_inputs(texels, pos[a], True), inten[a])
+    part_b = _render(model, cfg, texels, gb, poses, T.point_light_inputs(texels, pos[b], True), inten[b])
+    scale = float(full.abs().max())
+    assert scale > 0
+    # float32 network, sums in a different order: 1e-5 relative to the image's peak
+    assert float((full - part_a - part_b).abs().max()) <= 1e-5 * scale
+
+    denv = discretize_env(builtin_envmap("builtin:sky"), 16, 32)
+    whole = _render(model, cfg, texels, gb, poses, *T.env_light_inputs(texels, denv, True))
+    halves = []
+    for keep in (np.arange(len(denv.radiance)) < 256, np.arange(len(denv.radiance)) >= 256):
+        rad = denv.radiance * keep[:, None]
+        half = DiscreteEnv(denv.directions, denv.solid_angle, rad, 16, 32)
+        halves.append(_render(model, cfg, texels, gb, poses, *T.env_light_inputs(texels, half, True)))
+    scale = float(whole.abs().max())
+    assert float((whole - halves[0] - halves[1]).abs().max()) <= 1e-5 * scale
+
+    # The env render is the sum over its directions as far point lights (same
+    # discretization): a light at distance D along ω_m with intensity L_m Δω_m D².
+    lit = np.nonzero(denv.lit)[0][::16]
+    sub = DiscreteEnv(denv.directions, denv.solid_angle,
+                      denv.radiance * np.isin(np.arange(len(denv.radiance)), lit)[:, None], 16, 32)
+    env_img = _render(model, cfg, texels, gb, poses, *T.env_light_inputs(texels, sub, True))
+    D = 1e4
+    centre = texels.surfaces[0].points.mean(0)
+    far = centre + D * denv.directions[lit]
+    w = denv.radiance[lit] * denv.solid_angle[lit, None] * D ** 2
+    point_img = _render(model, cfg, texels, gb, poses, T.point_light_inputs(texels, far, True), w)
+    # 1/r² over a 0.2 m hand at 10 km: ~4e-5 relative; directions differ by ~1e-5 rad
+    np.testing.assert_allclose(point_img.numpy(), env_img.numpy(), rtol=0,
+                               atol=2e-4 * float(env_img.abs().max()))
+
+
+# ---------------------------------------------------------------- training
+
+
+def _constant_baseline_mse(data, items_fit, items_eval):
+    """Best constant texture C_i ≡ c (per channel, least squares on the training images)."""
+    from relight_cli.neural.teacher import composite
+
+    def basis(item):
+        s = data.sample(*item)
+        tex = []
+        for k in range(s.n_hands):
+            w = torch.from_numpy(s.weights[s.hand_of == k]).sum(0)     # Σ b_i falloff [3, N, N]
+            tex.append(w)
+        img = composite(tex, s.gbuffer).numpy()
+        m = (s.mask > 0) | (s.gbuffer.mask > 0)
+        return img[m], s.image[m]
+
+    num = np.zeros(3)
+    den = np.zeros(3)
+    for item in items_fit:
+        x, y = basis(item)
+        num += (x * y).sum(0)
+        den += (x * x).sum(0)
+    c = num / np.maximum(den, 1e-30)
+    errs = []
+    for item in items_eval:
+        x, y = basis(item)
+        errs.append(np.mean((x * c - y) ** 2))
+    return float(np.mean(errs))
+
+
+def test_training_beats_untrained_and_constant_texture(capture_dir):
+    from relight_cli.neural.train import sample_loss, train
+
+    cfg = resolve_config("tiny", None, {"iters": 60, "val_samples": 4, "lambda_vgg": 0.0})
+    data = _data(capture_dir, cfg.tex_res)
+    held = data.splits()["heldout"]
+    assert held
+    from relight_cli.neural.models import build_model
+    torch.manual_seed(cfg.seed)
+    untrained = build_model(cfg, data.pose_dim)
+
+    def held_mse(model):
+        with torch.no_grad():
+            return float(np.mean([sample_loss(model, data, it, cfg, 0, "cpu")[1]["mse"]
+                                  for it in held]))
+
+    before = held_mse(untrained)
+    result = train(data, cfg, torch.device("cpu"), show_progress=False)
+    from relight_cli.neural.train import model_from_checkpoint
+    trained, _, _ = model_from_checkpoint(result.checkpoint)
+    after = held_mse(trained)
+    constant = _constant_baseline_mse(data, data.splits()["train"], held)
+    assert after < 0.5 * before, (before, after)
+    assert after < constant, (after, constant)
+    assert result.metrics["heldout"]["mse"] == pytest.approx(after, rel=0.2)
+
+
+def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli):
+    full, half, resumed = tmp_path / "full.pt", tmp_path / "half.pt", tmp_path / "resumed.pt"
+    common = [str(capture_dir), "--config", str(small_config), "-q"]
+    assert run_cli("train-teacher", *common, "--iters", "4", "-o", full).exit_code == 0
+    assert run_cli("train-teacher", *common, "--iters", "2", "-o", half).exit_code == 0
+    r = run_cli("train-teacher", str(capture_dir), "--resume", half, "--iters", "4", "-q",
+                "-o", resumed)
+    assert r.exit_code == 0, r.output
+    a = torch.load(full, weights_only=True)
+    b = torch.load(resumed, weights_only=True)
+    assert a["step"] == b["step"] == 4
+    for k in a["weights"]:
+        assert torch.equal(a["weights"][k], b["weights"][k]), k
+    sa, sb = a["optimizer"]["state"], b["optimizer"]["state"]
+    for i in sa:
+        for name in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(sa[i][name], sb[i][name])
+    # identical runs give identical bytes
+    first = full.read_bytes()
+    assert run_cli("train-teacher", *common, "--iters", "4", "-o", full).exit_code == 0
+    assert full.read_bytes() == first
+
+
+DDP_SCRIPT = """
+import sys, torch
+from relight_cli.neural.config import TeacherConfig
+from relight_cli.neural.data import CaptureData
+from relight_cli.neural.train import train
+import torch.distributed as dist
+cfg = TeacherConfig.from_dict({**%(small)s, "iters": 3, "batch": 1})
+data = CaptureData(sys.argv[1], cfg.tex_res, aa=1)
+result = train(data, cfg, torch.device("cpu"), show_progress=False)
+rank = dist.get_rank()
+torch.save(result.checkpoint["weights"], sys.argv[2] + f"/rank{rank}.pt")
+dist.destroy_process_group()
+"""
+
+
+def _torchrun():
+    exe = Path(sys.executable).with_name("torchrun")
+    if not exe.exists():
+        pytest.skip("torchrun is not installed next to this interpreter")
+    return str(exe)
+
+
+def test_ddp_two_processes_identical_weights(capture_dir, tmp_path):
+    script = tmp_path / "ddp.py"
+    script.write_text(DDP_SCRIPT % {"small": repr(SMALL)})
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
+    # --standalone: a local rendezvous on a free port
+    r = subprocess.run([_torchrun(), "--standalone", "--nproc_per_node=2", str(script),
+                        str(capture_dir), str(tmp_path)], capture_output=True, text=True,
+                       timeout=300, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    init = _model(_data(capture_dir, 16))[0].state_dict()
+    moved = False
+    for k in w0:
+        assert torch.equal(w0[k], w1[k]), k
+        moved |= not torch.equal(w0[k], init[k])
+    assert moved                                        # it trained
+
+
+def test_ddp_cli_rank0_writes(capture_dir, small_config, tmp_path):
+    from conftest import relight_executable
+    out = tmp_path / "ddp.pt"
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
+    r = subprocess.run([_torchrun(), "--standalone", "--nproc_per_node=2", relight_executable(),
+                        "train-teacher",
+                        str(capture_dir), "--config", str(small_config), "--iters", "2", "-q",
+                        "-o", str(out)], capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    ck = torch.load(out, weights_only=True)
+    assert ck["step"] == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ddp.pt"]
+
+
+# ---------------------------------------------------------------- checkpoints
+
+
+def _train_small(capture_dir, small_config, tmp_path, run_cli, name="t.pt", extra=()):
+    out = tmp_path / name
+    r = run_cli("train-teacher", str(capture_dir), "--config", str(small_config), "--iters", "2",
+                "-q", "-o", out, *extra)
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_checkpoint_round_trip_and_refusals(capture_dir, small_config, tmp_path, run_cli):
+    from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
+    from relight_cli.neural.train import model_from_checkpoint
+
+    path = _train_small(capture_dir, small_config, tmp_path, run_cli)
+    ck = read_checkpoint(str(path), kind="teacher")
+    assert ck["config"]["tex_res"] == 16 and ck["step"] == 2 and ck["model"] == "olat"
+    assert ck["provenance"]["format"] == "relight/checkpoint"
+    model, cfg, _ = model_from_checkpoint(ck)
+    assert cfg.encoder == (4, 4, 4)
+
+    # a pickle that would run code is refused without running it
+    marker = tmp_path / "pwned"
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+    evil = tmp_path / "evil.pt"
+    with open(evil, "wb") as f:
+        pickle.dump({"format": "relight/checkpoint", "x": Evil()}, f)
+    with pytest.raises(DataError, match="refused|not a relight"):
+        read_checkpoint(str(evil))
+    assert not marker.exists()
+    torch.save({"format": "relight/checkpoint", "x": Evil()}, tmp_path / "evil2.pt")
+    with pytest.raises(DataError):
+        read_checkpoint(str(tmp_path / "evil2.pt"))
+    assert not marker.exists()
+
+    raw = torch.load(path, weights_only=True)
+    bad = dict(raw, kind="student")
+    with pytest.raises(DataError, match="expected 'teacher'"):
+        read_checkpoint(_save(tmp_path / "kind.pt", bad, write_checkpoint), kind="teacher")
+    with pytest.raises(DataError, match="newer"):
+        read_checkpoint(_save(tmp_path / "v9.pt", dict(raw, version=9), write_checkpoint))
+    with pytest.raises(DataError, match="lacks"):
+        read_checkpoint(_save(tmp_path / "nof.pt", {k: v for k, v in raw.items() if k != "rng"},
+                              write_checkpoint))
+    missing = dict(raw, weights={k: v for k, v in list(raw["weights"].items())[1:]})
+    with pytest.raises(ValueError, match="lacks tensor"):
+        model_from_checkpoint(read_checkpoint(_save(tmp_path / "m.pt", missing, write_checkpoint)))
+    first = next(iter(raw["weights"]))
+    shaped = dict(raw, weights={**raw["weights"], first: torch.zeros(1, 2, 3)})
+    with pytest.raises(ValueError, match="shape"):
+        model_from_checkpoint(read_checkpoint(_save(tmp_path / "s.pt", shaped, write_checkpoint)))
+    nan = dict(raw, weights={**raw["weights"], first: raw["weights"][first] * float("nan")})
+    with pytest.raises(DataError, match="NaN"):
+        read_checkpoint(_save(tmp_path / "nan.pt", nan, write_checkpoint))
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint at all")
+    with pytest.raises(DataError):
+        read_checkpoint(str(tmp_path / "junk.pt"))
+
+
+def _save(path, obj, write):
+    write(str(path), obj)
+    return str(path)
+
+
+# ---------------------------------------------------------------- commands
+
+
+def test_help(run_cli):
+    r = run_cli("train-teacher", "--help")
+    assert r.exit_code == 0 and "--preset" in r.output and "--resume" in r.output
+    assert "torchrun" in r.output and "--vgg-weights" in r.output
+
+
+def test_train_teacher_subprocess_and_relight(capture_dir, small_config, tmp_path):
+    from conftest import run_relight
+    ckpt = tmp_path / "teacher.pt"
+    val = tmp_path / "val.json"
+    r = run_relight("train-teacher", capture_dir, "--config", small_config, "--iters", "2",
+                    "--model", "ggx", "-o", ckpt, "--metrics-out", val)
+    assert r.returncode == 0, r.stderr
+    assert "wrote" in r.stderr and r.stdout == ""
+    record = json.loads(val.read_text())
+    assert record["kind"] == "validation"
+    assert {"heldout", "fully_lit", "env"} <= set(record["metrics"])
+    lights = tmp_path / "lights.json"
+    lights.write_text(json.dumps({"format": "relight/lights", "version": 1, "lights": [
+        {"position": [0.4, 1.0, 0.7], "intensity": 2.0}]}))
+    out = tmp_path / "img.exr"
+    r = run_relight("relight", capture_dir / "hand.npz", "builtin:sky", "--model", "teacher",
+                    "--checkpoint", ckpt, "--lights", lights, "--size", "40x30", "-o", out,
+                    "--preview", tmp_path / "img.png", "-q")
+    assert r.returncode == 0, r.stderr
+    from relight_cli.formats.exr import read_exr
+    img = read_exr(str(out))
+    assert img.width == 40 and img.height == 30
+    assert img.attributes["relight.model"] == "teacher"
+    rgb = np.stack([img.channels[c] for c in "RGB"], -1)
+    assert np.isfinite(rgb).all() and rgb.max() > 0
+
+
+def test_relight_teacher_env_equals_sum_of_parts(capture_dir, small_config, tmp_path, run_cli):
+    """CLI level: env + lights render = env render + lights render (linearity, one pipeline)."""
+    from relight_cli.formats.exr import read_exr
+    ckpt = _train_small(capture_dir, small_config, tmp_path, run_cli)
+    lights = tmp_path / "l.json"
+    lights.write_text(json.dumps({"format": "relight/lights", "version": 1, "lights": [
+        {"position": [0.3, 0.9, 0.9], "intensity": 3.0}]}))
+    hand = capture_dir / "hand.npz"
+    common = ["--model", "teacher", "--checkpoint", ckpt, "--size", "32x32", "-q"]
+    for name, extra in (("both", ["builtin:studio", "--lights", lights]),
+                        ("env", ["builtin:studio"]), ("pts", ["--lights", lights])):
+        r = run_cli("relight", hand, *extra, *common, "-o", tmp_path / f"{name}.exr")
+        assert r.exit_code == 0, r.output
+
+    def rgb(name):
+        im = read_exr(str(tmp_path / f"{name}.exr"))
+        return np.stack([im.channels[c] for c in "RGB"], -1).astype(np.float64)
+    both, env, pts = rgb("both"), rgb("env"), rgb("pts")
+    np.testing.assert_allclose(both, env + pts, rtol=0, atol=1e-5 * both.max() + 1e-7)
+
+
+def _copy_capture(capture_dir, tmp_path):
+    dst = tmp_path / "cap"
+    shutil.copytree(capture_dir, dst)
+    return dst
+
+
+def _edit_index(cap, edit):
+    index = cap / "capture.json"
+    obj = json.loads(index.read_text())
+    edit(obj)
+    index.write_text(json.dumps(obj))
+
+
+@pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
+                                  "iters-0", "unknown-preset", "not-pt", "not-a-folder",
+                                  "bad-config", "resume-other-config"])
+def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli):
+    from relight_cli.formats import capture as C
+    cap = _copy_capture(capture_dir, tmp_path)
+    args = ["train-teacher", str(cap), "--config", str(small_config), "--iters", "2"]
+    out = tmp_path / "out" / "t.pt"
+    out.parent.mkdir()
+    code = 1
+    if case == "no-grouped":
+        _edit_index(cap, lambda o: [f.update(lit="full") for f in o["frames"]])
+    elif case == "missing-image":
+        obj = json.loads((cap / "capture.json").read_text())
+        f = next(f for f in obj["frames"] if f["lit"] == "group")
+        os.remove(cap / C.image_path(f["index"], f["images"][0]))
+    elif case == "nan-image":
+        obj = json.loads((cap / "capture.json").read_text())
+        for f in obj["frames"]:
+            for camera in f["images"]:
+                path = str(cap / C.image_path(f["index"], camera))
+                rgb, mask = C.read_image(path)
+                rgb[0, 0, 0] = np.nan
+                C.write_image(path, rgb, mask, obj["key"])
+    elif case == "wrong-hand":
+        from relight_cli.formats.hand_npz import read_hand, write_hand
+        hand = read_hand(str(cap / "hand.npz"))
+        for inst in hand.hands:
+            inst.translations = inst.translations + [0.5, 0.0, 0.0]
+        write_hand(str(cap / "hand.npz"), hand)
+    elif case == "iters-0":
+        args[-1] = "0"
+        code = 2
+    elif case == "unknown-preset":
+        args += ["--preset", "huge"]
+        code = 2
+    elif case == "not-pt":
+        out = tmp_path / "out" / "t.json"
+        code = 2
+    elif case == "not-a-folder":
+        args[1] = str(tmp_path / "nope")
+    elif case == "bad-config":
+        (tmp_path / "bad.json").write_text('{"tex_res": 33}')
+        args[3] = str(tmp_path / "bad.json")
+        code = 2
+    elif case == "resume-other-config":
+        ckpt = _train_small(capture_dir, small_config, tmp_path, run_cli)
+        args = ["train-teacher", str(cap), "--resume", str(ckpt), "--iters", "4", "--lr", "0.5"]
+        code = 2
+    before = {p: p.stat().st_mtime_ns for p in cap.rglob("*")}
+    from click.testing import CliRunner
+    from relight_cli.cli import cli
+    r = CliRunner().invoke(cli, [*args, "-q", "-o", str(out)])
+    assert r.exit_code == code, r.output
+    lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in r.output, r.output
+    assert list(out.parent.iterdir()) == []
+    assert {p: p.stat().st_mtime_ns for p in cap.rglob("*")} == before
+
+
+@pytest.mark.parametrize("case", ["no-checkpoint", "physical-option", "wrong-kind", "crafted",
+                                  "wrong-joints"])
+def test_relight_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli):
+    ckpt = _train_small(capture_dir, small_config, tmp_path, run_cli)
+    hand = str(capture_dir / "hand.npz")
+    args = ["relight", hand, "builtin:sky", "--model", "teacher", "--checkpoint", str(ckpt)]
+    code = 1
+    if case == "no-checkpoint":
+        args = args[:-2]
+        code = 2
+    elif case == "physical-option":
+        args += ["--no-sss"]
+        code = 2
+    elif case == "wrong-kind":
+        raw = torch.load(ckpt, weights_only=True)
+        raw["kind"] = "student"
+        torch.save(raw, ckpt)
+    elif case == "crafted":
+        ckpt.write_bytes(pickle.dumps({"format": "relight/checkpoint"}) + b"junk")
+    elif case == "wrong-joints":
+        from relight_cli.formats.hand_npz import read_hand, write_hand
+        h = read_hand(hand)
+        raw = torch.load(ckpt, weights_only=True)
+        raw["pose_dim"] = 3
+        torch.save(raw, ckpt)
+        del h
+    out = tmp_path / "o" / "x.exr"
+    out.parent.mkdir()
+    from click.testing import CliRunner
+    from relight_cli.cli import cli
+    r = CliRunner().invoke(cli, [*args, "-q", "-o", str(out)])
+    assert r.exit_code == code, r.output
+    lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "error:" in lines[0], r.output
+    assert list(out.parent.iterdir()) == []
