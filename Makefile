@@ -42,6 +42,14 @@ demo: install
 		--preview demo/hand_physical.png --aov normal,uv,depth
 	# a small synthetic light-stage capture (fully lit + grouped-light frames, held-out env renders)
 	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --lights 32 --frames 6 --res 96 --eval-poses 1 --eval-cameras 2
+	# RelightableHands' OLAT teacher learned from that capture (tiny preset, ~1 min), with its
+	# validation scores; rendered under an env map (a sum over 16x32 directions) and one near point light
+	$(RELIGHT) train-teacher demo/capture -o demo/teacher.pt --preset tiny --metrics-out demo/teacher_val.json
+	printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [0.3, 0.5, 0.6], "color": [1.0, 0.9, 0.8], "intensity": 0.6}]}\n' > demo/teacher_light.json
+	$(RELIGHT) relight demo/capture/hand.npz builtin:studio --model teacher --checkpoint demo/teacher.pt \
+		-o demo/hand_teacher_env.exr --preview demo/hand_teacher_env.png
+	$(RELIGHT) relight demo/capture/hand.npz --lights demo/teacher_light.json --model teacher \
+		--checkpoint demo/teacher.pt -o demo/hand_teacher_point.exr --preview demo/hand_teacher_point.png
 	# spherical-harmonic light probes
 	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json
 	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json
