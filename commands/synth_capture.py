@@ -122,6 +122,13 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
     materials = hand_materials(plan.motion, "fine", max(tex_res, 256), seed)
     eval_hand = (hand_motion(data, eval_poses, seed + 7919, keyframe_every=1)
                  if eval_poses else None)
+    if eval_hand is not None and len(plan.motion.hands) == 2:
+        # two hands: the held-out poses keep the scene's pair (the second mirrors the first,
+        # at the scene's own placement), so evaluation renders match the training scene
+        from relight_cli.hand.scene import two_hands
+        eval_hand = two_hands(eval_hand)
+        for mine, theirs in zip(eval_hand.hands, plan.motion.hands):
+            mine.root = theirs.root.copy()
     log(f"{'resuming' if existing else 'writing'} {output}: {settings.cameras} cameras, "
         f"{settings.lights} lights, {len(plan.frames)} frames ({res}x{res})", quiet)
 
