@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, log, no_clobber_option,
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
                                   progress, quiet_option, seed_option)
 
 
@@ -33,17 +33,18 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
               show_default=True, help="Direction atlas (cube for the ablation).")
 @click.option("--mapping", type=click.Choice(["eq5", "simple", "mass", "diag"]), default="eq5",
               show_default=True, help="Opacity→absorption mapping (eq5: paper Eq. 5).")
-@click.option("--kappa", type=float, default=1.0, show_default=True,
+@click.option("--kappa", type=FiniteFloat(0, min_open=True), default=1.0, show_default=True,
               help="Absorption scale κ (> 0).")
-@click.option("--t-max", type=float, default=None,
+@click.option("--t-max", type=FiniteFloat(0, min_open=True), default=None,
               help="Radial extent (metres) for every light; default from the receivers.")
 @click.option("--roi/--no-roi", default=True, show_default=True,
               help="Compute only texels and bins that receivers read.")
-@click.option("--roi-radius", type=float, default=None,
+@click.option("--roi-radius", type=FiniteFloat(0, min_open=True), default=None,
               help="Also cap the ROI at this distance (metres) from the occluders' centroid.")
 @click.option("--cull/--no-cull", default=True, show_default=True,
               help="Light-space occluder culling (tiles, texels, kσ ellipse, radial).")
-@click.option("--cull-tolerance", type=float, default=1e-7, show_default=True,
+@click.option("--cull-tolerance",
+              type=FiniteFloat(0, 1, min_open=True, max_open=True), default=1e-7, show_default=True,
               help="Largest optical depth a culled Gaussian may have contributed.")
 @click.option("--footprint", type=click.Choice(["centre", "stencil", "mc"]), default="stencil",
               show_default=True,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, dumps_json, log, no_clobber_option,
-                                  parse_size, quiet_option, seed_option)
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_json, log,
+                                  no_clobber_option, parse_size, quiet_option, seed_option)
 
 
 @click.command("fit-geometry", short_help="Pose or fit the articulated hand; write hand.npz.")
@@ -31,7 +31,7 @@ from relight_cli.clitools import (check_input, check_output, dumps_json, log, no
 @click.option("--no-bone-scales", is_flag=True, help="Keep bone lengths of the template.")
 @click.option("--offsets", is_flag=True,
               help="Also fit per-vertex offsets (Laplacian-regularized; needs --scans).")
-@click.option("--smooth", type=float, default=0.0, show_default=True,
+@click.option("--smooth", type=FiniteFloat(0, 1e6), default=0.0, show_default=True,
               help="Weight of temporal smoothness between consecutive frames.")
 @click.option("--two-hands", is_flag=True,
               help="Add the mirrored other hand beside the first one (for two-hand scenes).")

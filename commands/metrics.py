@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, log, no_clobber_option, quiet_option,
-                                  seed_option)
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
+                                  quiet_option, seed_option)
 
 EXIT_REGRESSION = 3  # `relight metrics compare`: a metric regressed beyond tolerance
 
@@ -171,10 +171,10 @@ def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None
               show_default=True,
               help="linear: HDR values as stored; srgb: both tone-mapped (Reinhard + sRGB) with "
                    "the ground truth's exposure; display: values already in [0, 1] (PNG).")
-@click.option("--exposure", type=float, default=None,
+@click.option("--exposure", type=FiniteFloat(0, min_open=True), default=None,
               help="Exposure multiplier for --space srgb (default: from the ground truth's "
                    "log-average luminance).")
-@click.option("--data-range", "data_range", type=float, default=None,
+@click.option("--data-range", "data_range", type=FiniteFloat(0, min_open=True), default=None,
               help="Peak-to-peak range R for PSNR/SSIM (default: 1 for srgb/display; "
                    "max−min of the ground truth over the region for linear).")
 @click.option("--win-size", "win_size", type=int, default=7, show_default=True,
@@ -290,9 +290,9 @@ def _parse_roi(text):
 @click.argument("pred", metavar="PRED")
 @click.argument("gt", metavar="GT")
 @click.option("--roi", default=None, help="Region of interest X,Y,W,H in pixels (default: all).")
-@click.option("--threshold", type=float, default=0.1, show_default=True,
+@click.option("--threshold", type=FiniteFloat(0, 1, max_open=True), default=0.1, show_default=True,
               help="Matte value above which a pixel counts as shadowed.")
-@click.option("--tolerance", type=float, default=2.0, show_default=True,
+@click.option("--tolerance", type=FiniteFloat(0, 1e4), default=2.0, show_default=True,
               help="Boundary F-measure pixel tolerance.")
 @click.option("--matte", type=click.Choice(["shadow", "visibility"]), default="shadow",
               show_default=True, help="What the images hold: shadow strength (1 = full shadow) "
@@ -362,7 +362,7 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
               help="Original avatar Gaussians PLY; repeat for several frames.")
 @click.option("--relit", "relits", multiple=True,
               help="Relit avatar PLY per frame (same count as --avatar).")
-@click.option("--radius", type=float, default=1.5, show_default=True,
+@click.option("--radius", type=FiniteFloat(0, min_open=True), default=1.5, show_default=True,
               help="Scene Gaussians within this distance (metres) of the avatar centre light it.")
 @click.option("--neighbours", type=int, default=16, show_default=True,
               help="Neighbours for the local-PCA pseudo-normals.")

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, log, no_clobber_option, parse_vector,
-                                  quiet_option, seed_option)
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
+                                  parse_vector, quiet_option, seed_option)
 
 
 @click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows), or a hand.")
@@ -41,13 +41,13 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
                    "seeded Monte Carlo (--samples) in its principal frame.")
 @click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
               help="Monte Carlo samples per receiver for --footprint mc.")
-@click.option("--shadow-strength", type=click.FloatRange(0, 1), default=1.0, show_default=True,
+@click.option("--shadow-strength", type=FiniteFloat(0, 1), default=1.0, show_default=True,
               help="[Gaussians] Receiver colour × (1 − s·(1 − T)); 1 multiplies by T.")
-@click.option("--lobe", type=float, default=1.0, show_default=True,
+@click.option("--lobe", type=FiniteFloat(0, 1e4, min_open=True), default=1.0, show_default=True,
               help="[Gaussians] Cosine lobe exponent q of the transfer (1 = Lambertian).")
-@click.option("--intensity", type=float, default=1.0, show_default=True,
+@click.option("--intensity", type=FiniteFloat(0), default=1.0, show_default=True,
               help="[Gaussians] Global intensity γ.")
-@click.option("--t-max", "t_max", type=float, default=None,
+@click.option("--t-max", "t_max", type=FiniteFloat(0, min_open=True), default=None,
               help="[Gaussians] Clip of the shading factor (default: no clip).")
 @click.option("--normals", type=click.Choice(["auto", "axis", "pca", "stored"]), default="auto",
               show_default=True,
@@ -80,7 +80,7 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @click.option("--no-shadows", is_flag=True, help="[hand] Ablation: no shadow rays.")
 @click.option("--no-specular", is_flag=True, help="[hand] Ablation: diffuse only.")
 @click.option("--no-sss", is_flag=True, help="[hand] Ablation: no subsurface scattering.")
-@click.option("--sss-scale", type=float, default=None,
+@click.option("--sss-scale", type=FiniteFloat(0, 10, min_open=True), default=None,
               help="[hand] Scale of the skin profile's widths [default: 1].")
 @click.option("--bounce", is_flag=True, help="[hand] Add one bounce of interreflection.")
 @click.option("--albedo", "albedo_map", default=None, metavar="IMAGE",
