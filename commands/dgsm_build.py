@@ -157,15 +157,17 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     if receivers is not None:
         check_input(receivers)
         scene = load_gaussians(receivers)
-        log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
-    for spec, obj in zip(occluders, objects):
-        log(f"read {spec}: {len(obj)} occluder Gaussians", quiet)
 
     if auto_k is None:
         check_input(lights_spec)
         lights = read_lights(lights_spec)
     else:
         lights = _estimate_lights(scene, auto_k, lights_spec)
+    # Logged once every input has been read: a bad input gets one line only.
+    if scene is not None:
+        log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
+    for spec, obj in zip(occluders, objects):
+        log(f"read {spec}: {len(obj)} occluder Gaussians", quiet)
     log(f"{len(lights)} light(s)", quiet)
 
     mix = TR.from_gaussians(occ, mapping, kappa)

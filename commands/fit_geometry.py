@@ -173,8 +173,6 @@ def _load_template(spec: str):
 
 
 def _poses_for(pose: str, frames: int, seed: int, hand):
-    import json
-
     import numpy as np
 
     from relight_cli.errors import DataError, UsageProblem
@@ -188,12 +186,9 @@ def _poses_for(pose: str, frames: int, seed: int, hand):
     if pose in P.POSE_NAMES:
         return P.named_pose(pose, hand.side, rest)[None], np.zeros((1, 3))
     if pose.endswith(".json"):
+        from relight_cli.formats._common import read_json
         check_input(pose)
-        try:
-            with open(pose, encoding="utf-8") as f:
-                obj = json.load(f)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise DataError(f"not valid JSON: {exc}", pose) from None
+        obj = read_json(pose)
         if isinstance(obj, dict) and "names" in obj:
             try:
                 p = np.stack([P.named_pose(n, hand.side, rest) for n in obj["names"]])

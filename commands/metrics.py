@@ -414,6 +414,9 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
                             "use --normals pca", path)
         frames.append(g)
     orig, relit = frames[:len(avatars)], (frames[len(avatars):] or None)
+    for path, before, after in zip(relits, orig, relit or []):
+        if len(after) != len(before):  # a relit avatar is the same Gaussians, recoloured
+            raise DataError(f"has {len(after)} Gaussians, its --avatar has {len(before)}", path)
     try:
         result = lighting_metrics(scene_g, orig, relit, radius, neighbours,
                                   normal_source == "ply", max_points, seed)
@@ -509,9 +512,16 @@ def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, quiet)
     if new_record.get("kind") != base_record.get("kind"):
         raise DataError(f"kind {new_record.get('kind')!r} differs from the baseline's "
                         f"{base_record.get('kind')!r}", new)
-    rows = compare_metrics([(k, decode_value(v)) for k, v in flatten(new_record["metrics"])],
-                           [(k, decode_value(v)) for k, v in flatten(base_record["metrics"])],
-                           rtols, atols, directions)
+    new_leaves = [(k, decode_value(v)) for k, v in flatten(new_record["metrics"])]
+    base_leaves = [(k, decode_value(v)) for k, v in flatten(base_record["metrics"])]
+    from relight_cli.metrics.compare import unknown_names
+    keys = [k for k, _ in new_leaves + base_leaves]
+    for flag, options in (("--rtol", rtols), ("--atol", atols), ("--better", directions)):
+        unknown = unknown_names(options, keys)
+        if unknown:
+            raise UsageProblem(f"{flag} names no metric of these records: {', '.join(unknown)}",
+                               baseline)
+    rows = compare_metrics(new_leaves, base_leaves, rtols, atols, directions)
     if not quiet or any(r.regressed for r in rows):
         click.echo(format_table(rows, only_changed=only_changed), nl=False)
     if any(r.regressed for r in rows):

@@ -189,7 +189,7 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         raise UsageProblem(f"--intensity must be a finite number ≥ 0, got {intensity}")
     if t_max is not None and not t_max > 0:
         raise UsageProblem(f"--t-max must be positive, got {t_max}")
-    bg = parse_vector(background, 3, "--background")
+    bg = parse_vector(background, 3, "--background", minimum=0)
     if render_camera is not None and not output.lower().endswith(".exr"):
         raise UsageProblem("with --render, -o is an EXR image (name it .exr)", output)
     if render_camera is None and not output.lower().endswith(".ply"):
@@ -340,6 +340,8 @@ def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, ren
     if not (scale > 0 and math.isfinite(scale)):
         raise UsageProblem(f"--sss-scale must be a positive finite number, got {sss_scale}")
     aovs = [a.strip() for a in aov.split(",") if a.strip()] if aov else []
+    if aov is not None and not aovs:
+        raise UsageProblem("--aov needs at least one of normal, uv, depth")
     bad = [a for a in aovs if a not in ("normal", "uv", "depth")]
     if bad:
         raise UsageProblem(f"--aov takes normal, uv, depth; unknown: {', '.join(bad)}")
@@ -352,7 +354,7 @@ def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, ren
         else:
             if not 0 < rough_value <= 1:
                 raise UsageProblem(f"--roughness must be in (0, 1], got {roughness_map}")
-    bg = parse_vector(background, 3, "--background")
+    bg = parse_vector(background, 3, "--background", minimum=0)
     for path in (output, preview):
         check_output(path, no_clobber)
     for path in (hand_camera, hand_lights, albedo_map):
@@ -440,9 +442,7 @@ def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, ren
     seconds = {**renderer.stats, **lighting.stats, **result.stats}
     from relight_cli.formats.exr import write_exr
     write_exr(output, channels, attributes={
-        "relight.model": model, "relight.camera": camera.to_json(),
-        "relight.seconds": {k: round(float(v), 6) for k, v in seconds.items()}},
-        provenance=record)
+        "relight.model": model, "relight.camera": camera.to_json()}, provenance=record)
     if preview is not None:
         from relight_cli.formats.image import write_preview
         write_preview(preview, result.image)

@@ -55,7 +55,6 @@ def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = Fal
         PREFIX + "mapping": str(dgsm.mapping),
         PREFIX + "kappa": float(dgsm.kappa),
         PREFIX + "roi": json.dumps(_jsonable(dgsm.roi), sort_keys=True),
-        PREFIX + "build_seconds": float(dgsm.build_seconds),
         PREFIX + "texel_mapping": TEXEL_MAPPING,
     }
     if groups is not None:
