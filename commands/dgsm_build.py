@@ -345,4 +345,9 @@ def load_placed(source: str, placement, spec: str, offset=None):
         raise DataError(f"cannot place it: {exc}", spec) from None
     if offset is not None:
         g.means = g.means + np.asarray(offset, np.float64)
+    # Beyond ~1000 km the float32 PLY/EXR outputs lose the millimetres (or overflow).
+    reach = max(float(np.abs(g.means).max()), float(np.abs(g.scales).max()))
+    if not reach <= 1e6:
+        raise DataError(f"placed Gaussians reach {reach:.3g} m from the origin (more than "
+                        f"1e6 m); check the placement's scale and translate", spec)
     return g

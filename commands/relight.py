@@ -45,7 +45,7 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="[Gaussians] Receiver colour × (1 − s·(1 − T)); 1 multiplies by T.")
 @click.option("--lobe", type=FiniteFloat(0, 1e4, min_open=True), default=1.0, show_default=True,
               help="[Gaussians] Cosine lobe exponent q of the transfer (1 = Lambertian).")
-@click.option("--intensity", type=FiniteFloat(0), default=1.0, show_default=True,
+@click.option("--intensity", type=FiniteFloat(0, 1e6), default=1.0, show_default=True,
               help="[Gaussians] Global intensity γ.")
 @click.option("--t-max", "t_max", type=FiniteFloat(0, min_open=True), default=None,
               help="[Gaussians] Clip of the shading factor (default: no clip).")

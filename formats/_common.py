@@ -46,7 +46,7 @@ def read_json(path: str):
 
 
 def _non_finite_literal(name: str):
-    raise ValueError(f"{name} is not valid JSON (JSON numbers are finite)")
+    raise ValueError(f"{name} is not valid JSON (no NaN/Inf: JSON numbers are finite)")
 
 
 def parse_json(text: str, path: str, non_finite: str = "error"):
@@ -54,13 +54,16 @@ def parse_json(text: str, path: str, non_finite: str = "error"):
     MAX_JSON_DEPTH and integers too long to convert are one-line DataErrors.
 
     ``non_finite="nan"`` reads the NaN/Infinity literals as NaN instead (a
-    metrics gate must see them, and fail on them, rather than refuse the file).
+    metrics gate must see them, and fail on them, rather than refuse the file);
+    ``"allow"`` keeps Python's reading (Infinity → inf), for header fields that
+    relight writes itself.
     """
-    constant = _non_finite_literal if non_finite == "error" else (lambda name: float("nan"))
+    constant = {"error": _non_finite_literal, "nan": lambda name: float("nan"),
+                "allow": float}[non_finite]
 
     def number(literal: str) -> float:  # 1e400 overflows to inf: no finite reading of it
         value = float(literal)
-        if value - value != 0:
+        if value - value != 0 and non_finite != "allow":
             return constant(literal)
         return value
 

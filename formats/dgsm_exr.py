@@ -79,9 +79,10 @@ def _json_attr(image, key, path):
     text = image.attributes.get(PREFIX + key)
     if not isinstance(text, str):
         raise DataError(f"missing header attribute {PREFIX + key}", path)
+    from ._common import parse_json
     try:
-        return json.loads(text)
-    except ValueError:
+        return parse_json(text, path, non_finite="allow")
+    except DataError:
         raise DataError(f"damaged header attribute {PREFIX + key}", path) from None
 
 

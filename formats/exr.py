@@ -67,9 +67,12 @@ class ExrImage:
         text = self.attributes.get(PROVENANCE_KEY)
         if not text:
             return None
+        from ._common import parse_json
+        if not isinstance(text, str):
+            raise DataError("damaged relight.provenance header attribute", self.path)
         try:
-            return json.loads(text)
-        except (TypeError, ValueError):
+            return parse_json(text, self.path, non_finite="allow")
+        except DataError:
             raise DataError("damaged relight.provenance header attribute", self.path) from None
 
 

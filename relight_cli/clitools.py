@@ -37,6 +37,18 @@ class FiniteFloat(click.FloatRange):
             self.fail(f"{value!r} is not a finite number.", param, ctx)
         return super().convert(number, param, ctx)
 
+    def _describe_range(self) -> str:
+        """``0<x<=10`` as click writes it, numbers in short form; ``finite`` if unbounded."""
+        lo = None if self.min is None else f"{self.min:g}"
+        hi = None if self.max is None else f"{self.max:g}"
+        if lo is None and hi is None:
+            return "finite"
+        if lo is None:
+            return f"x{'<' if self.max_open else '<='}{hi}"
+        if hi is None:
+            return f"x{'>' if self.min_open else '>='}{lo}"
+        return f"{lo}{'<' if self.min_open else '<='}x{'<' if self.max_open else '<='}{hi}"
+
 
 def seed_option(func):
     return click.option("--seed", type=click.IntRange(0, SEED_MAX), default=0, show_default=True,

@@ -135,6 +135,8 @@ def declare_input(path: str) -> None:
     if _RUN is None or not path or path == "-" or path.startswith("builtin:"):
         return
     ident = _identity(path)
+    if any(ident == other for _, other in _RUN.inputs):
+        return  # already known (provenance() registers every output's inputs again)
     for _, other in _RUN.outputs:
         if _same(ident, other):
             raise UsageProblem(_INPUT_IS_OUTPUT, path)
@@ -160,8 +162,9 @@ def declare_output(path: str) -> None:
                 raise UsageProblem(_INPUT_IS_OUTPUT, path)
         for out, other in _RUN.outputs:
             if _same(ident, other):
-                raise UsageProblem(f"two outputs go to one file ({out!r} and {path!r}); give "
-                                   f"each its own name", path)
+                also = "" if out == path else f" (also given as {out!r})"
+                raise UsageProblem(f"two outputs go to one file{also}; give each its own name",
+                                   path)
     if mode == "replace":
         folder, name = os.path.split(final)
         remove_stale_temps(folder or ".", name)
@@ -404,8 +407,7 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
         ident = _identity(target)
         for _, staged, _ in _PENDING:
             if _same(ident, _identity(staged)):
-                raise UsageProblem(f"two outputs go to one file ({staged!r}); give each its "
-                                   f"own name", target)
+                raise UsageProblem("two outputs go to one file; give each its own name", target)
     if suffix is None:
         suffix = "".join(Path(final).suffixes[-1:])
     folder = (os.path.dirname(final) or ".") if mode == "replace" else tempfile.gettempdir()
@@ -422,9 +424,15 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
         except OSError as exc:
             raise OutputError(f"cannot write: {_reason(exc)}", target) from None
         _check_written(tmp, target, verify)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get normal permissions
+        try:   # a file written over keeps its permissions; a new one gets the umask's
+            mode_bits = stat.S_IMODE(os.stat(final).st_mode) if mode == "replace" else None
+        except OSError:
+            mode_bits = None
+        if mode_bits is None:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode_bits = 0o666 & ~umask   # mkstemp makes 0600
+        os.chmod(tmp, mode_bits)
         if _PENDING is not None:
             _PENDING.append((tmp, final, mode))
         else:

@@ -533,6 +533,42 @@ def test_metrics_compare_fails_on_nan_and_inf(data, tmp_path):
             assert r.exit_code == 3, (value, r.output)
 
 
+def test_library_warnings_do_not_reach_stderr(data, tmp_path, monkeypatch):
+    """Warnings of numpy, torch or pygltflib before an error would break 'one line'."""
+    import warnings
+
+    from relight_cli.errors import DataError
+    from relight_cli.formats import envmap as formats_envmap
+
+    def noisy(path, **_):
+        warnings.warn("a library's complaint", UserWarning)
+        np.float64(1) / np.float64(0)          # numpy's RuntimeWarning
+        raise DataError("damaged", path)
+    monkeypatch.setattr(formats_envmap, "read_envmap", noisy)
+    _run_inproc_fail(["envmap", data / "sky.exr", "-o", tmp_path / "x.exr"], 1, "damaged")
+    with pytest.warns(UserWarning, match="complaint"):   # --debug lets them through
+        CliRunner().invoke(cli, ["--debug", "envmap", str(data / "sky.exr"), "-o",
+                                 str(tmp_path / "x.exr")])
+
+
+def test_fit_geometry_refuses_to_write_over_its_keypoints(data, tmp_path):
+    from relight_cli.hand.model import builtin_hand
+    kp = tmp_path / "kp.npy"
+    np.save(kp, builtin_hand("right", pose=None).rest_joints[None])
+    before = _snapshot(tmp_path)
+    _run_inproc_fail(["fit-geometry", "--keypoints", kp, "-o", kp], 2, "also an input")
+    assert _snapshot(tmp_path) == before
+
+
+def test_synth_capture_refuses_an_env_map_from_a_newer_relight(data, tmp_path):
+    bad = tmp_path / "v99.exr"
+    _exr(bad, {c: np.ones((4, 8), np.float32) for c in "RGB"},
+         {"relight.format": "relight/envmap", "relight.version": 99})
+    _run_inproc_fail(["synth-capture", data / "hand.npz", "-o", tmp_path / "cap", "--cameras",
+                      "1", "--eval-cameras", "1", "--eval-envs", bad], 1, "version 99")
+    assert sorted(os.listdir(tmp_path)) == ["v99.exr"]
+
+
 def test_metrics_lighting_refuses_a_relit_avatar_of_another_size(data, tmp_path):
     _run_inproc_fail(["metrics", "lighting", "--scene", data / "room.ply", "--avatar",
                       data / "ball.ply", "--relit", data / "room.ply", "-o", tmp_path / "l.json"],
