@@ -157,8 +157,11 @@ def _load_template(spec: str):
     check_input(spec)
     lower = spec.lower()
     if lower.endswith((".glb", ".gltf")):
+        from relight_cli.formats.hand_npz import validate
         from relight_cli.hand.gltf import import_gltf
-        return import_gltf(spec)
+        hand = import_gltf(spec)
+        validate(hand, spec)   # degenerate geometry is refused now, naming the glTF
+        return hand
     if lower.endswith(".npz"):
         import numpy as np
 

@@ -120,10 +120,10 @@ def _snapshot(*folders) -> dict:
     return seen
 
 
-def _our_temps() -> list[str]:
-    """Temporary files of ours in the system temp folder (in-place writes use it)."""
-    tmp = tempfile.gettempdir()
-    return sorted(n for n in os.listdir(tmp) if TEMP_MARK in n)
+def _temps_of(pid: int) -> list[str]:
+    """Temporary files process ``pid`` left in the system temp folder (in-place writes
+    stage there); other sessions' files are not ours to judge."""
+    return sorted(n for n in os.listdir(tempfile.gettempdir()) if f"{TEMP_MARK}{pid}-" in n)
 
 
 def _assert_one_error(code, stderr, expected_code, *words):
@@ -142,16 +142,22 @@ def _run_inproc_fail(args, expected_code, *words):
 
 
 def _subprocess(args, timeout=120, **kw):
+    """Run the console script; the result has .pid too."""
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run([relight_executable(), *map(str, args)], capture_output=True,
-                          text=True, timeout=timeout, env=env, **kw)
+    proc = subprocess.Popen([relight_executable(), *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, **kw)
+    stdout, stderr = proc.communicate(timeout=timeout)
+    result = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    result.pid = proc.pid
+    return result
 
 
 # ----------------------------------------------------------------------------- bad outputs
 
 
 # kind -> (how to make the output path in a work folder, expected exit code).
-BAD_OUTPUTS = ["input", "directory", "missing-folder", "empty-name", "proc", "name-too-long"]
+BAD_OUTPUTS = ["input", "directory", "missing-folder", "empty-name", "proc", "name-too-long",
+               "symlink-loop"]
 
 
 @pytest.mark.parametrize("kind", BAD_OUTPUTS)
@@ -171,6 +177,10 @@ def test_bad_output_target(data, tmp_path, name, kind):
         out, code, word = "", 2, ""   # "empty output file name", or the command's own refusal
     elif kind == "proc":
         out, code, word = "/proc/relight-x" + ext, 1, "/proc"
+    elif kind == "symlink-loop":
+        (tmp_path / ("a" + ext)).symlink_to("b" + ext)
+        (tmp_path / ("b" + ext)).symlink_to("a" + ext)
+        out, code, word = tmp_path / ("a" + ext), 1, "symbolic links"
     else:
         out, code, word = tmp_path / ("a" * 300 + ext), 1, "too long"
     before = _snapshot(data, tmp_path)
@@ -203,11 +213,27 @@ def test_character_device_is_written_in_place(data, tmp_path, name):
     build, _ = COMMANDS[name]
     node = tmp_path / "null"
     os.mknod(node, 0o666 | stat.S_IFCHR, os.makedev(1, 3))   # the same device as /dev/null
-    temps = _our_temps()
     p = _subprocess([*build(data, node), "-q"])
     assert p.returncode == 0, p.stderr
     assert stat.S_ISCHR(os.lstat(node).st_mode) and os.listdir(tmp_path) == ["null"]
-    assert _our_temps() == temps
+    assert _temps_of(p.pid) == []
+
+
+@needs_root
+def test_block_device_and_socket_are_refused(data, tmp_path):
+    import socket
+    block = tmp_path / "disk"
+    os.mknod(block, 0o600 | stat.S_IFBLK, os.makedev(7, 0))   # a loop device node
+    sock_path = tmp_path / "sock"
+    server = socket.socket(socket.AF_UNIX)
+    server.bind(str(sock_path))
+    try:
+        before = _snapshot(tmp_path)
+        for target, word in ((block, "block device"), (sock_path, "socket")):
+            _run_inproc_fail(COMMANDS["envmap"][0](data, target), 2, word)
+        assert _snapshot(tmp_path) == before
+    finally:
+        server.close()
 
 
 @needs_root
@@ -224,11 +250,10 @@ def test_fifo_without_reader_is_refused_and_kept(data, tmp_path, name):
     build, _ = COMMANDS[name]
     fifo = tmp_path / "pipe"
     os.mkfifo(fifo)
-    temps = _our_temps()
     p = _subprocess(build(data, fifo) + ["-q"])   # -q: the log lines came before the write
     _assert_one_error(p.returncode, p.stderr, 1, "FIFO has no reader")
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and os.listdir(tmp_path) == ["pipe"]
-    assert _our_temps() == temps
+    assert _temps_of(p.pid) == []
 
 
 def test_fifo_with_reader_gets_the_bytes(data, tmp_path):
