@@ -95,7 +95,6 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
           'donut.ply:fit=0.15;rotate-y=30;on-floor;translate=-0.1,0,-0.05' \\
           --receivers builtin:room --lights lights.json -o shadows.exr
     """
-    import math
     import time
 
     import numpy as np
@@ -131,14 +130,6 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         h, w = _parse_hw(size)
     except ValueError:
         raise UsageProblem(f"--size must look like HxW or N (2..4096), got {size!r}") from None
-    if not (kappa > 0 and math.isfinite(kappa)):
-        raise UsageProblem(f"--kappa must be positive, got {kappa}")
-    if not (0 < cull_tolerance < 1):
-        raise UsageProblem(f"--cull-tolerance must be in (0, 1), got {cull_tolerance}")
-    if t_max is not None and not (t_max > 0 and math.isfinite(t_max)):
-        raise UsageProblem(f"--t-max must be positive, got {t_max}")
-    if roi_radius is not None and not (roi_radius > 0 and math.isfinite(roi_radius)):
-        raise UsageProblem(f"--roi-radius must be positive, got {roi_radius}")
     if receivers is None and t_max is None:
         raise UsageProblem("give --receivers SCENE.ply (or --t-max for a receiver-free build)")
     auto_k = _parse_auto(lights_spec)

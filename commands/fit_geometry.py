@@ -86,8 +86,6 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
         raise UsageProblem("--offsets needs --scans (keypoints alone cannot see the surface)")
     if interpolate and keypoints is None:
         raise UsageProblem("--interpolate needs --keypoints with frame numbers")
-    if smooth < 0:
-        raise UsageProblem("--smooth must be non-negative")
     scan_paths = None
     if scans is not None:
         scan_paths = sorted(globmod.glob(scans)) if any(c in scans for c in "*?[") else [scans]

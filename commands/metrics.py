@@ -210,10 +210,8 @@ def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpi
     qs = parse_percentiles(percentiles)
     if win_size < 3 or win_size % 2 == 0:
         raise UsageProblem(f"--win-size must be odd and at least 3, got {win_size}")
-    if data_range is not None and not data_range > 0:
-        raise UsageProblem("--data-range must be positive")
-    if exposure is not None and (space != "srgb" or not exposure > 0):
-        raise UsageProblem("--exposure needs --space srgb and a positive value")
+    if exposure is not None and space != "srgb":
+        raise UsageProblem("--exposure needs --space srgb")
     if lpips_weights is not None and not use_lpips:
         use_lpips = True
     lpips_net = None
@@ -322,10 +320,6 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
     _check_outputs(output, jsonl, no_clobber)
     qs = parse_percentiles(percentiles)
     roi_box = _parse_roi(roi)
-    if not 0 <= threshold < 1:
-        raise UsageProblem(f"--threshold must lie in [0, 1), got {threshold}")
-    if not tolerance >= 0:
-        raise UsageProblem(f"--tolerance must be ≥ 0, got {tolerance}")
     pairs, extra = match_pairs(pred, gt)
     if extra:
         log(f"note: {len(extra)} ground-truth file(s) have no prediction and are ignored", quiet)
@@ -399,8 +393,6 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     check_output(output, no_clobber, text=True)
     if relits and len(relits) != len(avatars):
         raise UsageProblem(f"{len(relits)} --relit file(s) for {len(avatars)} --avatar frame(s)")
-    if not radius > 0:
-        raise UsageProblem("--radius must be positive")
     if neighbours < 4:
         raise UsageProblem("--neighbours must be at least 4")
     if max_points < 16:

@@ -183,12 +183,6 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         raise UsageProblem("--receivers-out needs --receivers")
     if preview is not None and render_camera is None:
         raise UsageProblem("--preview needs --render")
-    if not (lobe > 0 and math.isfinite(lobe)):
-        raise UsageProblem(f"--lobe must be a positive finite number, got {lobe}")
-    if not (intensity >= 0 and math.isfinite(intensity)):
-        raise UsageProblem(f"--intensity must be a finite number ≥ 0, got {intensity}")
-    if t_max is not None and not t_max > 0:
-        raise UsageProblem(f"--t-max must be positive, got {t_max}")
     bg = parse_vector(background, 3, "--background", minimum=0)
     if render_camera is not None and not output.lower().endswith(".exr"):
         raise UsageProblem("with --render, -o is an EXR image (name it .exr)", output)
@@ -296,7 +290,6 @@ def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, ren
                   tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map,
                   roughness_map, aov, background, preview, seed, no_clobber, quiet, **_):
     """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image."""
-    import math
     import time
 
     import numpy as np
@@ -336,9 +329,7 @@ def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, ren
     samples_axis = 2 if aa is None else aa
     if not 1 <= samples_axis <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {samples_axis}")
-    scale = 1.0 if sss_scale is None else sss_scale
-    if not (scale > 0 and math.isfinite(scale)):
-        raise UsageProblem(f"--sss-scale must be a positive finite number, got {sss_scale}")
+    scale = 1.0 if sss_scale is None else sss_scale   # its range is checked by FiniteFloat
     aovs = [a.strip() for a in aov.split(",") if a.strip()] if aov else []
     if aov is not None and not aovs:
         raise UsageProblem("--aov needs at least one of normal, uv, depth")
