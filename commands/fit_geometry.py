@@ -76,12 +76,12 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
     if fitting and pose is not None:
         raise UsageProblem("--pose poses the template; it cannot be combined with "
                            "--keypoints/--scans")
-    if frames < 1:
-        raise UsageProblem("--frames must be at least 1")
+    if not 1 <= frames <= 100_000:
+        raise UsageProblem(f"--frames must be in [1, 100000], got {frames}")
     if frames != 1 and pose != "random":
         raise UsageProblem("--frames applies to --pose random only")
-    if iterations < 1:
-        raise UsageProblem("--iterations must be at least 1")
+    if not 1 <= iterations <= 1_000_000:
+        raise UsageProblem(f"--iterations must be in [1, 1000000], got {iterations}")
     if offsets and scans is None:
         raise UsageProblem("--offsets needs --scans (keypoints alone cannot see the surface)")
     if interpolate and keypoints is None:
