@@ -105,7 +105,15 @@ class Terminated(BaseException):
         self.signal_name = signal.Signals(signal_number).name
 
 
+_STOP_SIGNALS = ("SIGTERM", "SIGHUP")
+
+
 def _terminate(signal_number, frame):
+    # `timeout` signals the process and then its whole group: the second copy must
+    # not interrupt the clean-up (or the interpreter's shutdown) the first one started.
+    for name in _STOP_SIGNALS:
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
     raise Terminated(signal_number)
 
 
@@ -137,7 +145,7 @@ def cli(ctx, debug):
 def main():  # console-script entry point
     # `timeout`, CI runners and process managers stop jobs with SIGTERM (or SIGHUP):
     # clean up exactly as for Ctrl-C instead of dying with temporary files left.
-    for name in ("SIGTERM", "SIGHUP"):
+    for name in _STOP_SIGNALS:
         if hasattr(signal, name):
             signal.signal(getattr(signal, name), _terminate)
     try:
