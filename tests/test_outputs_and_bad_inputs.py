@@ -161,13 +161,13 @@ BAD_OUTPUTS = ["input", "directory", "missing-folder", "empty-name", "proc", "na
                "symlink-loop"]
 
 
-@pytest.mark.parametrize("kind", BAD_OUTPUTS)
-@pytest.mark.parametrize("name", sorted(COMMANDS))
+# fit-geometry as run here reads no file; its "output is an input" case is
+# test_fit_geometry_refuses_to_write_over_its_keypoints.
+@pytest.mark.parametrize("name,kind", [(n, k) for n in sorted(COMMANDS) for k in BAD_OUTPUTS
+                                       if not (k == "input" and FIRST_INPUT[n] is None)])
 def test_bad_output_target(data, tmp_path, name, kind):
     build, ext = COMMANDS[name]
     if kind == "input":
-        if FIRST_INPUT[name] is None:
-            pytest.skip(f"{name} here reads no input file")
         out, code, word = data / FIRST_INPUT[name], 2, "also an input"
     elif kind == "directory":
         (tmp_path / ("d" + ext)).mkdir()
