@@ -141,11 +141,18 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     for spec in envs:
         env_maps.append(load_envmap(spec))
     rough_map = None if rough_value is not None else _read_roughness_map(roughness)
-    log(f"read {hand}: {len(data.hands)} hand(s), {n_frames} frame(s); "
-        f"{len(envs)} env map(s)", quiet)
     t0 = time.perf_counter()
     discrete = [F.discretize_env(e, env_h, env_w) for e in env_maps]
     env_seconds = time.perf_counter() - t0
+    for d, spec in zip(discrete, envs):
+        # Every layer is at most ~1e3 × the map's power Σ L Δω (the sharpest Phong/GGX
+        # lobes): beyond float32's range the stored features would be Inf.
+        power = float((d.radiance * d.solid_angle[:, None]).sum(axis=0).max())
+        if not power * 1e3 < float(np.finfo(np.float32).max):
+            raise DataError(f"env map is too bright (power {power:.3g}): its features would "
+                            f"overflow float32", spec)
+    log(f"read {hand}: {len(data.hands)} hand(s), {n_frames} frame(s); "
+        f"{len(envs)} env map(s)", quiet)
 
     from relight_cli.hand.scene import posed_meshes, preview_camera
     from relight_cli.uvraster import rasterize_uv
@@ -190,6 +197,11 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                     layers[prefix + name] = value
             maps_per_env.append(layers)
         texel_seconds = time.perf_counter() - t0
+        for layers, spec in zip(maps_per_env, envs):
+            overflow = [n for n, value in layers.items() if not np.isfinite(value).all()]
+            if overflow:  # e.g. radiance near float32's limit: the sums overflow
+                raise DataError(f"features overflow float32 in layer(s) {', '.join(overflow)} "
+                                f"(env map radiance too large)", spec)
         seconds = {"env": env_seconds, "pose": pose_seconds, **baker.stats.seconds,
                    "texels": texel_seconds}
         for fr_t, k, exr_path, npz_path, png_path in (t for t in targets if t[0] == fr):
@@ -208,7 +220,6 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                      "relight.mesh": mesh,
                      "relight.visibility": int(not no_visibility),
                      "relight.rays_traced": int(baker.stats.rays_traced),
-                     "relight.seconds": json_round(seconds),
                      "relight.hands": ",".join(pm.name for pm in posed)}
             write_features(exr_path, maps_per_env[k], attributes=attrs, provenance=record)
             log(f"wrote {exr_path}", quiet)
@@ -229,10 +240,6 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                 log(f"wrote {png_path}", quiet)
         log(f"frame {fr}: {baker.stats.rays_traced} rays, "
             + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()), quiet)
-
-
-def json_round(seconds: dict) -> dict:
-    return {k: round(float(v), 6) for k, v in seconds.items()}
 
 
 def _parse_hw(text: str, what: str) -> tuple[int, int]:
@@ -256,12 +263,26 @@ def _parse_texture_res(text: str) -> tuple[int, int]:
 
 
 def _check_pattern(pattern: str) -> None:
+    """Output names may hold {frame} and {env} fields (with a format spec such as
+    {frame:04d}) and nothing else: no attribute or index access, no conversions."""
+    import string
+
     from relight_cli.errors import UsageProblem
+    bad = None
     try:
-        pattern.format(frame=0, env="x")
+        for _, field, spec, conversion in string.Formatter().parse(pattern):
+            if field is None:
+                continue
+            if field not in ("frame", "env") or conversion is not None or "{" in (spec or ""):
+                bad = "{" + field + ("!" + conversion if conversion else "") + "}"
+                break
+        else:
+            pattern.format(frame=0, env="x")
     except (KeyError, IndexError, ValueError) as exc:
+        bad = f"({type(exc).__name__}: {exc})"
+    if bad is not None:
         raise UsageProblem(f"output name {pattern!r} may only use {{frame}} and {{env}} "
-                           f"fields ({type(exc).__name__}: {exc})") from None
+                           f"fields, found {bad}")
 
 
 def _env_name(spec: str) -> str:

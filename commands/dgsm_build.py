@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, log, no_clobber_option,
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
                                   progress, quiet_option, seed_option)
 
 
@@ -33,17 +33,18 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
               show_default=True, help="Direction atlas (cube for the ablation).")
 @click.option("--mapping", type=click.Choice(["eq5", "simple", "mass", "diag"]), default="eq5",
               show_default=True, help="Opacity→absorption mapping (eq5: paper Eq. 5).")
-@click.option("--kappa", type=float, default=1.0, show_default=True,
+@click.option("--kappa", type=FiniteFloat(0, min_open=True), default=1.0, show_default=True,
               help="Absorption scale κ (> 0).")
-@click.option("--t-max", type=float, default=None,
+@click.option("--t-max", type=FiniteFloat(0, min_open=True), default=None,
               help="Radial extent (metres) for every light; default from the receivers.")
 @click.option("--roi/--no-roi", default=True, show_default=True,
               help="Compute only texels and bins that receivers read.")
-@click.option("--roi-radius", type=float, default=None,
+@click.option("--roi-radius", type=FiniteFloat(0, min_open=True), default=None,
               help="Also cap the ROI at this distance (metres) from the occluders' centroid.")
 @click.option("--cull/--no-cull", default=True, show_default=True,
               help="Light-space occluder culling (tiles, texels, kσ ellipse, radial).")
-@click.option("--cull-tolerance", type=float, default=1e-7, show_default=True,
+@click.option("--cull-tolerance",
+              type=FiniteFloat(0, 1, min_open=True, max_open=True), default=1e-7, show_default=True,
               help="Largest optical depth a culled Gaussian may have contributed.")
 @click.option("--footprint", type=click.Choice(["centre", "stencil", "mc"]), default="stencil",
               show_default=True,
@@ -94,7 +95,6 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
           'donut.ply:fit=0.15;rotate-y=30;on-floor;translate=-0.1,0,-0.05' \\
           --receivers builtin:room --lights lights.json -o shadows.exr
     """
-    import math
     import time
 
     import numpy as np
@@ -130,14 +130,6 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         h, w = _parse_hw(size)
     except ValueError:
         raise UsageProblem(f"--size must look like HxW or N (2..4096), got {size!r}") from None
-    if not (kappa > 0 and math.isfinite(kappa)):
-        raise UsageProblem(f"--kappa must be positive, got {kappa}")
-    if not (0 < cull_tolerance < 1):
-        raise UsageProblem(f"--cull-tolerance must be in (0, 1), got {cull_tolerance}")
-    if t_max is not None and not (t_max > 0 and math.isfinite(t_max)):
-        raise UsageProblem(f"--t-max must be positive, got {t_max}")
-    if roi_radius is not None and not (roi_radius > 0 and math.isfinite(roi_radius)):
-        raise UsageProblem(f"--roi-radius must be positive, got {roi_radius}")
     if receivers is None and t_max is None:
         raise UsageProblem("give --receivers SCENE.ply (or --t-max for a receiver-free build)")
     auto_k = _parse_auto(lights_spec)
@@ -156,15 +148,17 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     if receivers is not None:
         check_input(receivers)
         scene = load_gaussians(receivers)
-        log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
-    for spec, obj in zip(occluders, objects):
-        log(f"read {spec}: {len(obj)} occluder Gaussians", quiet)
 
     if auto_k is None:
         check_input(lights_spec)
         lights = read_lights(lights_spec)
     else:
         lights = _estimate_lights(scene, auto_k, lights_spec)
+    # Logged once every input has been read: a bad input gets one line only.
+    if scene is not None:
+        log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
+    for spec, obj in zip(occluders, objects):
+        log(f"read {spec}: {len(obj)} occluder Gaussians", quiet)
     log(f"{len(lights)} light(s)", quiet)
 
     mix = TR.from_gaussians(occ, mapping, kappa)
@@ -342,4 +336,9 @@ def load_placed(source: str, placement, spec: str, offset=None):
         raise DataError(f"cannot place it: {exc}", spec) from None
     if offset is not None:
         g.means = g.means + np.asarray(offset, np.float64)
+    # Beyond ~1000 km the float32 PLY/EXR outputs lose the millimetres (or overflow).
+    reach = max(float(np.abs(g.means).max()), float(np.abs(g.scales).max()))
+    if not reach <= 1e6:
+        raise DataError(f"placed Gaussians reach {reach:.3g} m from the origin (more than "
+                        f"1e6 m); check the placement's scale and translate", spec)
     return g

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_output, dumps_json, log, no_clobber_option,
+from relight_cli.clitools import (FiniteFloat, check_output, dumps_json, log, no_clobber_option,
                                   parse_size, quiet_option)
 
 
@@ -16,7 +16,7 @@ from relight_cli.clitools import (check_output, dumps_json, log, no_clobber_opti
 @click.option("--size", default=None,
               help="Lat-long WxH (e.g. 32x16), or cube face size N. Default: input size "
                    "(cube→lat-long: 4N×2N; lat-long→cube: H/2).")
-@click.option("--rotate-y", "rotate_y", type=float, default=0.0, show_default=True,
+@click.option("--rotate-y", "rotate_y", type=FiniteFloat(), default=0.0, show_default=True,
               help="Rotate the environment by DEG about +Y (content at +Z moves towards +X).")
 @click.option("--preview", type=str, default=None, help="Also write a tone-mapped PNG preview.")
 @click.option("--info", "show_info", is_flag=True,

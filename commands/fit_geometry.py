@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, dumps_json, log, no_clobber_option,
-                                  parse_size, quiet_option, seed_option)
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_json, log,
+                                  no_clobber_option, parse_size, quiet_option, seed_option)
 
 
 @click.command("fit-geometry", short_help="Pose or fit the articulated hand; write hand.npz.")
@@ -31,7 +31,7 @@ from relight_cli.clitools import (check_input, check_output, dumps_json, log, no
 @click.option("--no-bone-scales", is_flag=True, help="Keep bone lengths of the template.")
 @click.option("--offsets", is_flag=True,
               help="Also fit per-vertex offsets (Laplacian-regularized; needs --scans).")
-@click.option("--smooth", type=float, default=0.0, show_default=True,
+@click.option("--smooth", type=FiniteFloat(0, 1e6), default=0.0, show_default=True,
               help="Weight of temporal smoothness between consecutive frames.")
 @click.option("--two-hands", is_flag=True,
               help="Add the mirrored other hand beside the first one (for two-hand scenes).")
@@ -76,18 +76,16 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
     if fitting and pose is not None:
         raise UsageProblem("--pose poses the template; it cannot be combined with "
                            "--keypoints/--scans")
-    if frames < 1:
-        raise UsageProblem("--frames must be at least 1")
+    if not 1 <= frames <= 100_000:
+        raise UsageProblem(f"--frames must be in [1, 100000], got {frames}")
     if frames != 1 and pose != "random":
         raise UsageProblem("--frames applies to --pose random only")
-    if iterations < 1:
-        raise UsageProblem("--iterations must be at least 1")
+    if not 1 <= iterations <= 1_000_000:
+        raise UsageProblem(f"--iterations must be in [1, 1000000], got {iterations}")
     if offsets and scans is None:
         raise UsageProblem("--offsets needs --scans (keypoints alone cannot see the surface)")
     if interpolate and keypoints is None:
         raise UsageProblem("--interpolate needs --keypoints with frame numbers")
-    if smooth < 0:
-        raise UsageProblem("--smooth must be non-negative")
     scan_paths = None
     if scans is not None:
         scan_paths = sorted(globmod.glob(scans)) if any(c in scans for c in "*?[") else [scans]
@@ -157,8 +155,11 @@ def _load_template(spec: str):
     check_input(spec)
     lower = spec.lower()
     if lower.endswith((".glb", ".gltf")):
+        from relight_cli.formats.hand_npz import validate
         from relight_cli.hand.gltf import import_gltf
-        return import_gltf(spec)
+        hand = import_gltf(spec)
+        validate(hand, spec)   # degenerate geometry is refused now, naming the glTF
+        return hand
     if lower.endswith(".npz"):
         import numpy as np
 
@@ -173,8 +174,6 @@ def _load_template(spec: str):
 
 
 def _poses_for(pose: str, frames: int, seed: int, hand):
-    import json
-
     import numpy as np
 
     from relight_cli.errors import DataError, UsageProblem
@@ -188,12 +187,9 @@ def _poses_for(pose: str, frames: int, seed: int, hand):
     if pose in P.POSE_NAMES:
         return P.named_pose(pose, hand.side, rest)[None], np.zeros((1, 3))
     if pose.endswith(".json"):
+        from relight_cli.formats._common import read_json
         check_input(pose)
-        try:
-            with open(pose, encoding="utf-8") as f:
-                obj = json.load(f)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise DataError(f"not valid JSON: {exc}", pose) from None
+        obj = read_json(pose)
         if isinstance(obj, dict) and "names" in obj:
             try:
                 p = np.stack([P.named_pose(n, hand.side, rest) for n in obj["names"]])

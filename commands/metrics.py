@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, log, no_clobber_option, quiet_option,
-                                  seed_option)
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
+                                  quiet_option, seed_option)
 
 EXIT_REGRESSION = 3  # `relight metrics compare`: a metric regressed beyond tolerance
 
@@ -171,10 +171,10 @@ def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None
               show_default=True,
               help="linear: HDR values as stored; srgb: both tone-mapped (Reinhard + sRGB) with "
                    "the ground truth's exposure; display: values already in [0, 1] (PNG).")
-@click.option("--exposure", type=float, default=None,
+@click.option("--exposure", type=FiniteFloat(0, min_open=True), default=None,
               help="Exposure multiplier for --space srgb (default: from the ground truth's "
                    "log-average luminance).")
-@click.option("--data-range", "data_range", type=float, default=None,
+@click.option("--data-range", "data_range", type=FiniteFloat(0, min_open=True), default=None,
               help="Peak-to-peak range R for PSNR/SSIM (default: 1 for srgb/display; "
                    "max−min of the ground truth over the region for linear).")
 @click.option("--win-size", "win_size", type=int, default=7, show_default=True,
@@ -210,10 +210,8 @@ def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpi
     qs = parse_percentiles(percentiles)
     if win_size < 3 or win_size % 2 == 0:
         raise UsageProblem(f"--win-size must be odd and at least 3, got {win_size}")
-    if data_range is not None and not data_range > 0:
-        raise UsageProblem("--data-range must be positive")
-    if exposure is not None and (space != "srgb" or not exposure > 0):
-        raise UsageProblem("--exposure needs --space srgb and a positive value")
+    if exposure is not None and space != "srgb":
+        raise UsageProblem("--exposure needs --space srgb")
     if lpips_weights is not None and not use_lpips:
         use_lpips = True
     lpips_net = None
@@ -290,9 +288,9 @@ def _parse_roi(text):
 @click.argument("pred", metavar="PRED")
 @click.argument("gt", metavar="GT")
 @click.option("--roi", default=None, help="Region of interest X,Y,W,H in pixels (default: all).")
-@click.option("--threshold", type=float, default=0.1, show_default=True,
+@click.option("--threshold", type=FiniteFloat(0, 1, max_open=True), default=0.1, show_default=True,
               help="Matte value above which a pixel counts as shadowed.")
-@click.option("--tolerance", type=float, default=2.0, show_default=True,
+@click.option("--tolerance", type=FiniteFloat(0, 1e4), default=2.0, show_default=True,
               help="Boundary F-measure pixel tolerance.")
 @click.option("--matte", type=click.Choice(["shadow", "visibility"]), default="shadow",
               show_default=True, help="What the images hold: shadow strength (1 = full shadow) "
@@ -322,10 +320,6 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
     _check_outputs(output, jsonl, no_clobber)
     qs = parse_percentiles(percentiles)
     roi_box = _parse_roi(roi)
-    if not 0 <= threshold < 1:
-        raise UsageProblem(f"--threshold must lie in [0, 1), got {threshold}")
-    if not tolerance >= 0:
-        raise UsageProblem(f"--tolerance must be ≥ 0, got {tolerance}")
     pairs, extra = match_pairs(pred, gt)
     if extra:
         log(f"note: {len(extra)} ground-truth file(s) have no prediction and are ignored", quiet)
@@ -362,7 +356,7 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
               help="Original avatar Gaussians PLY; repeat for several frames.")
 @click.option("--relit", "relits", multiple=True,
               help="Relit avatar PLY per frame (same count as --avatar).")
-@click.option("--radius", type=float, default=1.5, show_default=True,
+@click.option("--radius", type=FiniteFloat(0, min_open=True), default=1.5, show_default=True,
               help="Scene Gaussians within this distance (metres) of the avatar centre light it.")
 @click.option("--neighbours", type=int, default=16, show_default=True,
               help="Neighbours for the local-PCA pseudo-normals.")
@@ -399,8 +393,6 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     check_output(output, no_clobber, text=True)
     if relits and len(relits) != len(avatars):
         raise UsageProblem(f"{len(relits)} --relit file(s) for {len(avatars)} --avatar frame(s)")
-    if not radius > 0:
-        raise UsageProblem("--radius must be positive")
     if neighbours < 4:
         raise UsageProblem("--neighbours must be at least 4")
     if max_points < 16:
@@ -414,6 +406,9 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
                             "use --normals pca", path)
         frames.append(g)
     orig, relit = frames[:len(avatars)], (frames[len(avatars):] or None)
+    for path, before, after in zip(relits, orig, relit or []):
+        if len(after) != len(before):  # a relit avatar is the same Gaussians, recoloured
+            raise DataError(f"has {len(after)} Gaussians, its --avatar has {len(before)}", path)
     try:
         result = lighting_metrics(scene_g, orig, relit, radius, neighbours,
                                   normal_source == "ply", max_points, seed)
@@ -509,9 +504,16 @@ def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, quiet)
     if new_record.get("kind") != base_record.get("kind"):
         raise DataError(f"kind {new_record.get('kind')!r} differs from the baseline's "
                         f"{base_record.get('kind')!r}", new)
-    rows = compare_metrics([(k, decode_value(v)) for k, v in flatten(new_record["metrics"])],
-                           [(k, decode_value(v)) for k, v in flatten(base_record["metrics"])],
-                           rtols, atols, directions)
+    new_leaves = [(k, decode_value(v)) for k, v in flatten(new_record["metrics"])]
+    base_leaves = [(k, decode_value(v)) for k, v in flatten(base_record["metrics"])]
+    from relight_cli.metrics.compare import unknown_names
+    keys = [k for k, _ in new_leaves + base_leaves]
+    for flag, options in (("--rtol", rtols), ("--atol", atols), ("--better", directions)):
+        unknown = unknown_names(options, keys)
+        if unknown:
+            raise UsageProblem(f"{flag} names no metric of these records: {', '.join(unknown)}",
+                               baseline)
+    rows = compare_metrics(new_leaves, base_leaves, rtols, atols, directions)
     if not quiet or any(r.regressed for r in rows):
         click.echo(format_table(rows, only_changed=only_changed), nl=False)
     if any(r.regressed for r in rows):

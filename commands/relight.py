@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, log, no_clobber_option, parse_vector,
-                                  quiet_option, seed_option)
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
+                                  parse_vector, quiet_option, seed_option)
 
 
 @click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows), or a hand.")
@@ -41,13 +41,13 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
                    "seeded Monte Carlo (--samples) in its principal frame.")
 @click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
               help="Monte Carlo samples per receiver for --footprint mc.")
-@click.option("--shadow-strength", type=click.FloatRange(0, 1), default=1.0, show_default=True,
+@click.option("--shadow-strength", type=FiniteFloat(0, 1), default=1.0, show_default=True,
               help="[Gaussians] Receiver colour × (1 − s·(1 − T)); 1 multiplies by T.")
-@click.option("--lobe", type=float, default=1.0, show_default=True,
+@click.option("--lobe", type=FiniteFloat(0, 1e4, min_open=True), default=1.0, show_default=True,
               help="[Gaussians] Cosine lobe exponent q of the transfer (1 = Lambertian).")
-@click.option("--intensity", type=float, default=1.0, show_default=True,
+@click.option("--intensity", type=FiniteFloat(0, 1e6), default=1.0, show_default=True,
               help="[Gaussians] Global intensity γ.")
-@click.option("--t-max", "t_max", type=float, default=None,
+@click.option("--t-max", "t_max", type=FiniteFloat(0, min_open=True), default=None,
               help="[Gaussians] Clip of the shading factor (default: no clip).")
 @click.option("--normals", type=click.Choice(["auto", "axis", "pca", "stored"]), default="auto",
               show_default=True,
@@ -84,7 +84,7 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @click.option("--no-shadows", is_flag=True, help="[hand] Ablation: no shadow rays.")
 @click.option("--no-specular", is_flag=True, help="[hand] Ablation: diffuse only.")
 @click.option("--no-sss", is_flag=True, help="[hand] Ablation: no subsurface scattering.")
-@click.option("--sss-scale", type=float, default=None,
+@click.option("--sss-scale", type=FiniteFloat(0, 10, min_open=True), default=None,
               help="[hand] Scale of the skin profile's widths [default: 1].")
 @click.option("--bounce", is_flag=True, help="[hand] Add one bounce of interreflection.")
 @click.option("--albedo", "albedo_map", default=None, metavar="IMAGE",
@@ -195,13 +195,7 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         raise UsageProblem("--receivers-out needs --receivers")
     if preview is not None and render_camera is None:
         raise UsageProblem("--preview needs --render")
-    if not (lobe > 0 and math.isfinite(lobe)):
-        raise UsageProblem(f"--lobe must be a positive finite number, got {lobe}")
-    if not (intensity >= 0 and math.isfinite(intensity)):
-        raise UsageProblem(f"--intensity must be a finite number ≥ 0, got {intensity}")
-    if t_max is not None and not t_max > 0:
-        raise UsageProblem(f"--t-max must be positive, got {t_max}")
-    bg = parse_vector(background, 3, "--background")
+    bg = parse_vector(background, 3, "--background", minimum=0)
     if render_camera is not None and not output.lower().endswith(".exr"):
         raise UsageProblem("with --render, -o is an EXR image (name it .exr)", output)
     if render_camera is None and not output.lower().endswith(".ply"):
@@ -308,7 +302,6 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
                   tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map,
                   roughness_map, aov, background, preview, seed, no_clobber, quiet, **_):
     """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image."""
-    import math
     import time
 
     import numpy as np
@@ -352,10 +345,10 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     samples_axis = 2 if aa is None else aa
     if not 1 <= samples_axis <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {samples_axis}")
-    scale = 1.0 if sss_scale is None else sss_scale
-    if not (scale > 0 and math.isfinite(scale)):
-        raise UsageProblem(f"--sss-scale must be a positive finite number, got {sss_scale}")
+    scale = 1.0 if sss_scale is None else sss_scale   # its range is checked by FiniteFloat
     aovs = [a.strip() for a in aov.split(",") if a.strip()] if aov else []
+    if aov is not None and not aovs:
+        raise UsageProblem("--aov needs at least one of normal, uv, depth")
     bad = [a for a in aovs if a not in ("normal", "uv", "depth")]
     if bad:
         raise UsageProblem(f"--aov takes normal, uv, depth; unknown: {', '.join(bad)}")
@@ -368,7 +361,7 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
         else:
             if not 0 < rough_value <= 1:
                 raise UsageProblem(f"--roughness must be in (0, 1], got {roughness_map}")
-    bg = parse_vector(background, 3, "--background")
+    bg = parse_vector(background, 3, "--background", minimum=0)
     for path in (output, preview):
         check_output(path, no_clobber)
     for path in (hand_camera, hand_lights, albedo_map):
@@ -456,9 +449,7 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     seconds = {**renderer.stats, **lighting.stats, **result.stats}
     from relight_cli.formats.exr import write_exr
     write_exr(output, channels, attributes={
-        "relight.model": model, "relight.camera": camera.to_json(),
-        "relight.seconds": {k: round(float(v), 6) for k, v in seconds.items()}},
-        provenance=record)
+        "relight.model": model, "relight.camera": camera.to_json()}, provenance=record)
     if preview is not None:
         from relight_cli.formats.image import write_preview
         write_preview(preview, result.image)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_input, check_output, log, no_clobber_option,
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
                                   parse_vector, quiet_option)
 
 
@@ -14,9 +14,10 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @click.option("--degree", default="auto", show_default=True,
               help="SH degree N (0-8), or 'auto': the smallest degree whose cosine-convolved "
                    "irradiance is within --tolerance of degree --max-degree's.")
-@click.option("--ridge", type=float, default=0.0, show_default=True,
+@click.option("--ridge", type=FiniteFloat(0), default=0.0, show_default=True,
               help="Ridge weight λ of the least-squares fit (paper Eq. 7).")
-@click.option("--tolerance", type=float, default=0.01, show_default=True,
+@click.option("--tolerance", type=FiniteFloat(0, 1, min_open=True, max_open=True), default=0.01,
+              show_default=True,
               help="For --degree auto: allowed relative RMS irradiance error (over all normals).")
 @click.option("--max-degree", type=click.IntRange(1, 12), default=8, show_default=True,
               help="For --degree auto: the high reference degree.")
@@ -24,7 +25,7 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
               help="Probe position (metres, world) for a Gaussian scene IN (.ply).")
 @click.option("--face-size", type=click.IntRange(4, 1024), default=64, show_default=True,
               help="Cube-face resolution rendered for a scene probe.")
-@click.option("--near", type=float, default=0.01, show_default=True,
+@click.option("--near", type=FiniteFloat(0, min_open=True), default=0.01, show_default=True,
               help="Near plane (metres) of the scene probe's cube cameras.")
 @click.option("--nonfinite", type=click.Choice(["error", "zero", "clamp"]), default="error",
               show_default=True, help="What to do with NaN/Inf env-map pixels.")
@@ -61,14 +62,8 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
             fixed = int(degree)
         except ValueError:
             raise UsageProblem(f"--degree must be an integer or 'auto', got {degree!r}") from None
-        if not 0 <= fixed <= 12:
-            raise UsageProblem(f"--degree must be in 0..12, got {fixed}")
-    if not (ridge >= 0 and ridge < float("inf")):
-        raise UsageProblem(f"--ridge must be a finite number ≥ 0, got {ridge}")
-    if not (0 < tolerance < 1):
-        raise UsageProblem(f"--tolerance must be in (0, 1), got {tolerance}")
-    if not near > 0:
-        raise UsageProblem(f"--near must be positive, got {near}")
+        if not 0 <= fixed <= 8:
+            raise UsageProblem(f"--degree must be in 0..8, got {fixed}")
     is_scene = input.lower().endswith(".ply")
     if is_scene and at is None:
         raise UsageProblem("a Gaussian scene needs the probe position: --at X,Y,Z")

@@ -25,6 +25,11 @@ def check_format_version(found_format, found_version, format_name: str, max_vers
     return found_version
 
 
+# Deeper JSON than any relight format uses is refused before a recursive reader
+# (or the parser itself) can overflow the stack.
+MAX_JSON_DEPTH = 64
+
+
 def read_json(path: str):
     """Parse a JSON file; a missing file, a folder, non-UTF-8 bytes or bad JSON
     raise one-line DataErrors naming the file."""
@@ -34,8 +39,93 @@ def read_json(path: str):
         raise DataError("is a directory, expected a JSON file", path)
     try:
         with open(path, encoding="utf-8") as f:
-            return json.load(f)
+            text = f.read()
     except UnicodeDecodeError:
         raise DataError("not a text (UTF-8 JSON) file", path) from None
+    return parse_json(text, path)
+
+
+def _non_finite_literal(name: str):
+    raise ValueError(f"{name} is not valid JSON (no NaN/Inf: JSON numbers are finite)")
+
+
+def parse_json(text: str, path: str, non_finite: str = "error"):
+    """Parse JSON text strictly: NaN/Infinity literals, nesting deeper than
+    MAX_JSON_DEPTH and integers too long to convert are one-line DataErrors.
+
+    ``non_finite="nan"`` reads the NaN/Infinity literals as NaN instead (a
+    metrics gate must see them, and fail on them, rather than refuse the file);
+    ``"allow"`` keeps Python's reading (Infinity → inf), for header fields that
+    relight writes itself.
+    """
+    constant = {"error": _non_finite_literal, "nan": lambda name: float("nan"),
+                "allow": float}[non_finite]
+
+    def number(literal: str) -> float:  # 1e400 overflows to inf: no finite reading of it
+        value = float(literal)
+        if value - value != 0 and non_finite != "allow":
+            return constant(literal)
+        return value
+
+    try:
+        obj = json.loads(text, parse_constant=constant, parse_float=number)
     except json.JSONDecodeError as exc:
         raise DataError(f"invalid JSON: {exc.msg} at line {exc.lineno}", path) from None
+    except RecursionError:
+        raise DataError(f"invalid JSON: nested more than {MAX_JSON_DEPTH} levels deep",
+                        path) from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits, NaN literals
+        raise DataError(f"invalid JSON: {str(exc).splitlines()[0][:120]}", path) from None
+    stack = [(obj, 1)]
+    while stack:
+        value, depth = stack.pop()
+        if depth > MAX_JSON_DEPTH:
+            raise DataError(f"invalid JSON: nested more than {MAX_JSON_DEPTH} levels deep", path)
+        if isinstance(value, dict):
+            stack.extend((v, depth + 1) for v in value.values())
+        elif isinstance(value, list):
+            stack.extend((v, depth + 1) for v in value)
+    return obj
+
+
+def is_int(value) -> bool:
+    """A JSON integer (``true``/``false`` are not numbers, though Python's bool is an int)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def number_array(value, what: str, path: str):
+    """A JSON array (nested lists) of numbers as float64; booleans, strings and
+    ragged lists are DataErrors naming ``what``."""
+    import numpy as np
+    stack = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, list):
+            stack.extend(item)
+        elif not is_number(item):
+            raise DataError(f"{what} must hold numbers only, found {item!r}"[:160], path)
+    try:
+        return np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{what} must be a regular array of numbers", path) from None
+
+
+def save_npz(file, arrays: dict) -> None:
+    """``np.savez_compressed`` with fixed zip timestamps, so identical arrays give
+    identical bytes (numpy stamps every member with the current time)."""
+    import zipfile
+
+    import numpy as np
+    from numpy.lib import format as npy_format
+    with zipfile.ZipFile(file, mode="w", compression=zipfile.ZIP_DEFLATED,
+                         allowZip64=True) as zf:
+        for key, value in arrays.items():
+            info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            with zf.open(info, "w", force_zip64=True) as member:
+                npy_format.write_array(member, np.asanyarray(value), allow_pickle=False)

@@ -75,12 +75,10 @@ def camera_from_json(obj, path: str = "", index: int | None = None) -> Camera:
     missing = [k for k in ("K", "R", "t", "width", "height") if k not in obj]
     if missing:
         raise DataError(f"{where}missing field(s) {', '.join(missing)}", path)
-    try:
-        K = np.asarray(obj["K"], np.float64)
-        R = np.asarray(obj["R"], np.float64)
-        t = np.asarray(obj["t"], np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise DataError(f"{where}K, R and t must be numeric arrays", path) from None
+    from ._common import is_int, number_array
+    K = number_array(obj["K"], f"{where}K", path)
+    R = number_array(obj["R"], f"{where}R", path)
+    t = number_array(obj["t"], f"{where}t", path).reshape(-1)
     if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
         raise DataError(f"{where}K and R must be 3×3 and t length 3, got "
                         f"{K.shape}, {R.shape}, {t.shape}", path)
@@ -91,7 +89,7 @@ def camera_from_json(obj, path: str = "", index: int | None = None) -> Camera:
     if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1) > 1e-9 or np.any(K[2, :2] != 0):
         raise DataError(f"{where}K must have positive focal lengths and last row [0, 0, 1]", path)
     w, h = obj["width"], obj["height"]
-    if not (isinstance(w, int) and isinstance(h, int) and 0 < w <= 65536 and 0 < h <= 65536):
+    if not (is_int(w) and is_int(h) and 0 < w <= 65536 and 0 < h <= 65536):
         raise DataError(f"{where}width and height must be positive integers", path)
     return Camera(K, R, t, w, h, str(obj.get("name", "")))
 

@@ -177,7 +177,7 @@ def capture_from_json(obj, path: str = "") -> Capture:
             raise DataError(f"frames[{i}] must be an object", path)
         index = _int(item.get("index"), f"frames[{i}].index", path)
         t = item.get("time", index / 30.0)
-        if not isinstance(t, (int, float)) or not math.isfinite(t):
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t):
             raise DataError(f"frames[{i}].time must be a finite number", path)
         pose = _int(item.get("pose"), f"frames[{i}].pose", path)
         lit = item.get("lit", "group")

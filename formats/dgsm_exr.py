@@ -55,7 +55,6 @@ def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = Fal
         PREFIX + "mapping": str(dgsm.mapping),
         PREFIX + "kappa": float(dgsm.kappa),
         PREFIX + "roi": json.dumps(_jsonable(dgsm.roi), sort_keys=True),
-        PREFIX + "build_seconds": float(dgsm.build_seconds),
         PREFIX + "texel_mapping": TEXEL_MAPPING,
     }
     if groups is not None:
@@ -80,9 +79,10 @@ def _json_attr(image, key, path):
     text = image.attributes.get(PREFIX + key)
     if not isinstance(text, str):
         raise DataError(f"missing header attribute {PREFIX + key}", path)
+    from ._common import parse_json
     try:
-        return json.loads(text)
-    except ValueError:
+        return parse_json(text, path, non_finite="allow")
+    except DataError:
         raise DataError(f"damaged header attribute {PREFIX + key}", path) from None
 
 

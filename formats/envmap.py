@@ -111,6 +111,7 @@ def read_envmap(path: str, nonfinite: str = "error", layout: str | None = None) 
     if magic == b"\x76\x2f\x31\x01":
         from .exr import read_exr
         image = read_exr(path)
+        _check_version(image, path)
         radiance = _rgb_from_channels(image.channels, path)
         found_layout = image.envmap or "latlong"
     else:
@@ -128,6 +129,17 @@ def read_envmap(path: str, nonfinite: str = "error", layout: str | None = None) 
         n = int((radiance < 0).any(axis=-1).sum())
         raise DataError(f"{n} pixel(s) have negative radiance", path)
     return EnvMap(radiance=radiance, layout=layout, name=path)
+
+
+def _check_version(image, path: str) -> None:
+    """Env maps from other tools carry no relight header and are read as they are;
+    one that says it is a relight/envmap (or carries a relight.version) must be a
+    version this relight understands."""
+    from ._common import check_format_version
+    from .exr import FORMAT_KEY, VERSION_KEY
+    found = image.attributes.get(FORMAT_KEY)
+    if found == FORMAT or (found is None and VERSION_KEY in image.attributes):
+        check_format_version(FORMAT, image.attributes.get(VERSION_KEY), FORMAT, VERSION, path)
 
 
 def read_image_oiio(path: str) -> np.ndarray:

@@ -67,9 +67,12 @@ class ExrImage:
         text = self.attributes.get(PROVENANCE_KEY)
         if not text:
             return None
+        from ._common import parse_json
+        if not isinstance(text, str):
+            raise DataError("damaged relight.provenance header attribute", self.path)
         try:
-            return json.loads(text)
-        except (TypeError, ValueError):
+            return parse_json(text, self.path, non_finite="allow")
+        except DataError:
             raise DataError("damaged relight.provenance header attribute", self.path) from None
 
 
@@ -204,8 +207,21 @@ def write_exr(path: str, channels: dict[str, np.ndarray], attributes: dict | Non
         header[FORMAT_KEY] = str(provenance["format"])
         header[VERSION_KEY] = int(provenance["version"])
         header[PROVENANCE_KEY] = json.dumps(provenance, sort_keys=True)
-    with atomic_path(path, suffix=".exr") as tmp:
-        OpenEXR.File(header, pixels).write(tmp)
+    with atomic_path(path, suffix=".exr", verify=read_exr) as tmp:
+        try:
+            OpenEXR.File(header, pixels).write(tmp)
+        except Exception as exc:  # the bindings raise RuntimeError for I/O errors
+            raise write_failure(exc, tmp, path) from None
+
+
+def write_failure(exc: Exception, tmp: str, path: str):
+    """A one-line OutputError for what a C++ writer raised (its temp name left out)."""
+    from relight_cli.errors import OutputError
+    text = (str(exc).splitlines() or [type(exc).__name__])[0]
+    if "No space left on device" in text:
+        return OutputError("cannot write: no space left on device", path)
+    text = " ".join(text.replace(f'"{tmp}"', "").replace(tmp, "").split()).strip(" :.'")
+    return OutputError(f"cannot write: {text[:160]}", path)
 
 
 def _header_value(value):

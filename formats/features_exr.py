@@ -132,6 +132,8 @@ def write_vertex_features(path: str, arrays: dict, provenance: dict) -> None:
     """
     from relight_cli.provenance import atomic_path
 
+    from ._common import save_npz
+
     payload = {"format": np.array(VERTEX_FORMAT), "version": np.array(VERTEX_VERSION),
                "provenance": np.array(json.dumps(provenance, sort_keys=True))}
     for key, value in arrays.items():
@@ -140,7 +142,7 @@ def write_vertex_features(path: str, arrays: dict, provenance: dict) -> None:
             "vertices", "normals") else value
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, **payload)
+            save_npz(f, payload)
 
 
 def read_vertex_features(path: str) -> dict:

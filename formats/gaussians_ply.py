@@ -271,9 +271,10 @@ def _check_header(ply, path: str) -> dict | None:
                 raise DataError(f"{FORMAT} version {parts[2]} is newer than this relight "
                                 f"understands (≤ {VERSION})", path, hint="upgrade relight")
         elif line.startswith(_PROVENANCE_TAG + " "):
+            from ._common import parse_json
             try:
-                provenance = json.loads(line[len(_PROVENANCE_TAG) + 1:])
-            except ValueError:
+                provenance = parse_json(line[len(_PROVENANCE_TAG) + 1:], path, non_finite="allow")
+            except DataError:
                 raise DataError("damaged relight.provenance header line", path) from None
     return provenance
 

@@ -26,6 +26,12 @@ VERSION = 1
 _WEIGHT_SUM_TOL = 1e-4
 # UVs must lie in [0, 1]²; allow float32 round-off at the border.
 _UV_TOL = 1e-6
+# Plausibility of a hand in metres: coordinates within 1 km of the origin (beyond,
+# float64 products overflow or lose the millimetres), a mesh at least 1 mm across,
+# and at most half of its faces of zero area (a collapsed mesh casts no shadows).
+_MAX_COORD = 1000.0
+_MIN_EXTENT = 1e-3
+_ZERO_AREA = 1e-14  # m², far below any real triangle (a 0.1 µm² sliver)
 
 
 @dataclass
@@ -176,10 +182,12 @@ def write_hand(path: str, hand: HandData, provenance: dict | None = None) -> Non
     """Validate ``hand`` and write it to ``path`` atomically (compressed npz, no pickles)."""
     from relight_cli.provenance import atomic_path
 
+    from ._common import save_npz
+
     arrays = to_arrays(hand, provenance)
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
+            save_npz(f, arrays)
 
 
 # ----------------------------------------------------------------------------- reading
@@ -236,6 +244,30 @@ def _float(arrays, key, path, shape, required=True):
     return a
 
 
+def _bounded(a, key, path):
+    """``a`` (metres) if every coordinate lies within _MAX_COORD of the origin."""
+    if a is not None and a.size and np.abs(a).max() > _MAX_COORD:
+        raise DataError(f"'{key}' has coordinates beyond {_MAX_COORD:g} m (largest "
+                        f"{np.abs(a).max():.3g}); a hand is metres across, in metres", path)
+    return a
+
+
+def _check_geometry(vertices, faces, prefix, path):
+    """Refuse meshes that read but would give plausible-looking wrong results:
+    absurd coordinates, all vertices collapsed, (mostly) zero-area faces."""
+    _bounded(vertices, prefix + "vertices", path)
+    extent = float((vertices.max(0) - vertices.min(0)).max())
+    if extent < _MIN_EXTENT:
+        raise DataError(f"'{prefix}vertices' span only {extent:.3g} m (collapsed mesh; a hand "
+                        f"is about 0.2 m)", path)
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    degenerate = int((area <= _ZERO_AREA).sum())
+    if degenerate * 2 > len(faces):
+        raise DataError(f"{degenerate} of {len(faces)} '{prefix}faces' have zero area "
+                        f"(degenerate mesh)", path)
+
+
 def _index(arrays, key, path, n_rows, limit, what):
     a = _get(arrays, key, path)
     if a.dtype.kind not in "iu":
@@ -282,9 +314,11 @@ def from_arrays(arrays: dict, path: str = "<in memory>") -> HandData:
     if bad:
         raise DataError(f"'parents' must list each joint after its parent; joint {bad[0]} "
                         f"has parent {parents[bad[0]]}", path)
-    rest = _float(arrays, "rest_joints", path, (J, 3))
+    rest = _bounded(_float(arrays, "rest_joints", path, (J, 3)), "rest_joints", path)
     side = _strings(arrays, "side", path, required=False)
     side = "right" if side is None else str(side)
+    if side not in ("right", "left"):
+        raise DataError(f"'side' must be 'right' or 'left', got {side!r}", path)
     label_names = _strings(arrays, "label_names", path, required=False)
     label_names = [] if label_names is None else [str(s) for s in label_names]
     meshes = {}
@@ -299,6 +333,7 @@ def from_arrays(arrays: dict, path: str = "<in memory>") -> HandData:
         faces = _index(arrays, prefix + "faces", path, None, len(v), "vertices")
         if len(faces) == 0:
             raise DataError(f"'{prefix}faces' is empty", path)
+        _check_geometry(v, faces, prefix, path)
         faces_uv = _index(arrays, prefix + "faces_uv", path, len(faces), len(uv), "uv")
         w = _float(arrays, prefix + "weights", path, (len(v), J))
         if w.min() < 0:
@@ -319,7 +354,7 @@ def from_arrays(arrays: dict, path: str = "<in memory>") -> HandData:
     N = len(poses)
     if N < 1:
         raise DataError("'poses' holds no frames", path)
-    trans = _float(arrays, "translations", path, (N, 3))
+    trans = _bounded(_float(arrays, "translations", path, (N, 3)), "translations", path)
     hand_names = _strings(arrays, "hand_names", path, required=False)
     H = 1 if hand_names is None else len(hand_names)
     if hand_names is not None and (hand_names.ndim != 1 or H < 1):
@@ -341,7 +376,8 @@ def from_arrays(arrays: dict, path: str = "<in memory>") -> HandData:
     hands = [HandInstance(str(hand_names[0]), bool(mirror[0]), roots[0], poses, trans)]
     if H > 1:
         other_p = _float(arrays, "other_poses", path, (H - 1, N, J, 3))
-        other_t = _float(arrays, "other_translations", path, (H - 1, N, 3))
+        other_t = _bounded(_float(arrays, "other_translations", path, (H - 1, N, 3)),
+                           "other_translations", path)
         for h in range(1, H):
             hands.append(HandInstance(str(hand_names[h]), bool(mirror[h]), roots[h],
                                       other_p[h - 1], other_t[h - 1]))

@@ -17,6 +17,8 @@ def write_png(path: str, display: np.ndarray) -> None:
     """Write display-referred [H, W, C] values in [0, 1] as 8-bit PNG, atomically."""
     import OpenImageIO as oiio
 
+    from relight_cli.errors import OutputError
+    from relight_cli.formats.exr import write_failure
     from relight_cli.provenance import atomic_path
 
     pixels = np.ascontiguousarray(np.clip(np.rint(np.asarray(display) * 255.0), 0, 255).astype(np.uint8))
@@ -24,17 +26,18 @@ def write_png(path: str, display: np.ndarray) -> None:
         pixels = pixels[..., None]
     pixels = np.ascontiguousarray(pixels)
     h, w, c = pixels.shape
-    with atomic_path(path, suffix=".png") as tmp:
+    with atomic_path(path, suffix=".png", verify=read_image) as tmp:
         out = oiio.ImageOutput.create(tmp)
         if out is None:
-            raise DataError("cannot create PNG writer: " + oiio.geterror(), path)
+            raise OutputError("cannot create PNG writer: " + oiio.geterror(), path)
         spec = oiio.ImageSpec(w, h, c, oiio.UINT8)
         spec.attribute("Software", "relight")
         if not out.open(tmp, spec) or not out.write_image(pixels):
             msg = out.geterror()
             out.close()
-            raise DataError("cannot write PNG: " + msg, path)
-        out.close()
+            raise write_failure(RuntimeError(msg or "PNG writer failed"), tmp, path)
+        if not out.close():
+            raise write_failure(RuntimeError(out.geterror() or "PNG writer failed"), tmp, path)
 
 
 def write_preview(path: str, linear_rgb: np.ndarray, exposure: float | None = None) -> None:

@@ -90,18 +90,15 @@ def read_keypoints(path: str, n_joints: int = 25) -> Keypoints:
     if isinstance(obj, dict):
         if "format" in obj and obj["format"] != FORMAT:
             raise DataError(f"not a {FORMAT} file (format is {obj['format']!r})", path)
-        if "version" in obj and obj["version"] != VERSION:
+        if "version" in obj and (obj["version"] != VERSION or isinstance(obj["version"], bool)):
             raise DataError(f"unsupported {FORMAT} version {obj['version']!r} (this tool reads "
                             f"version {VERSION})", path)
         if "keypoints" not in obj:
             raise DataError("JSON object lacks 'keypoints'", path)
         frames, names = obj.get("frames"), obj.get("joint_names")
         obj = obj["keypoints"]
-    try:
-        a = np.array(obj, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DataError("'keypoints' must be a regular N × J × 3 (or 4) array of numbers",
-                        path) from None
+    from ._common import number_array
+    a = number_array(obj, "'keypoints' (a regular N × J × 3 or 4 array)", path)
     if frames is not None:
         try:
             frames = np.array(frames)

@@ -89,10 +89,8 @@ def write_metrics(path: str, record: dict) -> None:
 
 def loads(text: str, path: str = "<string>") -> dict:
     """Parse and validate a metrics record.  Raises DataError naming ``path``."""
-    try:
-        record = json.loads(text)
-    except ValueError as exc:
-        raise DataError(f"not valid JSON: {str(exc).splitlines()[0]}", path) from None
+    from ._common import parse_json
+    record = parse_json(text, path, non_finite="nan")
     if not isinstance(record, dict):
         raise DataError("metrics JSON must hold an object", path)
     check_format_version(record.get("format"), record.get("version"), FORMAT, VERSION, path)

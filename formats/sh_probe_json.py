@@ -67,10 +67,8 @@ def probe_from_json(obj, path: str = "") -> ShProbe:
     degree = obj.get("degree")
     if not isinstance(degree, int) or isinstance(degree, bool) or not 0 <= degree <= 20:
         raise DataError(f"'degree' must be an integer in 0..20, got {degree!r}", path)
-    try:
-        coeffs = np.asarray(obj.get("coefficients"), np.float64)
-    except (TypeError, ValueError):
-        raise DataError("'coefficients' must be a list of [r, g, b] rows of numbers", path) from None
+    from ._common import number_array
+    coeffs = number_array(obj.get("coefficients"), "'coefficients'", path)
     k = (degree + 1) ** 2
     if coeffs.shape != (k, 3):
         raise DataError(f"'coefficients' must be {k} rows of 3 for degree {degree}, got shape "
@@ -83,10 +81,9 @@ def probe_from_json(obj, path: str = "") -> ShProbe:
         raise DataError(f"'ridge' must be a finite number ≥ 0, got {ridge!r}", path)
     position = obj.get("position")
     if position is not None:
-        try:
-            position = np.asarray(position, np.float64).reshape(3)
-        except (TypeError, ValueError):
-            raise DataError("'position' must be [x, y, z]", path) from None
+        position = number_array(position, "'position'", path)
+        if position.shape != (3,):
+            raise DataError("'position' must be [x, y, z]", path)
         if not np.isfinite(position).all():
             raise DataError("'position' holds NaN/Inf", path)
     known = {"format", "version", "degree", "basis", "coefficients", "ridge", "source", "position",

@@ -8,8 +8,10 @@ embree and OpenImageIO are imported inside the callbacks.
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
 import traceback
+import warnings
 
 import click
 
@@ -46,7 +48,11 @@ class RelightGroup(click.Group):
     def invoke(self, ctx):
         from .provenance import output_transaction
         try:
-            with output_transaction():
+            with output_transaction(), warnings.catch_warnings():
+                if not ctx.params.get("debug"):
+                    # Library warnings (numpy, torch, pygltflib...) would come before the
+                    # one error line or mix with progress; --debug shows them.
+                    warnings.simplefilter("ignore")
                 return super().invoke(ctx)
         except RelightError as exc:
             _report(ctx, exc, exc.exit_code)
@@ -59,6 +65,10 @@ class RelightGroup(click.Group):
         except KeyboardInterrupt:
             click.echo(f"relight {_subcommand(ctx)}: interrupted", err=True)
             sys.exit(130)
+        except Terminated as exc:
+            click.echo(f"relight {_subcommand(ctx)}: terminated by signal {exc.signal_name}",
+                       err=True)
+            sys.exit(128 + exc.signal_number)
         except MemoryError:
             _report(ctx, RelightError("out of memory; try a smaller resolution or fewer inputs"), 1)
         except Exception as exc:  # a bug, not a user error: still one line unless --debug
@@ -87,6 +97,27 @@ class RelightGroup(click.Group):
         sys.exit(rv if isinstance(rv, int) else 0)
 
 
+class Terminated(BaseException):
+    """SIGTERM/SIGHUP arrived: unwinds like Ctrl-C, so temporary files are removed."""
+
+    def __init__(self, signal_number: int):
+        super().__init__(signal_number)
+        self.signal_number = signal_number
+        self.signal_name = signal.Signals(signal_number).name
+
+
+_STOP_SIGNALS = ("SIGTERM", "SIGHUP")
+
+
+def _terminate(signal_number, frame):
+    # `timeout` signals the process and then its whole group: the second copy must
+    # not interrupt the clean-up (or the interpreter's shutdown) the first one started.
+    for name in _STOP_SIGNALS:
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
+    raise Terminated(signal_number)
+
+
 def _subcommand(ctx) -> str:
     return ctx.invoked_subcommand or ctx.info_name or "relight"
 
@@ -113,4 +144,12 @@ def cli(ctx, debug):
 
 
 def main():  # console-script entry point
-    cli.main()
+    # `timeout`, CI runners and process managers stop jobs with SIGTERM (or SIGHUP):
+    # clean up exactly as for Ctrl-C instead of dying with temporary files left.
+    for name in _STOP_SIGNALS:
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), _terminate)
+    try:
+        cli.main()
+    except Terminated as exc:  # before or after a subcommand ran
+        sys.exit(128 + exc.signal_number)

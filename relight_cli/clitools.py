@@ -18,8 +18,40 @@ def quiet_option(func):
                         help="Silence progress bars and log messages on stderr.")(func)
 
 
+SEED_MAX = 2**32 - 1  # numpy's SeedSequence and torch accept 0..2^32-1 everywhere
+
+
+class FiniteFloat(click.FloatRange):
+    """A float option that is finite (never NaN or ±Inf) and within its range.
+
+    Every float option of every command uses this type, so that ``nan``,
+    ``inf`` and out-of-range values are usage errors (exit 2) naming the option,
+    before any work.  ``min_open``/``max_open`` exclude the bounds.
+    """
+
+    name = "float"
+
+    def convert(self, value, param, ctx):
+        number = click.FLOAT.convert(value, param, ctx)
+        if not _finite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return super().convert(number, param, ctx)
+
+    def _describe_range(self) -> str:
+        """``0<x<=10`` as click writes it, numbers in short form; ``finite`` if unbounded."""
+        lo = None if self.min is None else f"{self.min:g}"
+        hi = None if self.max is None else f"{self.max:g}"
+        if lo is None and hi is None:
+            return "finite"
+        if lo is None:
+            return f"x{'<' if self.max_open else '<='}{hi}"
+        if hi is None:
+            return f"x{'>' if self.min_open else '>='}{lo}"
+        return f"{lo}{'<' if self.min_open else '<='}x{'<' if self.max_open else '<='}{hi}"
+
+
 def seed_option(func):
-    return click.option("--seed", type=int, default=0, show_default=True,
+    return click.option("--seed", type=click.IntRange(0, SEED_MAX), default=0, show_default=True,
                         help="Random seed; identical inputs and seed give identical outputs.")(func)
 
 
@@ -35,21 +67,24 @@ def no_clobber_option(func):
 
 
 def check_output(path: str | None, no_clobber: bool = False, text: bool = False) -> None:
-    """Validate an output path before any work is done (usage errors exit 2)."""
+    """Validate an output path before any work is done, and register it.
+
+    Usage errors (exit 2): an empty name, a folder, a missing folder, a block
+    device or socket, an output that is one of the command's inputs or outputs
+    (see relight_cli.provenance.declare_output); a folder where no file can be
+    created exits 1.
+    """
     from .errors import UsageProblem
+    from .provenance import declare_output
     if path is None:
         return
     if path == "-":
         if not text:
             raise UsageProblem("this output is binary and cannot go to stdout; give a file name")
         return
-    folder = os.path.dirname(path) or "."
-    if not os.path.isdir(folder):
-        raise UsageProblem("output folder does not exist", folder)
-    if os.path.isdir(path):
-        raise UsageProblem("output is a directory", path)
-    if no_clobber and os.path.exists(path):
+    if no_clobber and os.path.lexists(path):
         raise UsageProblem("output exists and --no-clobber was given", path)
+    declare_output(path)
 
 
 def check_input(path: str) -> str:
@@ -63,6 +98,8 @@ def check_input(path: str) -> str:
         raise DataError("is a directory, expected a file", path)
     if not os.access(path, os.R_OK):
         raise DataError("file is not readable (permissions)", path)
+    from .provenance import declare_input
+    declare_input(path)
     return path
 
 
@@ -100,7 +137,8 @@ def parse_size(text: str, what: str = "--size") -> tuple[int, int]:
     return w, h
 
 
-def parse_vector(text: str, n: int, what: str) -> tuple[float, ...]:
+def parse_vector(text: str, n: int, what: str, minimum: float | None = None) -> tuple[float, ...]:
+    """``"x,y,z"`` → n finite floats (each ≥ ``minimum`` when given); else a usage error."""
     from .errors import UsageProblem
     try:
         values = tuple(float(v) for v in text.split(","))
@@ -108,6 +146,8 @@ def parse_vector(text: str, n: int, what: str) -> tuple[float, ...]:
         raise UsageProblem(f"{what} must be {n} comma-separated numbers, got {text!r}") from None
     if len(values) != n or not all(map(_finite, values)):
         raise UsageProblem(f"{what} must be {n} finite comma-separated numbers, got {text!r}")
+    if minimum is not None and min(values) < minimum:
+        raise UsageProblem(f"{what} values must be ≥ {minimum:g}, got {text!r}")
     return values
 
 

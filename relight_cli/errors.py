@@ -38,3 +38,9 @@ class UsageProblem(RelightError):
     """An impossible option or combination of options.  Exit 2."""
 
     exit_code = 2
+
+
+class OutputError(RelightError):
+    """An output cannot be written (permissions, full disk, a FIFO with no reader...).  Exit 1."""
+
+    exit_code = 1

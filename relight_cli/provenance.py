@@ -1,16 +1,30 @@
-"""Provenance of outputs and atomic writes.
+"""Provenance of outputs, and writes that never destroy anything.
 
 Every output records the format name and version, the command line that made it
 and the SHA-256 of its input files, so a pipeline can be audited and a stale
-file detected.  No timestamps: identical inputs give identical outputs.
+file detected.  No timestamps or timings, and no presentation flags (``-q``,
+``--debug``) in the stored command line: identical inputs give identical bytes.
+
+Writes (:func:`atomic_path`) go to a temporary file beside the target, named
+``.NAME.relight-tmp-PID-XXXXXXXX.EXT`` so that a run killed with SIGKILL can be
+recognised and cleaned by the next run writing NAME, and are renamed into place
+only when the whole command succeeds (:func:`output_transaction`).  The target
+decides how: a regular file (or a new name) is replaced by rename; a symlink is
+written through to its target, atomically there; a character device or FIFO is
+written in place (its node is never replaced); a folder, block device or socket
+is refused.  The running command's outputs and inputs are registered
+(:func:`declare_output`, :func:`declare_input`), so an output that is also an
+input, or two outputs on one file, are refused before any work.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import shlex
+import stat
 import sys
 import tempfile
 from pathlib import Path
@@ -23,8 +37,13 @@ from . import __version__
 _COMMAND_LINE: list[str] = []
 
 
+# Flags that change what is shown, not what is written: left out of the stored
+# command line so that they never change an output's bytes.
+PRESENTATION_FLAGS = frozenset({"-q", "--quiet", "--debug", "--no-clobber"})
+
+
 def set_command_line(argv: list[str]) -> None:
-    _COMMAND_LINE[:] = ["relight", *argv]
+    _COMMAND_LINE[:] = ["relight", *(a for a in argv if a not in PRESENTATION_FLAGS)]
 
 
 def command_line() -> str:
@@ -57,6 +76,8 @@ def provenance(format_name: str, version: int, inputs: dict[str, str] | None = N
         inputs: role -> path of each input file (hashed here).
         settings: the options that shaped the output (JSON-serializable).
     """
+    for p in (inputs or {}).values():
+        declare_input(str(p))
     record = {
         "format": format_name,
         "version": int(version),
@@ -70,32 +91,216 @@ def provenance(format_name: str, version: int, inputs: dict[str, str] | None = N
     return record
 
 
-# Outputs staged by the running command: all are renamed into place together
-# when it succeeds, and all removed when it fails (see output_transaction).
-_PENDING: list[tuple[str, Path]] | None = None
+# ----------------------------------------------------------------------------- the run's files
+
+TEMP_MARK = ".relight-tmp-"
+
+
+class _Run:
+    """Inputs and outputs of the running command (see output_transaction)."""
+
+    def __init__(self):
+        self.inputs: list[tuple[str, tuple]] = []
+        self.outputs: list[tuple[str, tuple]] = []
+
+
+# Outputs staged by the running command: all are committed together when it
+# succeeds, and all removed when it fails (see output_transaction).
+_PENDING: list[tuple[str, str, str]] | None = None
+_RUN: _Run | None = None
+
+
+_INPUT_IS_OUTPUT = "an output is also an input of this command; give the output another name"
+
+
+def _identity(path: str) -> tuple:
+    """(resolved path, (device, inode) or None, is a character device) of ``path``."""
+    real = os.path.realpath(path)
+    try:
+        st = os.stat(path)
+    except OSError:
+        return real, None, False
+    return real, (st.st_dev, st.st_ino), stat.S_ISCHR(st.st_mode)
+
+
+def _same(a: tuple, b: tuple) -> bool:
+    if a[2] or b[2]:  # a character device (/dev/null) may take any number of streams
+        return False
+    return a[0] == b[0] or (a[1] is not None and a[1] == b[1])
+
+
+def declare_input(path: str) -> None:
+    """Register an input file of the running command; refuse one that is also an output."""
+    from .errors import UsageProblem
+    if _RUN is None or not path or path == "-" or path.startswith("builtin:"):
+        return
+    ident = _identity(path)
+    if any(ident == other for _, other in _RUN.inputs):
+        return  # already known (provenance() registers every output's inputs again)
+    for _, other in _RUN.outputs:
+        if _same(ident, other):
+            raise UsageProblem(_INPUT_IS_OUTPUT, path)
+    _RUN.inputs.append((path, ident))
+
+
+def declare_output(path: str) -> None:
+    """Check an output before any work and register it for the running command.
+
+    Refuses (usage errors, exit 2) an empty name, a folder, a block device or
+    socket, a missing folder, an output that is one of the command's inputs or
+    another of its outputs; refuses (exit 1) a folder where no file can be
+    created.  Removes this output's stale temporary files left by killed runs.
+    """
+    from .errors import UsageProblem
+    if path == "-":
+        return
+    final, mode = _resolve(path)
+    ident = _identity(path)
+    if _RUN is not None:
+        for _, other in _RUN.inputs:
+            if _same(ident, other):
+                raise UsageProblem(_INPUT_IS_OUTPUT, path)
+        for out, other in _RUN.outputs:
+            if _same(ident, other):
+                also = "" if out == path else f" (also given as {out!r})"
+                raise UsageProblem(f"two outputs go to one file{also}; give each its own name",
+                                   path)
+    if mode == "replace":
+        folder, name = os.path.split(final)
+        remove_stale_temps(folder or ".", name)
+        _probe_folder(folder or ".", name, path)
+    if _RUN is not None:
+        _RUN.outputs.append((path, ident))
+
+
+def _resolve(target: str) -> tuple[str, str]:
+    """(path to write, "replace" | "inplace") for an output name, or a one-line error."""
+    from .errors import OutputError, UsageProblem
+    if target == "":
+        raise UsageProblem("empty output file name", "''")
+    try:
+        st = os.stat(target)           # follows symlinks: the type of what is written
+    except FileNotFoundError:
+        st = None
+    except OSError as exc:             # ELOOP, ENAMETOOLONG, EACCES on a parent ...
+        raise OutputError(f"cannot write: {_reason(exc)}", target) from None
+    if st is None:
+        final = os.path.realpath(target) if os.path.islink(target) else target
+        folder = os.path.dirname(final) or "."
+        if not os.path.isdir(folder):
+            raise UsageProblem("output folder does not exist", folder)
+        return final, "replace"
+    if stat.S_ISREG(st.st_mode):
+        return os.path.realpath(target), "replace"
+    if stat.S_ISDIR(st.st_mode):
+        raise UsageProblem("output is a directory", target)
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISFIFO(st.st_mode):
+        return target, "inplace"
+    kind = "block device" if stat.S_ISBLK(st.st_mode) else (
+        "socket" if stat.S_ISSOCK(st.st_mode) else "special file")
+    raise UsageProblem(f"output is a {kind}; refusing to write to it", target)
+
+
+def _reason(exc: OSError) -> str:
+    return (exc.strerror or str(exc)).lower() if isinstance(exc, OSError) else str(exc)
+
+
+def _temp_prefix(name: str, folder: str) -> str:
+    """``.NAME.relight-tmp-PID-``, NAME cut so that mkstemp's name fits the folder's limit."""
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    tail = f"{TEMP_MARK}{os.getpid()}-"
+    room = max(1, limit - len(tail) - 1 - 8 - 16)  # '.', mkstemp's 8 random, a suffix
+    while len(os.fsencode(name)) > room:
+        name = name[:-1]
+    return "." + name + tail
+
+
+def _probe_folder(folder: str, name: str, target: str) -> None:
+    """Create and remove a temporary file where the output will go: write errors
+    (permissions, read-only or pseudo file systems, a name too long) surface
+    before any work, naming the output."""
+    from .errors import OutputError
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    if len(os.fsencode(name)) > limit:
+        raise OutputError(f"file name too long (more than {limit} bytes)", target)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), dir=folder)
+    except OSError as exc:
+        raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}", target) from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(tmp)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return pid > 0
+    return True
+
+
+def remove_stale_temps(folder: str, name: str) -> list[str]:
+    """Remove ``.NAME.relight-tmp-PID-*`` files in ``folder`` whose process is gone
+    (a run killed before it could clean up); returns what was removed."""
+    prefix = _temp_prefix(name, folder).rsplit(TEMP_MARK, 1)[0] + TEMP_MARK
+    removed = []
+    try:
+        entries = os.listdir(folder)
+    except OSError:
+        return removed
+    for entry in entries:
+        if not entry.startswith(prefix):
+            continue
+        pid_text = entry[len(prefix):].split("-", 1)[0]
+        if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
+            continue
+        path = os.path.join(folder, entry)
+        with contextlib.suppress(OSError):
+            if os.path.isfile(path) and not os.path.islink(path):
+                os.unlink(path)
+                removed.append(path)
+    return removed
 
 
 @contextlib.contextmanager
 def output_transaction() -> Iterator[None]:
-    """All-or-nothing outputs: atomic_path() writes inside this block are renamed
-    into place only when the whole block succeeds (a command with an EXR and a
-    PNG output never leaves one without the other)."""
-    global _PENDING
+    """All-or-nothing outputs: atomic_path() writes inside this block are committed
+    only when the whole block succeeds (a command with an EXR and a PNG output
+    never leaves one without the other).  The block is also the scope of the
+    input/output registry (declare_input, declare_output)."""
+    global _PENDING, _RUN
     if _PENDING is not None:  # nested: the outer transaction decides
         yield
         return
-    _PENDING = []
+    _PENDING, _RUN = [], _Run()
     try:
         yield
         staged, _PENDING = _PENDING, None
-        for tmp, target in staged:
-            os.replace(tmp, target)
+        for i, (tmp, final, mode) in enumerate(staged):
+            try:
+                _commit(tmp, final, mode)
+            except BaseException:
+                for later, _, _ in staged[i + 1:]:
+                    with contextlib.suppress(OSError):
+                        os.unlink(later)
+                raise
     except BaseException:
         staged, _PENDING = _PENDING or [], None
-        for tmp, _ in staged:
+        for tmp, _, _ in staged:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
         raise
+    finally:
+        _RUN = None
 
 
 @contextlib.contextmanager
@@ -110,32 +315,128 @@ def outside_transaction() -> Iterator[None]:
         _PENDING = saved
 
 
+def _commit(tmp: str, final: str, mode: str) -> None:
+    from .errors import OutputError
+    try:
+        if mode == "replace":
+            os.replace(tmp, final)
+            return
+        _copy_in_place(tmp, final)
+    except OSError as exc:
+        raise OutputError(f"cannot write: {_reason(exc)}", final) from None
+    finally:
+        if mode != "replace":
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+
+def _copy_in_place(tmp: str, target: str) -> None:
+    """Stream a finished temporary file into a character device or FIFO."""
+    from .errors import OutputError
+    flags = os.O_WRONLY | getattr(os, "O_NONBLOCK", 0)
+    try:
+        fd = os.open(target, flags)
+    except OSError as exc:
+        if exc.errno == errno.ENXIO:
+            raise OutputError("FIFO has no reader", target) from None
+        raise
+    try:
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        with open(tmp, "rb") as src:
+            while True:
+                block = src.read(1 << 20)
+                if not block:
+                    break
+                view = memoryview(block)
+                while view:
+                    view = view[os.write(fd, view):]
+    finally:
+        os.close(fd)
+
+
+def _check_written(tmp: str, target: str, verify) -> None:
+    """What the writer left must be on disk: flushed (fsync reports deferred write
+    errors), not empty, and, when the file system is now full, complete: C++
+    writers (OpenEXR, libpng) can drop the error of their last buffer, so their
+    file is read back with ``verify`` (Python's own writers raise on a short write)."""
+    from .errors import OutputError
+    try:
+        size = os.stat(tmp).st_size
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        vfs = os.statvfs(os.path.dirname(tmp) or ".")
+    except OSError as exc:
+        raise OutputError(f"cannot write: {_reason(exc)}", target) from None
+    if size == 0:
+        raise OutputError("nothing was written (is the disk full?)", target)
+    free_blocks = vfs.f_bfree if os.geteuid() == 0 else vfs.f_bavail
+    if vfs.f_blocks and free_blocks == 0 and verify is not None:
+        try:
+            verify(tmp)
+        except Exception:
+            raise OutputError("no space left on device (the output was cut short)",
+                              target) from None
+
+
 @contextlib.contextmanager
-def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterator[str]:
-    """Yield a temporary path in the target's folder; rename it onto the target on success.
+def atomic_path(target: str | os.PathLike, suffix: str | None = None,
+                verify=None) -> Iterator[str]:
+    """Yield a temporary path for ``target``; commit it when the command succeeds.
 
     On any exception the temporary file is removed and the target is untouched,
     so Make never trusts a half-written output.  ``suffix`` keeps the extension
-    (libraries that pick the codec by extension need it).
+    (libraries that pick the codec by extension need it).  A symlink target is
+    written through to the file it names; a character device or FIFO is written
+    in place (the temporary file then lives in the system's temp folder).
+    Write failures raise one-line OutputErrors naming ``target``.  ``verify(tmp)``
+    reads a finished file back (raising if damaged) when the disk filled up.
     """
-    target = Path(target)
-    folder = target.parent if str(target.parent) else Path(".")
-    if not folder.is_dir():
-        from .errors import UsageProblem
-        raise UsageProblem("output folder does not exist", str(folder))
+    from .errors import OutputError, UsageProblem
+    target = os.fspath(target)
+    final, mode = _resolve(target)
+    if _RUN is not None:
+        ident = _identity(target)
+        for _, other in _RUN.inputs:
+            if _same(ident, other):
+                raise UsageProblem(_INPUT_IS_OUTPUT, target)
+    if _PENDING:
+        ident = _identity(target)
+        for _, staged, _ in _PENDING:
+            if _same(ident, _identity(staged)):
+                raise UsageProblem("two outputs go to one file; give each its own name", target)
     if suffix is None:
-        suffix = "".join(target.suffixes[-1:])
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp" + suffix, dir=folder)
+        suffix = "".join(Path(final).suffixes[-1:])
+    folder = (os.path.dirname(final) or ".") if mode == "replace" else tempfile.gettempdir()
+    name = os.path.basename(final)
+    remove_stale_temps(folder, name)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), suffix=suffix, dir=folder)
+    except OSError as exc:
+        raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}", target) from None
     os.close(fd)
     try:
-        yield tmp
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get normal permissions
+        try:
+            yield tmp
+        except OSError as exc:
+            raise OutputError(f"cannot write: {_reason(exc)}", target) from None
+        _check_written(tmp, target, verify)
+        try:   # a file written over keeps its permissions; a new one gets the umask's
+            mode_bits = stat.S_IMODE(os.stat(final).st_mode) if mode == "replace" else None
+        except OSError:
+            mode_bits = None
+        if mode_bits is None:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode_bits = 0o666 & ~umask   # mkstemp makes 0600
+        os.chmod(tmp, mode_bits)
         if _PENDING is not None:
-            _PENDING.append((tmp, target))
+            _PENDING.append((tmp, final, mode))
         else:
-            os.replace(tmp, target)
+            _commit(tmp, final, mode)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)

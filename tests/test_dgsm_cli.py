@@ -277,7 +277,7 @@ def test_builtin_and_mesh_inputs_with_outputs(tmp_path):
               "--size", "16", "--bins", "8", "-q"])
     assert r.exit_code == 0, r.output
     _fails(["dgsm-build", "builtin:nothing", "--receivers", rec_out, "--lights", str(lights),
-            "-o", out], 1, "unknown built-in")
+            "-o", out], 2, "unknown built-in")  # a usage error, as for builtin env maps
     bad = tmp_path / "bad.obj"
     bad.write_text("this is not a mesh\n")
     _fails(["dgsm-build", str(bad), "--receivers", rec_out, "--lights", str(lights), "-o", out],

@@ -218,7 +218,7 @@ def test_cli_subprocess(files):
      "unknown placement key 'spin'"),
     (["avatar.ply"], 2, "needs --probe"),
     (["avatar.ply", "--probe", "probe.json", "--dgsm", "x.exr"], 2, "give --receivers"),
-    (["avatar.ply", "--probe", "probe.json", "--lobe", "0"], 2, "--lobe must be"),
+    (["avatar.ply", "--probe", "probe.json", "--lobe", "0"], 2, "--lobe"),
     (["avatar.ply", "--probe", "probe.json", "--render", "cam.json"], 2, "-o is an EXR"),
     (["avatar.ply", "--probe", "missing.json"], 1, "no such file"),
     (["avatar.ply", "--probe", "bad_probe.json"], 1, "version 9 is newer"),

@@ -213,15 +213,15 @@ MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".stl", ".off")
 def load_gaussians(spec: str) -> Gaussians:
     """Gaussians from ``builtin:NAME``, a mesh file (.obj .glb .gltf .stl .off → flat
     Gaussians with texture/face colours), or a 3DGS PLY.  Raises DataError."""
-    from relight_cli.errors import DataError
+    from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.gaussians_ply import read_gaussians
 
     if spec.startswith("builtin:"):
         name = spec.split(":", 1)[1]
-        try:
-            return builtin_gaussians(name)
-        except ValueError as exc:
-            raise DataError(str(exc), spec) from None
+        if name not in BUILTINS:  # a misspelt name is a usage error, as for builtin env maps
+            raise UsageProblem(f"unknown built-in Gaussians {name!r}; choose from "
+                               f"{', '.join('builtin:' + b for b in BUILTINS)}", spec)
+        return builtin_gaussians(name)
     if spec.lower().endswith(MESH_SUFFIXES):
         import trimesh
         try:

@@ -13,6 +13,8 @@ Every leaf of the baseline's ``metrics`` object (dotted keys, e.g.
 * a metric in the baseline but missing from the new record is a regression
   (``missing``); a metric only in the new record is reported as ``new``.
 * ``null`` (JSON's stand-in for +∞, e.g. PSNR of identical images) compares as +∞.
+* NaN, or a ``NaN``/``Infinity`` literal (not valid JSON, read as NaN), in either
+  record is a regression.
 
 Options map a key to a value by, in order of precedence: the exact dotted key,
 a shell-style pattern (``*.psnr``), the key's last component (``psnr``), and
@@ -65,6 +67,19 @@ def lookup(options: dict[str | None, object], key: str, default):
     return options.get(None, default)
 
 
+def unknown_names(options: dict[str | None, object], keys: list[str]) -> list[str]:
+    """Option names (exact key, pattern or leaf) that match none of ``keys``."""
+    leaves = {k.rsplit(".", 1)[-1] for k in keys}
+    unknown = []
+    for name in options:
+        if name is None or name in keys or name in leaves:
+            continue
+        if any(c in name for c in "*?[") and any(fnmatch.fnmatchcase(k, name) for k in keys):
+            continue
+        unknown.append(name)
+    return unknown
+
+
 def compare_metrics(new: list[tuple[str, float]], baseline: list[tuple[str, float]],
                     rtol: dict | None = None, atol: dict | None = None,
                     better: dict | None = None) -> list[Row]:
@@ -100,6 +115,8 @@ def compare_metrics(new: list[tuple[str, float]], baseline: list[tuple[str, floa
 
 
 def _status(value: float, base: float, slack: float, direction: str) -> str:
+    if math.isnan(value) or math.isnan(base):
+        return "REGRESSED"  # NaN (or a NaN/Infinity literal) is never an acceptable result
     if value == base:
         return "ok"
     if math.isinf(value) or math.isinf(base):
