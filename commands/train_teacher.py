@@ -69,13 +69,6 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     from relight_cli.errors import UsageProblem
 
     # ---- usage checks before any work
-    if not output.lower().endswith((".pt", ".pth")):
-        raise UsageProblem("-o is a checkpoint (name it .pt)", output)
-    check_output(output, no_clobber)
-    if metrics_out is not None:
-        if not metrics_out.lower().endswith(".json") and metrics_out != "-":
-            raise UsageProblem("--metrics-out is a JSON file (name it .json)", metrics_out)
-        check_output(metrics_out, no_clobber, text=True)
     if iters is not None and iters < 1:
         raise UsageProblem(f"--iters must be ≥ 1, got {iters}")
     if not os.path.isdir(capture):
@@ -84,9 +77,18 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
             capture = os.path.dirname(capture) or "."
         else:
             raise DataError("CAPTURE must be a capture folder (with capture.json)", capture)
+    if os.path.isfile(os.path.join(capture, "capture.json")):
+        check_input(os.path.join(capture, "capture.json"))
     for path in (config_file, vgg_weights, resume):
         if path is not None:
             check_input(path)
+    check_output(output, no_clobber)
+    if not output.lower().endswith((".pt", ".pth")):
+        raise UsageProblem("-o is a checkpoint (name it .pt)", output)
+    if metrics_out is not None:
+        check_output(metrics_out, no_clobber, text=True)
+        if not metrics_out.lower().endswith(".json") and metrics_out != "-":
+            raise UsageProblem("--metrics-out is a JSON file (name it .json)", metrics_out)
 
     import torch  # noqa: F401  (after usage checks: --help and usage errors stay fast)
 

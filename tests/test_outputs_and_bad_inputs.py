@@ -67,8 +67,22 @@ def data():
         {"format": "relight/lights", "version": 1, "lights": [{"position": [0.0, 1.0, 0.0]}]}))
     r = run("metrics", "image", folder / "img.exr", folder / "img2.exr", "-o", folder / "m.json")
     assert r.exit_code == 0, r.output
-    for p in folder.iterdir():
-        os.chmod(p, 0o644)
+    # a tiny capture and teacher (train-teacher, relight --model teacher)
+    (folder / "small.json").write_text(json.dumps(
+        {"tex_res": 8, "encoder": [2, 2], "decoder": [2, 2], "pose_channels": [2, 2],
+         "val_samples": 1, "aa": 1}))
+    for args in (["synth-capture", "-o", folder / "cap", "--cameras", "1", "--lights", "3",
+                  "--group", "1", "--frames", "3", "--res", "8", "--tex-res", "8", "--aa", "1",
+                  "--eval-poses", "0", "--eval-cameras", "1"],
+                 ["train-teacher", folder / "cap", "--config", folder / "small.json",
+                  "--iters", "1", "-o", folder / "teacher.pt"]):
+        r = run(*args)
+        assert r.exit_code == 0, r.output
+    for root, dirs, files in os.walk(folder):
+        for name in dirs:
+            os.chmod(os.path.join(root, name), 0o755)
+        for name in files:
+            os.chmod(os.path.join(root, name), 0o644)
     yield folder
     shutil.rmtree(folder, ignore_errors=True)
 
@@ -98,12 +112,18 @@ COMMANDS = {
     "metrics-lighting": (lambda d, o: ["metrics", "lighting", "--scene", d / "room.ply",
                                        "--avatar", d / "ball.ply", "--max-points", "16",
                                        "--neighbours", "4", "-o", o], ".json"),
+    "train-teacher": (lambda d, o: ["train-teacher", d / "cap", "--config", d / "small.json",
+                                    "--iters", "1", "-o", o], ".pt"),
+    "relight-teacher": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--model",
+                                      "teacher", "--checkpoint", d / "teacher.pt", "--size",
+                                      "8x8", "--env-res", "4x8", "-o", o], ".exr"),
 }
 # An input of each command that the "output is an input" case writes over.
 FIRST_INPUT = {"envmap": "sky.exr", "sh-probe": "sky.exr", "fit-geometry": None,
                "bake-features": "hand.npz", "relight-hand": "sky.exr",
                "relight-gaussians": "ball.ply", "dgsm-build": "ball.ply",
-               "metrics-image": "img.exr", "metrics-lighting": "room.ply"}
+               "metrics-image": "img.exr", "metrics-lighting": "room.ply",
+               "train-teacher": "small.json", "relight-teacher": "sky.exr"}
 
 
 def _snapshot(*folders) -> dict:
@@ -678,6 +698,12 @@ IDENTITY = {
     "metrics-lighting": lambda d, t: (["metrics", "lighting", "--scene", d / "room.ply",
                                        "--avatar", d / "ball.ply", "--max-points", "16",
                                        "--neighbours", "4", "-o", t / "l.json"], ["l.json"]),
+    "train-teacher": lambda d, t: (["train-teacher", d / "cap", "--config", d / "small.json",
+                                    "--iters", "2", "-o", t / "t.pt", "--metrics-out",
+                                    t / "v.json"], ["t.pt", "v.json"]),
+    "relight-teacher": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--model",
+                                      "teacher", "--checkpoint", d / "teacher.pt", "--size",
+                                      "8x8", "--env-res", "4x8", "-o", t / "r.exr"], ["r.exr"]),
     "synth-capture": lambda d, t: (["synth-capture", d / "hand.npz", "-o", t / "cap",
                                     "--cameras", "1", "--lights", "2", "--group", "1",
                                     "--frames", "1", "--res", "8", "--tex-res", "8", "--aa", "1",
