@@ -154,56 +154,34 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     log(f"read {hand}: {len(data.hands)} hand(s), {n_frames} frame(s); "
         f"{len(envs)} env map(s)", quiet)
 
-    from relight_cli.hand.scene import posed_meshes, preview_camera
-    from relight_cli.uvraster import rasterize_uv
+    from relight_cli.bake import PoseFeatures
 
     inputs = {"hand": hand}
     if camera is not None:
         inputs["camera"] = camera
     rasters = {}
     for fr in progress(frames, desc="frames", quiet=quiet or len(frames) == 1):
-        t0 = time.perf_counter()
-        try:
-            posed = posed_meshes(data, fr, mesh)
-        except (IndexError, ValueError) as exc:
-            raise DataError(f"cannot pose frame {fr}: {exc}", hand) from None
-        for pm in posed:
-            if not np.isfinite(pm.vertices).all():
-                raise DataError(f"frame {fr}: posed vertices hold NaN/Inf", hand)
-        pose_seconds = time.perf_counter() - t0
+        pose = PoseFeatures(data, fr, settings, (env_h, env_w), (tex_h, tex_w), mesh, rasters,
+                            source=hand)
+        posed = pose.posed
         if eye_pos is not None:
             viewer = eye_pos
         elif cam is not None:
             viewer = cam.center
         else:
-            viewer = preview_camera(posed).center
-        meshes = [F.PoseMesh(pm.vertices, pm.faces, pm.normals, pm.name) for pm in posed]
-        baker = F.FeatureBaker(meshes, settings, env_res=(env_h, env_w))
+            viewer = pose.default_viewer()
         rough = None
         if rough_map is not None:
             rough = np.concatenate([_sample_uv_map(rough_map, pm) for pm in posed])
-        results = baker.bake(discrete, viewer, roughness=rough)
-        t0 = time.perf_counter()
-        maps_per_env = []
-        for per_mesh in results:
-            layers = {}
-            for pm, feats in zip(posed, per_mesh):
-                key = (id(pm.uv), pm.uv.shape, pm.faces_uv.tobytes())
-                if key not in rasters:
-                    rasters[key] = rasterize_uv(pm.uv, pm.faces_uv, (tex_h, tex_w))
-                maps = F.texel_maps(feats, pm.faces, rasters[key])
-                prefix = "" if len(posed) == 1 else pm.name + "."
-                for name, value in maps.items():
-                    layers[prefix + name] = value
-            maps_per_env.append(layers)
-        texel_seconds = time.perf_counter() - t0
+        results, texel = pose.bake(discrete, viewer, roughness=rough)
+        baker = pose.baker
+        maps_per_env = [pose.layers(per_mesh) for per_mesh in texel]
         for layers, spec in zip(maps_per_env, envs):
             overflow = [n for n, value in layers.items() if not np.isfinite(value).all()]
             if overflow:  # e.g. radiance near float32's limit: the sums overflow
                 raise DataError(f"features overflow float32 in layer(s) {', '.join(overflow)} "
                                 f"(env map radiance too large)", spec)
-        seconds = {"env": env_seconds, "pose": pose_seconds, **baker.stats.seconds,
-                   "texels": texel_seconds}
+        seconds = {"env": env_seconds, **pose.stats}
         for fr_t, k, exr_path, npz_path, png_path in (t for t in targets if t[0] == fr):
             record = provenance(FORMAT, VERSION, {**inputs, "env": envs[k]}, {
                 "frame": fr, "mesh": mesh, "env_res": [env_h, env_w],

@@ -316,12 +316,13 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
         raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply); "
                            f"a hand's view is --camera")
     model = model or "physical"
-    if model not in ("physical", "teacher"):
-        raise UsageProblem(f"--model {model!r} is not available; use physical or teacher (the "
-                           f"student comes with distill)")
+    if model not in ("physical", "teacher", "student"):
+        raise UsageProblem(f"--model {model!r} is not available; use physical, teacher or "
+                           f"student")
     if model == "physical" and (checkpoint is not None or device is not None):
-        raise UsageProblem("--checkpoint and --device belong to a learned --model (teacher)")
-    if model == "teacher":
+        raise UsageProblem("--checkpoint and --device belong to a learned --model (teacher, "
+                           "student)")
+    if model in ("teacher", "student"):
         return _relight_hand_learned(**locals())
     if env is None and hand_lights is None:
         raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
@@ -479,7 +480,11 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
         raise UsageProblem(f"{', '.join(given)} only apply to --model physical (a learned "
                            f"model has its own texture, materials and shadows)")
     if checkpoint is None:
-        raise UsageProblem(f"--model {model} needs --checkpoint CKPT.pt (from train-teacher)")
+        raise UsageProblem(f"--model {model} needs --checkpoint CKPT.pt (from "
+                           f"{'train-teacher' if model == 'teacher' else 'distill'})")
+    if model == "student" and hand_lights is not None:
+        raise UsageProblem("the student is an env-map model: it cannot take --lights (use "
+                           "--model teacher for point lights)")
     if env is None and hand_lights is None:
         raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
     if not output.lower().endswith(".exr"):
@@ -518,9 +523,13 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     from ._inputs import load_envmap
 
     torch_device = resolve_device(device or "auto")
-    ckpt = read_checkpoint(checkpoint, kind="teacher")
+    ckpt = read_checkpoint(checkpoint, kind=model)
     try:
-        net, config, mean_texture = model_from_checkpoint(ckpt, torch_device)
+        if model == "teacher":
+            net, config, mean_texture = model_from_checkpoint(ckpt, torch_device)
+        else:
+            from relight_cli.neural.distill import student_from_checkpoint
+            net, config = student_from_checkpoint(ckpt, torch_device)
     except (ValueError, UsageProblem) as exc:
         raise DataError(getattr(exc, "message", str(exc)), checkpoint) from None
     data = _load_hand(input)
@@ -550,7 +559,9 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
         camera = read_camera(hand_camera)
     else:
         camera = preview_camera(meshes, width, height)
-    samples_axis = config.aa if aa is None else aa
+    samples_axis = (config.aa if model == "teacher" else 2) if aa is None else aa
+    if model == "student":
+        return _write_student_render(**locals())
 
     # ---- render: one pass per light / direction, summed
     from relight_cli.clitools import progress
@@ -606,6 +617,69 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     log(f"wrote {output} ({camera.width}x{camera.height}, {total} pass(es), "
         f"{time.perf_counter() - start:.2f} s: "
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in timing.seconds.items()) + ")", quiet)
+
+
+def _write_student_render(net, config, ckpt, data, frame, meshes, camera, envmap, env_h, env_w,
+                          env_res, samples_axis, torch_device, bg, input, env, checkpoint, hand_camera,
+                          output, preview, quiet, start, model, **_):
+    """The student: bake-features' texel maps of the pose (visibility traced once) under the
+    env map, one forward pass, the textures rendered through the G-buffer."""
+    import time
+
+    import numpy as np
+
+    from relight_cli.features import discretize_env
+    from relight_cli.neural import distill as D
+    from relight_cli.neural.teacher import composite
+    from relight_cli.provenance import provenance
+    from relight_cli.render.gbuffer import render_gbuffer
+
+    if env_res is None:
+        env_h, env_w = config.env_res            # the student's own grid
+    if (env_h, env_w) != tuple(config.env_res):
+        from relight_cli.errors import UsageProblem
+        raise UsageProblem(f"the student was trained on a {config.env_res[0]}x"
+                           f"{config.env_res[1]} env grid; --env-res must match")
+    seconds = {}
+    t0 = time.perf_counter()
+    features = D.StudentFeatures(config)
+    pose = features.pose(data, frame, key=0)
+    gbuffer = render_gbuffer(meshes, camera, samples_axis)
+    seconds["geometry"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    denv = discretize_env(envmap, env_h, env_w)
+    maps = features.maps(pose, denv, camera.center)
+    seconds["features"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    import torch
+    with torch.no_grad():
+        textures = D.student_forward(net, config, maps, D.hand_poses(data, frame), denv,
+                                     D.wrist_rotations(data, frame), torch_device)
+        seconds["decoder"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        image = composite(textures, gbuffer)
+    seconds["composite"] = time.perf_counter() - t0
+    rgb = image.cpu().numpy().astype(np.float32)
+    mask = gbuffer.mask
+    rgb = rgb + np.asarray(bg, np.float32)[None, None] * (1 - mask[..., None])
+    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
+    inputs = {"hand": input, "checkpoint": checkpoint, "env": env}
+    if hand_camera is not None:
+        inputs["camera"] = hand_camera
+    record = provenance("relight/render", 1, inputs, {
+        "model": model, "student": config.student, "frame": frame, "mesh": "fine",
+        "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
+        "specular": config.specular, "visibility": config.visibility,
+        "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
+    from relight_cli.formats.exr import write_exr
+    write_exr(output, channels, attributes={"relight.model": model,
+                                            "relight.camera": camera.to_json()},
+              provenance=record)
+    if preview is not None:
+        from relight_cli.formats.image import write_preview
+        write_preview(preview, rgb)
+    log(f"wrote {output} ({camera.width}x{camera.height}, {time.perf_counter() - start:.2f} s: "
+        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
 
 
 def _parse_env_res(text: str) -> tuple[int, int]:

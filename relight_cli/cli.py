@@ -22,6 +22,7 @@ from .errors import RelightError
 COMMANDS: dict[str, str] = {
     "bake-features": "relight_cli.commands.bake_features:command",
     "dgsm-build": "relight_cli.commands.dgsm_build:command",
+    "distill": "relight_cli.commands.distill:command",
     "envmap": "relight_cli.commands.envmap:command",
     "fit-geometry": "relight_cli.commands.fit_geometry:command",
     "metrics": "relight_cli.commands.metrics:command",

@@ -29,8 +29,34 @@ from relight_cli.errors import DataError, UsageProblem
 PAPER_UNIT = 1.0 / (255.0 * math.pi)
 
 
+class _Config:
+    """JSON round trip shared by every configuration dataclass (lists ↔ tuples)."""
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, values: dict, where: str = "config"):
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise UsageProblem(f"unknown {where} field(s): {', '.join(unknown)}")
+        base = asdict(cls())
+        base.update(values)
+        for name, value in base.items():
+            if isinstance(getattr(cls(), name), tuple) and isinstance(value, list):
+                base[name] = tuple(value)
+        cfg = cls(**base)
+        cfg.validate(where)
+        return cfg
+
+
 @dataclass
-class TeacherConfig:
+class TeacherConfig(_Config):
     """How a teacher (``train-teacher``) is built and trained.
 
     Attributes:
@@ -90,78 +116,78 @@ class TeacherConfig:
     cache_poses: int = 64
     seed: int = 0
 
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, values: dict, where: str = "config") -> "TeacherConfig":
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(values) - set(known))
-        if unknown:
-            raise UsageProblem(f"unknown {where} field(s): {', '.join(unknown)}")
-        base = asdict(cls())
-        base.update(values)
-        for name in ("encoder", "decoder", "pose_channels"):
-            base[name] = tuple(base[name])
-        cfg = cls(**base)
-        cfg.validate(where)
-        return cfg
-
     def validate(self, where: str = "config") -> None:
         """Raise UsageProblem naming the first impossible field."""
-        def bad(name, why):
-            raise UsageProblem(f"{where}: {name} {why}, got {getattr(self, name)!r}")
-
-        def positive_int(name, lo=1, hi=10 ** 9):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                bad(name, f"must be an integer in [{lo}, {hi}]")
-
-        def finite(name, lo=0.0, hi=math.inf, open_lo=False):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-                    or v < lo or v > hi or (open_lo and v == lo):
-                bad(name, f"must be a finite number in {'(' if open_lo else '['}{lo}, {hi}]")
-
-        if self.model not in ("olat", "ggx"):
-            bad("model", "must be olat or ggx")
-        if self.falloff not in ("analytic", "none"):
-            bad("falloff", "must be analytic or none")
-        if self.neg_schedule not in ("decay", "literal"):
-            bad("neg_schedule", "must be decay or literal")
-        positive_int("tex_res", 8, 4096)
+        check = _Checker(self, where)
+        check.choice("model", ("olat", "ggx"))
+        check.choice("falloff", ("analytic", "none"))
+        check.choice("neg_schedule", ("decay", "literal"))
+        check.integer("tex_res", 8, 4096)
         for name in ("encoder", "decoder", "pose_channels"):
-            v = getattr(self, name)
-            if not v or not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 4096
-                                for c in v):
-                bad(name, "must be a list of channel widths in [1, 4096]")
+            check.widths(name)
         if len(self.pose_channels) != 2:
-            bad("pose_channels", "must hold two widths (App. A.1: 16, 64)")
+            check.bad("pose_channels", "must hold two widths (App. A.1: 16, 64)")
         if len(self.decoder) != len(self.encoder):
-            bad("decoder", "must have as many widths as the encoder")
+            check.bad("decoder", "must have as many widths as the encoder")
         if self.tex_res % (2 ** (len(self.encoder) - 1)):
-            bad("tex_res", f"must be divisible by 2^{len(self.encoder) - 1} (the U-Net levels)")
-        positive_int("iters")
-        positive_int("batch", 1, 4096)
-        finite("lr", 0.0, 10.0, open_lo=True)
-        for name in ("lambda_s", "lambda_b"):
-            finite(name, 0.0, 1e6, open_lo=name == "lambda_s")
+            check.bad("tex_res", f"must be divisible by 2^{len(self.encoder) - 1} (the U-Net "
+                      f"levels)")
+        check.training()
+        check.number("lambda_s", 0.0, 1e6, open_lo=True)
+        check.number("lambda_b", 0.0, 1e6)
+        check.number("holdout", 0.0, 0.9)
+        check.integer("aa", 1, 8)
+        check.integer("cache_poses", 1, 100000)
+        check.boolean("visibility")
+
+
+class _Checker:
+    """Field checks shared by every configuration (UsageProblem naming the field)."""
+
+    def __init__(self, config, where: str):
+        self.config = config
+        self.where = where
+
+    def bad(self, name, why):
+        raise UsageProblem(f"{self.where}: {name} {why}, got {getattr(self.config, name)!r}")
+
+    def integer(self, name, lo=1, hi=10 ** 9):
+        v = getattr(self.config, name)
+        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            self.bad(name, f"must be an integer in [{lo}, {hi}]")
+
+    def number(self, name, lo=0.0, hi=math.inf, open_lo=False):
+        v = getattr(self.config, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or v < lo or v > hi or (open_lo and v == lo):
+            self.bad(name, f"must be a finite number in {'(' if open_lo else '['}{lo}, {hi}]")
+
+    def choice(self, name, options):
+        if getattr(self.config, name) not in options:
+            self.bad(name, "must be " + " or ".join(options))
+
+    def boolean(self, name):
+        if not isinstance(getattr(self.config, name), bool):
+            self.bad(name, "must be true or false")
+
+    def widths(self, name, lo=1, hi=4096):
+        v = getattr(self.config, name)
+        if not v or not all(isinstance(c, int) and not isinstance(c, bool) and lo <= c <= hi
+                            for c in v):
+            self.bad(name, f"must be a list of channel widths in [{lo}, {hi}]")
+
+    def training(self):
+        """iters, batch, lr, the loss weights, the L_neg schedule, cadences and the seed."""
+        self.integer("iters")
+        self.integer("batch", 1, 4096)
+        self.number("lr", 0.0, 10.0, open_lo=True)
         for name in ("lambda_mse", "lambda_vgg", "lambda_neg", "neg_eta"):
-            finite(name, 0.0, 1e6)
-        positive_int("neg_start", 0)
-        finite("holdout", 0.0, 0.9)
-        positive_int("aa", 1, 8)
-        positive_int("val_every", 0)
-        positive_int("val_samples", 1, 100000)
-        positive_int("save_every", 0)
-        positive_int("cache_poses", 1, 100000)
-        positive_int("seed", 0, 2 ** 63 - 1)
-        if not isinstance(self.visibility, bool):
-            bad("visibility", "must be true or false")
+            self.number(name, 0.0, 1e6)
+        self.integer("neg_start", 0)
+        self.integer("val_every", 0)
+        self.integer("val_samples", 1, 100000)
+        self.integer("save_every", 0)
+        self.integer("seed", 0, 2 ** 63 - 1)
 
 
 PRESETS = {
@@ -173,11 +199,13 @@ PRESETS = {
 
 
 def resolve_config(preset: str = "tiny", config_file: str | None = None,
-                   overrides: dict | None = None) -> TeacherConfig:
+                   overrides: dict | None = None, cls=None, presets=None):
     """Preset, then the JSON object of ``config_file``, then ``overrides`` (flags)."""
-    if preset not in PRESETS:
-        raise UsageProblem(f"unknown preset {preset!r}; use one of {', '.join(PRESETS)}")
-    values = dict(PRESETS[preset])
+    cls = cls or TeacherConfig
+    presets = presets or PRESETS
+    if preset not in presets:
+        raise UsageProblem(f"unknown preset {preset!r}; use one of {', '.join(presets)}")
+    values = dict(presets[preset])
     if config_file is not None:
         from relight_cli.formats._common import read_json
         obj = read_json(config_file)
@@ -185,4 +213,91 @@ def resolve_config(preset: str = "tiny", config_file: str | None = None,
             raise DataError("a config file holds one JSON object of fields", config_file)
         values.update(obj.get("config", obj) if "format" in obj else obj)
     values.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    return TeacherConfig.from_dict(values)
+    return cls.from_dict(values)
+
+
+@dataclass
+class StudentConfig(_Config):
+    """How a student (``distill``) is built and trained (RelightableHands App. A.2–A.3).
+
+    Attributes:
+        student: ``student`` (texel-aligned features, App. A.2) or ``dram`` (App. A.3).
+        tex_res: N of the N×N feature maps and predicted texture (paper 128).
+        decoder: the 8-layer decoder's widths between input and output (paper 256, 256,
+            128, 128, 64, 64, 32).
+        pose_channels: J_s(θ)'s widths (paper 16, 64).
+        specular: Phong features (False: Table 2's "w/o specular").
+        visibility: features baked with visibility (False: Table 2's "w/o visibility").
+        shininess: Phong exponents (paper 16, 32, 64).
+        env_res: (H, W) of the env discretization (paper 16×32).
+        env_holdout: fraction of the env maps kept for evaluation (paper 534 / 3094).
+        rotations: augment training env maps with random rotations about +Y by whole
+            longitude steps (exact: a column roll of the 16×32 grid).
+        dram_code: DRAM's light code size (512).
+        cache_mb: memory budget of the teacher's per-direction textures (pseudo ground
+            truth); beyond it they go to the disk cache (``distill --cache DIR``) or are
+            recomputed.
+        iters, batch, lr, lambda_*, neg_*, val_every, val_samples, save_every, seed: as
+            :class:`TeacherConfig` (paper: batch 4, 100k iterations, lr 1e-3).
+    """
+
+    student: str = "student"
+    tex_res: int = 32
+    decoder: tuple = (32, 32, 16, 16, 16, 16, 8)
+    pose_channels: tuple = (8, 16)
+    specular: bool = True
+    visibility: bool = True
+    shininess: tuple = (16, 32, 64)
+    env_res: tuple = (16, 32)
+    env_holdout: float = 0.17
+    rotations: bool = True
+    dram_code: int = 64
+    cache_mb: int = 2048
+    lambda_s: float = 25.0
+    lambda_b: float = 100.0
+    iters: int = 150
+    batch: int = 2
+    lr: float = 2e-3
+    lambda_mse: float = 1.0
+    lambda_vgg: float = 1.0
+    lambda_neg: float = 0.01
+    neg_eta: float = 5.0
+    neg_start: int = 40
+    neg_schedule: str = "decay"
+    val_every: int = 0
+    val_samples: int = 8
+    save_every: int = 0
+    seed: int = 0
+
+    def validate(self, where: str = "config") -> None:
+        check = _Checker(self, where)
+        check.choice("student", ("student", "dram"))
+        check.choice("neg_schedule", ("decay", "literal"))
+        check.integer("tex_res", 8, 4096)
+        check.widths("decoder")
+        check.widths("pose_channels")
+        if len(self.pose_channels) != 2:
+            check.bad("pose_channels", "must hold two widths (App. A.1: 16, 64)")
+        if not self.shininess or not all(isinstance(a, (int, float)) and not isinstance(a, bool)
+                                         and 0 < a <= 1e4 for a in self.shininess):
+            check.bad("shininess", "must be a list of Phong exponents in (0, 10000]")
+        if len(self.env_res) != 2 or not all(isinstance(v, int) and 2 <= v <= 1024
+                                             for v in self.env_res):
+            check.bad("env_res", "must be [H, W] with 2 ≤ H, W ≤ 1024")
+        check.number("env_holdout", 0.0, 0.9)
+        check.integer("dram_code", 1, 65536)
+        check.integer("cache_mb", 0, 10 ** 7)
+        check.number("lambda_s", 0.0, 1e6, open_lo=True)
+        check.number("lambda_b", 0.0, 1e6)
+        for name in ("specular", "visibility", "rotations"):
+            check.boolean(name)
+        check.training()
+
+
+STUDENT_PRESETS = {
+    "tiny": {},
+    "paper": {"tex_res": 128, "decoder": (256, 256, 128, 128, 64, 64, 32),
+              "pose_channels": (16, 64), "dram_code": 512, "iters": 100_000, "batch": 4,
+              "lr": 1e-3, "neg_start": 25_000, "val_every": 5000, "val_samples": 64,
+              "save_every": 5000},
+}

@@ -184,16 +184,78 @@ def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=Non
     return out
 
 
+class TeacherTask:
+    """What :func:`fit` needs to train a teacher (``olat`` or ``ggx``) on a capture."""
+
+    kind = "teacher"
+    desc = "train-teacher"
+
+    def __init__(self, data: CaptureData, config: TeacherConfig, vgg=None):
+        self.data = data
+        self.config = config
+        self.vgg = vgg
+        self.mean_texture = None
+        self.items = data.splits()["train"]
+        self.model_name = config.model
+        self.capture_key = data.key
+        self.pose_dim = data.pose_dim
+
+    def check(self):
+        if not self.items:
+            raise DataError("no training samples: the training frames list no images",
+                            self.data.index_path)
+        # A hand that does not match the images fails before any training.
+        self.data.check_alignment(self.data.sample(*self.items[0]))
+
+    def build(self, device):
+        model = build_model(self.config, self.data.pose_dim).to(device)
+        if self.config.model == "ggx":
+            mean = self.data.mean_texture().mean(0, keepdims=True)          # [1, 3, N, N]
+            self.mean_texture = torch.from_numpy(mean).to(device)
+        return model
+
+    def restore(self, resume: dict, device):
+        if "mean_texture" in resume.get("extra", {}):
+            self.mean_texture = resume["extra"]["mean_texture"].to(device)
+
+    def loss(self, net, item, step, device):
+        return sample_loss(net, self.data, item, self.config, step, device, self.vgg,
+                           self.mean_texture)
+
+    def evaluate(self, model, device):
+        return evaluate(model, self.data, self.config, device, mean_texture=self.mean_texture)
+
+    def extra(self) -> dict:
+        from .geometry import uv_layout_digest
+        out = {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine"))}
+        if self.mean_texture is not None:
+            out["mean_texture"] = self.mean_texture.detach().cpu()
+        return out
+
+
 def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume: dict | None = None,
           vgg=None, provenance: dict | None = None, save=None, show_progress: bool = True,
           log=None) -> TrainResult:
-    """Train a teacher on ``data``.
+    """Train a teacher on ``data`` (see :func:`fit` for the arguments)."""
+    return fit(TeacherTask(data, config, vgg), config, device, resume, provenance, save,
+               show_progress, log)
+
+
+def fit(task, config, device: torch.device, resume: dict | None = None,
+        provenance: dict | None = None, save=None, show_progress: bool = True,
+        log=None) -> TrainResult:
+    """The training loop shared by every learned model.
 
     Args:
-        data: the capture.  config: resolved configuration.
+        task: the model's data and losses: ``items`` (training items), ``check()``,
+            ``build(device)`` → module, ``restore(resume, device)``,
+            ``loss(net, item, step, device)`` → (loss, parts), ``evaluate(model, device)``
+            → {split: metrics}, ``extra()`` → checkpoint extras; ``kind``, ``model_name``,
+            ``capture_key``, ``pose_dim``, ``desc`` (progress label).
+        config: a configuration with ``iters``, ``batch``, ``lr``, ``seed``, ``val_every``,
+            ``save_every`` and ``to_dict()``.
         device: torch device (``resolve_device``).
         resume: a checkpoint dict (``formats.checkpoint.read_checkpoint``) to continue.
-        vgg: optional :class:`~relight_cli.neural.losses.VGGLoss`.
         provenance: stored in the checkpoint.
         save: callable(checkpoint dict) for periodic saves (rank 0; ``save_every``).
         show_progress: a tqdm bar on stderr (rank 0).
@@ -205,29 +267,20 @@ def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume
     from relight_cli.formats.checkpoint import make_checkpoint
 
     rank, world, device = distributed_context(device)
-    items = data.splits()["train"]
-    if not items:
-        raise DataError("no training samples: the training frames list no images",
-                        data.index_path)
-    # A hand that does not match the images fails before any training.
-    data.check_alignment(data.sample(*items[0]))
+    task.check()
+    items = task.items
     torch.manual_seed(config.seed)
     np.random.seed(config.seed % (2 ** 32))
     random.seed(config.seed)
-    model = build_model(config, data.pose_dim).to(device)
-    mean_texture = None
-    if config.model == "ggx":
-        mean = data.mean_texture().mean(0, keepdims=True)               # [1, 3, N, N]
-        mean_texture = torch.from_numpy(mean).to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    model = task.build(device)
+    optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
     start = 0
     if resume is not None:
         model.load_state_dict({k: v.to(device) for k, v in resume["weights"].items()})
         optimizer.load_state_dict(resume["optimizer"])
         start = int(resume["step"])
         set_rng_state(resume["rng"])
-        if "mean_texture" in resume.get("extra", {}):
-            mean_texture = resume["extra"]["mean_texture"].to(device)
+        task.restore(resume, device)
     net = model
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel
@@ -235,9 +288,10 @@ def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume
                                       else None)
     bar = None
     if show_progress and rank == 0:
-        from tqdm import tqdm
         import sys
-        bar = tqdm(total=config.iters, initial=start, desc="train-teacher", file=sys.stderr,
+
+        from tqdm import tqdm
+        bar = tqdm(total=config.iters, initial=start, desc=task.desc, file=sys.stderr,
                    leave=False, dynamic_ncols=True, unit="it")
     history = []
     if device.type == "cuda":
@@ -246,14 +300,10 @@ def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume
     model.train()
 
     def checkpoint(step):
-        from .geometry import uv_layout_digest
-        extra = {"uv_layout": uv_layout_digest(data.hand.mesh("fine"))}
-        if mean_texture is not None:
-            extra["mean_texture"] = mean_texture.detach().cpu()
-        return make_checkpoint("teacher", config.model, config.to_dict(), step,
+        return make_checkpoint(task.kind, task.model_name, config.to_dict(), step,
                                {k: v.detach().cpu() for k, v in model.state_dict().items()},
-                               optimizer.state_dict(), rng_state(), data.key, data.pose_dim,
-                               provenance or {}, extra)
+                               optimizer.state_dict(), rng_state(), task.capture_key,
+                               task.pose_dim, provenance or {}, task.extra())
 
     for step in range(start, config.iters):
         indices = batch_indices(config.seed, step, len(items), config.batch * world)
@@ -264,8 +314,7 @@ def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume
             sync = (j == len(mine) - 1) or world == 1
             ctx = contextlib.nullcontext() if sync else net.no_sync()
             with ctx:
-                loss, parts = sample_loss(net, data, items[int(index)], config, step, device, vgg,
-                                          mean_texture)
+                loss, parts = task.loss(net, items[int(index)], step, device)
                 (loss / len(mine)).backward()
             for k, v in parts.items():
                 parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
@@ -275,8 +324,7 @@ def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume
             bar.set_postfix({k: f"{v:.3g}" for k, v in parts_sum.items()}, refresh=False)
             bar.update(1)
         if config.val_every and done % config.val_every == 0 and done < config.iters and rank == 0:
-            record = {"step": done, **evaluate(model, data, config, device,
-                                               mean_texture=mean_texture)}
+            record = {"step": done, **task.evaluate(model, device)}
             history.append(record)
             if log:
                 log(_summary(record))
@@ -288,8 +336,7 @@ def train(data: CaptureData, config: TeacherConfig, device: torch.device, resume
     seconds = time.perf_counter() - t_start
     final = {}
     if rank == 0:
-        final = {"step": config.iters, **evaluate(model, data, config, device,
-                                                  mean_texture=mean_texture)}
+        final = {"step": config.iters, **task.evaluate(model, device)}
         history.append(final)
     peak = (torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else
             _peak_rss_mb())
@@ -310,15 +357,9 @@ def _summary(record: dict) -> str:
     return "; ".join(parts)
 
 
-def model_from_checkpoint(checkpoint: dict, device="cpu"):
-    """(model in eval mode, config, mean texture or None) from a read checkpoint dict.
-    Raises DataError (via the caller's path) on missing/mismatched tensors."""
-    raw = checkpoint["config"]
-    config = TeacherConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
-                                     "checkpoint config")
-    model = build_model(config, int(checkpoint["pose_dim"]))
+def load_weights(model, weights: dict) -> None:
+    """Load a state dict, refusing missing, unexpected or mis-shaped tensors (ValueError)."""
     expected = model.state_dict()
-    weights = checkpoint["weights"]
     missing = [k for k in expected if k not in weights]
     if missing:
         raise ValueError(f"checkpoint lacks tensor {missing[0]} ({len(missing)} missing)")
@@ -330,6 +371,16 @@ def model_from_checkpoint(checkpoint: dict, device="cpu"):
             raise ValueError(f"tensor {k} has shape {tuple(weights[k].shape)}, the model "
                              f"expects {tuple(v.shape)}")
     model.load_state_dict(weights)
+
+
+def model_from_checkpoint(checkpoint: dict, device="cpu"):
+    """(model in eval mode, config, mean texture or None) from a read checkpoint dict.
+    Raises DataError (via the caller's path) on missing/mismatched tensors."""
+    raw = checkpoint["config"]
+    config = TeacherConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
+                                     "checkpoint config")
+    model = build_model(config, int(checkpoint["pose_dim"]))
+    load_weights(model, checkpoint["weights"])
     model.to(device).eval()
     mean = checkpoint.get("extra", {}).get("mean_texture")
     if config.model == "ggx" and mean is None:

@@ -1,0 +1,457 @@
+"""Distillation: RelightableHands' student trained on its teacher's renders under env maps.
+
+**Pseudo ground truth** (Sec. 4.2): for every (pose, camera) the teacher's per-direction
+textures C_m (m over the 16×32 grid, each a distant light with its own ray-traced
+visibility) are computed once; an env map's target texture is then Σ_m b_m C_m with
+b_m = L_m Δω_m — exactly :func:`relight_cli.neural.teacher.render_lights`' env render,
+but reusable for every env map and rotation.  Cost: M × 3 × N_t² float32 per hand and
+(pose, camera) — 6.3 MB at the tiny teacher's 32², 6.4 GB at the paper's 1024² — kept in
+memory up to ``cache_mb``, then in ``--cache DIR`` (``.npy`` files, memory-mapped), else
+recomputed.
+
+**Env maps**: a list of (name, DiscreteEnv), split into training and evaluation maps
+(a seeded permutation; ``env_holdout`` of them, at least one, are never trained on);
+training maps are augmented by rotations about +Y by whole longitude steps — a column
+roll of the lat-long grid, which is an exact rotation of the discretized map.
+
+**Scale**: each sample is normalized by its env map's mean radiance s = Σ_m ℓ(L_m) Δω_m
+/ 4π (ℓ = mean of RGB): features and target are divided by s and the predicted
+texture multiplied back.  The paper trains on env maps of one exposure; with the
+normalization the student is exactly scale-equivariant (a 10× brighter env gives a
+10× brighter render), and bright and dim maps weigh alike in the loss.
+
+**Student inputs**: bake-features' own pipeline (:class:`relight_cli.bake.PoseFeatures`,
+coarse proxy, visibility traced once per pose) under the (rotated) env map, seen from
+the camera — diffuse + Phong 16/32/64 texel maps.  DRAM's input: the env map rotated
+into the wrist's frame (the root joint's world rotation), nearest texel of the 16×32
+grid, log1p(L/s).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections import OrderedDict
+
+import numpy as np
+import torch
+
+from relight_cli.errors import DataError
+
+from .data import LRU, CaptureData, assemble_inputs
+from .losses import masked_mse, neg_weight, negativity
+from .models import pose_vector
+from .teacher import composite
+
+
+# ---------------------------------------------------------------- env maps
+
+
+def split_envs(names: list[str], holdout: float, seed: int, source: str = "") -> tuple:
+    """(training indices, evaluation indices) of ``names``: a seeded permutation, the
+    evaluation maps never trained on.  Raises DataError when no training map is left."""
+    n = len(names)
+    n_eval = int(round(holdout * n))
+    if holdout > 0 and n >= 2:
+        n_eval = max(1, n_eval)
+    order = np.random.default_rng([int(seed), 7]).permutation(n)
+    eval_idx = sorted(int(i) for i in order[:n_eval])
+    train_idx = sorted(int(i) for i in order[n_eval:])
+    if not train_idx:
+        raise DataError(f"no training env maps left after holding out {n_eval} of {n} for "
+                        f"evaluation (give more --envs or a smaller env_holdout)", source)
+    return train_idx, eval_idx
+
+
+def rotate_env(denv, steps: int):
+    """The discretized env rotated about +Y by ``steps`` longitude cells (exact).
+
+    OpenEXR's lat-long grid has end-point pixel centres: columns 0 and W−1 both lie on
+    the ±π seam, each a half-width cell, together one full cell.  The W−1 distinct
+    longitude cells (spacing 2π/(W−1)) are rolled as a ring, the seam cell carrying the
+    area-weighted mean of its two halves and giving it back to both, so the map turns
+    by steps·2π/(W−1) and its power Σ L Δω is kept exactly.
+    """
+    from relight_cli.features import DiscreteEnv
+    h, w = denv.height, denv.width
+    if steps % (w - 1) == 0:
+        return denv
+    grid = denv.radiance.reshape(h, w, 3)
+    omega = denv.solid_angle.reshape(h, w)
+    ring = grid[:, :w - 1].copy()
+    a0, a1 = omega[:, :1, None], omega[:, w - 1:, None]
+    ring[:, :1] = (grid[:, :1] * a0 + grid[:, w - 1:] * a1) / np.maximum(a0 + a1, 1e-300)
+    ring = np.roll(ring, int(steps), axis=1)
+    out = np.concatenate([ring, ring[:, :1]], axis=1).reshape(-1, 3)
+    return DiscreteEnv(denv.directions, denv.solid_angle, out, h, w,
+                       f"{denv.name}@{int(steps)}")
+
+
+def env_scale(denv) -> float:
+    """Mean radiance s = Σ_m mean_rgb(L_m) Δω_m / 4π (1 for a uniform unit env)."""
+    s = float((denv.radiance.mean(1) * denv.solid_angle).sum() / (4 * np.pi))
+    return s if s > 0 else 1.0
+
+
+def wrist_env(denv, rotation: np.ndarray) -> np.ndarray:
+    """[H·W·3] radiance of the env seen in a frame with world-from-frame ``rotation``:
+    the value at grid direction d is the env's (nearest texel) along R·d."""
+    from relight_cli.envmap import latlong_pixel
+    world = denv.directions @ np.asarray(rotation, np.float64).T
+    px = latlong_pixel(world, denv.height, denv.width)
+    col = np.clip(np.rint(px[:, 0]).astype(int), 0, denv.width - 1)
+    row = np.clip(np.rint(px[:, 1]).astype(int), 0, denv.height - 1)
+    grid = denv.radiance.reshape(denv.height, denv.width, 3)
+    return grid[row, col].reshape(-1)
+
+
+def wrist_rotations(hand, frame: int) -> list[np.ndarray]:
+    """World rotation [3, 3] of each hand's root joint at ``frame``."""
+    from scipy.spatial.transform import Rotation
+    out = []
+    for inst in hand.hands:
+        local = Rotation.from_rotvec(np.asarray(inst.poses[frame][0], np.float64)).as_matrix()
+        out.append(np.asarray(inst.root, np.float64)[:3, :3] @ local)
+    return out
+
+
+# ---------------------------------------------------------------- pseudo ground truth
+
+
+class TeacherTargets:
+    """The teacher's per-direction textures per (pose, camera), cached (see module doc).
+
+    Args:
+        model: the teacher (eval mode).  config: its TeacherConfig.
+        data: CaptureData at the teacher's texture size.
+        grid: a DiscreteEnv whose directions/solid angles define the 16×32 grid.
+        cache_dir: folder for spilled textures (None: recompute beyond the budget).
+        budget_mb: memory kept.  device: torch device.  mean_texture: GGX teachers' T̄.
+        chunk: directions per teacher pass.
+    """
+
+    def __init__(self, model, config, data: CaptureData, grid, cache_dir: str | None = None,
+                 budget_mb: int = 2048, device="cpu", mean_texture=None, chunk: int = 64,
+                 identity: str = ""):
+        self.model = model
+        self.identity = identity
+        self.config = config
+        self.data = data
+        self.directions = np.asarray(grid.directions, np.float64)
+        self.solid_angle = np.asarray(grid.solid_angle, np.float64)
+        self.cache_dir = cache_dir
+        self.budget = int(budget_mb) * 2 ** 20
+        self.device = device
+        self.mean_texture = mean_texture
+        self.chunk = chunk
+        self._memory = OrderedDict()
+        self._bytes = 0
+        self.computed = 0
+
+    def _key(self, pose: int, camera: str, held_out: bool) -> str:
+        text = f"{self.identity}|{self.data.key}|{held_out}|{pose}|{camera}|" \
+               f"{self.config.to_json()}|{self.directions.tobytes().hex()[:64]}"
+        return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+    def textures(self, pose: int, camera: str, held_out: bool = False) -> np.ndarray:
+        """[H_hands, M, 3, N, N] float32 per-direction textures C_m (sr⁻¹)."""
+        key = self._key(pose, camera, held_out)
+        if key in self._memory:
+            self._memory.move_to_end(key)
+            return self._memory[key]
+        path = None if self.cache_dir is None else os.path.join(self.cache_dir, key + ".npy")
+        if path is not None and os.path.isfile(path):
+            return np.load(path, mmap_mode="r")
+        value = self._compute(pose, camera, held_out)
+        if value.nbytes + self._bytes <= self.budget:
+            self._memory[key] = value
+            self._bytes += value.nbytes
+        elif path is not None:
+            os.makedirs(self.cache_dir, exist_ok=True)
+            tmp = path + f".{os.getpid()}.tmp.npy"
+            np.save(tmp, value)
+            os.replace(tmp, path)
+        return value
+
+    @torch.no_grad()
+    def _compute(self, pose: int, camera_name: str, held_out: bool) -> np.ndarray:
+        cfg = self.config
+        texels = self.data.texels(pose, held_out)
+        camera = self.data._cameras[camera_name]
+        poses = pose_vector(self.data.poses(pose, held_out)).to(self.device)
+        mean = None
+        if self.mean_texture is not None:
+            mean = self.mean_texture.expand(texels.n_hands, -1, -1, -1)
+        ones = np.ones((len(self.directions), 3), np.float32)
+        out = []
+        for k in range(texels.n_hands):
+            lights = texels.directional_lights(k, self.directions, visibility=cfg.visibility)
+            view = texels.local_view(k, camera.center)
+            parts = []
+            for start in range(0, len(self.directions), self.chunk):
+                sl = slice(start, start + self.chunk)
+                from .geometry import LightInputs
+                sub = LightInputs(lights.local_light[sl], lights.visibility[sl],
+                                  lights.falloff[sl])
+                x, _ = assemble_inputs(texels, k, sub, view, ones[sl], cfg.visibility, "analytic")
+                inputs = torch.from_numpy(x).to(self.device)
+                hand_of = torch.full((len(x),), k, dtype=torch.long, device=self.device)
+                parts.append(self.model(inputs, poses, hand_of, mean).cpu().numpy())
+            out.append(np.concatenate(parts))
+        self.computed += 1
+        return np.stack(out).astype(np.float32)
+
+    def texture(self, pose: int, camera: str, denv, held_out: bool = False) -> list:
+        """Per hand target textures Σ_m b_m C_m [3, N, N] (torch) under ``denv``."""
+        if not np.array_equal(denv.directions, self.directions):
+            raise ValueError("env maps must use the pseudo ground truth's direction grid")
+        b = torch.from_numpy((denv.radiance * self.solid_angle[:, None]).astype(np.float32))
+        tex = self.textures(pose, camera, held_out)
+        return [torch.einsum("mc,mcxy->cxy", b, torch.from_numpy(np.array(t)))
+                for t in tex]
+
+    def image(self, pose: int, camera: str, denv, held_out: bool = False) -> torch.Tensor:
+        """[H, W, 3] the teacher's render of (pose, camera) under ``denv``."""
+        gb = self.data.gbuffer(pose, self.data._cameras[camera], held_out)
+        return composite(self.texture(pose, camera, denv, held_out), gb)
+
+
+# ---------------------------------------------------------------- student inputs
+
+
+class StudentFeatures:
+    """bake-features' texel maps of a capture's poses (coarse proxy), cached per pose.
+
+    Channels per hand: diffuse (3) then phong<α> (3 each) when ``specular``.
+    """
+
+    def __init__(self, config, cache: int = 16):
+        from relight_cli import features as F
+        self.config = config
+        self.settings = F.FeatureSettings(shininess=tuple(float(a) for a in config.shininess),
+                                          specular="phong" if config.specular else "none",
+                                          visibility=config.visibility)
+        self._poses = LRU(cache)
+        self._rasters = {}
+        self.names = ["diffuse"] + ([F.phong_name(a) for a in self.settings.phong]
+                                    if config.specular else [])
+
+    @property
+    def channels(self) -> int:
+        return 3 * len(self.names)
+
+    def pose(self, hand, frame: int, key=None, posed=None):
+        from relight_cli.bake import PoseFeatures
+        n = self.config.tex_res
+        return self._poses.get_or(key if key is not None else (id(hand), frame), lambda: PoseFeatures(
+            hand, frame, self.settings, tuple(self.config.env_res), (n, n), "coarse",
+            self._rasters, posed=posed))
+
+    def maps(self, pose_features, denv, eye) -> np.ndarray:
+        """[H_hands, C, N, N] float32 features under ``denv`` seen from ``eye``."""
+        _, texel = pose_features.bake([denv], np.asarray(eye, np.float64))
+        out = []
+        for maps in texel[0]:
+            out.append(np.concatenate([np.transpose(maps[name], (2, 0, 1)) for name in self.names]))
+        return np.stack(out).astype(np.float32)
+
+
+def build_student(config, feature_channels: int, pose_dim: int):
+    from .student import DRAMNet, StudentNet
+    h, w = config.env_res
+    if config.student == "dram":
+        net = DRAMNet(h * w * 3, config.decoder, pose_dim, config.pose_channels, config.dram_code,
+                      config.lambda_s, config.lambda_b)
+    else:
+        net = StudentNet(feature_channels, config.decoder, pose_dim, config.pose_channels,
+                         config.lambda_s, config.lambda_b)
+    return net
+
+
+def student_forward(net, config, feats: np.ndarray, poses: np.ndarray, denv, wrists, device,
+                    return_raw: bool = False):
+    """Normalized forward pass: (per-hand textures [3, N, N] in radiance, raw, scale s)."""
+    s = env_scale(denv)
+    x = torch.from_numpy(feats / s).to(device)
+    p = pose_vector(poses).to(device)
+    code = None
+    if config.student == "dram":
+        code = torch.from_numpy(np.stack([np.log1p(wrist_env(denv, r) / s) for r in wrists])
+                                .astype(np.float32)).to(device)
+    tex, raw = net(x, p, code, return_raw=True)
+    textures = [tex[k] * s for k in range(tex.shape[0])]
+    return (textures, raw, s) if return_raw else textures
+
+
+class StudentTask:
+    """What :func:`relight_cli.neural.train.fit` needs to distill a student.
+
+    Args:
+        data: the capture (CaptureData at the teacher's texture size).
+        config: StudentConfig.  targets: TeacherTargets.
+        envs: list of DiscreteEnvs (the env-res grid); train_idx / eval_idx: the split.
+        env_names: names (for the record).  vgg: optional VGG loss.
+        teacher_digest: SHA-256 of the teacher checkpoint (stored in the student).
+    """
+
+    kind = "student"
+    desc = "distill"
+
+    def __init__(self, data: CaptureData, config, targets: TeacherTargets, envs: list,
+                 train_idx: list, eval_idx: list, env_names: list, vgg=None,
+                 teacher_digest: str = ""):
+        self.data = data
+        self.config = config
+        self.targets = targets
+        self.envs = envs
+        self.train_idx = train_idx
+        self.eval_idx = eval_idx
+        self.env_names = env_names
+        self.vgg = vgg
+        self.teacher_digest = teacher_digest
+        self.features = StudentFeatures(config)
+        frames = data.train_frames + data.fully_lit_frames
+        poses = sorted({f.pose for f in frames})
+        cams = [c.name for c in data.capture.cameras]
+        self.items = [(p, c) for p in poses for c in cams]
+        self.model_name = config.student
+        self.capture_key = data.key
+        self.pose_dim = data.pose_dim
+        self._cam_index = {c: i for i, c in enumerate(cams)}
+
+    def check(self):
+        if not self.items:
+            raise DataError("no training poses in the capture", self.data.index_path)
+
+    def build(self, device):
+        return build_student(self.config, self.features.channels, self.pose_dim).to(device)
+
+    def restore(self, resume, device):
+        pass
+
+    def env_for(self, step: int, item) -> object:
+        rng = np.random.default_rng([int(self.config.seed), int(step), int(item[0]),
+                                     self._cam_index[item[1]]])
+        env = self.envs[self.train_idx[int(rng.integers(len(self.train_idx)))]]
+        if self.config.rotations:
+            env = rotate_env(env, int(rng.integers(env.width - 1)))
+        return env
+
+    def render(self, net, pose: int, camera: str, denv, device, held_out: bool = False,
+               return_raw: bool = False):
+        hand = self.data.eval_hand if held_out else self.data.hand
+        key = (held_out, pose)
+        pf = self.features.pose(hand, pose, key=key)
+        cam = self.data._cameras[camera]
+        feats = self.features.maps(pf, denv, cam.center)
+        wrists = wrist_rotations(hand, pose)
+        textures, raw, s = student_forward(net, self.config, feats, hand_poses(hand, pose), denv,
+                                           wrists, device, return_raw=True)
+        image = composite(textures, self.data.gbuffer(pose, cam, held_out))
+        return (image, raw, s) if return_raw else image
+
+    def loss(self, net, item, step, device):
+        pose, camera = item
+        denv = self.env_for(step, item)
+        image, raw, s = self.render(net, pose, camera, denv, device, return_raw=True)
+        target = self.targets.image(pose, camera, denv).to(device)
+        gb = self.data.gbuffer(pose, self.data._cameras[camera])
+        mask = torch.from_numpy(gb.mask > 0).to(device)
+        mse = masked_mse(image / s, target / s, mask)
+        cfg = self.config
+        total = cfg.lambda_mse * mse
+        parts = {"mse": float(mse.detach())}
+        if self.vgg is not None and cfg.lambda_vgg > 0:
+            perceptual = self.vgg(image / s, target / s, mask)
+            total = total + cfg.lambda_vgg * perceptual
+            parts["vgg"] = float(perceptual.detach())
+        if cfg.lambda_neg > 0:
+            gamma = neg_weight(step, cfg.neg_eta, cfg.neg_start, cfg.neg_schedule)
+            region = torch.ones_like(raw[:, :1])
+            neg = negativity(raw, region)
+            total = total + cfg.lambda_neg * gamma * neg
+            parts["neg"] = float(neg.detach())
+        return total, parts
+
+    def evaluate(self, model, device) -> dict:
+        return evaluate_student(self, model, device)
+
+    def extra(self) -> dict:
+        import json
+
+        from .geometry import uv_layout_digest
+        return {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine")),
+                "teacher_sha256": self.teacher_digest,
+                "envs": json.dumps({"train": [self.env_names[i] for i in self.train_idx],
+                                    "eval": [self.env_names[i] for i in self.eval_idx]})}
+
+
+def hand_poses(hand, frame: int) -> np.ndarray:
+    return np.stack([inst.poses[frame] for inst in hand.hands])
+
+
+def _metrics(pred, gt, mask):
+    from .train import _metrics as image_metrics
+    return image_metrics(pred, gt, mask)
+
+
+@torch.no_grad()
+def evaluate_student(task: StudentTask, model, device) -> dict:
+    """Held-out poses × evaluation env maps, scored against the teacher (``vs_teacher``,
+    as the paper does) and the capture's ground-truth env renders (``vs_ground_truth``,
+    its held-out poses under its own env maps)."""
+    model.eval()
+    data, cfg = task.data, task.config
+    out = {}
+    rows = []
+    envs = [task.envs[i] for i in (task.eval_idx or task.train_idx)]
+    pairs = [(f.pose, cam) for f in data.heldout_frames for cam in f.images]
+    combos = [(p, c, e) for p, c in pairs for e in range(len(envs))]
+    pick = np.unique(np.linspace(0, len(combos) - 1, min(len(combos), cfg.val_samples))
+                     .round().astype(int)) if combos else []
+    for i in pick:
+        pose, cam, e = combos[i]
+        pred = task.render(model, pose, cam, envs[e], device).cpu().numpy()
+        gt = task.targets.image(pose, cam, envs[e]).cpu().numpy()
+        mask = data.gbuffer(pose, data._cameras[cam]).mask
+        m = _metrics(pred, gt, mask)
+        if m:
+            rows.append(m)
+    if rows:
+        out["vs_teacher"] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+        out["vs_teacher"]["samples"] = len(rows)
+    splits = data.splits()
+    if splits.get("env"):
+        from relight_cli.features import discretize_env
+        renders = splits["env"]
+        pick = np.unique(np.linspace(0, len(renders) - 1, min(len(renders), cfg.val_samples))
+                         .round().astype(int))
+        rows = []
+        for i in pick:
+            pose, env_name, camera, gt, mask = data.env_target(renders[i][1])
+            denv = discretize_env(data.env_map(env_name), *cfg.env_res)
+            pred = task.render(model, pose, camera.name, denv, device, held_out=True)
+            m = _metrics(pred.cpu().numpy(), gt, mask)
+            if m:
+                rows.append(m)
+        if rows:
+            out["vs_ground_truth"] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+            out["vs_ground_truth"]["samples"] = len(rows)
+    model.train()
+    return out
+
+
+def student_from_checkpoint(checkpoint: dict, device="cpu"):
+    """(model in eval mode, StudentConfig) from a read student checkpoint dict.
+    Raises ValueError on missing, extra or mis-shaped tensors."""
+    import json
+
+    from .config import StudentConfig
+    from .train import load_weights
+    raw = checkpoint["config"]
+    config = StudentConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
+                                     "checkpoint config")
+    channels = 3 * (1 + (len(config.shininess) if config.specular else 0))
+    model = build_student(config, channels, int(checkpoint["pose_dim"]))
+    load_weights(model, checkpoint["weights"])
+    return model.to(device).eval(), config

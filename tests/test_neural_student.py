@@ -1,0 +1,307 @@
+"""The distilled student and DRAM: env splits and rotations, pseudo ground truth, training, renders."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from relight_cli.errors import DataError  # noqa: E402
+
+CAPTURE_ARGS = ["--cameras", "2", "--lights", "8", "--group", "2", "--frames", "6", "--res",
+                "24", "--tex-res", "32", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
+                "--eval-envs", "builtin:sky", "-q"]
+TEACHER = {"tex_res": 16, "encoder": [4, 4, 4], "decoder": [8, 8, 8], "pose_channels": [4, 4],
+           "val_samples": 1, "aa": 1}
+STUDENT = {"tex_res": 16, "decoder": [8, 8, 8, 8, 8, 8, 8], "pose_channels": [4, 8],
+           "dram_code": 16, "val_samples": 2, "env_holdout": 0.34, "env_res": [8, 16]}
+ENVS = ["--envs", "builtin:sky", "--envs", "builtin:studio", "--envs", "builtin:uniform"]
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+    root = tmp_path_factory.mktemp("student")
+    (root / "teacher.json").write_text(json.dumps(TEACHER))
+    (root / "student.json").write_text(json.dumps(STUDENT))
+    for args in (["synth-capture", "-o", root / "cap", *CAPTURE_ARGS],
+                 ["train-teacher", root / "cap", "--config", root / "teacher.json", "--iters",
+                  "10", "-q", "-o", root / "teacher.pt"]):
+        r = CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+        assert r.exit_code == 0, r.output
+    return root
+
+
+def _invoke(*args):
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def _distill(setup, out, *extra):
+    r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
+                setup / "student.json", "-q", "-o", out, *extra)
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def _sky(h=16, w=32):
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.features import discretize_env
+    return discretize_env(builtin_envmap("builtin:sky"), h, w)
+
+
+# ---------------------------------------------------------------- env maps
+
+
+def test_env_split_is_seeded_and_disjoint():
+    from relight_cli.neural.distill import split_envs
+    names = [f"e{i}" for i in range(20)]
+    tr, ev = split_envs(names, 0.2, 3)
+    assert (tr, ev) == split_envs(names, 0.2, 3)
+    assert len(ev) == 4 and not set(tr) & set(ev) and sorted(tr + ev) == list(range(20))
+    assert split_envs(names, 0.2, 4) != (tr, ev)
+    assert split_envs(["a"], 0.17, 0) == ([0], [])
+    with pytest.raises(DataError, match="no training env maps"):
+        split_envs(["a", "b"], 0.9, 0)
+
+
+def test_rotation_is_exact_about_y():
+    from relight_cli.envmap import latlong_pixel, rotation_y
+    from relight_cli.neural.distill import rotate_env
+    env = _sky()
+    k = 5
+    rot = rotate_env(env, k)
+    # power is kept exactly; a full turn and turning back restore the map (seam averaged)
+    np.testing.assert_allclose((rot.radiance * rot.solid_angle[:, None]).sum(0),
+                               (env.radiance * env.solid_angle[:, None]).sum(0), rtol=1e-12)
+    back = rotate_env(rot, -k)
+    np.testing.assert_allclose(back.radiance.reshape(16, 32, 3)[:, 1:-1],
+                               env.radiance.reshape(16, 32, 3)[:, 1:-1], rtol=1e-12)
+    assert rotate_env(env, 31) is env
+    # the rotated map's value towards R·d is the original's towards d (away from the seam)
+    theta = 360.0 * k / (env.width - 1)
+    inner = np.zeros((16, 32), bool)
+    inner[:, 1:-1] = True
+    inner = inner.ravel()
+    hits = []
+    for sign in (1, -1):
+        R = rotation_y(sign * theta)
+        px = latlong_pixel(env.directions @ R.T, env.height, env.width)
+        idx = np.rint(px[:, 1]).astype(int) * env.width + np.rint(px[:, 0]).astype(int)
+        ok = inner & inner[idx]
+        hits.append(np.allclose(rot.radiance[idx][ok], env.radiance[ok], rtol=1e-12))
+    assert any(hits)
+
+
+def test_wrist_env_identity_and_turn():
+    from relight_cli.envmap import rotation_y
+    from relight_cli.neural.distill import rotate_env, wrist_env
+    env = _sky()
+    np.testing.assert_array_equal(wrist_env(env, np.eye(3)), env.radiance.reshape(-1))
+    # a wrist turned about +Y by whole longitude steps sees the rolled map
+    k = 4
+    inner = np.zeros((16, 32, 3), bool)
+    inner[:, 3:-3] = True
+    inner = inner.ravel()
+    turned = [wrist_env(env, rotation_y(s * 360.0 * k / (env.width - 1))) for s in (1, -1)]
+    rolled = rotate_env(env, k).radiance.reshape(-1)
+    assert any(np.allclose(t[inner], rolled[inner]) for t in turned)
+
+
+# ---------------------------------------------------------------- pseudo ground truth
+
+
+def test_pseudo_ground_truth_equals_teacher_render(setup, tmp_path):
+    """Target = Σ_m b_m C_m equals the teacher's own env render (engine and CLI)."""
+    from relight_cli.formats.camera import write_cameras
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.formats.exr import read_exr
+    from relight_cli.neural.data import CaptureData
+    from relight_cli.neural.distill import TeacherTargets
+    from relight_cli.neural.teacher import env_light_inputs, render_lights
+    from relight_cli.neural.train import model_from_checkpoint
+
+    net, cfg, mean = model_from_checkpoint(read_checkpoint(str(setup / "teacher.pt")))
+    data = CaptureData(str(setup / "cap"), cfg.tex_res, cfg.aa)
+    env = _sky()
+    targets = TeacherTargets(net, cfg, data, env, cache_dir=str(tmp_path / "cache"), budget_mb=0)
+    pose, cam = 1, data.capture.cameras[0]
+    target = targets.image(pose, cam.name, env).numpy()
+    texels = data.texels(pose)
+    gb = data.gbuffer(pose, cam)
+    ref = render_lights(net, texels, gb, data.poses(pose), *env_light_inputs(texels, env, True),
+                        cfg.visibility, cfg.falloff).numpy()
+    scale = float(np.abs(ref).max())
+    assert scale > 0
+    assert float(np.abs(target - ref).max()) <= 1e-5 * scale
+    # spilled to the disk cache (budget 0), read back memory-mapped: same values
+    assert list((tmp_path / "cache").glob("*.npy"))
+    again = targets.image(pose, cam.name, env).numpy()
+    np.testing.assert_array_equal(again, target)
+    # the command's render of the same pose, camera and discretization
+    write_cameras(str(tmp_path / "cam.json"), [cam])
+    r = _invoke("relight", setup / "cap" / "hand.npz", "builtin:sky", "--model", "teacher",
+                "--checkpoint", setup / "teacher.pt", "--frame", pose, "--camera",
+                tmp_path / "cam.json", "-q", "-o", tmp_path / "t.exr")
+    assert r.exit_code == 0, r.output
+    im = read_exr(str(tmp_path / "t.exr"))
+    cli_img = np.stack([im.channels[c] for c in "RGB"], -1)
+    assert float(np.abs(cli_img - target).max()) <= 1e-5 * scale
+
+
+# ---------------------------------------------------------------- training and renders
+
+
+def test_distillation_lowers_the_loss(setup):
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural import distill as D
+    from relight_cli.neural.config import StudentConfig
+    from relight_cli.neural.data import CaptureData
+    from relight_cli.neural.train import fit, model_from_checkpoint
+
+    net, tcfg, mean = model_from_checkpoint(read_checkpoint(str(setup / "teacher.pt")))
+    data = CaptureData(str(setup / "cap"), tcfg.tex_res, tcfg.aa)
+    envs = [_sky()]
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.features import discretize_env
+    envs.append(discretize_env(builtin_envmap("builtin:studio"), 16, 32))
+    cfg = StudentConfig.from_dict({**STUDENT, "iters": 40, "env_holdout": 0.0,
+                                   "lambda_vgg": 0.0, "env_res": [16, 32]})
+    targets = D.TeacherTargets(net, tcfg, data, envs[0])
+    task = D.StudentTask(data, cfg, targets, envs, [0, 1], [], ["sky", "studio"])
+
+    def loss_of(model):
+        with torch.no_grad():
+            return float(np.mean([task.loss(model, it, 10 ** 6 + i, "cpu")[1]["mse"]
+                                  for i, it in enumerate(task.items)]))
+
+    torch.manual_seed(0)
+    before = loss_of(task.build("cpu"))
+    result = fit(task, cfg, torch.device("cpu"), show_progress=False)
+    trained, _ = D.student_from_checkpoint(result.checkpoint)
+    after = loss_of(trained)
+    assert after < 0.5 * before, (before, after)
+    assert "vs_teacher" in result.metrics and "vs_ground_truth" in result.metrics
+
+
+def test_identical_runs_identical_weights_and_renders(setup, tmp_path):
+    out = tmp_path / "s.pt"
+    _distill(setup, out, "--iters", "3", "--metrics-out", tmp_path / "v.json")
+    first = out.read_bytes()
+    _distill(setup, out, "--iters", "3", "--metrics-out", tmp_path / "v.json")
+    assert out.read_bytes() == first
+    renders = []
+    for _ in range(2):
+        path = tmp_path / "a.exr"
+        r = _invoke("relight", setup / "cap" / "hand.npz", "builtin:studio", "--model", "student",
+                    "--checkpoint", out, "--size", "24x24", "-q", "-o", path)
+        assert r.exit_code == 0, r.output
+        renders.append(path.read_bytes())
+    assert renders[0] == renders[1]
+    record = json.loads((tmp_path / "v.json").read_text())
+    assert record["kind"] == "validation" and "vs_teacher" in record["metrics"]
+
+
+@pytest.mark.parametrize("student", ["student", "dram"])
+def test_student_renders_one_and_two_hands(setup, tmp_path, student):
+    from conftest import run_relight
+    from relight_cli.formats.exr import read_exr
+    ckpt = _distill(setup, tmp_path / f"{student}.pt", "--iters", "2", "--student", student)
+    for hand in (setup / "cap" / "hand.npz", "builtin:two:fist"):
+        out = tmp_path / "img.exr"
+        r = run_relight("relight", hand, "builtin:sky", "--model", "student", "--checkpoint", ckpt,
+                        "--size", "32x24", "-o", out, "--preview", tmp_path / "img.png", "-q")
+        assert r.returncode == 0, r.stderr
+        im = read_exr(str(out))
+        rgb = np.stack([im.channels[c] for c in "RGB"], -1)
+        assert (im.width, im.height) == (32, 24) and np.isfinite(rgb).all() and rgb.max() > 0
+        assert im.attributes["relight.model"] == "student"
+
+
+def test_student_is_scale_equivariant(setup, tmp_path):
+    """Normalizing by the env's mean radiance: a 10× brighter env gives a 10× brighter image."""
+    from relight_cli.features import DiscreteEnv
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural import distill as D
+    from relight_cli.neural.teacher import composite
+    from relight_cli.render.gbuffer import render_gbuffer
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.hand.scene import posed_meshes, preview_camera
+
+    ckpt = _distill(setup, tmp_path / "s.pt", "--iters", "2")
+    net, cfg = D.student_from_checkpoint(read_checkpoint(str(ckpt), kind="student"))
+    hand = builtin_hand("right", "fist")
+    feats = D.StudentFeatures(cfg)
+    pose = feats.pose(hand, 0)
+    meshes = posed_meshes(hand, 0, "fine")
+    cam = preview_camera(meshes, 24, 24)
+    gb = render_gbuffer(meshes, cam, 1)
+    env = _sky(8, 16)
+    bright = DiscreteEnv(env.directions, env.solid_angle, env.radiance * 10, 8, 16)
+    images = []
+    with torch.no_grad():
+        for e in (env, bright):
+            maps = feats.maps(pose, e, cam.center)
+            tex = D.student_forward(net, cfg, maps, D.hand_poses(hand, 0), e,
+                                    D.wrist_rotations(hand, 0), "cpu")
+            images.append(composite(tex, gb).numpy())
+    np.testing.assert_allclose(images[1], 10 * images[0], rtol=1e-4, atol=1e-7)
+
+
+def test_help(run_cli):
+    r = run_cli("distill", "--help")
+    assert r.exit_code == 0 and "--envs" in r.output and "--student" in r.output
+
+
+@pytest.mark.parametrize("case", ["nan-env", "student-as-teacher", "no-training-envs",
+                                  "missing-envs", "bad-output-name"])
+def test_distill_bad_input(setup, tmp_path, case):
+    args = ["distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
+            setup / "student.json", "--iters", "2"]
+    code = 1
+    if case == "nan-env":
+        from relight_cli.envmap import EnvMap
+        from relight_cli.formats.envmap import write_envmap
+        rad = np.ones((8, 16, 3), np.float32)
+        rad[2, 3, 1] = np.nan
+        bad = tmp_path / "nan.exr"
+        from relight_cli.formats.exr import write_exr
+        write_exr(str(bad), {"R": rad[..., 0], "G": rad[..., 1], "B": rad[..., 2]},
+                  envmap="latlong")
+        args += ["--envs", bad]
+        del EnvMap, write_envmap
+    elif case == "student-as-teacher":
+        ckpt = _distill(setup, tmp_path / "s.pt", "--iters", "1")
+        args[1] = ckpt
+    elif case == "no-training-envs":
+        (tmp_path / "c.json").write_text(json.dumps({**STUDENT, "env_holdout": 0.9}))
+        args[6] = tmp_path / "c.json"
+    elif case == "missing-envs":
+        args += ["--envs", tmp_path / "nope.exr"]
+    elif case == "bad-output-name":
+        code = 2
+    out = tmp_path / "out" / ("s.json" if case == "bad-output-name" else "s.pt")
+    out.parent.mkdir()
+    r = _invoke(*args, "-q", "-o", out)
+    assert r.exit_code == code, r.output
+    lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in r.output, r.output
+    assert list(out.parent.iterdir()) == []
+
+
+def test_student_refuses_point_lights(setup, tmp_path):
+    ckpt = _distill(setup, tmp_path / "s.pt", "--iters", "1")
+    lights = tmp_path / "l.json"
+    lights.write_text(json.dumps({"format": "relight/lights", "version": 1,
+                                  "lights": [{"position": [0, 1, 1]}]}))
+    r = _invoke("relight", setup / "cap" / "hand.npz", "--lights", lights, "--model", "student",
+                "--checkpoint", ckpt, "-q", "-o", tmp_path / "x.exr")
+    assert r.exit_code == 2 and "env-map model" in r.output
+    assert not (tmp_path / "x.exr").exists()
