@@ -31,8 +31,12 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
               help="Radial bins K per texel.")
 @click.option("--atlas", type=click.Choice(["octahedral", "cube"]), default="octahedral",
               show_default=True, help="Direction atlas (cube for the ablation).")
-@click.option("--mapping", type=click.Choice(["eq5", "simple", "mass", "diag"]), default="eq5",
-              show_default=True, help="Opacity→absorption mapping (eq5: paper Eq. 5).")
+@click.option("--mapping", type=click.Choice(["avg", "simple", "mass", "diag", "peak", "eq5"]),
+              default="avg", show_default=True,
+              help="Opacity→absorption β (paper Sec. 3.2, Table 4): avg = Eq. 5, κτ·√(tr A/3)/√(2π); "
+                   "simple = κτ; mass = κτ/((2π)^1.5·√det Σ); diag = κτ/((2π)^1.5·s_x s_y s_z) "
+                   "(equal to mass); peak = direction-dependent, every ray through a centre sees "
+                   "τ (this toolkit's; eq5 is its old name).")
 @click.option("--kappa", type=float, default=1.0, show_default=True,
               help="Absorption scale κ (> 0).")
 @click.option("--t-max", type=float, default=None,
@@ -167,6 +171,9 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         lights = _estimate_lights(scene, auto_k, lights_spec)
     log(f"{len(lights)} light(s)", quiet)
 
+    if mapping != TR.canonical_mapping(mapping):
+        log(f"note: --mapping {mapping} is the old name of {TR.canonical_mapping(mapping)}", quiet)
+    mapping = TR.canonical_mapping(mapping)
     mix = TR.from_gaussians(occ, mapping, kappa)
     inside = _lights_inside(mix, lights.positions)
     for li, gi, m in inside:
@@ -186,7 +193,8 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
             raise DataError("receiver positions hold NaN/Inf", receivers)
 
     options = dict(size=(h, w), bins=bins, layout=atlas, t_max=t_max, roi=roi,
-                   roi_radius=roi_radius, cull=cull, cull_tolerance=cull_tolerance)
+                   roi_radius=roi_radius, cull=cull, cull_tolerance=cull_tolerance,
+                   intensities=lights.intensities, colors=lights.colors)
     if len(objects) == 1:
         bar = (lambda it, total: progress(it, total=total, desc="lights", quiet=quiet))
         shadow_map = D.build_dgsm(mix, lights.positions, recv_points, progress=bar, **options)
@@ -208,7 +216,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                 f"{float(shadow_map.transmittance[li].min()):.3f}", quiet)
     st = shadow_map.stats
     log(f"built in {shadow_map.build_seconds:.3f} s ({st['pairs_kept']} ray/Gaussian pairs kept "
-        f"of {st['pairs_tested']} tested)", quiet)
+        f"of {st['pairs_tested']} tested), opacity mapping {mapping} (κ = {kappa:g})", quiet)
 
     inputs = {"occluders": parsed[0][0]} if len(occluders) == 1 else {
         f"occluder{j}": source for j, (source, _) in enumerate(parsed)}

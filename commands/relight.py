@@ -42,7 +42,13 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
               help="Monte Carlo samples per receiver for --footprint mc.")
 @click.option("--shadow-strength", type=click.FloatRange(0, 1), default=1.0, show_default=True,
-              help="[Gaussians] Receiver colour × (1 − s·(1 − T)); 1 multiplies by T.")
+              help="[Gaussians] Direct share s of a receiver's colour: colour × ((1 − s) + "
+                   "s·Σ w_l T_l / Σ w_l) per channel; 1 treats the whole colour as direct light.")
+@click.option("--light-weights", type=click.Choice(["intensity", "irradiance", "equal"]),
+              default="intensity", show_default=True,
+              help="[Gaussians] Each light's share w_l of the direct light (paper Sec. 3.3): "
+                   "intensity × colour (from the DGSM), also × |n·ω|/r² at each receiver "
+                   "(irradiance), or equal (the plain mean T of older versions).")
 @click.option("--lobe", type=float, default=1.0, show_default=True,
               help="[Gaussians] Cosine lobe exponent q of the transfer (1 = Lambertian).")
 @click.option("--intensity", type=float, default=1.0, show_default=True,
@@ -95,7 +101,7 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @no_clobber_option
 @quiet_option
 def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
-            shadow_strength, lobe, intensity, t_max, normals, render_camera, background, model,
+            shadow_strength, light_weights, lobe, intensity, t_max, normals, render_camera, background, model,
             hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
             preview, seed, no_clobber, quiet):
@@ -107,8 +113,11 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     per-Gaussian SH radiance transfer from --probe (paper Eq. 9-10): colour =
     γ · albedo · clip(S(n), 0, t_max), S the cosine-lobe (exponent q) weighted
     mean probe radiance around the normal n (normals per object).  --object
-    inserts more objects, relit the same way.  With --dgsm and --receivers, the
-    receivers' colours are multiplied by the shadow-map transmittance; with a
+    inserts more objects, relit the same way.  With --dgsm and --receivers, each
+    light's transmittance attenuates that light's share of a receiver's direct
+    light (paper Sec. 3.3): colour × ((1 − s) + s·Σ w_l T_l / Σ w_l) per
+    channel, s = --shadow-strength, w_l = the light's intensity × colour
+    stored in the DGSM (--light-weights); with a
     DGSM of several OCCLUDERs, each object is also multiplied by the
     transmittance through the OTHER objects (never its own).  Writes the relit
     objects as one PLY, or with --render an EXR view of receivers + objects.
@@ -159,7 +168,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
 
 def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers_out, footprint,
                        samples,
-                       shadow_strength, lobe, intensity, t_max, normals, render_camera, background,
+                       shadow_strength, light_weights, lobe, intensity, t_max, normals, render_camera, background,
                        preview, seed, no_clobber, quiet, **_):
     import math
     import time
@@ -226,12 +235,27 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     if dgsm is not None:
         shadow_map = _read_dgsm(dgsm)
         from relight_cli.gaussians.dgsm import sample_transmittance
+        weights_used = light_weights
+        if light_weights != "equal" and shadow_map.intensities is None:
+            weights_used = "equal"
+            log("note: this shadow map (DGSM version 1) stores no light intensities; the lights "
+                "are weighted equally", quiet)
+
+        def weights_for(g, normals=None):
+            if weights_used != "irradiance":
+                return TF.direct_light_weights(weights_used, shadow_map.intensities,
+                                               shadow_map.colors, n_lights=len(shadow_map.lights))
+            return TF.direct_light_weights(
+                "irradiance", shadow_map.intensities, shadow_map.colors, shadow_map.lights,
+                g.means, TF.estimate_normals(g, "axis") if normals is None else normals)
+
         T = sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
                                  footprint=footprint, samples=samples, seed=seed)   # [L, M]
-        factor = TF.shadow_factor(T, None, shadow_strength)
+        factor = TF.shadow_factor(T, weights_for(scene), shadow_strength)          # [M, 3]
         scene = TF.attenuate(scene, factor)
         log(f"shadowed receivers: mean factor {factor.mean():.3f}, "
-            f"{int((factor < 0.99).sum())} of {len(factor)} darkened", quiet)
+            f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of {len(factor)} "
+            f"darkened", quiet)
         if shadow_map.groups is not None:
             if len(shadow_map.groups) != len(relit_objects):
                 raise DataError(f"the shadow map has {len(shadow_map.groups)} occluder groups "
@@ -242,10 +266,11 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
                 T = sample_transmittance(shadow_map.others(j), obj.means, obj.scales,
                                          obj.rotations, footprint=footprint, samples=samples,
                                          seed=seed)
-                factor = TF.shadow_factor(T, None, shadow_strength)
+                factor = TF.shadow_factor(T, weights_for(obj, obj.normals), shadow_strength)
                 relit_objects[j] = TF.attenuate(obj, factor)
                 log(f"shadowed object {j} by the others: mean factor {factor.mean():.3f}, "
-                    f"{int((factor < 0.99).sum())} of {len(factor)} darkened", quiet)
+                    f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of "
+                    f"{len(factor)} darkened", quiet)
         elif len(relit_objects) > 1:
             log("note: the shadow map has no occluder groups, so the objects do not shadow "
                 "each other (build it from all objects: dgsm-build A B ...)", quiet)
@@ -262,6 +287,10 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     settings = {"lobe": lobe, "intensity": intensity, "t_max": t_max, "normals": normals,
                 "footprint": footprint, "samples": samples, "seed": seed,
                 "shadow_strength": shadow_strength, "objects": specs}
+    if dgsm is not None:
+        # which opacity mapping made the shadow map, and how its lights were weighted
+        settings.update(dgsm_mapping=shadow_map.mapping, dgsm_kappa=shadow_map.kappa,
+                        light_weights=weights_used)
     if receivers_out is not None:
         write_gaussians(receivers_out, scene, provenance(FORMAT, VERSION, inputs,
                                                          dict(settings, role="receivers")))

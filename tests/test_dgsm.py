@@ -64,7 +64,7 @@ def test_cube_atlas_pixels_round_trip():
 
 
 @pytest.mark.parametrize("layout", D.LAYOUTS)
-@pytest.mark.parametrize("mapping", ["eq5", "mass"])
+@pytest.mark.parametrize("mapping", ["avg", "peak", "mass"])
 def test_culled_equals_unculled_and_reference(layout, mapping):
     mix = TR.prepare(*_blob(n=150), mapping=mapping, kappa=1.0)
     kw = dict(size=(24, 24), bins=12, layout=layout, t_max=5.0, roi=False)

@@ -149,6 +149,51 @@ def test_attenuate_and_shadow_factor():
                                1 - 0.5 * (1 - np.array([0.75, 0.0, 0.625])))
 
 
+def test_per_light_weights_attenuate_each_lights_direct_part():
+    """Sec. 3.3: light l's T_l scales only light l's share of the direct light, per channel."""
+    T = np.array([[0.2, 1.0, 0.0], [1.0, 0.5, 0.0]])            # [L=2, M=3]
+    intensities = np.array([3.0, 1.0])
+    # white lights: the intensity-weighted mean, in every channel
+    w = TF.direct_light_weights("intensity", intensities, np.ones((2, 3)))
+    assert w.shape == (2, 1, 3)
+    f = TF.shadow_factor(T, w)
+    np.testing.assert_allclose(f, np.repeat([[0.4], [0.875], [0.0]], 3, axis=1))
+    # a red light and a cyan light: each light's shadow removes only its own colour
+    colours = np.array([[1.0, 0, 0], [0, 1.0, 1.0]])
+    f = TF.shadow_factor(T, TF.direct_light_weights("intensity", intensities, colours))
+    np.testing.assert_allclose(f[0], [0.2, 1.0, 1.0])
+    np.testing.assert_allclose(f[1], [1.0, 0.5, 0.5])
+    # direct share s: (1 − s) of the colour is never shadowed
+    f = TF.shadow_factor(T, TF.direct_light_weights("intensity", intensities, colours), 0.25)
+    np.testing.assert_allclose(f[2], [0.75, 0.75, 0.75])
+    # a light of zero intensity casts no shadow; equal weights are the old plain mean
+    f = TF.shadow_factor(T, TF.direct_light_weights("intensity", [0.0, 1.0], np.ones((2, 3))))
+    np.testing.assert_allclose(f[:, 0], T[1])
+    f = TF.shadow_factor(T, TF.direct_light_weights("equal", n_lights=2))
+    np.testing.assert_allclose(f[:, 1], TF.shadow_factor(T))
+
+
+def test_irradiance_weights_and_unlit_receivers():
+    """irradiance: w_l = I_l C_l |n·ω_l| / r_l²; a receiver no light reaches keeps its colour."""
+    lights = np.array([[0.0, 1.0, 0.0], [2.0, 0.0, 0.0]])
+    points = np.zeros((2, 3))
+    normals = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])      # facing light 0; facing neither
+    w = TF.direct_light_weights("irradiance", [1.0, 8.0], np.ones((2, 3)), lights, points, normals)
+    assert w.shape == (2, 2, 3)
+    np.testing.assert_allclose(w[:, 0, 0], [1.0, 0.0])          # light 1 is at grazing incidence
+    np.testing.assert_allclose(w[:, 1, 0], [0.0, 0.0])
+    T = np.array([[0.3, 0.3], [0.9, 0.9]])
+    f = TF.shadow_factor(T, w)
+    np.testing.assert_allclose(f[0], 0.3)
+    np.testing.assert_allclose(f[1], 1.0)
+    # tilt the first receiver 45° towards light 1: |n·ω| = 1/√2 each, r² = 1 and 4
+    n45 = np.array([[1.0, 1.0, 0.0]]) / math.sqrt(2)
+    w = TF.direct_light_weights("irradiance", [1.0, 8.0], None, lights, points[:1], n45)
+    np.testing.assert_allclose(w[:, 0, 1], [1 / math.sqrt(2), 8 / (4 * math.sqrt(2))])
+    with pytest.raises(ValueError):
+        TF.direct_light_weights("bogus", [1.0])
+
+
 # ------------------------------------------------------------------ CLI
 
 
@@ -241,31 +286,41 @@ def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     assert not (files / "out.ply").exists() and not (files / "out.exr").exists()
 
 
-def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
-    """An opaque ball between a point light and a floor: receivers under it darken by the DGSM's
-    transmittance (equal to the engine's footprint lookup), receivers away from it do not."""
-    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr",
-                                   reason="formats/dgsm_exr.py (DGSM format) not in this tree")
-    from relight_cli.gaussians.dgsm import build_dgsm, sample_transmittance
+def _ball_over_floor(tmp_path, lights, grid, intensities=None):
+    """An opaque ball of Gaussians at 1 m over a grey floor grid (nx, nz, half-width in x);
+    writes ball.ply, floor.ply, a uniform probe p.json and the DGSM s.exr for ``lights``."""
+    from relight_cli.formats import dgsm_exr
+    from relight_cli.gaussians.dgsm import build_dgsm
+    from relight_cli.provenance import provenance
     rng = np.random.default_rng(0)
     d = rng.normal(size=(400, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     ball = Gaussians(d * 0.15 + [0, 1.0, 0], np.full((400, 3), 0.05), np.tile([1.0, 0, 0, 0], (400, 1)),
                      np.full(400, 0.95), np.zeros((400, 1, 3)), 0)
-    xs, zs = np.meshgrid(np.linspace(-1, 1, 15), np.linspace(-1, 1, 15))
+    nx, nz, half = grid
+    xs, zs = np.meshgrid(np.linspace(-half, half, nx), np.linspace(-1, 1, nz))
     m = xs.size
     floor = Gaussians(np.column_stack([xs.ravel(), np.zeros(m), zs.ravel()]), np.full((m, 3), 0.05),
                       np.tile([1.0, 0, 0, 0], (m, 1)), np.full(m, 0.9),
                       rgb_to_sh_dc(np.full((m, 3), 0.6))[:, None, :], 0)
-    light = np.array([[0.0, 2.5, 0.0]])
-    shadow = build_dgsm(ball, light, floor.means, size=(32, 32), bins=16)
-    from relight_cli.provenance import provenance
+    shadow = build_dgsm(ball, np.asarray(lights, float), floor.means, size=(32, 32), bins=16,
+                        intensities=intensities)
     dgsm_exr.write_dgsm(str(tmp_path / "s.exr"), shadow, provenance(dgsm_exr.FORMAT, dgsm_exr.VERSION))
     write_gaussians(str(tmp_path / "ball.ply"), ball)
     write_gaussians(str(tmp_path / "floor.ply"), floor)
     c = np.zeros((1, 3))
     c[0] = math.sqrt(4 * math.pi)
     write_probe(str(tmp_path / "p.json"), ShProbe(c, 0))
+    return shadow, floor
+
+
+def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
+    """An opaque ball between a point light and a floor: receivers under it darken by the DGSM's
+    transmittance (equal to the engine's footprint lookup), receivers away from it do not."""
+    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr",
+                                   reason="formats/dgsm_exr.py (DGSM format) not in this tree")
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    shadow, floor = _ball_over_floor(tmp_path, [[0.0, 2.5, 0.0]], (15, 15, 1.0))
     r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
                 tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
                 tmp_path / "floor-shadowed.ply", "--footprint", "centre", "-o", tmp_path / "o.ply",
@@ -278,6 +333,29 @@ def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
     centre = np.argmin(np.linalg.norm(floor.means, axis=1))
     corner = np.argmax(np.linalg.norm(floor.means, axis=1))
     assert ratio[centre] < 0.2 and ratio[corner] > 0.999
+    prov = read_gaussians(str(tmp_path / "floor-shadowed.ply")).provenance
+    settings = (prov or {}).get("settings", {})
+    if settings:
+        assert settings["dgsm_mapping"] == "avg" and settings["light_weights"] == "intensity"
+
+
+def test_cli_dgsm_weights_lights_by_intensity(run_cli, tmp_path):
+    """Two lights, each casting the ball's shadow on a different spot: the spot of the light of
+    intensity 3 darkens to (3·T + 1)/4, the one of intensity 1 to (3 + T)/4 (white lights)."""
+    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr")
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    shadow, floor = _ball_over_floor(tmp_path, [[-0.5, 2.0, 0.0], [0.5, 2.0, 0.0]], (21, 9, 1.5),
+                                     intensities=[3.0, 1.0])
+    T = sample_transmittance(shadow, floor.means, footprint="centre")           # [2, M]
+    for mode, want in (("intensity", (3 * T[0] + T[1]) / 4), ("equal", T.mean(axis=0))):
+        r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                    tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                    tmp_path / f"f-{mode}.ply", "--footprint", "centre", "--light-weights", mode,
+                    "-o", tmp_path / "o.ply", "-q")
+        assert r.exit_code == 0, r.output
+        ratio = read_gaussians(str(tmp_path / f"f-{mode}.ply")).colors() / floor.colors()
+        np.testing.assert_allclose(ratio, np.repeat(want[:, None], 3, axis=1), atol=1e-5)
+    assert T.min(axis=1).max() < 0.2          # both lights really cast a shadow on the floor
 
 
 # ------------------------------------------------------------------ light estimation (Sec. 3.1)

@@ -71,19 +71,25 @@ class DGSM:
             :func:`build_dgsm_groups`); then ``transmittance`` is their product
             (optical depths add over disjoint sets of Gaussians).
         group_names: J labels of the groups (e.g. the occluder specs).
+        intensities: [L] the lights' intensities (relight/lights ``intensity``),
+            or None when unknown (DGSM version 1 files); weights each light's
+            share of a receiver's direct light (paper Sec. 3.3).
+        colors: [L, 3] the lights' linear RGB colours, or None when unknown.
     """
 
     transmittance: np.ndarray
     lights: np.ndarray
     t_max: np.ndarray
     layout: str = "octahedral"
-    mapping: str = "eq5"
+    mapping: str = TR.DEFAULT_MAPPING
     kappa: float = 1.0
     roi: list = field(default_factory=list)
     build_seconds: float = 0.0
     stats: dict = field(default_factory=dict)
     groups: np.ndarray | None = None
     group_names: list = field(default_factory=list)
+    intensities: np.ndarray | None = None
+    colors: np.ndarray | None = None
 
     def others(self, group: int) -> "DGSM":
         """The shadow map of every group except ``group`` (what that group receives).
@@ -97,7 +103,8 @@ class DGSM:
         table = (np.prod(self.groups[rest], axis=0, dtype=np.float32) if rest
                  else np.ones_like(self.transmittance))
         return DGSM(table, self.lights, self.t_max, self.layout, self.mapping, self.kappa,
-                    self.roi, self.build_seconds, self.stats)
+                    self.roi, self.build_seconds, self.stats, intensities=self.intensities,
+                    colors=self.colors)
 
     @property
     def bins(self) -> int:
@@ -321,11 +328,11 @@ def _truncation_radius(mix: TR.Mixture, tolerance: float) -> np.ndarray:
 
 
 def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 128),
-               bins: int = 64, layout: str = "octahedral", mapping: str = "eq5",
+               bins: int = 64, layout: str = "octahedral", mapping: str = TR.DEFAULT_MAPPING,
                kappa: float = 1.0, t_max=None, roi: bool = True,
                roi_radius: float | None = None, cull: bool = True,
                cull_tolerance: float = 1e-7, dtype=np.float32, chunk: int = 1 << 20,
-               progress=None) -> DGSM:
+               progress=None, intensities=None, colors=None) -> DGSM:
     """Build a deep Gaussian shadow map.
 
     Args:
@@ -348,6 +355,9 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
         cull_tolerance: ε, the largest optical depth a culled Gaussian may have had.
         dtype: precision of the per-pair closed form (float32 fast path or float64).
         progress: optional callable(iterable, total) → iterable for a progress bar.
+        intensities: [L] light intensities and colors: [L, 3] linear RGB, stored
+            with the map for the per-light weighting of direct light (Sec. 3.3);
+            default 1 and white.
     Returns:
         :class:`DGSM`.
     """
@@ -433,8 +443,20 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
         table[li, k0:k1 + 1].reshape(k1 - k0 + 1, h * w)[:, texels] = np.exp(-tau.T)
         stats["texels_computed"] += int(len(texels))
         stats["bins_computed"] += int(k1 - k0 + 1)
+    intensities, colors = _light_properties(n_lights, intensities, colors)
     return DGSM(table, lights, t_maxes, layout, mix.mapping, mix.kappa, rois,
-                time.perf_counter() - start, stats)
+                time.perf_counter() - start, stats, intensities=intensities, colors=colors)
+
+
+def _light_properties(n_lights, intensities, colors):
+    """([L] intensities ≥ 0, [L, 3] colours ≥ 0), defaults 1 and white."""
+    i = np.ones(n_lights) if intensities is None else np.asarray(intensities, np.float64)
+    c = np.ones((n_lights, 3)) if colors is None else np.asarray(colors, np.float64)
+    i = np.broadcast_to(i, (n_lights,)).copy()
+    c = np.broadcast_to(c, (n_lights, 3)).copy()
+    if not (np.isfinite(i).all() and np.isfinite(c).all() and (i >= 0).all() and (c >= 0).all()):
+        raise ValueError("light intensities and colours must be finite and ≥ 0")
+    return i, c
 
 
 def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, names=None,
@@ -464,7 +486,8 @@ def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, name
     """
     start = time.perf_counter()
     mixes = [g if isinstance(g, TR.Mixture)
-             else TR.from_gaussians(g, kwargs.get("mapping", "eq5"), kwargs.get("kappa", 1.0))
+             else TR.from_gaussians(g, kwargs.get("mapping", TR.DEFAULT_MAPPING),
+                                kwargs.get("kappa", 1.0))
              for g in groups]
     lights = np.asarray(lights, np.float64).reshape(-1, 3)
     n = len(mixes)
@@ -518,7 +541,8 @@ def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, name
     return DGSM(table, lights, first.t_max, first.layout, first.mapping, first.kappa, rois,
                 time.perf_counter() - start, stats,
                 np.stack([m.transmittance for m in maps]),
-                list(names) if names is not None else [f"group{j}" for j in range(n)])
+                list(names) if names is not None else [f"group{j}" for j in range(n)],
+                first.intensities, first.colors)
 
 
 def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cull, trunc,
