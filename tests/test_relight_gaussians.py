@@ -422,3 +422,28 @@ def test_estimate_lights_roi_and_errors():
         parse_auto("auto:0")
     with pytest.raises(ValueError):
         parse_auto("auto:x")
+
+
+def test_cli_dgsm_version1_file_weights_lights_equally(run_cli, tmp_path):
+    """A version 1 shadow map (no intensities, mapping 'eq5') still relights: equal weights, said."""
+    from relight_cli.formats.exr import read_exr, write_exr
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    from relight_cli.provenance import provenance
+    shadow, floor = _ball_over_floor(tmp_path, [[-0.5, 2.0, 0.0], [0.5, 2.0, 0.0]], (21, 9, 1.5),
+                                     intensities=[3.0, 1.0])
+    img = read_exr(str(tmp_path / "s.exr"))
+    attrs = {k: v for k, v in img.attributes.items() if k.startswith("relight.dgsm.")
+             and k not in ("relight.dgsm.light_intensities", "relight.dgsm.light_colors")}
+    attrs["relight.dgsm.mapping"] = "eq5"
+    write_exr(str(tmp_path / "v1.exr"), dict(img.channels), attributes=attrs,
+              provenance=provenance("relight/dgsm", 1))
+    r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "v1.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                tmp_path / "f.ply", "--footprint", "centre", "-o", tmp_path / "o.ply")
+    assert r.exit_code == 0, r.output
+    assert "version 1" in r.output and "equally" in r.output
+    out = read_gaussians(str(tmp_path / "f.ply"))
+    T = sample_transmittance(shadow, floor.means, footprint="centre")
+    np.testing.assert_allclose(out.colors()[:, 0] / floor.colors()[:, 0], T.mean(axis=0), atol=1e-5)
+    assert out.provenance["settings"]["dgsm_mapping"] == "peak"
+    assert out.provenance["settings"]["light_weights"] == "equal"
