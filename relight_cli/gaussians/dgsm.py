@@ -48,6 +48,9 @@ import numpy as np
 from . import transmittance as TR
 
 LAYOUTS = ("octahedral", "cube")
+BACKENDS = ("auto", "numpy", "torch")
+TORCH_AUTO_PAIRS = 8_000_000          # pairs of one light: torch pays for its import
+TORCH_AUTO_PAIRS_IMPORTED = 1_000_000  # pairs of one light when torch is already loaded
 FOOTPRINTS = ("centre", "stencil", "mc")
 _ERF_WINDOW = 6.5          # |u| beyond which erf(u) = ±1 to < 1e-19 (erfc(6.5) ≈ 4e-20)
 _STENCIL_H = math.sqrt(3.5)  # 7 equal weights: mean and covariance of the Gaussian exact
@@ -334,7 +337,7 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
                kappa: float = 1.0, t_max=None, roi: bool = True,
                roi_radius: float | None = None, cull: bool = True,
                cull_tolerance: float = 1e-7, dtype=np.float32, chunk: int = 1 << 20,
-               progress=None, intensities=None, colors=None) -> DGSM:
+               progress=None, intensities=None, colors=None, backend: str = "auto") -> DGSM:
     """Build a deep Gaussian shadow map.
 
     Args:
@@ -355,7 +358,13 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
         roi_radius: optional radius R around the occluders' alpha-weighted centroid.
         cull: light-space occluder culling (tiles, texels, k_σ ellipse, radial).
         cull_tolerance: ε, the largest optical depth a culled Gaussian may have had.
-        dtype: precision of the per-pair closed form (float32 fast path or float64).
+        dtype: precision of the per-pair closed form (float32 fast path or float64,
+            the reference twin, always numpy).
+        backend: float32 inner loop in ``"numpy"`` or ``"torch"``
+            (:mod:`relight_cli.gaussians.dgsm_torch`: ≈ 10× faster erf, ≈ 2× faster
+            dense builds); ``"auto"`` uses torch for a light with ≥ TORCH_AUTO_PAIRS
+            kept pairs (where importing torch, ≈ 1.5 s, pays for itself), or ≥
+            TORCH_AUTO_PAIRS_IMPORTED when torch is already imported.
         progress: optional callable(iterable, total) → iterable for a progress bar.
         intensities: [L] light intensities and colors: [L, 3] linear RGB, stored
             with the map for the per-light weighting of direct light (Sec. 3.3);
@@ -377,6 +386,8 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
         h, w = 6 * n, n
     if bins < 1:
         raise ValueError("bins must be ≥ 1")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if receivers is None and t_max is None:
         raise ValueError("without receivers, t_max must be given")
     dirs = atlas_directions(layout, h, w).reshape(-1, 3)
@@ -441,7 +452,7 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
             stats["gaussians_used"].append(0)
             continue
         tau = _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, tm, h, w, cull,
-                                   trunc, dtype, chunk, stats, layout)
+                                   trunc, dtype, chunk, stats, layout, backend)
         table[li, k0:k1 + 1].reshape(k1 - k0 + 1, h * w)[:, texels] = np.exp(-tau.T)
         stats["texels_computed"] += int(len(texels))
         stats["bins_computed"] += int(k1 - k0 + 1)
@@ -547,8 +558,26 @@ def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, name
                 first.intensities, first.colors)
 
 
+def _use_torch(backend, dtype, pairs: int) -> bool:
+    if np.dtype(dtype) != np.float32 or backend == "numpy":
+        return False
+    import sys
+    if backend == "auto":
+        # torch's float32 erf loop is ≈ 2× the numpy one on dense work (2 threads), but a
+        # fresh import costs ≈ 1.5 s and small culled builds gain nothing (gathers dominate)
+        threshold = TORCH_AUTO_PAIRS_IMPORTED if "torch" in sys.modules else TORCH_AUTO_PAIRS
+        if pairs < threshold:
+            return False
+    from . import dgsm_torch
+    if not dgsm_torch.available():
+        if backend == "torch":
+            raise ValueError("backend 'torch' needs torch installed")
+        return False
+    return True
+
+
 def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cull, trunc,
-                         dtype, chunk, stats, layout="octahedral"):
+                         dtype, chunk, stats, layout="octahedral", backend="numpy"):
     """[T, k1−k0+1] optical depth for the given texels and bins of one light."""
     n_bins = k1 - k0 + 1
     t_centres = (np.arange(k0, k1 + 1) + 0.5) * t_max / bins
@@ -591,6 +620,12 @@ def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cu
         return tau
     pt = np.concatenate(pair_tex)
     pg = np.concatenate(pair_g)
+    if _use_torch(backend, dtype, len(pt)):
+        from . import dgsm_torch
+        stats["backend"] = "torch"
+        return dgsm_torch.light_pairs_optical_depth(mix, dirs[texels], r_l_all, pt, pg, trunc,
+                                                    cull, t_max, bins, k0, k1, stats)
+    stats["backend"] = "numpy"
     step = np.zeros(len(texels) * (n_bins + 1))
     direct = np.zeros(len(texels) * n_bins)
     kept = 0
