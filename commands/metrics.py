@@ -369,7 +369,8 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
 @click.option("--normals", "normal_source", type=click.Choice(["pca", "ply"]), default="pca",
               show_default=True, help="Pseudo-normals by weighted local PCA, or the PLY's nx ny nz.")
 @click.option("--max-points", type=int, default=512, show_default=True,
-              help="Points per side for the 2-D Wasserstein distance of large sets.")
+              help="Points per side of the seeded subsamples on which the 2-D Wasserstein "
+                   "distance of large sets is solved exactly.")
 @_output
 @seed_option
 @no_clobber_option
@@ -378,12 +379,17 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
                      seed, no_clobber, quiet):
     """Lighting consistency of a Gaussian avatar with the scene around it (DGSM paper, Sec. 4.1).
 
-    PAA-Y: angle (degrees) between where the avatar's shading says the light
-    comes from and where the scene's SH irradiance says it does; APF-Y:
-    relative residual of avatar luminance against affinely calibrated scene
-    irradiance (Huber, 5 % trimmed); NCM-ab: 1-Wasserstein distance between
-    avatar and scene CIE-Lab chromaticity.  Lower is better for all three.
-    Reports orig, relit and relit − orig (delta), averaged over frames.
+    The paper's metrics: luminance factorized as Y ≈ α·E(n; c), E order-3 SH
+    (16 coefficients, averaging 1 over the sphere), α ≥ 0 per Gaussian, Huber
+    loss and 5 % trimming, for the scene within --radius and for the avatar.
+    paa_y = |c_avatar − c_scene|₁; apf_y = mean |Y − (s·E(n; c_scene) + b)|
+    after a per-frame affine fit; ncm_ab = exact 1-Wasserstein distance of the
+    avatar's and the scene's CIE-Lab (a*, b*) point sets (exact on seeded
+    subsamples of --max-points per side for large sets; the JSON says which).
+    This toolkit's earlier variants are reported beside them as paa_angle
+    (degrees between dominant light directions), apf_rms and ncm_ab_weighted
+    (formats/metrics_json.md).  Lower is better for all.  Reports orig, relit
+    and relit − orig (delta), averaged over frames.
 
     \b
     Example:
@@ -425,8 +431,10 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     for i, path in enumerate(relits):
         inputs[f"relit:{i}"] = path
     settings = {"radius": radius, "neighbours": neighbours, "normals": normal_source,
-                "max_points": max_points, "seed": seed, "sh_order": 3, "huber": 1.345,
-                "trim": 0.05}
+                "max_points": max_points, "seed": seed, "sh_order": 3, "sh_coefficients": 16,
+                "variant_sh_coefficients": 9, "huber": 1.345, "trim": 0.05,
+                "scale_fix": "E averages 1 over the sphere (c_00 = 2*sqrt(pi))",
+                "albedo_ridge": 1.0, "factorization_iterations": 6}
     prov = provenance(FORMAT, VERSION, inputs, settings)
     record = make_record("lighting", result["metrics"], prov["inputs"], settings, prov,
                          frames=result["frames"])
