@@ -22,6 +22,11 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @click.option("--lights", "lights_spec", required=True, metavar="LIGHTS.json|auto:K",
               help="Point lights (relight/lights JSON), or auto:K to estimate K lights "
                    "from the receivers' scene.")
+@click.option("--estimator", type=click.Choice(["paper", "v1"]), default="paper",
+              show_default=True,
+              help="Light estimator of --lights auto:K (paper Sec. 3.1: ROI and viewpoints at "
+                   "the occluders' centroid, soft-clipped cues, mean-neighbourhood peakness, "
+                   "colour toward the character, intensity = base score; v1: the earlier variant).")
 @click.option("--lights-out", default=None, metavar="FILE.json",
               help="Also write the lights used (e.g. the auto:K estimate).")
 @click.option("-o", "--output", required=True, help="Output EXR (relight/dgsm).")
@@ -60,7 +65,8 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @seed_option
 @no_clobber_option
 @quiet_option
-def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, lights_out, output, size, bins, atlas, mapping,
+def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, estimator,
+            lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
             allow_light_inside, half, seed, no_clobber, quiet):
     """Tabulate the transmittance from each light through the OCCLUDER Gaussians
@@ -168,7 +174,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         check_input(lights_spec)
         lights = read_lights(lights_spec)
     else:
-        lights = _estimate_lights(scene, auto_k, lights_spec)
+        lights = _estimate_lights(scene, auto_k, lights_spec, occ, estimator)
     log(f"{len(lights)} light(s)", quiet)
 
     if mapping != TR.canonical_mapping(mapping):
@@ -228,6 +234,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                 "t_max": t_max, "roi": roi, "roi_radius": roi_radius, "cull": cull,
                 "cull_tolerance": cull_tolerance, "footprint": footprint, "samples": samples,
                 "seed": seed, "lights": lights_spec, "half": half, "translate": translate,
+                "estimator": estimator if auto_k is not None else None,
                 "occluders": list(occluders)}
     write_dgsm(output, shadow_map, provenance(FORMAT, VERSION, inputs, settings), half=half)
     log(f"wrote {output} ({time.perf_counter() - start:.2f} s)", quiet)
@@ -273,7 +280,7 @@ def _parse_auto(spec: str):
     return k
 
 
-def _estimate_lights(scene, k, spec):
+def _estimate_lights(scene, k, spec, character=None, variant="paper"):
     """auto:K through relight_cli.gaussians.lights (the light-estimation module), if present."""
     import importlib
 
@@ -290,7 +297,7 @@ def _estimate_lights(scene, k, spec):
         raise UsageProblem("--lights auto:K is not available in this build (no light estimator "
                            "in relight_cli.gaussians.lights); give a lights JSON file", spec)
     try:
-        result = estimator(scene, k)   # deterministic: no randomness to seed
+        result = estimator(scene, k, character=character, variant=variant)   # deterministic
     except ValueError as exc:
         from relight_cli.errors import DataError
         raise DataError(f"light estimation failed: {exc}", spec) from None
@@ -300,7 +307,8 @@ def _estimate_lights(scene, k, spec):
         return Lights(result.positions, getattr(result, "colors", None),
                       getattr(result, "intensities", None),
                       extra={"estimator": "relight_cli.gaussians.lights.estimate_lights",
-                             "count": int(k)})
+                             "variant": variant, "count": int(k),
+                             "character": "the occluders (alpha-weighted centroid)"})
     return Lights(np.asarray(result, np.float64).reshape(-1, 3))
 
 

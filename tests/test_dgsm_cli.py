@@ -204,8 +204,10 @@ def test_usage_errors(scene):
 
 def test_auto_lights_unavailable_or_works(scene):
     out = str(scene["dir"] / "auto.exr")
+    lout = str(scene["dir"] / "auto-lights.json")
     r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", scene["floor"],
-                                 "--lights", "auto:1", "-o", out, "--size", "8", "--bins", "4"])
+                                 "--lights", "auto:1", "-o", out, "--size", "8", "--bins", "4",
+                                 "--lights-out", lout])
     try:
         from relight_cli.gaussians.lights import estimate_lights  # noqa: F401
         available = True
@@ -213,6 +215,10 @@ def test_auto_lights_unavailable_or_works(scene):
         available = False
     if available:
         assert r.exit_code == 0, r.output
+        est = read_lights(lout)
+        assert est.extra["variant"] == "paper" and len(est.positions) == 1
+        # the estimated intensity travels into the shadow map (per-light weighting)
+        np.testing.assert_allclose(read_dgsm(out).intensities, est.intensities)
     else:
         assert r.exit_code == 2 and "not available" in r.output
         assert not os.path.exists(out)

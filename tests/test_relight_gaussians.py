@@ -403,7 +403,13 @@ def test_estimate_lights_finds_compact_emitters():
     np.testing.assert_allclose(est.colors @ LUMA, 1.0, atol=1e-12)
     a = int(np.argmin(np.linalg.norm(est.positions - lamp_a, axis=1)))
     np.testing.assert_allclose(est.colors[a] / est.colors[a].max(), [1.0, 0.75, 0.5], atol=1e-6)
-    assert est.intensities[a] == pytest.approx(np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
+    # paper: intensity = the base score b = opacity·(Ȳ + Ŷ)/2·(½ + ½s)·(½ + ½δ); a lamp looks
+    # the same from everywhere (s = 1) and has no view-dependent SH energy (δ = 1)
+    assert est.intensities[a] == pytest.approx(0.9 * np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
+    v1 = estimate_lights(scene, 2, variant="v1")            # the earlier variant: mean luminance
+    np.testing.assert_allclose(sorted(v1.positions.tolist()), sorted(est.positions.tolist()))
+    a1 = int(np.argmin(np.linalg.norm(v1.positions - lamp_a, axis=1)))
+    assert v1.intensities[a1] == pytest.approx(np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
     # K = 3: the window (bright but extended) comes after both lamps; the glint never wins.
     est3 = estimate_lights(scene, 3)
     assert -0.6 < est3.positions[2, 0] < 0.6 and est3.positions[2, 2] < -1.9
@@ -447,3 +453,42 @@ def test_cli_dgsm_version1_file_weights_lights_equally(run_cli, tmp_path):
     np.testing.assert_allclose(out.colors()[:, 0] / floor.colors()[:, 0], T.mean(axis=0), atol=1e-5)
     assert out.provenance["settings"]["dgsm_mapping"] == "peak"
     assert out.provenance["settings"]["light_weights"] == "equal"
+
+
+def test_estimate_lights_paper_details():
+    """Sec. 3.1: ROI and viewpoints at the character, soft clipping, colour toward the character."""
+    from relight_cli.gaussians.lights import colour_toward, estimate_lights, soft_clip
+    scene, lamp_a, lamp_b = room_with_lamps()
+    # the character stands next to lamp b: a 0.8 m ROI around it finds only that lamp
+    char = Gaussians(lamp_b + [0.3, -0.5, 0.0] + np.random.default_rng(1).normal(0, 0.1, (50, 3)),
+                     np.full((50, 3), 0.02), np.tile([1.0, 0, 0, 0], (50, 1)), np.full(50, 0.9),
+                     np.zeros((50, 1, 3)), 0)
+    est = estimate_lights(scene, 1, roi_radius=0.8, character=char)
+    np.testing.assert_allclose(est.positions[0], lamp_b, atol=0.04)
+    # soft clipping: below the fence untouched, order kept, bounded above
+    v = np.r_[np.linspace(0, 1, 200), 50.0, 1e6]
+    c = soft_clip(v)
+    q50, q99 = np.percentile(v, [50, 99])
+    fence, width = q99 + 3 * (q99 - q50), q99 - q50
+    np.testing.assert_array_equal(c[v <= fence], v[v <= fence])
+    assert np.all(np.diff(c) >= 0) and c.max() <= fence + width
+    # a blown-out floater (luminance 1e4): clipping keeps the order but not its 1000× margin,
+    # so its score no longer swamps the lamps (what an intensity-from-score light inherits)
+    from relight_cli.formats.gaussians_ply import concatenate
+    floater = Gaussians(np.array([[0.0, 1.5, 1.5]]), np.full((1, 3), 0.01), [[1.0, 0, 0, 0]],
+                        [0.9], np.concatenate([rgb_to_sh_dc(np.full((1, 3), 1e4))[:, None, :],
+                                               np.zeros((1, 3, 3))], axis=1), 1)
+    with_floater = concatenate([scene, floater])
+    paper = estimate_lights(with_floater, 2)
+    v1 = estimate_lights(with_floater, 2, variant="v1")
+    assert v1.positions[0][2] == pytest.approx(1.5) and paper.positions[0][2] == pytest.approx(1.5)
+    assert v1.scores[0] > 1000 * v1.scores[1]                 # unclipped (measured 3500×)
+    assert paper.scores[0] < 5 * paper.scores[1]              # soft-clipped (measured 3.6×)
+    # colour toward the character: the SH evaluated from the character's centroid
+    # (the glint is bright for viewing directions along +x, i.e. seen from a camera at −x)
+    glint = len(scene) - 5
+    from_minus_x = colour_toward(scene, [glint], scene.means[glint] - [1.0, 0, 0])
+    from_plus_x = colour_toward(scene, [glint], scene.means[glint] + [1.0, 0, 0])
+    assert from_minus_x[0].min() > 1.0 and from_plus_x[0].max() == 0.0
+    with pytest.raises(ValueError, match="estimator"):
+        estimate_lights(scene, 1, variant="bogus")
