@@ -256,15 +256,20 @@ def part_protocol(kind: str, quick: bool):
             build = time.perf_counter() - t0
             T = D.sample_transmittance(m, means, scales, rot, fp, 16, 0, light_index=0)
             score(f"A: footprint {fp}, octahedral {res}², avg", T, build)
+    # B and C with the paper's full method otherwise: Monte Carlo footprint, octahedral, avg
+    mc_pts, _ = D.footprint_samples(means, scales, rot, "mc", 16, 0)
+    mc_pts = mc_pts.reshape(-1, 3)
     for mapping in TR.MAPPINGS:
         mix = TR.from_gaussians(g, mapping)
-        m = D.build_dgsm(mix, [light], means, size=(128, 128), bins=64)
-        score(f"B: mapping {mapping}, octahedral 128², centre", D.sample_transmittance(m, means, light_index=0),
+        m = D.build_dgsm(mix, [light], mc_pts, size=(128, 128), bins=64)
+        score(f"B: mapping {mapping}, octahedral 128², mc",
+              D.sample_transmittance(m, means, scales, rot, "mc", 16, 0, light_index=0),
               m.build_seconds)
     for layout in ("octahedral", "cube"):
-        m = D.build_dgsm(mix_avg, [light], means, size=(128, 128), bins=64, layout=layout)
-        score(f"C: atlas {layout} ({m.height}×{m.width}), avg, centre",
-              D.sample_transmittance(m, means, light_index=0), m.build_seconds)
+        m = D.build_dgsm(mix_avg, [light], mc_pts, size=(128, 128), bins=64, layout=layout)
+        score(f"C: atlas {layout} ({m.height}×{m.width}), avg, mc",
+              D.sample_transmittance(m, means, scales, rot, "mc", 16, 0, light_index=0),
+              m.build_seconds)
     print("| run | SAE ↓ | SM-IoU ↑ | boundary F (2 px) ↑ | build s |")
     print("|---|---|---|---|---|")
     for r in rows:
@@ -272,6 +277,99 @@ def part_protocol(kind: str, quick: bool):
         print(f"| {r['run']} | {r['sae']:.3f} | {r['sm_iou']:.3f} | {r['boundary_f']:.3f} | {s} |")
     print("\n(paper, full method: SAE 0.058, SM-IoU 0.830, BF 0.796 — on its own scenes)")
     return {"occluder": name, "gaussians": len(g), "pixels": n, "rows": rows}
+
+
+# ------------------------------------------------------------------ beside the paper
+
+# The paper's Tables 3–5 (SAE ↓, SM-IoU ↑, BF 2 px ↑; ScanNet++ scenes, SMPL pseudo-GT)
+# and its Sec. 4.4 D timings (A100, s/frame).
+PAPER_TABLES = {
+    "A": [("centre", (0.203, 0.622, 0.585)), ("stencil", (0.167, 0.712, 0.662)),
+          ("mc", (0.058, 0.830, 0.796))],
+    "B": [("simple", (0.182, 0.694, 0.642)), ("avg", (0.058, 0.830, 0.796)),
+          ("mass", (0.171, 0.708, 0.660)), ("diag", (0.177, 0.701, 0.651))],
+    "C": [("cube", (0.136, 0.811, 0.761)), ("octahedral", (0.058, 0.830, 0.796))],
+}
+PAPER_TIMES = {"ROI + culling": 0.13, "no ROI": 29.1, "no light-space culling": 17.1}
+_METRICS = (("sae", "SAE ↓", -1), ("sm_iou", "SM-IoU ↑", 1), ("boundary_f", "BF ↑", 1))
+
+
+def _ours(rows, ablation, key):
+    for r in rows:
+        run = r["run"]
+        if not run.startswith(ablation + ":"):
+            continue
+        if ablation == "A" and f"footprint {key}," in run and "128²" in run:
+            return r
+        if ablation == "B" and f"mapping {key}," in run:
+            return r
+        if ablation == "C" and f"atlas {key} " in run:
+            return r
+    return None
+
+
+def beside_the_paper(protocol: dict, speed: list | None):
+    """Tables 3–5 (and D) with our numbers beside the paper's, one line per claim."""
+    rows = protocol["rows"]
+    print("\n## Beside the paper (Tables 3–5, Sec. 4.4 D); ours: "
+          f"{protocol['occluder']} over a floor, embree pseudo-GT, one light\n")
+    claims = []
+    for ablation, title in (("A", "Table 3 — footprint sampling"),
+                            ("B", "Table 4 — opacity→absorption mapping"),
+                            ("C", "Table 5 — atlas")):
+        print(f"### {title}\n")
+        print("| setting | paper SAE | ours SAE | paper SM-IoU | ours SM-IoU | paper BF | ours BF |")
+        print("|---|---|---|---|---|---|---|")
+        entries = []
+        for key, paper in PAPER_TABLES[ablation]:
+            r = _ours(rows, ablation, key)
+            if r is None:
+                continue
+            entries.append((key, paper, r))
+            print(f"| {key} | {paper[0]:.3f} | {r['sae']:.3f} | {paper[1]:.3f} | {r['sm_iou']:.3f} | "
+                  f"{paper[2]:.3f} | {r['boundary_f']:.3f} |")
+        print()
+        for m, label, sign in _METRICS:
+            if len(entries) < 2:
+                continue
+            paper_order = [k for k, p, _ in sorted(entries, key=lambda e: -sign * e[1][[x[0] for x in _METRICS].index(m)])]
+            our_order = [k for k, _, r in sorted(entries, key=lambda e: -sign * e[2][m])]
+            same_best = paper_order[0] == our_order[0]
+            claims.append(f"{ablation} {label}: paper best {paper_order[0]}, ours best {our_order[0]} — "
+                          f"best {'reproduced' if same_best else 'NOT reproduced'}; full order "
+                          f"{'reproduced' if paper_order == our_order else 'differs'} "
+                          f"(paper {' > '.join(paper_order)}; ours {' > '.join(our_order)})")
+    if any(k == "mass" for k, *_ in PAPER_TABLES["B"]):
+        claims.append("B mass vs diag: the paper reports different numbers (0.171 vs 0.177 SAE); "
+                      "with A the local-frame covariance (Sec. 4.4) √det A = s_x s_y s_z, so here "
+                      "they are the same β and the same row")
+    if speed:
+        vol = speed[0]["rows"]
+        t = {r["config"]: r["seconds"] for r in vol}
+        both = next(v for k, v in t.items() if k.startswith("ROI + culling, float32 torch"))
+        no_roi = next((v for k, v in t.items() if k.startswith("culling only")), None)
+        no_cull = next((v for k, v in t.items() if k.startswith("ROI only")), None)
+        print("### Sec. 4.4 D — build time (s/frame)\n")
+        print("| configuration | paper (A100) | ours (CPU, volumetric 50k) |")
+        print("|---|---|---|")
+        print(f"| ROI + culling | {PAPER_TIMES['ROI + culling']} | {both:.3f} |")
+        print(f"| no ROI | {PAPER_TIMES['no ROI']} | {'' if no_roi is None else f'{no_roi:.3f}'} |")
+        print(f"| no light-space culling | {PAPER_TIMES['no light-space culling']} | "
+              f"{'' if no_cull is None else f'{no_cull:.3f}'} |\n")
+        if no_roi is not None:
+            claims.append(f"D: disabling the ROI slows the build (paper 0.13 → 29.1 s): ours "
+                          f"{both:.3f} → {no_roi:.3f} s — "
+                          f"{'reproduced' if no_roi > 1.2 * both else 'NOT reproduced'} (our "
+                          f"light-space culling already restricts pairs to the occluders' cones, "
+                          f"so the ROI mainly bounds the bins)")
+        if no_cull is not None:
+            claims.append(f"D: disabling light-space culling slows the build (paper 0.13 → 17.1 s): "
+                          f"ours {both:.3f} → {no_cull:.3f} s — "
+                          f"{'reproduced' if no_cull > 2 * both else 'NOT reproduced'}")
+    print("### Claims\n")
+    for c in claims:
+        print(f"- {c}")
+    return claims
 
 
 def main():
@@ -289,6 +387,7 @@ def main():
         out["speed"] = part_speed(args.quick, args.full_reference)
     if not args.skip_protocol:
         out["protocol"] = part_protocol(args.occluder, args.quick)
+        out["claims"] = beside_the_paper(out["protocol"], out.get("speed"))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(out, fh, indent=2)
