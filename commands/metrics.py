@@ -380,7 +380,7 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     """Lighting consistency of a Gaussian avatar with the scene around it (DGSM paper, Sec. 4.1).
 
     The paper's metrics: luminance factorized as Y ≈ α·E(n; c), E order-3 SH
-    (16 coefficients, averaging 1 over the sphere), α ≥ 0 per Gaussian, Huber
+    (16 coefficients, |c|₂ = 1 fixing the scale), α ≥ 0 per Gaussian, Huber
     loss and 5 % trimming, for the scene within --radius and for the avatar.
     paa_y = |c_avatar − c_scene|₁; apf_y = mean |Y − (s·E(n; c_scene) + b)|
     after a per-frame affine fit; ncm_ab = exact 1-Wasserstein distance of the
@@ -433,7 +433,7 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     settings = {"radius": radius, "neighbours": neighbours, "normals": normal_source,
                 "max_points": max_points, "seed": seed, "sh_order": 3, "sh_coefficients": 16,
                 "variant_sh_coefficients": 9, "huber": 1.345, "trim": 0.05,
-                "scale_fix": "E averages 1 over the sphere (c_00 = 2*sqrt(pi))",
+                "scale_fix": "|c|_2 = 1, c_00 > 0",
                 "albedo_ridge": 1.0, "factorization_iterations": 6}
     prov = provenance(FORMAT, VERSION, inputs, settings)
     record = make_record("lighting", result["metrics"], prov["inputs"], settings, prov,

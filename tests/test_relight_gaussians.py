@@ -466,12 +466,12 @@ def test_estimate_lights_paper_details():
     est = estimate_lights(scene, 1, roi_radius=0.8, character=char)
     np.testing.assert_allclose(est.positions[0], lamp_b, atol=0.04)
     # soft clipping: below the fence untouched, order kept, bounded above
-    v = np.r_[np.linspace(0, 1, 200), 50.0, 1e6]
+    v = np.r_[np.linspace(0, 1, 200), 5.0, 50.0, 1e6]
     c = soft_clip(v)
-    q50, q99 = np.percentile(v, [50, 99])
-    fence, width = q99 + 3 * (q99 - q50), q99 - q50
+    fence = 10 * np.percentile(v, 99)
     np.testing.assert_array_equal(c[v <= fence], v[v <= fence])
-    assert np.all(np.diff(c) >= 0) and c.max() <= fence + width
+    assert c[200] == 5.0                                      # a lamp 5× the bulk: kept
+    assert np.all(np.diff(c) >= 0) and c.max() <= 2 * fence
     # a blown-out floater (luminance 1e4): clipping keeps the order but not its 1000× margin,
     # so its score no longer swamps the lamps (what an intensity-from-score light inherits)
     from relight_cli.formats.gaussians_ply import concatenate
@@ -483,7 +483,7 @@ def test_estimate_lights_paper_details():
     v1 = estimate_lights(with_floater, 2, variant="v1")
     assert v1.positions[0][2] == pytest.approx(1.5) and paper.positions[0][2] == pytest.approx(1.5)
     assert v1.scores[0] > 1000 * v1.scores[1]                 # unclipped (measured 3500×)
-    assert paper.scores[0] < 5 * paper.scores[1]              # soft-clipped (measured 3.6×)
+    assert paper.scores[0] < 50 * paper.scores[1]             # soft-clipped (measured 20×)
     # colour toward the character: the SH evaluated from the character's centroid
     # (the glint is bright for viewing directions along +x, i.e. seen from a camera at −x)
     glint = len(scene) - 5

@@ -15,9 +15,10 @@ reading (kept for comparison):
    luminance Y = 0.2126 R + 0.7152 G + 0.0722 B over the views: mean Ȳ, max Ŷ,
    angular stability s = 1 − std/mean ∈ [0, 1] (emitters look alike from
    everywhere), DC dominance δ = |f_dc|² / Σ|f|² (1 for degree 0).
-3. Soft clipping of extreme outliers (``paper``): Ȳ and Ŷ above a robust upper
-   fence q = Q99 + 3·(Q99 − Q50) are compressed to q + (q − Q50)·tanh((Y − q)/(q − Q50)),
-   so one blown-out floater cannot dominate (order kept).  ``v1``: none.
+3. Soft clipping of extreme outliers (``paper``): Ȳ and Ŷ above the fence
+   q = 10·Q99 (an order of magnitude beyond the bulk of the scene) are
+   compressed to q·(1 + tanh((Y − q)/q)) < 2q, so one blown-out floater cannot
+   swamp the scores (order kept; real lamps sit below the fence).  ``v1``: none.
 4. Base score b = opacity · (Ȳ + Ŷ)/2 · (½ + ½s) · (½ + ½δ) — no size term,
    so no bias toward large Gaussians.  Only the high-score tail (the
    ``candidates`` best) goes on.
@@ -73,17 +74,26 @@ class EstimatedLights:
                       [f"auto{i}" for i in range(len(self.positions))], dict(extra or {}))
 
 
+CLIP_FACTOR = 10.0   # the soft-clip fence, in multiples of the 99th percentile
+
+
 def soft_clip(values: np.ndarray) -> np.ndarray:
-    """Compress values above the fence q = Q99 + 3·(Q99 − Q50) smoothly (tanh), order kept."""
+    """Compress values above the fence q = CLIP_FACTOR·Q99 smoothly, q·(1 + tanh((v − q)/q)).
+
+    An order of magnitude above the bulk of the scene a lamp keeps its value
+    (lamps are rare but rarely 10× brighter than the 99th percentile of an HDR
+    capture's Gaussians); a blown-out floater of 1e4 is pulled below 2q.
+    Monotonic, so the order of candidates is kept.
+    """
     v = np.asarray(values, np.float64)
     if len(v) < 10:
         return v.copy()
-    q50, q99 = np.percentile(v, [50, 99])
-    width = max(q99 - q50, 1e-12 * max(abs(q99), 1e-300))
-    fence = q99 + 3 * width
+    fence = CLIP_FACTOR * float(np.percentile(v, 99))
+    if not fence > 0:
+        return v.copy()
     over = v > fence
     out = v.copy()
-    out[over] = fence + width * np.tanh((v[over] - fence) / width)
+    out[over] = fence * (1 + np.tanh((v[over] - fence) / fence))
     return out
 
 

@@ -12,15 +12,15 @@ Two families, each under its own names (``formats/metrics_json.md``):
   avatar; the avatar likewise gives c_avatar and β_a ≥ 0 (normals outward).
   :func:`factorize_luminance` fits it (Huber loss, 5 % trimming).  Two things the
   paper leaves open are fixed here and documented: (i) the scale ambiguity
-  (α, c) ~ (α·s, c/s) is fixed by making E average 1 over the sphere
-  (c_00 = 2√π), so c is the *shape* of the lighting and α carries albedo ×
-  exposure; (ii) with a free α_i per Gaussian any c with E(n̂_i) > 0 fits exactly,
+  (α, c) ~ (α·s, c/s) is fixed by ‖c‖₂ = 1 with c_00 > 0, so c is the *shape*
+  of the lighting and α carries albedo × exposure (PAA-Y then lies in [0, 2√16];
+  Table 1's 0.3–0.6 are of that magnitude, the paper does not say which
+  normalization it used); (ii) with a free α_i per Gaussian any c with E(n̂_i) > 0 fits exactly,
   so the α update is a ridge towards the set's mean scale ᾱ,
   α_i = max(0, (E_i Y_i + λ ᾱ)/(E_i² + λ)), λ = ``albedo_ridge`` · mean(E²):
   albedo varies only where the shading cannot explain Y.  Alternated
   ``iterations`` times from α = 1.
-* PAA-Y = ‖c_avatar − c_scene‖₁ (16 coefficients; the DC terms agree by the
-  normalization).
+* PAA-Y = ‖c_avatar − c_scene‖₁ (16 coefficients, both of unit norm).
 * APF-Y = (1/|A|) Σ_a |Y_a − (s·E(n̂_a; c_scene) + b)|, the per-frame affine
   calibration (s, b) fitted with the same robust fit.
 * NCM-ab = exact 1-Wasserstein distance (Euclidean ground cost, Lab units)
@@ -277,8 +277,9 @@ def wasserstein_2d(a: np.ndarray, b: np.ndarray, wa=None, wb=None, max_points: i
 
 
 def factorize_luminance(y, normals, weights=None, order: int = PAPER_ORDER,
-                        albedo_ridge: float = 1.0, iterations: int = 6, trim: float = TRIM):
-    """Y_i ≈ α_i E(n̂_i; c), α_i ≥ 0, E average 1 over the sphere (module doc; paper Sec. 4.1).
+                        albedo_ridge: float = 1.0, iterations: int = 6, trim: float = TRIM,
+                        ridge: float = 1e-9):
+    """Y_i ≈ α_i E(n̂_i; c), α_i ≥ 0, ‖c‖₂ = 1 and c_00 > 0 (module doc; paper Sec. 4.1).
 
     Args:
         y: [N] luminance; normals: [N, 3] unit; weights: [N] (opacities) or None.
@@ -296,14 +297,14 @@ def factorize_luminance(y, normals, weights=None, order: int = PAPER_ORDER,
     if len(y) < 2 * basis.shape[1]:
         raise ValueError(f"{len(y)} Gaussians are too few for an order-{order} SH fit "
                          f"(need at least {2 * basis.shape[1]})")
-    dc = 2 * math.sqrt(math.pi)                                       # c_00 with mean E = 1
     alpha = np.ones(len(y))
     for it in range(iterations):
-        c, _, kept = robust_linear_fit(alpha[:, None] * basis, y, w, trim)
+        c, _, kept = robust_linear_fit(alpha[:, None] * basis, y, w, trim, ridge=ridge)
         if not c[0] > 0:
             raise ValueError("the luminance has no positive mean irradiance to factorize")
-        alpha = alpha * (c[0] / dc)
-        c = c * (dc / c[0])
+        norm = float(np.linalg.norm(c))                               # the scale fix: |c|₂ = 1
+        alpha = alpha * norm
+        c = c / norm
         if it == iterations - 1:
             break
         e = basis @ c
