@@ -286,10 +286,45 @@ def _parse_roi(text):
     return tuple(int(v) for v in values)
 
 
+def _avatar_roi(roi, avatar_spec, camera_path, radius, quiet):
+    """--roi-avatar: the avatar-centric pixel box (relight_cli.gaussians.shadow_matte.avatar_roi)."""
+    import math
+
+    from relight_cli.commands.dgsm_build import load_placed, parse_occluder
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.formats.camera import read_camera
+    from relight_cli.gaussians.shadow_matte import avatar_roi
+
+    if roi is not None:
+        raise UsageProblem("give --roi or --roi-avatar, not both")
+    if camera_path is None:
+        raise UsageProblem("--roi-avatar needs --camera CAMERA.json (the mattes' camera)")
+    if not (radius > 0 and math.isfinite(radius)):
+        raise UsageProblem(f"--roi-radius must be positive, got {radius}")
+    source, placement = parse_occluder(avatar_spec, "--roi-avatar")
+    check_input(source)
+    check_input(camera_path)
+    avatar = load_placed(source, placement, avatar_spec)
+    box = avatar_roi(avatar, read_camera(camera_path), radius)
+    if box is None:
+        raise DataError("the avatar-centric region is not in the camera's view", avatar_spec)
+    log(f"avatar-centric ROI: x {box[0]}, y {box[1]}, {box[2]}x{box[3]} px", quiet)
+    return box
+
+
 @command.command("shadow", short_help="SAE, SM-IoU and boundary F-measure of shadow mattes.")
 @click.argument("pred", metavar="PRED")
 @click.argument("gt", metavar="GT")
 @click.option("--roi", default=None, help="Region of interest X,Y,W,H in pixels (default: all).")
+@click.option("--roi-avatar", default=None, metavar="AVATAR",
+              help="Compute the ROI from the avatar (paper Sec. 4.2, avatar-centric): the image "
+                   "box of the region within --roi-radius (horizontally) of its alpha-weighted "
+                   "centroid, floor to top, seen by --camera.  A PLY, mesh or builtin:, with a "
+                   "placement SOURCE:KEY=VALUE;... as in dgsm-build.")
+@click.option("--camera", "roi_camera", default=None, metavar="CAMERA.json",
+              help="The camera of the mattes (for --roi-avatar).")
+@click.option("--roi-radius", type=float, default=1.0, show_default=True,
+              help="Half-size R (metres) of the avatar-centric region.")
 @click.option("--threshold", type=float, default=0.1, show_default=True,
               help="Matte value above which a pixel counts as shadowed.")
 @click.option("--tolerance", type=float, default=2.0, show_default=True,
@@ -302,8 +337,8 @@ def _parse_roi(text):
 @_percentiles
 @no_clobber_option
 @quiet_option
-def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, percentiles,
-                   no_clobber, quiet):
+def shadow_command(pred, gt, roi, roi_avatar, roi_camera, roi_radius, threshold, tolerance, matte,
+                   output, jsonl, percentiles, no_clobber, quiet):
     """Score predicted shadow mattes PRED against pseudo-ground-truth GT (DGSM paper).
 
     SAE: mean absolute error over the GT shadow region; SM-IoU: IoU of the
@@ -322,6 +357,10 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
     _check_outputs(output, jsonl, no_clobber)
     qs = parse_percentiles(percentiles)
     roi_box = _parse_roi(roi)
+    if roi_avatar is not None:
+        roi_box = _avatar_roi(roi, roi_avatar, roi_camera, roi_radius, quiet)
+    elif roi_camera is not None:
+        raise UsageProblem("--camera is for --roi-avatar")
     if not 0 <= threshold < 1:
         raise UsageProblem(f"--threshold must lie in [0, 1), got {threshold}")
     if not tolerance >= 0:
@@ -347,7 +386,8 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
             raise UsageProblem(str(exc), g_path) from None
         results.append((name, p_path, g_path, None, result))
     settings = {"threshold": threshold, "tolerance": tolerance, "roi": list(roi_box) if roi_box else None,
-                "matte": matte, "percentiles": qs}
+                "matte": matte, "percentiles": qs, "roi_avatar": roi_avatar,
+                "roi_radius": roi_radius if roi_avatar else None}
     record, rows = _batch_record("shadow", results, len(pairs) > 1 or _is_multi(pred), settings, qs)
     _write(output, jsonl, record, rows)
     log(f"{len(results)} pair(s) scored", quiet)

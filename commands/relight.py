@@ -49,6 +49,12 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
               help="[Gaussians] Each light's share w_l of the direct light (paper Sec. 3.3): "
                    "intensity × colour (from the DGSM), also × |n·ω|/r² at each receiver "
                    "(irradiance), or equal (the plain mean T of older versions).")
+@click.option("--shadow-matte", type=click.Choice(["dgsm", "mesh"]), default=None,
+              help="[Gaussians] With --render: the receivers-only shadow matte of the paper's "
+                   "protocol (Sec. 4.2): receivers coloured by shadow strength 1 − Σw_l V_l/Σw_l, "
+                   "nothing else drawn; dgsm: V = the DGSM's transmittance; mesh: V = embree "
+                   "shadow rays against IN (and --object) as triangle meshes, the pseudo ground "
+                   "truth.  Lights and weights come from --dgsm in both.")
 @click.option("--lobe", type=float, default=1.0, show_default=True,
               help="[Gaussians] Cosine lobe exponent q of the transfer (1 = Lambertian).")
 @click.option("--intensity", type=float, default=1.0, show_default=True,
@@ -101,7 +107,8 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @no_clobber_option
 @quiet_option
 def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
-            shadow_strength, light_weights, lobe, intensity, t_max, normals, render_camera, background, model,
+            shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals,
+            render_camera, background, model,
             hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
             preview, seed, no_clobber, quiet):
@@ -168,7 +175,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
 
 def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers_out, footprint,
                        samples,
-                       shadow_strength, light_weights, lobe, intensity, t_max, normals, render_camera, background,
+                       shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals, render_camera, background,
                        preview, seed, no_clobber, quiet, **_):
     import math
     import time
@@ -183,7 +190,7 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     from relight_cli.provenance import provenance
 
     # ---- usage checks before any work
-    if probe is None:
+    if probe is None and shadow_matte is None:
         raise UsageProblem("Gaussian relighting needs --probe PROBE.json (make one with relight "
                            "sh-probe)")
     if dgsm is not None and receivers is None:
@@ -192,6 +199,9 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         raise UsageProblem("--receivers-out needs --receivers")
     if preview is not None and render_camera is None:
         raise UsageProblem("--preview needs --render")
+    if shadow_matte is not None and (render_camera is None or dgsm is None):
+        raise UsageProblem("--shadow-matte renders a matte: give --render CAMERA.json and --dgsm "
+                           "SHADOWS.exr (its lights)")
     if not (lobe > 0 and math.isfinite(lobe)):
         raise UsageProblem(f"--lobe must be a positive finite number, got {lobe}")
     if not (intensity >= 0 and math.isfinite(intensity)):
@@ -215,6 +225,10 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
             check_input(path)
 
     start = time.perf_counter()
+    if shadow_matte is not None:
+        return _shadow_matte(shadow_matte, specs, parsed, output, dgsm, receivers, render_camera,
+                             footprint, samples, light_weights, background, preview, seed, quiet,
+                             start)
     sh_probe = read_probe(probe)
     relit_objects = []
     for spec, (source, placement) in zip(specs, parsed):
@@ -235,19 +249,10 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     if dgsm is not None:
         shadow_map = _read_dgsm(dgsm)
         from relight_cli.gaussians.dgsm import sample_transmittance
-        weights_used = light_weights
-        if light_weights != "equal" and shadow_map.intensities is None:
-            weights_used = "equal"
-            log("note: this shadow map (DGSM version 1) stores no light intensities; the lights "
-                "are weighted equally", quiet)
+        weights_used = _weights_mode(light_weights, shadow_map, quiet)
 
         def weights_for(g, normals=None):
-            if weights_used != "irradiance":
-                return TF.direct_light_weights(weights_used, shadow_map.intensities,
-                                               shadow_map.colors, n_lights=len(shadow_map.lights))
-            return TF.direct_light_weights(
-                "irradiance", shadow_map.intensities, shadow_map.colors, shadow_map.lights,
-                g.means, TF.estimate_normals(g, "axis") if normals is None else normals)
+            return TF.dgsm_light_weights(weights_used, shadow_map, g, normals)
 
         T = sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
                                  footprint=footprint, samples=samples, seed=seed)   # [L, M]
@@ -320,6 +325,72 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         log(f"wrote {preview}", quiet)
 
 
+def _weights_mode(light_weights, shadow_map, quiet):
+    """--light-weights as it can run with this shadow map (version 1 maps: equal, said)."""
+    from relight_cli.gaussians import transfer as TF
+    mode = TF.effective_light_weights(light_weights, shadow_map.intensities)
+    if mode != light_weights:
+        log("note: this shadow map (DGSM version 1) stores no light intensities; the lights "
+            "are weighted equally", quiet)
+    return mode
+
+
+def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, render_camera, footprint, samples,
+                  light_weights, background, preview, seed, quiet, start):
+    """The receivers-only shadow matte of the paper's Sec. 4.2 (``--shadow-matte``)."""
+    import time
+
+    import numpy as np
+
+    from relight_cli.errors import DataError
+    from relight_cli.formats.camera import read_camera
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.gaussians import dgsm as D
+    from relight_cli.gaussians import shadow_matte as SM
+    from relight_cli.gaussians import transfer as TF
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    from relight_cli.gaussians.splat import render
+    from relight_cli.provenance import provenance
+
+    shadow_map = _read_dgsm(dgsm)
+    scene = load_gaussians(receivers)
+    camera = read_camera(render_camera)
+    weights_used = _weights_mode(light_weights, shadow_map, quiet)
+    weights = TF.dgsm_light_weights(weights_used, shadow_map, scene)
+    if mode == "dgsm":
+        V = D.sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
+                                   footprint=footprint, samples=samples, seed=seed)   # [L, M]
+    else:
+        meshes = []
+        for spec, (source, placement) in zip(specs, parsed):
+            try:
+                meshes.append(SM.load_placed_mesh(source, placement))
+            except ValueError as exc:
+                raise DataError(str(exc), spec) from None
+        pts, n = D.footprint_samples(scene.means, scene.scales, scene.rotations, footprint,
+                                     samples, seed)
+        V = SM.mesh_visibility(meshes, shadow_map.lights, pts.reshape(-1, 3))
+        V = V.reshape(len(shadow_map.lights), len(scene), n).mean(axis=2)
+    strength = SM.shadow_strength(TF.shadow_factor(V, weights, 1.0))
+    image = render(scene, camera, background=parse_vector(background, 3, "--background"),
+                   colors=SM.matte_colors(strength))
+    inputs = {"input": parsed[0][0], "dgsm": dgsm, "receivers": receivers, "camera": render_camera}
+    for j, (source, _) in enumerate(parsed[1:]):
+        inputs[f"object{j}"] = source
+    settings = {"shadow_matte": mode, "footprint": footprint, "samples": samples, "seed": seed,
+                "light_weights": weights_used, "dgsm_mapping": shadow_map.mapping,
+                "objects": specs}
+    channels = {"R": image.image[..., 0], "G": image.image[..., 1], "B": image.image[..., 2],
+                "A": image.alpha}
+    write_exr(output, channels, attributes={"relight.matte": f"shadow strength ({mode})"},
+              provenance=provenance("relight/render", 1, inputs, settings))
+    log(f"wrote {output} (shadow matte, {mode}: {int((strength > 0.1).sum())} of {len(strength)} "
+        f"receivers > 0.1, {time.perf_counter() - start:.2f} s)", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_preview
+        write_preview(preview, image.image.astype(np.float32))
+
+
 def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, render_camera,
                   model, hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res,
                   tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map,
@@ -334,7 +405,8 @@ def _relight_hand(input, env, output, probe, dgsm, receivers, receivers_out, ren
 
     # ---- usage checks before any work
     gaussian_only = {"--probe": probe, "--dgsm": dgsm, "--receivers": receivers,
-                     "--receivers-out": receivers_out, "--render": render_camera}
+                     "--receivers-out": receivers_out, "--render": render_camera,
+                     "--shadow-matte": _.get("shadow_matte")}
     given = [k for k, v in gaussian_only.items() if v is not None]
     if given:
         raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply); "

@@ -347,3 +347,54 @@ def test_dgsm_version2_requires_light_properties(tmp_path):
                   provenance=provenance("relight/dgsm", VERSION))
         with pytest.raises(DataError, match=what):
             read_dgsm(bad)
+
+
+def test_shadow_protocol_from_the_command_line(tmp_path):
+    """Paper Sec. 4.2 end to end: a DGSM matte of a Gaussian sphere and the embree pseudo-GT
+    matte of the same sphere as a mesh, scored in the avatar-centric ROI."""
+    import json
+
+    from relight_cli.formats.camera import Camera, write_cameras
+    lights = tmp_path / "l.json"
+    write_lights(str(lights), Lights([[0.3, 1.5, 0.2]], intensities=[4.0]))
+    write_cameras(str(tmp_path / "cam.json"),
+                  [Camera.look_at([0.0, 1.6, 0.9], [0.0, 0.0, -0.1], width=96, height=72,
+                                  fov_y_deg=60)])
+    sphere = "builtin:sphere:translate=0,0.35,0"
+    shadows = str(tmp_path / "s.exr")
+    r = _run(["dgsm-build", sphere, "--receivers", "builtin:room", "--lights", str(lights),
+              "-o", shadows, "--size", "128", "--bins", "32", "--footprint", "centre", "-q"])
+    assert r.exit_code == 0, r.output
+    mattes = {}
+    for mode in ("dgsm", "mesh"):
+        mattes[mode] = str(tmp_path / f"{mode}.exr")
+        r = _run(["relight", sphere, "--shadow-matte", mode, "--dgsm", shadows, "--receivers",
+                  "builtin:room", "--render", str(tmp_path / "cam.json"), "--footprint", "centre",
+                  "-o", mattes[mode], "-q"])
+        assert r.exit_code == 0, r.output
+    from relight_cli.formats.exr import read_exr
+    gt = read_exr(mattes["mesh"]).channels["R"]
+    pred = read_exr(mattes["dgsm"]).channels["R"]
+    assert gt.max() > 0.99 and (gt > 0.5).sum() > 30          # a hard shadow on the floor
+    assert pred.max() > 0.5
+    out = str(tmp_path / "m.json")
+    r = _run(["metrics", "shadow", mattes["dgsm"], mattes["mesh"], "--roi-avatar", sphere,
+              "--camera", str(tmp_path / "cam.json"), "--roi-radius", "0.6", "-o", out])
+    assert r.exit_code == 0, r.output
+    rec = json.loads(open(out).read())
+    x, y, w, h = rec["settings"]["roi"]
+    assert 0 < w < 96 and 0 < h <= 72                          # computed, smaller than the image
+    assert rec["metrics"]["sm_iou"] > 0.5 and rec["metrics"]["sae"] < 0.5
+    # usage errors: a matte needs the DGSM (its lights) and a camera; the GT needs a mesh
+    r = _run(["relight", sphere, "--shadow-matte", "dgsm", "--receivers", "builtin:room",
+              "--render", str(tmp_path / "cam.json"), "-o", str(tmp_path / "x.exr")])
+    assert r.exit_code == 2 and "--dgsm" in r.output
+    from relight_cli.formats.gaussians_ply import write_gaussians
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    write_gaussians(str(tmp_path / "ball.ply"), load_gaussians("builtin:sphere"))
+    r = _run(["relight", str(tmp_path / "ball.ply"), "--shadow-matte", "mesh", "--dgsm", shadows,
+              "--receivers", "builtin:room", "--render", str(tmp_path / "cam.json"),
+              "-o", str(tmp_path / "x.exr")])
+    assert r.exit_code == 1 and "mesh" in r.output
+    r = _run(["metrics", "shadow", mattes["dgsm"], mattes["mesh"], "--roi-avatar", sphere])
+    assert r.exit_code == 2 and "--camera" in r.output

@@ -214,6 +214,26 @@ def direct_light_weights(mode: str, intensities=None, colors=None, lights=None, 
     return w * geometry[:, :, None]
 
 
+def effective_light_weights(mode: str, intensities) -> str:
+    """``mode``, or ``equal`` when the shadow map stores no intensities (DGSM version 1)."""
+    return "equal" if mode != "equal" and intensities is None else mode
+
+
+def dgsm_light_weights(mode: str, shadow_map, receivers: Gaussians,
+                       normals: np.ndarray | None = None) -> np.ndarray:
+    """:func:`direct_light_weights` for a DGSM's lights at ``receivers`` ([L, 1|M, 3]).
+
+    ``irradiance`` uses ``normals`` [M, 3] or the receivers' shortest axes.
+    """
+    if mode != "irradiance":
+        return direct_light_weights(mode, shadow_map.intensities, shadow_map.colors,
+                                    n_lights=len(shadow_map.lights))
+    if normals is None:
+        normals = estimate_normals(receivers, "axis")
+    return direct_light_weights("irradiance", shadow_map.intensities, shadow_map.colors,
+                                shadow_map.lights, receivers.means, normals)
+
+
 def shadow_factor(transmittance: np.ndarray, weights: np.ndarray | None = None,
                   strength: float = 1.0) -> np.ndarray:
     """Multiplier (1 − s) + s·Σ_l w_l T_l / Σ_l w_l of receiver colours (module doc).
