@@ -62,9 +62,10 @@ through the centre along d collects τ_centre(d) = β_i √(2π) σ_t,i(d), with
 * ``diag`` (Table 4 mapping 4): β = κ τ* / ((2π)^{3/2} s_x s_y s_z), the
   diagonal scales.  **mass and diag coincide**: in the local frame Σ =
   diag(s_x², s_y², s_z²), so √det Σ = s_x s_y s_z for every 3DGS Gaussian (Σ =
-  R S² Rᵀ, det R = 1): the two give the same β (tested), and Table 4's
-  separate rows for them can only differ through how a pipeline computes det.  (Reading A in mapping 3 as the precision of Eq. 5 instead would
-  give β ∝ τ* s_x s_y s_z, which is not a density; we follow Sec. 4.4's text.)
+  R S² Rᵀ, det R = 1): the two give the same β (tested).  The paper's Table 4
+  reports different numbers for them (SAE 0.171 vs 0.177), which this reading
+  cannot reproduce; reading A in mapping 3 as the precision of Eq. 5 instead
+  would give β ∝ τ* s_x s_y s_z, not a density, so we follow Sec. 4.4's text.
   The paper writes mappings 2–4 without κ; κ = 1 (the default) is the paper's.
 * ``peak`` (this toolkit's variant, called ``eq5`` before DGSM version 2):
   direction-dependent β_i(d) = κ τ*_i / (√(2π) σ_t,i(d)), so every ray through
@@ -76,8 +77,8 @@ through the centre along d collects τ_centre(d) = β_i √(2π) σ_t,i(d), with
 
 Where two coincide besides mass ≡ diag: avg ≡ peak for isotropic Gaussians
 (tr(A)/3 = dᵀAd = 1/s²), and simple ≡ avg for isotropic ones of s = 1/√(2π) m.
-τ_centre is clipped at 1e30 (float32-safe; with the scale floors below mass
-and diag stay under 5e30, and T = 0 to float precision long before).
+τ_centre is clipped at 1e30 to stay inside float32 (only mass/diag of
+Gaussians thinner than ~1e-9 m with α → 1 reach it, where T = 0 anyway).
 ``formats/dgsm_exr.md`` and the provenance record which mapping ran.
 """
 
