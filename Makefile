@@ -69,10 +69,11 @@ demo: install
 	    --dgsm demo/scene_shadows.exr --receivers demo/room.ply --render demo/scene_cam.json \
 	    -o demo/scene_after.exr --preview demo/scene_after.png; \
 	fi
-	# the real robot (if ../shared/data is here) beside the hand in the room: lights estimated from
-	# the room (auto:2, paper Sec. 3.1), one DGSM for hand + robot, the probe fitted from the scene
-	# at the robot (Sec. 3.4), before/after renders and the lighting metrics (Sec. 4.1); "before"
-	# is the robot relit by a uniform probe of radiance 1, i.e. its captured colours
+	# the real robot (if ../shared/data is here) beside the hand in the room, with a lamp added (a
+	# compact bright cluster of Gaussians): the light estimated from the scene (auto:1, paper
+	# Sec. 3.1), one DGSM for hand + robot, the probe fitted from the scene at the robot (Sec. 3.4),
+	# before/after renders and the lighting metrics (Sec. 4.1); "before" is the robot relit by a
+	# uniform probe of radiance 1, i.e. its captured colours
 	if [ -f $(SHARED)/gaussians/playbot-lod3.ply ]; then \
 	  $(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/robot_cam.json', [Camera.look_at([0.45,0.45,0.7],[-0.1,0.13,0.05],width=400,height=300,fov_y_deg=50)])" && \
 	  $(PY) -c "import numpy as np; from relight_cli.gaussians.from_mesh import load_gaussians; from relight_cli.formats.gaussians_ply import Gaussians, concatenate, rgb_to_sh_dc, write_gaussians; n = 40; lamp = Gaussians(np.array([0.35, 1.3, 0.45]) + np.random.default_rng(0).normal(0, 0.015, (n, 3)), np.full((n, 3), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.95), rgb_to_sh_dc(np.tile([6.0, 5.6, 5.0], (n, 1)))[:, None, :], 0); write_gaussians('demo/room_lamp.ply', concatenate([load_gaussians('builtin:room'), lamp]))" && \
