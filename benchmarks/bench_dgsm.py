@@ -18,6 +18,11 @@ Mattes (1 = shadow) on a floor image are scored with relight_cli.metrics.shadow
   C atlas (octahedral / cube),
 plus "direct": the closed-form transmittance at every floor point without a
 table (what the Gaussians themselves give, i.e. the table's upper bound).
+B and C run with the paper's full method otherwise (Monte Carlo footprint).
+
+Part 3 — beside the paper: Tables 3–5 and the Sec. 4.4 D timings (0.13 s,
+29.1 s, 17.1 s on an A100) next to ours, with one line per claim saying
+whether its best setting / ordering is reproduced, tied, or not.
 
 Usage:
   .venv/bin/python benchmarks/bench_dgsm.py [--quick] [--full-reference]
