@@ -56,7 +56,8 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
               help="Largest optical depth a culled Gaussian may have contributed.")
 @click.option("--footprint", type=click.Choice(["centre", "stencil", "mc"]), default="stencil",
               show_default=True,
-              help="Receiver footprint that later lookups use (widens the ROI to cover it).")
+              help="Receiver footprint that later lookups use (widens the ROI to cover it); "
+                   "the paper's default is mc, see relight --footprint.")
 @click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
               help="Monte Carlo samples for --footprint mc.")
 @click.option("--allow-light-inside", is_flag=True,
