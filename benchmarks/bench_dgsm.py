@@ -1,9 +1,11 @@
 """DGSM speed and shadow-accuracy study (not a test; prints tables, optional JSON).
 
-Part 1 — build time (issue target: 50k-Gaussian avatar, 128×128×64, one light,
-≤ 1 s on a 2-core machine) and the speed-up from the receiver ROI and from
-light-space culling, with the error each shortcut costs (max |ΔT| of receiver
-lookups against the build with neither shortcut where that is measured).
+Part 1 — build time (issue 14 target: a 50k-Gaussian avatar, 128×128×64, one
+light, ≤ 0.2 s on a 2-core machine; before issue 14 the volumetric scene took
+0.44 s here, its cost in the per-cone texel enumeration, not in erf) for the
+float32 torch and numpy inner loops and the float64 numpy reference twin, the
+ROI and culling ablations, with the error of each against the float64 build
+(max |ΔT| over table entries and at receivers).
 
 Part 2 — the paper's shadow protocol (Sec. 4.2): an occluder mesh (the
 built-in procedural hand, or a sphere) turned into flat Gaussians
@@ -12,10 +14,15 @@ truth is the same mesh's embree ray-traced hard shadow (relight_cli.raytrace).
 Mattes (1 = shadow) on a floor image are scored with relight_cli.metrics.shadow
 (SAE, SM-IoU, boundary F at 2 px) for the ablations:
   A footprint (centre / 7-point stencil / Monte Carlo),
-  B opacity→absorption mapping (eq5 / simple / mass / diag),
+  B opacity→absorption mapping (the paper's avg = Eq. 5 / simple / mass / diag, and peak),
   C atlas (octahedral / cube),
 plus "direct": the closed-form transmittance at every floor point without a
 table (what the Gaussians themselves give, i.e. the table's upper bound).
+B and C run with the paper's full method otherwise (Monte Carlo footprint).
+
+Part 3 — beside the paper: Tables 3–5 and the Sec. 4.4 D timings (0.13 s,
+29.1 s, 17.1 s on an A100) next to ours, with one line per claim saying
+whether its best setting / ordering is reproduced, tied, or not.
 
 Usage:
   .venv/bin/python benchmarks/bench_dgsm.py [--quick] [--full-reference]
@@ -96,61 +103,98 @@ def floor_receivers(half: float, n: int, y: float = 0.0, centre=(0.0, 0.0)):
 # ------------------------------------------------------------------ part 1: speed
 
 
-def part_speed(quick: bool, full_reference: bool):
+def volumetric_avatar(n: int = 50_000, seed: int = 0):
+    """n volumetric Gaussians on the humanoid's surface, as a trained 3DGS avatar has them:
+    log-normal scales around 1.2 cm (σ_log 0.5), random orientations, opacity U(0.2, 1).
+
+    Their cones cover several atlas texels each, unlike the flat one-per-face
+    Gaussians of :func:`gaussians_from_mesh`, so the per-pair closed form
+    (and its erf) is real work here: this is the issue's speed scenario.
+    """
+    import trimesh
+    from relight_cli.formats.gaussians_ply import Gaussians, rgb_to_sh_dc
     v, f = avatar_mesh()
-    g = gaussians_from_mesh(v, f)
-    mix = TR.from_gaussians(g)
+    rng = np.random.default_rng(seed)
+    means, _ = trimesh.sample.sample_surface(trimesh.Trimesh(v, f), n, seed=seed)
+    scales = np.exp(rng.normal(np.log(0.012), 0.5, (n, 3)))
+    quats = rng.normal(size=(n, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    return Gaussians(np.asarray(means, float), scales, quats, rng.uniform(0.2, 1.0, n),
+                     rgb_to_sh_dc(np.full((n, 3), 0.5))[:, None, :], 0)
+
+
+def _best_of(fn, repeats):
+    """(min seconds, last result) over ``repeats`` calls: the machine is shared, the minimum is
+    the least disturbed run."""
+    best, out = float("inf"), None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def part_speed(quick: bool, full_reference: bool):
+    import torch   # imported up front: its import (≈ 1.5 s) is not build time
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
     light = np.array([0.8, 3.0, 0.5])
     means, scales, rot, _ = floor_receivers(3.0, 200)
     pts, _ = D.footprint_samples(means, scales, rot, "stencil")
     pts = pts.reshape(-1, 3)
-    print(f"\n## Part 1: build time, {len(g)} avatar Gaussians, 128×128×64, one light, "
-          f"{len(means)} floor receivers (7-point stencil → {len(pts)} ROI points), "
-          f"{os.cpu_count()} CPU(s)\n")
-    configs = [("ROI + culling", True, True), ("culling only", False, True)]
-    if not quick:
-        configs.append(("ROI only (no culling)", True, False))
-    if full_reference:
-        configs.append(("neither", False, False))
-    rows = []
-    maps = {}
-    t_max = None   # every configuration uses the ROI build's t_max, so lookups compare
-    for name, roi, cull in configs:
-        runs = []
-        for _ in range(1 if not cull else 3):
-            t0 = time.perf_counter()
-            m = D.build_dgsm(mix, [light], pts, size=(128, 128), bins=64, roi=roi, cull=cull,
-                             t_max=t_max)
-            runs.append(time.perf_counter() - t0)
-        maps[name] = m
-        if t_max is None:
-            t_max = float(m.t_max[0])
-        rows.append({"config": name, "seconds": min(runs), "texels": m.roi[0]["texels"],
-                     "bins": m.roi[0]["bins"], "pairs_tested": m.stats["pairs_tested"],
-                     "pairs_kept": m.stats["pairs_kept"]})
-    # "neither" estimated from the measured per-pair cost of the unculled ROI build
-    if not full_reference and "ROI only (no culling)" in maps:
-        r = next(r for r in rows if r["config"] == "ROI only (no culling)")
-        per_pair = r["seconds"] / max(r["pairs_tested"], 1)
-        full_pairs = 128 * 128 * len(g)
-        rows.append({"config": "neither (estimated: per-pair cost × all pairs)",
-                     "seconds": per_pair * full_pairs, "texels": 128 * 128, "bins": [0, 63],
-                     "pairs_tested": full_pairs, "pairs_kept": full_pairs})
-    base = maps["ROI + culling"]
-    t_ref = D.lookup(base, 0, means)
-    print("| configuration | build s | texels | bins | pairs tested | pairs kept | max ΔT at receivers vs ROI+culling |")
-    print("|---|---|---|---|---|---|---|")
-    for r in rows:
-        m = maps.get(r["config"])
-        if m is not None and m is not base:
-            r["max_dT"] = float(np.abs(D.lookup(m, 0, means) - t_ref).max())
-        dt = r.get("max_dT")
-        print(f"| {r['config']} | {r['seconds']:.3f} | {r['texels']} | {r['bins'][0]}..{r['bins'][1]} | "
-              f"{r['pairs_tested']:,} | {r['pairs_kept']:,} | {'' if dt is None else f'{dt:.2e}'} |")
-    both = rows[0]["seconds"]
-    for r in rows[1:]:
-        print(f"speed-up of ROI+culling over '{r['config']}': {r['seconds'] / both:.1f}×")
-    return {"gaussians": len(g), "rows": rows}
+    scenes = [("volumetric avatar (trained-3DGS-like)", volumetric_avatar()),
+              ("mesh avatar (flat Gaussian per face)", gaussians_from_mesh(*avatar_mesh()))]
+    results = []
+    repeats = 3 if quick else 5
+    for scene_name, g in scenes:
+        mix = TR.from_gaussians(g)       # default mapping: avg (paper Eq. 5)
+        print(f"\n## Part 1: build time — {scene_name}: {len(g)} Gaussians, 128×128×64, one light, "
+              f"{len(means)} floor receivers (7-point stencil → {len(pts)} ROI points), "
+              f"{os.cpu_count()} CPU(s), torch {torch.get_num_threads()} thread(s); best of "
+              f"{repeats}\n")
+        ref_kw = dict(size=(128, 128), bins=64)
+        ref = D.build_dgsm(mix, [light], pts, dtype=np.float64, backend="numpy", **ref_kw)
+        t_max = float(ref.t_max[0])
+        configs = [("ROI + culling, float32 torch", dict(backend="torch")),
+                   ("ROI + culling, float32 numpy", dict(backend="numpy")),
+                   ("ROI + culling, float64 numpy (reference)", dict(dtype=np.float64,
+                                                                      backend="numpy")),
+                   ("culling only, float32 torch", dict(roi=False, backend="torch"))]
+        if not quick:
+            configs.append(("ROI only (no culling), float32 torch", dict(cull=False, backend="torch")))
+        if full_reference:
+            configs.append(("neither, float32 torch", dict(roi=False, cull=False, backend="torch")))
+        rows = []
+        t_ref = D.lookup(ref, 0, means)
+        for name, kw in configs:
+            reps = 1 if kw.get("cull") is False else repeats
+            seconds, m = _best_of(lambda: D.build_dgsm(mix, [light], pts, t_max=t_max,
+                                                       **{**ref_kw, **kw}), reps)
+            table_err = float(np.abs(m.transmittance - ref.transmittance).max())
+            recv_err = float(np.abs(D.lookup(m, 0, means) - t_ref).max())
+            rows.append({"config": name, "seconds": seconds, "texels": m.roi[0]["texels"],
+                         "bins": m.roi[0]["bins"], "pairs_tested": m.stats["pairs_tested"],
+                         "pairs_kept": m.stats["pairs_kept"], "max_dT_table": table_err,
+                         "max_dT_receivers": recv_err})
+        if not full_reference and not quick:
+            r = next(r for r in rows if r["config"].startswith("ROI only"))
+            per_pair = r["seconds"] / max(r["pairs_kept"], 1)
+            full_pairs = 128 * 128 * len(g)
+            rows.append({"config": "neither (estimated: per-pair cost × all pairs)",
+                         "seconds": per_pair * full_pairs, "texels": 128 * 128, "bins": [0, 63],
+                         "pairs_tested": full_pairs, "pairs_kept": full_pairs})
+        print("| configuration | build s | texels | bins | pairs tested | pairs kept | "
+              "max ΔT table vs float64 | max ΔT at receivers vs float64 |")
+        print("|---|---|---|---|---|---|---|---|")
+        for r in rows:
+            e1, e2 = r.get("max_dT_table"), r.get("max_dT_receivers")
+            print(f"| {r['config']} | {r['seconds']:.3f} | {r['texels']} | {r['bins'][0]}..{r['bins'][1]} | "
+                  f"{r['pairs_tested']:,} | {r['pairs_kept']:,} | {'' if e1 is None else f'{e1:.1e}'} | "
+                  f"{'' if e2 is None else f'{e2:.1e}'} |")
+        goal = rows[0]["seconds"]
+        print(f"\nissue 14 goal (≤ 0.2 s, ROI + culling, float32 torch): {goal:.3f} s — "
+              f"{'met' if goal <= 0.2 else 'NOT met'}")
+        results.append({"scene": scene_name, "gaussians": len(g), "rows": rows})
+    return results
 
 
 # ------------------------------------------------------------------ part 2: shadow protocol
@@ -204,28 +248,33 @@ def part_protocol(kind: str, quick: bool):
         rows.append({"run": label, "sae": s["sae"], "sm_iou": s["sm_iou"],
                      "boundary_f": s["boundary_f"], "seconds": seconds})
 
-    mix_eq5 = TR.from_gaussians(g)
+    mix_avg = TR.from_gaussians(g)   # the default mapping (avg, paper Eq. 5)
     t0 = time.perf_counter()
     # closed form at every floor point, no table (culled; dense twin tested to 1e-5)
-    direct = D.exact_transmittance(mix_eq5, light, means)
-    score("direct closed form (no table), eq5", direct, time.perf_counter() - t0)
+    direct = D.exact_transmittance(mix_avg, light, means)
+    score("direct closed form (no table), avg", direct, time.perf_counter() - t0)
     for res in ((128,) if quick else (128, 512)):
         for fp in ("centre", "stencil", "mc"):
             t0 = time.perf_counter()
             pts, _ = D.footprint_samples(means, scales, rot, fp, 16, 0)
-            m = D.build_dgsm(mix_eq5, [light], pts.reshape(-1, 3), size=(res, res), bins=64)
+            m = D.build_dgsm(mix_avg, [light], pts.reshape(-1, 3), size=(res, res), bins=64)
             build = time.perf_counter() - t0
             T = D.sample_transmittance(m, means, scales, rot, fp, 16, 0, light_index=0)
-            score(f"A: footprint {fp}, octahedral {res}², eq5", T, build)
-    for mapping in ("eq5", "simple", "mass", "diag"):
+            score(f"A: footprint {fp}, octahedral {res}², avg", T, build)
+    # B and C with the paper's full method otherwise: Monte Carlo footprint, octahedral, avg
+    mc_pts, _ = D.footprint_samples(means, scales, rot, "mc", 16, 0)
+    mc_pts = mc_pts.reshape(-1, 3)
+    for mapping in TR.MAPPINGS:
         mix = TR.from_gaussians(g, mapping)
-        m = D.build_dgsm(mix, [light], means, size=(128, 128), bins=64)
-        score(f"B: mapping {mapping}, octahedral 128², centre", D.sample_transmittance(m, means, light_index=0),
+        m = D.build_dgsm(mix, [light], mc_pts, size=(128, 128), bins=64)
+        score(f"B: mapping {mapping}, octahedral 128², mc",
+              D.sample_transmittance(m, means, scales, rot, "mc", 16, 0, light_index=0),
               m.build_seconds)
     for layout in ("octahedral", "cube"):
-        m = D.build_dgsm(mix_eq5, [light], means, size=(128, 128), bins=64, layout=layout)
-        score(f"C: atlas {layout} ({m.height}×{m.width}), eq5, centre",
-              D.sample_transmittance(m, means, light_index=0), m.build_seconds)
+        m = D.build_dgsm(mix_avg, [light], mc_pts, size=(128, 128), bins=64, layout=layout)
+        score(f"C: atlas {layout} ({m.height}×{m.width}), avg, mc",
+              D.sample_transmittance(m, means, scales, rot, "mc", 16, 0, light_index=0),
+              m.build_seconds)
     print("| run | SAE ↓ | SM-IoU ↑ | boundary F (2 px) ↑ | build s |")
     print("|---|---|---|---|---|")
     for r in rows:
@@ -233,6 +282,125 @@ def part_protocol(kind: str, quick: bool):
         print(f"| {r['run']} | {r['sae']:.3f} | {r['sm_iou']:.3f} | {r['boundary_f']:.3f} | {s} |")
     print("\n(paper, full method: SAE 0.058, SM-IoU 0.830, BF 0.796 — on its own scenes)")
     return {"occluder": name, "gaussians": len(g), "pixels": n, "rows": rows}
+
+
+# ------------------------------------------------------------------ beside the paper
+
+# The paper's Tables 3–5 (SAE ↓, SM-IoU ↑, BF 2 px ↑; ScanNet++ scenes, SMPL pseudo-GT)
+# and its Sec. 4.4 D timings (A100, s/frame).
+PAPER_TABLES = {
+    "A": [("centre", (0.203, 0.622, 0.585)), ("stencil", (0.167, 0.712, 0.662)),
+          ("mc", (0.058, 0.830, 0.796))],
+    "B": [("simple", (0.182, 0.694, 0.642)), ("avg", (0.058, 0.830, 0.796)),
+          ("mass", (0.171, 0.708, 0.660)), ("diag", (0.177, 0.701, 0.651))],
+    "C": [("cube", (0.136, 0.811, 0.761)), ("octahedral", (0.058, 0.830, 0.796))],
+}
+PAPER_TIMES = {"ROI + culling": 0.13, "no ROI": 29.1, "no light-space culling": 17.1}
+_METRICS = (("sae", "SAE ↓", -1), ("sm_iou", "SM-IoU ↑", 1), ("boundary_f", "BF ↑", 1))
+
+
+def _ours(rows, ablation, key):
+    for r in rows:
+        run = r["run"]
+        if not run.startswith(ablation + ":"):
+            continue
+        if ablation == "A" and f"footprint {key}," in run and "128²" in run:
+            return r
+        if ablation == "B" and f"mapping {key}," in run:
+            return r
+        if ablation == "C" and f"atlas {key} " in run:
+            return r
+    return None
+
+
+def beside_the_paper(protocol: dict, speed: list | None):
+    """Tables 3–5 (and D) with our numbers beside the paper's, one line per claim."""
+    rows = protocol["rows"]
+    print("\n## Beside the paper (Tables 3–5, Sec. 4.4 D); ours: "
+          f"{protocol['occluder']} over a floor, embree pseudo-GT, one light\n")
+    claims = []
+    for ablation, title in (("A", "Table 3 — footprint sampling"),
+                            ("B", "Table 4 — opacity→absorption mapping"),
+                            ("C", "Table 5 — atlas")):
+        print(f"### {title}\n")
+        print("| setting | paper SAE | ours SAE | paper SM-IoU | ours SM-IoU | paper BF | ours BF |")
+        print("|---|---|---|---|---|---|---|")
+        entries = []
+        for key, paper in PAPER_TABLES[ablation]:
+            r = _ours(rows, ablation, key)
+            if r is None:
+                continue
+            entries.append((key, paper, r))
+            print(f"| {key} | {paper[0]:.3f} | {r['sae']:.3f} | {paper[1]:.3f} | {r['sm_iou']:.3f} | "
+                  f"{paper[2]:.3f} | {r['boundary_f']:.3f} |")
+        print()
+        for m, label, sign in _METRICS:
+            if len(entries) < 2:
+                continue
+            col = [x[0] for x in _METRICS].index(m)
+            paper_sorted = sorted(entries, key=lambda e: -sign * e[1][col])
+            our_sorted = sorted(entries, key=lambda e: -sign * e[2][m])
+            paper_order = [k for k, _, _ in paper_sorted]
+            our_order = [k for k, _, _ in our_sorted]
+            tied = {k for k, _, r in entries if sum(abs(r[m] - o[m]) <= 1e-12 for _, _, o in entries) > 1}
+            # ties (mass ≡ diag by definition here; footprints below the texel size) decide nothing
+            top = {k for k, _, r in entries if abs(r[m] - our_sorted[0][2][m]) <= 1e-12}
+            if paper_order[0] not in top:
+                best = "NOT reproduced"
+            elif len(top) > 1:
+                best = "tied (not distinguished)"
+            else:
+                best = "reproduced"
+            if len(tied) == len(entries):
+                order = "not distinguished (all tied)"
+            elif paper_order == our_order and not tied:
+                order = "reproduced"
+            elif all(a == b or (a in tied and b in tied) for a, b in zip(paper_order, our_order)):
+                order = "reproduced up to ties"
+            else:
+                order = "differs"
+
+            def fmt(sorted_entries, values):
+                out = sorted_entries[0][0]
+                for prev, cur in zip(sorted_entries, sorted_entries[1:]):
+                    out += (" = " if abs(values(prev) - values(cur)) <= 1e-12 else " > ") + cur[0]
+                return out
+
+            claims.append(f"{ablation} {label}: paper best {paper_order[0]}, ours best {our_order[0]} — "
+                          f"best {best}; full order {order} "
+                          f"(paper {fmt(paper_sorted, lambda e: e[1][col])}; "
+                          f"ours {fmt(our_sorted, lambda e: e[2][m])})")
+    if any(k == "mass" for k, *_ in PAPER_TABLES["B"]):
+        claims.append("B mass vs diag: the paper reports different numbers (0.171 vs 0.177 SAE); "
+                      "with A the local-frame covariance (Sec. 4.4) √det A = s_x s_y s_z, so here "
+                      "they are the same β and the same row")
+    if speed:
+        vol = speed[0]["rows"]
+        t = {r["config"]: r["seconds"] for r in vol}
+        both = next(v for k, v in t.items() if k.startswith("ROI + culling, float32 torch"))
+        no_roi = next((v for k, v in t.items() if k.startswith("culling only")), None)
+        no_cull = next((v for k, v in t.items() if k.startswith("ROI only")), None)
+        print("### Sec. 4.4 D — build time (s/frame)\n")
+        print("| configuration | paper (A100) | ours (CPU, volumetric 50k) |")
+        print("|---|---|---|")
+        print(f"| ROI + culling | {PAPER_TIMES['ROI + culling']} | {both:.3f} |")
+        print(f"| no ROI | {PAPER_TIMES['no ROI']} | {'' if no_roi is None else f'{no_roi:.3f}'} |")
+        print(f"| no light-space culling | {PAPER_TIMES['no light-space culling']} | "
+              f"{'' if no_cull is None else f'{no_cull:.3f}'} |\n")
+        if no_roi is not None:
+            claims.append(f"D: disabling the ROI slows the build (paper 0.13 → 29.1 s): ours "
+                          f"{both:.3f} → {no_roi:.3f} s — "
+                          f"{'reproduced' if no_roi > 1.2 * both else 'NOT reproduced'} (our "
+                          f"light-space culling already restricts pairs to the occluders' cones, "
+                          f"so the ROI mainly bounds the bins)")
+        if no_cull is not None:
+            claims.append(f"D: disabling light-space culling slows the build (paper 0.13 → 17.1 s): "
+                          f"ours {both:.3f} → {no_cull:.3f} s — "
+                          f"{'reproduced' if no_cull > 2 * both else 'NOT reproduced'}")
+    print("### Claims\n")
+    for c in claims:
+        print(f"- {c}")
+    return claims
 
 
 def main():
@@ -250,6 +418,7 @@ def main():
         out["speed"] = part_speed(args.quick, args.full_reference)
     if not args.skip_protocol:
         out["protocol"] = part_protocol(args.occluder, args.quick)
+        out["claims"] = beside_the_paper(out["protocol"], out.get("speed"))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(out, fh, indent=2)

@@ -22,6 +22,11 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--lights", "lights_spec", required=True, metavar="LIGHTS.json|auto:K",
               help="Point lights (relight/lights JSON), or auto:K to estimate K lights "
                    "from the receivers' scene.")
+@click.option("--estimator", type=click.Choice(["paper", "v1"]), default="paper",
+              show_default=True,
+              help="Light estimator of --lights auto:K (paper Sec. 3.1: ROI and viewpoints at "
+                   "the occluders' centroid, soft-clipped cues, mean-neighbourhood peakness, "
+                   "colour toward the character, intensity = base score; v1: the earlier variant).")
 @click.option("--lights-out", default=None, metavar="FILE.json",
               help="Also write the lights used (e.g. the auto:K estimate).")
 @click.option("-o", "--output", required=True, help="Output EXR (relight/dgsm).")
@@ -31,8 +36,12 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="Radial bins K per texel.")
 @click.option("--atlas", type=click.Choice(["octahedral", "cube"]), default="octahedral",
               show_default=True, help="Direction atlas (cube for the ablation).")
-@click.option("--mapping", type=click.Choice(["eq5", "simple", "mass", "diag"]), default="eq5",
-              show_default=True, help="Opacity→absorption mapping (eq5: paper Eq. 5).")
+@click.option("--mapping", type=click.Choice(["avg", "simple", "mass", "diag", "peak", "eq5"]),
+              default="avg", show_default=True,
+              help="Opacity→absorption β (paper Sec. 3.2, Table 4): avg = Eq. 5, κτ·√(tr A/3)/√(2π); "
+                   "simple = κτ; mass = κτ/((2π)^1.5·√det Σ); diag = κτ/((2π)^1.5·s_x s_y s_z) "
+                   "(equal to mass); peak = direction-dependent, every ray through a centre sees "
+                   "τ (this toolkit's; eq5 is its old name).")
 @click.option("--kappa", type=FiniteFloat(0, min_open=True), default=1.0, show_default=True,
               help="Absorption scale κ (> 0).")
 @click.option("--t-max", type=FiniteFloat(0, min_open=True), default=None,
@@ -48,7 +57,8 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="Largest optical depth a culled Gaussian may have contributed.")
 @click.option("--footprint", type=click.Choice(["centre", "stencil", "mc"]), default="stencil",
               show_default=True,
-              help="Receiver footprint that later lookups use (widens the ROI to cover it).")
+              help="Receiver footprint that later lookups use (widens the ROI to cover it); "
+                   "the paper's default is mc, see relight --footprint.")
 @click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
               help="Monte Carlo samples for --footprint mc.")
 @click.option("--allow-light-inside", is_flag=True,
@@ -57,7 +67,8 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @seed_option
 @no_clobber_option
 @quiet_option
-def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, lights_out, output, size, bins, atlas, mapping,
+def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, estimator,
+            lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
             allow_light_inside, half, seed, no_clobber, quiet):
     """Tabulate the transmittance from each light through the OCCLUDER Gaussians
@@ -153,7 +164,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         check_input(lights_spec)
         lights = read_lights(lights_spec)
     else:
-        lights = _estimate_lights(scene, auto_k, lights_spec)
+        lights = _estimate_lights(scene, auto_k, lights_spec, occ, estimator)
     # Logged once every input has been read: a bad input gets one line only.
     if scene is not None:
         log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
@@ -161,6 +172,9 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         log(f"read {spec}: {len(obj)} occluder Gaussians", quiet)
     log(f"{len(lights)} light(s)", quiet)
 
+    if mapping != TR.canonical_mapping(mapping):
+        log(f"note: --mapping {mapping} is the old name of {TR.canonical_mapping(mapping)}", quiet)
+    mapping = TR.canonical_mapping(mapping)
     mix = TR.from_gaussians(occ, mapping, kappa)
     inside = _lights_inside(mix, lights.positions)
     for li, gi, m in inside:
@@ -180,7 +194,8 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
             raise DataError("receiver positions hold NaN/Inf", receivers)
 
     options = dict(size=(h, w), bins=bins, layout=atlas, t_max=t_max, roi=roi,
-                   roi_radius=roi_radius, cull=cull, cull_tolerance=cull_tolerance)
+                   roi_radius=roi_radius, cull=cull, cull_tolerance=cull_tolerance,
+                   intensities=lights.intensities, colors=lights.colors)
     if len(objects) == 1:
         bar = (lambda it, total: progress(it, total=total, desc="lights", quiet=quiet))
         shadow_map = D.build_dgsm(mix, lights.positions, recv_points, progress=bar, **options)
@@ -202,7 +217,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                 f"{float(shadow_map.transmittance[li].min()):.3f}", quiet)
     st = shadow_map.stats
     log(f"built in {shadow_map.build_seconds:.3f} s ({st['pairs_kept']} ray/Gaussian pairs kept "
-        f"of {st['pairs_tested']} tested)", quiet)
+        f"of {st['pairs_tested']} tested), opacity mapping {mapping} (κ = {kappa:g})", quiet)
 
     inputs = {"occluders": parsed[0][0]} if len(occluders) == 1 else {
         f"occluder{j}": source for j, (source, _) in enumerate(parsed)}
@@ -214,6 +229,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                 "t_max": t_max, "roi": roi, "roi_radius": roi_radius, "cull": cull,
                 "cull_tolerance": cull_tolerance, "footprint": footprint, "samples": samples,
                 "seed": seed, "lights": lights_spec, "half": half, "translate": translate,
+                "estimator": estimator if auto_k is not None else None,
                 "occluders": list(occluders)}
     write_dgsm(output, shadow_map, provenance(FORMAT, VERSION, inputs, settings), half=half)
     log(f"wrote {output} ({time.perf_counter() - start:.2f} s)", quiet)
@@ -259,7 +275,7 @@ def _parse_auto(spec: str):
     return k
 
 
-def _estimate_lights(scene, k, spec):
+def _estimate_lights(scene, k, spec, character=None, variant="paper"):
     """auto:K through relight_cli.gaussians.lights (the light-estimation module), if present."""
     import importlib
 
@@ -276,7 +292,7 @@ def _estimate_lights(scene, k, spec):
         raise UsageProblem("--lights auto:K is not available in this build (no light estimator "
                            "in relight_cli.gaussians.lights); give a lights JSON file", spec)
     try:
-        result = estimator(scene, k)   # deterministic: no randomness to seed
+        result = estimator(scene, k, character=character, variant=variant)   # deterministic
     except ValueError as exc:
         from relight_cli.errors import DataError
         raise DataError(f"light estimation failed: {exc}", spec) from None
@@ -286,7 +302,8 @@ def _estimate_lights(scene, k, spec):
         return Lights(result.positions, getattr(result, "colors", None),
                       getattr(result, "intensities", None),
                       extra={"estimator": "relight_cli.gaussians.lights.estimate_lights",
-                             "count": int(k)})
+                             "variant": variant, "count": int(k),
+                             "character": "the occluders (alpha-weighted centroid)"})
     return Lights(np.asarray(result, np.float64).reshape(-1, 3))
 
 

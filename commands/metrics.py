@@ -284,10 +284,45 @@ def _parse_roi(text):
     return tuple(int(v) for v in values)
 
 
+def _avatar_roi(roi, avatar_spec, camera_path, radius, quiet):
+    """--roi-avatar: the avatar-centric pixel box (relight_cli.gaussians.shadow_matte.avatar_roi)."""
+    import math
+
+    from relight_cli.commands.dgsm_build import load_placed, parse_occluder
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.formats.camera import read_camera
+    from relight_cli.gaussians.shadow_matte import avatar_roi
+
+    if roi is not None:
+        raise UsageProblem("give --roi or --roi-avatar, not both")
+    if camera_path is None:
+        raise UsageProblem("--roi-avatar needs --camera CAMERA.json (the mattes' camera)")
+    if not (radius > 0 and math.isfinite(radius)):
+        raise UsageProblem(f"--roi-radius must be positive, got {radius}")
+    source, placement = parse_occluder(avatar_spec, "--roi-avatar")
+    check_input(source)
+    check_input(camera_path)
+    avatar = load_placed(source, placement, avatar_spec)
+    box = avatar_roi(avatar, read_camera(camera_path), radius)
+    if box is None:
+        raise DataError("the avatar-centric region is not in the camera's view", avatar_spec)
+    log(f"avatar-centric ROI: x {box[0]}, y {box[1]}, {box[2]}x{box[3]} px", quiet)
+    return box
+
+
 @command.command("shadow", short_help="SAE, SM-IoU and boundary F-measure of shadow mattes.")
 @click.argument("pred", metavar="PRED")
 @click.argument("gt", metavar="GT")
 @click.option("--roi", default=None, help="Region of interest X,Y,W,H in pixels (default: all).")
+@click.option("--roi-avatar", default=None, metavar="AVATAR",
+              help="Compute the ROI from the avatar (paper Sec. 4.2, avatar-centric): the image "
+                   "box of the region within --roi-radius (horizontally) of its alpha-weighted "
+                   "centroid, floor to top, seen by --camera.  A PLY, mesh or builtin:, with a "
+                   "placement SOURCE:KEY=VALUE;... as in dgsm-build.")
+@click.option("--camera", "roi_camera", default=None, metavar="CAMERA.json",
+              help="The camera of the mattes (for --roi-avatar).")
+@click.option("--roi-radius", type=FiniteFloat(0, 1e6, min_open=True), default=1.0, show_default=True,
+              help="Half-size R (metres) of the avatar-centric region.")
 @click.option("--threshold", type=FiniteFloat(0, 1, max_open=True), default=0.1, show_default=True,
               help="Matte value above which a pixel counts as shadowed.")
 @click.option("--tolerance", type=FiniteFloat(0, 1e4), default=2.0, show_default=True,
@@ -300,8 +335,8 @@ def _parse_roi(text):
 @_percentiles
 @no_clobber_option
 @quiet_option
-def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, percentiles,
-                   no_clobber, quiet):
+def shadow_command(pred, gt, roi, roi_avatar, roi_camera, roi_radius, threshold, tolerance, matte,
+                   output, jsonl, percentiles, no_clobber, quiet):
     """Score predicted shadow mattes PRED against pseudo-ground-truth GT (DGSM paper).
 
     SAE: mean absolute error over the GT shadow region; SM-IoU: IoU of the
@@ -320,6 +355,10 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
     _check_outputs(output, jsonl, no_clobber)
     qs = parse_percentiles(percentiles)
     roi_box = _parse_roi(roi)
+    if roi_avatar is not None:
+        roi_box = _avatar_roi(roi, roi_avatar, roi_camera, roi_radius, quiet)
+    elif roi_camera is not None:
+        raise UsageProblem("--camera is for --roi-avatar")
     pairs, extra = match_pairs(pred, gt)
     if extra:
         log(f"note: {len(extra)} ground-truth file(s) have no prediction and are ignored", quiet)
@@ -341,7 +380,8 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
             raise UsageProblem(str(exc), g_path) from None
         results.append((name, p_path, g_path, None, result))
     settings = {"threshold": threshold, "tolerance": tolerance, "roi": list(roi_box) if roi_box else None,
-                "matte": matte, "percentiles": qs}
+                "matte": matte, "percentiles": qs, "roi_avatar": roi_avatar,
+                "roi_radius": roi_radius if roi_avatar else None}
     record, rows = _batch_record("shadow", results, len(pairs) > 1 or _is_multi(pred), settings, qs)
     _write(output, jsonl, record, rows)
     log(f"{len(results)} pair(s) scored", quiet)
@@ -363,7 +403,8 @@ def shadow_command(pred, gt, roi, threshold, tolerance, matte, output, jsonl, pe
 @click.option("--normals", "normal_source", type=click.Choice(["pca", "ply"]), default="pca",
               show_default=True, help="Pseudo-normals by weighted local PCA, or the PLY's nx ny nz.")
 @click.option("--max-points", type=int, default=512, show_default=True,
-              help="Points per side for the 2-D Wasserstein distance of large sets.")
+              help="Points per side of the seeded subsamples on which the 2-D Wasserstein "
+                   "distance of large sets is solved exactly.")
 @_output
 @seed_option
 @no_clobber_option
@@ -372,12 +413,17 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
                      seed, no_clobber, quiet):
     """Lighting consistency of a Gaussian avatar with the scene around it (DGSM paper, Sec. 4.1).
 
-    PAA-Y: angle (degrees) between where the avatar's shading says the light
-    comes from and where the scene's SH irradiance says it does; APF-Y:
-    relative residual of avatar luminance against affinely calibrated scene
-    irradiance (Huber, 5 % trimmed); NCM-ab: 1-Wasserstein distance between
-    avatar and scene CIE-Lab chromaticity.  Lower is better for all three.
-    Reports orig, relit and relit − orig (delta), averaged over frames.
+    The paper's metrics: luminance factorized as Y ≈ α·E(n; c), E order-3 SH
+    (16 coefficients, |c|₂ = 1 fixing the scale), α ≥ 0 per Gaussian, Huber
+    loss and 5 % trimming, for the scene within --radius and for the avatar.
+    paa_y = |c_avatar − c_scene|₁; apf_y = mean |Y − (s·E(n; c_scene) + b)|
+    after a per-frame affine fit; ncm_ab = exact 1-Wasserstein distance of the
+    avatar's and the scene's CIE-Lab (a*, b*) point sets (exact on seeded
+    subsamples of --max-points per side for large sets; the JSON says which).
+    This toolkit's earlier variants are reported beside them as paa_angle
+    (degrees between dominant light directions), apf_rms and ncm_ab_weighted
+    (formats/metrics_json.md).  Lower is better for all.  Reports orig, relit
+    and relit − orig (delta), averaged over frames.
 
     \b
     Example:
@@ -420,8 +466,10 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     for i, path in enumerate(relits):
         inputs[f"relit:{i}"] = path
     settings = {"radius": radius, "neighbours": neighbours, "normals": normal_source,
-                "max_points": max_points, "seed": seed, "sh_order": 3, "huber": 1.345,
-                "trim": 0.05}
+                "max_points": max_points, "seed": seed, "sh_order": 3, "sh_coefficients": 16,
+                "variant_sh_coefficients": 9, "huber": 1.345, "trim": 0.05,
+                "scale_fix": "|c|_2 = 1, c_00 > 0",
+                "albedo_ridge": 1.0, "factorization_iterations": 6}
     prov = provenance(FORMAT, VERSION, inputs, settings)
     record = make_record("lighting", result["metrics"], prov["inputs"], settings, prov,
                          frames=result["frames"])

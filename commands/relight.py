@@ -38,11 +38,25 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--footprint", type=click.Choice(["centre", "stencil", "mc"]), default="stencil",
               show_default=True,
               help="[Gaussians] DGSM lookup over a receiver: centre sample, 7-point stencil, or "
-                   "seeded Monte Carlo (--samples) in its principal frame.")
+                   "seeded Monte Carlo (--samples) in its principal frame.  The paper's default "
+                   "is mc (Sec. 3.3); stencil is ours: 7 deterministic lookups that reproduce "
+                   "the Gaussian's mean and covariance exactly (no sampling noise).")
 @click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
               help="Monte Carlo samples per receiver for --footprint mc.")
 @click.option("--shadow-strength", type=FiniteFloat(0, 1), default=1.0, show_default=True,
-              help="[Gaussians] Receiver colour × (1 − s·(1 − T)); 1 multiplies by T.")
+              help="[Gaussians] Direct share s of a receiver's colour: colour × ((1 − s) + "
+                   "s·Σ w_l T_l / Σ w_l) per channel; 1 treats the whole colour as direct light.")
+@click.option("--light-weights", type=click.Choice(["intensity", "irradiance", "equal"]),
+              default="intensity", show_default=True,
+              help="[Gaussians] Each light's share w_l of the direct light (paper Sec. 3.3): "
+                   "intensity × colour (from the DGSM), also × |n·ω|/r² at each receiver "
+                   "(irradiance), or equal (the plain mean T of older versions).")
+@click.option("--shadow-matte", type=click.Choice(["dgsm", "mesh"]), default=None,
+              help="[Gaussians] With --render: the receivers-only shadow matte of the paper's "
+                   "protocol (Sec. 4.2): receivers coloured by shadow strength 1 − Σw_l V_l/Σw_l, "
+                   "nothing else drawn; dgsm: V = the DGSM's transmittance; mesh: V = embree "
+                   "shadow rays against IN (and --object) as triangle meshes, the pseudo ground "
+                   "truth.  Lights and weights come from --dgsm in both.")
 @click.option("--lobe", type=FiniteFloat(0, 1e4, min_open=True), default=1.0, show_default=True,
               help="[Gaussians] Cosine lobe exponent q of the transfer (1 = Lambertian).")
 @click.option("--intensity", type=FiniteFloat(0, 1e6), default=1.0, show_default=True,
@@ -99,8 +113,9 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @no_clobber_option
 @quiet_option
 def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
-            shadow_strength, lobe, intensity, t_max, normals, render_camera, background, model,
-            checkpoint, device, hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
+            shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals,
+            render_camera, background, model, checkpoint, device, hand_camera, hand_size,
+            hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
             preview, seed, no_clobber, quiet):
     """Relight IN under new lighting.
@@ -111,8 +126,11 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     per-Gaussian SH radiance transfer from --probe (paper Eq. 9-10): colour =
     γ · albedo · clip(S(n), 0, t_max), S the cosine-lobe (exponent q) weighted
     mean probe radiance around the normal n (normals per object).  --object
-    inserts more objects, relit the same way.  With --dgsm and --receivers, the
-    receivers' colours are multiplied by the shadow-map transmittance; with a
+    inserts more objects, relit the same way.  With --dgsm and --receivers, each
+    light's transmittance attenuates that light's share of a receiver's direct
+    light (paper Sec. 3.3): colour × ((1 − s) + s·Σ w_l T_l / Σ w_l) per
+    channel, s = --shadow-strength, w_l = the light's intensity × colour
+    stored in the DGSM (--light-weights); with a
     DGSM of several OCCLUDERs, each object is also multiplied by the
     transmittance through the OTHER objects (never its own).  Writes the relit
     objects as one PLY, or with --render an EXR view of receivers + objects.
@@ -171,7 +189,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
 
 def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers_out, footprint,
                        samples,
-                       shadow_strength, lobe, intensity, t_max, normals, render_camera, background,
+                       shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals, render_camera, background,
                        preview, seed, no_clobber, quiet, **_):
     import math
     import time
@@ -186,7 +204,7 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     from relight_cli.provenance import provenance
 
     # ---- usage checks before any work
-    if probe is None:
+    if probe is None and shadow_matte is None:
         raise UsageProblem("Gaussian relighting needs --probe PROBE.json (make one with relight "
                            "sh-probe)")
     if dgsm is not None and receivers is None:
@@ -195,6 +213,9 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         raise UsageProblem("--receivers-out needs --receivers")
     if preview is not None and render_camera is None:
         raise UsageProblem("--preview needs --render")
+    if shadow_matte is not None and (render_camera is None or dgsm is None):
+        raise UsageProblem("--shadow-matte renders a matte: give --render CAMERA.json and --dgsm "
+                           "SHADOWS.exr (its lights)")
     bg = parse_vector(background, 3, "--background", minimum=0)
     if render_camera is not None and not output.lower().endswith(".exr"):
         raise UsageProblem("with --render, -o is an EXR image (name it .exr)", output)
@@ -212,6 +233,10 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
             check_input(path)
 
     start = time.perf_counter()
+    if shadow_matte is not None:
+        return _shadow_matte(shadow_matte, specs, parsed, output, dgsm, receivers, render_camera,
+                             footprint, samples, light_weights, background, preview, seed, quiet,
+                             start)
     sh_probe = read_probe(probe)
     relit_objects = []
     for spec, (source, placement) in zip(specs, parsed):
@@ -232,12 +257,18 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     if dgsm is not None:
         shadow_map = _read_dgsm(dgsm)
         from relight_cli.gaussians.dgsm import sample_transmittance
+        weights_used = _weights_mode(light_weights, shadow_map, quiet)
+
+        def weights_for(g, normals=None):
+            return TF.dgsm_light_weights(weights_used, shadow_map, g, normals)
+
         T = sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
                                  footprint=footprint, samples=samples, seed=seed)   # [L, M]
-        factor = TF.shadow_factor(T, None, shadow_strength)
+        factor = TF.shadow_factor(T, weights_for(scene), shadow_strength)          # [M, 3]
         scene = TF.attenuate(scene, factor)
         log(f"shadowed receivers: mean factor {factor.mean():.3f}, "
-            f"{int((factor < 0.99).sum())} of {len(factor)} darkened", quiet)
+            f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of {len(factor)} "
+            f"darkened", quiet)
         if shadow_map.groups is not None:
             if len(shadow_map.groups) != len(relit_objects):
                 raise DataError(f"the shadow map has {len(shadow_map.groups)} occluder groups "
@@ -248,10 +279,11 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
                 T = sample_transmittance(shadow_map.others(j), obj.means, obj.scales,
                                          obj.rotations, footprint=footprint, samples=samples,
                                          seed=seed)
-                factor = TF.shadow_factor(T, None, shadow_strength)
+                factor = TF.shadow_factor(T, weights_for(obj, obj.normals), shadow_strength)
                 relit_objects[j] = TF.attenuate(obj, factor)
                 log(f"shadowed object {j} by the others: mean factor {factor.mean():.3f}, "
-                    f"{int((factor < 0.99).sum())} of {len(factor)} darkened", quiet)
+                    f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of "
+                    f"{len(factor)} darkened", quiet)
         elif len(relit_objects) > 1:
             log("note: the shadow map has no occluder groups, so the objects do not shadow "
                 "each other (build it from all objects: dgsm-build A B ...)", quiet)
@@ -268,6 +300,10 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     settings = {"lobe": lobe, "intensity": intensity, "t_max": t_max, "normals": normals,
                 "footprint": footprint, "samples": samples, "seed": seed,
                 "shadow_strength": shadow_strength, "objects": specs}
+    if dgsm is not None:
+        # which opacity mapping made the shadow map, and how its lights were weighted
+        settings.update(dgsm_mapping=shadow_map.mapping, dgsm_kappa=shadow_map.kappa,
+                        light_weights=weights_used)
     if receivers_out is not None:
         write_gaussians(receivers_out, scene, provenance(FORMAT, VERSION, inputs,
                                                          dict(settings, role="receivers")))
@@ -297,6 +333,72 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         log(f"wrote {preview}", quiet)
 
 
+def _weights_mode(light_weights, shadow_map, quiet):
+    """--light-weights as it can run with this shadow map (version 1 maps: equal, said)."""
+    from relight_cli.gaussians import transfer as TF
+    mode = TF.effective_light_weights(light_weights, shadow_map.intensities)
+    if mode != light_weights:
+        log("note: this shadow map (DGSM version 1) stores no light intensities; the lights "
+            "are weighted equally", quiet)
+    return mode
+
+
+def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, render_camera, footprint, samples,
+                  light_weights, background, preview, seed, quiet, start):
+    """The receivers-only shadow matte of the paper's Sec. 4.2 (``--shadow-matte``)."""
+    import time
+
+    import numpy as np
+
+    from relight_cli.errors import DataError
+    from relight_cli.formats.camera import read_camera
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.gaussians import dgsm as D
+    from relight_cli.gaussians import shadow_matte as SM
+    from relight_cli.gaussians import transfer as TF
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    from relight_cli.gaussians.splat import render
+    from relight_cli.provenance import provenance
+
+    shadow_map = _read_dgsm(dgsm)
+    scene = load_gaussians(receivers)
+    camera = read_camera(render_camera)
+    weights_used = _weights_mode(light_weights, shadow_map, quiet)
+    weights = TF.dgsm_light_weights(weights_used, shadow_map, scene)
+    if mode == "dgsm":
+        V = D.sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
+                                   footprint=footprint, samples=samples, seed=seed)   # [L, M]
+    else:
+        meshes = []
+        for spec, (source, placement) in zip(specs, parsed):
+            try:
+                meshes.append(SM.load_placed_mesh(source, placement))
+            except ValueError as exc:
+                raise DataError(str(exc), spec) from None
+        pts, n = D.footprint_samples(scene.means, scene.scales, scene.rotations, footprint,
+                                     samples, seed)
+        V = SM.mesh_visibility(meshes, shadow_map.lights, pts.reshape(-1, 3))
+        V = V.reshape(len(shadow_map.lights), len(scene), n).mean(axis=2)
+    strength = SM.shadow_strength(TF.shadow_factor(V, weights, 1.0))
+    image = render(scene, camera, background=parse_vector(background, 3, "--background"),
+                   colors=SM.matte_colors(strength))
+    inputs = {"input": parsed[0][0], "dgsm": dgsm, "receivers": receivers, "camera": render_camera}
+    for j, (source, _) in enumerate(parsed[1:]):
+        inputs[f"object{j}"] = source
+    settings = {"shadow_matte": mode, "footprint": footprint, "samples": samples, "seed": seed,
+                "light_weights": weights_used, "dgsm_mapping": shadow_map.mapping,
+                "objects": specs}
+    channels = {"R": image.image[..., 0], "G": image.image[..., 1], "B": image.image[..., 2],
+                "A": image.alpha}
+    write_exr(output, channels, attributes={"relight.matte": f"shadow strength ({mode})"},
+              provenance=provenance("relight/render", 1, inputs, settings))
+    log(f"wrote {output} (shadow matte, {mode}: {int((strength > 0.1).sum())} of {len(strength)} "
+        f"receivers > 0.1, {time.perf_counter() - start:.2f} s)", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_preview
+        write_preview(preview, image.image.astype(np.float32))
+
+
 def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers, receivers_out,
                   render_camera, model, hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res,
                   tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map,
@@ -310,7 +412,8 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
 
     # ---- usage checks before any work
     gaussian_only = {"--probe": probe, "--dgsm": dgsm, "--receivers": receivers,
-                     "--receivers-out": receivers_out, "--render": render_camera}
+                     "--receivers-out": receivers_out, "--render": render_camera,
+                     "--shadow-matte": _.get("shadow_matte")}
     given = [k for k, v in gaussian_only.items() if v is not None]
     if given:
         raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply); "

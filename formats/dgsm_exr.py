@@ -16,7 +16,11 @@ import numpy as np
 from relight_cli.errors import DataError
 
 FORMAT = "relight/dgsm"
-VERSION = 1
+VERSION = 2
+# Version 1 wrote the mapping now called "peak" as "eq5"; its "simple", "mass"
+# and "diag" were direction-dependent definitions that version 2 replaced by the
+# paper's (Sec. 4.4 B), so they read back under a "v1-" label.
+V1_MAPPINGS = {"eq5": "peak", "simple": "v1-simple", "mass": "v1-mass", "diag": "v1-diag"}
 PREFIX = "relight.dgsm."
 TEXEL_MAPPING = ("octahedral: column x -> u = 2(x+0.5)/W - 1, row y (top 0) -> v = 1 - 2(y+0.5)/H; "
                  "(u,v) -> direction from the light, lower hemisphere (y<=0) = central diamond "
@@ -37,6 +41,10 @@ def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = Fal
     if not np.isfinite(table).all():
         raise DataError("transmittance table holds NaN/Inf (a bug; nothing written)", path)
     n_lights, K = table.shape[:2]
+    intensities = (np.ones(n_lights) if getattr(dgsm, "intensities", None) is None
+                   else np.asarray(dgsm.intensities, np.float64).reshape(n_lights))
+    colors = (np.ones((n_lights, 3)) if getattr(dgsm, "colors", None) is None
+              else np.asarray(dgsm.colors, np.float64).reshape(n_lights, 3))
     channels = {channel_name(i, k): table[i, k] for i in range(n_lights) for k in range(K)}
     groups = getattr(dgsm, "groups", None)
     if groups is not None:
@@ -53,6 +61,8 @@ def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = Fal
         PREFIX + "light_positions": json.dumps([[float(v) for v in p] for p in dgsm.lights]),
         PREFIX + "t_max": json.dumps([float(t) for t in dgsm.t_max]),
         PREFIX + "mapping": str(dgsm.mapping),
+        PREFIX + "light_intensities": json.dumps([float(v) for v in intensities]),
+        PREFIX + "light_colors": json.dumps([[float(v) for v in c] for c in colors]),
         PREFIX + "kappa": float(dgsm.kappa),
         PREFIX + "roi": json.dumps(_jsonable(dgsm.roi), sort_keys=True),
         PREFIX + "texel_mapping": TEXEL_MAPPING,
@@ -93,7 +103,7 @@ def read_dgsm(path: str):
     from relight_cli.gaussians.transmittance import MAPPINGS
 
     image = read_exr(path)
-    check_format(image, FORMAT, VERSION)
+    version = check_format(image, FORMAT, VERSION)
     attrs = image.attributes
     layout = attrs.get(PREFIX + "layout")
     if layout not in LAYOUTS:
@@ -108,8 +118,21 @@ def read_dgsm(path: str):
     if not (np.isfinite(lights).all() and np.isfinite(t_max).all() and (t_max > 0).all()):
         raise DataError("light positions / t_max must be finite (t_max > 0)", path)
     mapping = attrs.get(PREFIX + "mapping")
-    if mapping not in MAPPINGS:
-        raise DataError(f"unknown opacity mapping {mapping!r}", path)
+    if version == 1:
+        if mapping not in V1_MAPPINGS:
+            raise DataError(f"unknown opacity mapping {mapping!r}", path)
+        mapping = V1_MAPPINGS[mapping]
+        intensities = colors = None      # version 1 did not store them
+    else:
+        if mapping not in MAPPINGS:
+            raise DataError(f"unknown opacity mapping {mapping!r}", path)
+        intensities = np.asarray(_json_attr(image, "light_intensities", path), np.float64)
+        colors = np.asarray(_json_attr(image, "light_colors", path), np.float64)
+        if intensities.shape != (n_lights,) or colors.shape != (n_lights, 3):
+            raise DataError("light intensities / colours do not match the light count", path)
+        if not (np.isfinite(intensities).all() and np.isfinite(colors).all()
+                and (intensities >= 0).all() and (colors >= 0).all()):
+            raise DataError("light intensities / colours must be finite and ≥ 0", path)
     kappa = attrs.get(PREFIX + "kappa")
     if not isinstance(kappa, (int, float)) or not kappa > 0:
         raise DataError("missing or invalid kappa", path)
@@ -154,4 +177,4 @@ def read_dgsm(path: str):
     seconds = attrs.get(PREFIX + "build_seconds", 0.0)
     return DGSM(np.clip(table, 0, 1), lights, t_max, layout, mapping, float(kappa), roi,
                 float(seconds) if isinstance(seconds, (int, float)) else 0.0, {},
-                groups, group_names)
+                groups, group_names, intensities, colors)

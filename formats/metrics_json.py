@@ -1,4 +1,4 @@
-"""Metrics JSON: format ``relight/metrics`` version 1 (spec: ``formats/metrics_json.md``).
+"""Metrics JSON: format ``relight/metrics`` version 2 (spec: ``formats/metrics_json.md``).
 
 One JSON object per file, keys always in the same order so diffs stay readable::
 
@@ -21,7 +21,10 @@ from relight_cli.errors import DataError
 from ._common import check_format_version
 
 FORMAT = "relight/metrics"
-VERSION = 1
+VERSION = 2
+# Version 1 lighting records named this toolkit's variants paa_y, apf_y, ncm_ab;
+# version 2 gives those names to the paper's definitions (Sec. 4.1).
+V1_LIGHTING_NAMES = {"paa_y": "paa_angle", "apf_y": "apf_rms", "ncm_ab": "ncm_ab_weighted"}
 KINDS = ("image", "shadow", "lighting", "gate", "validation")
 # The order keys are written in; anything else follows in insertion order.
 KEY_ORDER = ("format", "version", "kind", "metrics", "per_channel", "aggregate", "pairs",
@@ -93,14 +96,25 @@ def loads(text: str, path: str = "<string>") -> dict:
     record = parse_json(text, path, non_finite="nan")
     if not isinstance(record, dict):
         raise DataError("metrics JSON must hold an object", path)
-    check_format_version(record.get("format"), record.get("version"), FORMAT, VERSION, path)
+    version = check_format_version(record.get("format"), record.get("version"), FORMAT, VERSION,
+                                   path)
     metrics = record.get("metrics")
     if not isinstance(metrics, dict):
         raise DataError("missing 'metrics' object", path)
+    if version == 1 and record.get("kind") == "lighting":
+        record["metrics"] = metrics = _upgrade_v1_lighting(metrics)
     for key, value in flatten(metrics):
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
             raise DataError(f"metric {key!r} is not a number", path)
     return record
+
+
+def _upgrade_v1_lighting(tree):
+    """Rename version 1's lighting leaves to their version 2 names (they are the variants)."""
+    if not isinstance(tree, dict):
+        return tree
+    return {V1_LIGHTING_NAMES.get(k, k) if not isinstance(v, dict) else k: _upgrade_v1_lighting(v)
+            for k, v in tree.items()}
 
 
 def read_metrics(path: str) -> dict:

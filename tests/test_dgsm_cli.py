@@ -61,13 +61,17 @@ def test_build_in_process_and_read_back(scene):
     assert r.exit_code == 0, r.output
     m = read_dgsm(out)
     assert m.transmittance.shape == (2, 16, 32, 32)
-    assert m.layout == "octahedral" and m.mapping == "eq5" and m.kappa == 1.0
+    assert m.layout == "octahedral" and m.mapping == "avg" and m.kappa == 1.0
+    # version 2 stores the lights' intensities and colours (per-light shadow weighting)
+    np.testing.assert_array_equal(m.intensities, [10.0, 4.0])
+    np.testing.assert_array_equal(m.colors, [[1, 1, 1], [1, 0.9, 0.8]])
     assert len(m.roi) == 2 and m.roi[0]["receivers"] > 0
     from relight_cli.formats.exr import read_exr
     img = read_exr(out)
     assert "light1.t015" in img.channels and img.attributes["relight.format"] == "relight/dgsm"
     prov = img.provenance()
     assert prov["settings"]["bins"] == 16 and "occluders" in prov["inputs"]
+    assert prov["settings"]["mapping"] == "avg" and prov["version"] == 2
     # the table agrees with the exact transmittance at receivers (resolution-limited)
     from relight_cli.formats.gaussians_ply import read_gaussians
     floor = read_gaussians(scene["floor"])
@@ -200,8 +204,10 @@ def test_usage_errors(scene):
 
 def test_auto_lights_unavailable_or_works(scene):
     out = str(scene["dir"] / "auto.exr")
+    lout = str(scene["dir"] / "auto-lights.json")
     r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", scene["floor"],
-                                 "--lights", "auto:1", "-o", out, "--size", "8", "--bins", "4"])
+                                 "--lights", "auto:1", "-o", out, "--size", "8", "--bins", "4",
+                                 "--lights-out", lout])
     try:
         from relight_cli.gaussians.lights import estimate_lights  # noqa: F401
         available = True
@@ -209,6 +215,10 @@ def test_auto_lights_unavailable_or_works(scene):
         available = False
     if available:
         assert r.exit_code == 0, r.output
+        est = read_lights(lout)
+        assert est.extra["variant"] == "paper" and len(est.positions) == 1
+        # the estimated intensity travels into the shadow map (per-light weighting)
+        np.testing.assert_allclose(read_dgsm(out).intensities, est.intensities)
     else:
         assert r.exit_code == 2 and "not available" in r.output
         assert not os.path.exists(out)
@@ -219,14 +229,16 @@ def test_dgsm_exr_rejects_damage(tmp_path):
                roi=[{"bins": [0, 1]}])
     good = str(tmp_path / "g.exr")
     from relight_cli.provenance import provenance
-    write_dgsm(good, m, provenance("relight/dgsm", 1))
+    from relight_cli.formats.dgsm_exr import VERSION
+    write_dgsm(good, m, provenance("relight/dgsm", VERSION))
     assert read_dgsm(good).transmittance.shape == (1, 2, 4, 4)
     from relight_cli.errors import DataError
     from relight_cli.formats.exr import write_exr
     # newer version
     newer = str(tmp_path / "n.exr")
-    write_exr(newer, {"light0.t000": np.ones((4, 4))}, provenance=provenance("relight/dgsm", 2))
-    with pytest.raises(DataError, match="version 2"):
+    write_exr(newer, {"light0.t000": np.ones((4, 4))},
+              provenance=provenance("relight/dgsm", VERSION + 1))
+    with pytest.raises(DataError, match=f"version {VERSION + 1}"):
         read_dgsm(newer)
     # missing channel
     img = {"light0.t000": np.ones((4, 4))}
@@ -282,3 +294,107 @@ def test_builtin_and_mesh_inputs_with_outputs(tmp_path):
     bad.write_text("this is not a mesh\n")
     _fails(["dgsm-build", str(bad), "--receivers", rec_out, "--lights", str(lights), "-o", out],
            1, "bad.obj")
+
+
+def _v1_file(path, mapping="eq5"):
+    """A DGSM file as version 1 wrote it: no light intensities/colours, old mapping names."""
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.provenance import provenance
+    attrs = {"relight.dgsm.layout": "octahedral", "relight.dgsm.lights": 2,
+             "relight.dgsm.bins": 2, "relight.dgsm.light_positions": "[[0, 2, 0], [1, 2, 0]]",
+             "relight.dgsm.t_max": "[3.0, 3.0]", "relight.dgsm.mapping": mapping,
+             "relight.dgsm.kappa": 1.0, "relight.dgsm.roi": "[]"}
+    img = {f"light{i}.t00{k}": np.full((4, 4), 0.5 if i else 1.0, np.float32)
+           for i in range(2) for k in range(2)}
+    write_exr(str(path), img, attributes=attrs, provenance=provenance("relight/dgsm", 1))
+    return str(path)
+
+
+def test_dgsm_version1_upgrade(tmp_path):
+    """Version 1 files stay readable: 'eq5' is today's 'peak'; no intensities → None."""
+    m = read_dgsm(_v1_file(tmp_path / "v1.exr"))
+    assert m.mapping == "peak" and m.intensities is None and m.colors is None
+    assert m.transmittance.shape == (2, 2, 4, 4)
+    # version 1's own simple/mass/diag were other definitions: labelled, not confused
+    assert read_dgsm(_v1_file(tmp_path / "v1m.exr", "mass")).mapping == "v1-mass"
+    from relight_cli.errors import DataError
+    with pytest.raises(DataError, match="mapping"):
+        read_dgsm(_v1_file(tmp_path / "v1x.exr", "avg"))   # version 1 never wrote 'avg'
+
+
+def test_dgsm_version2_requires_light_properties(tmp_path):
+    from relight_cli.errors import DataError
+    from relight_cli.formats.dgsm_exr import VERSION
+    from relight_cli.formats.exr import read_exr, write_exr
+    from relight_cli.provenance import provenance
+    m = D.DGSM(np.ones((1, 2, 4, 4), np.float32), np.array([[0.0, 2, 0]]), np.array([3.0]),
+               roi=[{"bins": [0, 1]}], intensities=np.array([3.0]), colors=np.array([[1, 0.5, 0]]))
+    good = str(tmp_path / "g.exr")
+    write_dgsm(good, m, provenance("relight/dgsm", VERSION))
+    back = read_dgsm(good)
+    np.testing.assert_array_equal(back.intensities, [3.0])
+    np.testing.assert_array_equal(back.colors, [[1, 0.5, 0]])
+    img = read_exr(good)
+    for key, value, what in (("light_intensities", None, "light_intensities"),
+                             ("light_intensities", "[1, 2]", "light count"),
+                             ("light_colors", "[[1, -1, 0]]", "≥ 0")):
+        attrs = {k: v for k, v in img.attributes.items()
+                 if k.startswith("relight.dgsm.") and k != "relight.dgsm." + key}
+        if value is not None:
+            attrs["relight.dgsm." + key] = value
+        bad = str(tmp_path / "b.exr")
+        write_exr(bad, dict(img.channels), attributes=attrs,
+                  provenance=provenance("relight/dgsm", VERSION))
+        with pytest.raises(DataError, match=what):
+            read_dgsm(bad)
+
+
+def test_shadow_protocol_from_the_command_line(tmp_path):
+    """Paper Sec. 4.2 end to end: a DGSM matte of a Gaussian sphere and the embree pseudo-GT
+    matte of the same sphere as a mesh, scored in the avatar-centric ROI."""
+    import json
+
+    from relight_cli.formats.camera import Camera, write_cameras
+    lights = tmp_path / "l.json"
+    write_lights(str(lights), Lights([[0.3, 1.5, 0.2]], intensities=[4.0]))
+    write_cameras(str(tmp_path / "cam.json"),
+                  [Camera.look_at([0.0, 1.6, 0.9], [0.0, 0.0, -0.1], width=96, height=72,
+                                  fov_y_deg=60)])
+    sphere = "builtin:sphere:translate=0,0.35,0"
+    shadows = str(tmp_path / "s.exr")
+    r = _run(["dgsm-build", sphere, "--receivers", "builtin:room", "--lights", str(lights),
+              "-o", shadows, "--size", "128", "--bins", "32", "--footprint", "centre", "-q"])
+    assert r.exit_code == 0, r.output
+    mattes = {}
+    for mode in ("dgsm", "mesh"):
+        mattes[mode] = str(tmp_path / f"{mode}.exr")
+        r = _run(["relight", sphere, "--shadow-matte", mode, "--dgsm", shadows, "--receivers",
+                  "builtin:room", "--render", str(tmp_path / "cam.json"), "--footprint", "centre",
+                  "-o", mattes[mode], "-q"])
+        assert r.exit_code == 0, r.output
+    from relight_cli.formats.exr import read_exr
+    gt = read_exr(mattes["mesh"]).channels["R"]
+    pred = read_exr(mattes["dgsm"]).channels["R"]
+    assert gt.max() > 0.99 and (gt > 0.5).sum() > 30          # a hard shadow on the floor
+    assert pred.max() > 0.5
+    out = str(tmp_path / "m.json")
+    r = _run(["metrics", "shadow", mattes["dgsm"], mattes["mesh"], "--roi-avatar", sphere,
+              "--camera", str(tmp_path / "cam.json"), "--roi-radius", "0.6", "-o", out])
+    assert r.exit_code == 0, r.output
+    rec = json.loads(open(out).read())
+    x, y, w, h = rec["settings"]["roi"]
+    assert 0 < w < 96 and 0 < h <= 72                          # computed, smaller than the image
+    assert rec["metrics"]["sm_iou"] > 0.5 and rec["metrics"]["sae"] < 0.5
+    # usage errors: a matte needs the DGSM (its lights) and a camera; the GT needs a mesh
+    r = _run(["relight", sphere, "--shadow-matte", "dgsm", "--receivers", "builtin:room",
+              "--render", str(tmp_path / "cam.json"), "-o", str(tmp_path / "x.exr")])
+    assert r.exit_code == 2 and "--dgsm" in r.output
+    from relight_cli.formats.gaussians_ply import write_gaussians
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    write_gaussians(str(tmp_path / "ball.ply"), load_gaussians("builtin:sphere"))
+    r = _run(["relight", str(tmp_path / "ball.ply"), "--shadow-matte", "mesh", "--dgsm", shadows,
+              "--receivers", "builtin:room", "--render", str(tmp_path / "cam.json"),
+              "-o", str(tmp_path / "x.exr")])
+    assert r.exit_code == 1 and "mesh" in r.output
+    r = _run(["metrics", "shadow", mattes["dgsm"], mattes["mesh"], "--roi-avatar", sphere])
+    assert r.exit_code == 2 and "--camera" in r.output

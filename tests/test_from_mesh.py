@@ -44,12 +44,18 @@ def test_sphere_normals_outward_and_thin_axis_is_normal():
 def test_gaussian_sphere_casts_a_solid_shadow():
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
     g = gaussians_from_trimesh(mesh)
-    mix = TR.from_gaussians(g)
+    # peak reproduces each splat's opacity along any ray through it: the shell is solid
+    mix = TR.from_gaussians(g, "peak")
     light = np.array([0.0, 3.0, 0.0])
     inside = np.array([[0.0, -1.0, 0.0], [0.1, -1.0, 0.05], [-0.15, -1.0, -0.1]])
     outside = np.array([[0.6, -1.0, 0.0], [0.0, -1.0, -0.7]])
     assert TR.transmittance_between(mix, light, inside).max() < 1e-3
     assert TR.transmittance_between(mix, light, outside).min() > 0.999
+    # the paper's avg (the default) gives a flat splat only τ*/√3 face-on (tr(A)/3 ≈ 1/(3s_z²)),
+    # so two walls of the shell let through T ≈ (1 − α)^(2/√3): darker than 1 %, not 0.1 %
+    avg = TR.from_gaussians(g)
+    assert TR.transmittance_between(avg, light, inside).max() < 1e-2
+    assert TR.transmittance_between(avg, light, outside).min() > 0.999
 
 
 def test_texture_and_face_colours():

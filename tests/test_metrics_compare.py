@@ -8,7 +8,8 @@ import math
 import pytest
 
 from conftest import run_relight
-from relight_cli.formats.metrics_json import (FORMAT, dumps, flatten, loads, make_record)
+from relight_cli.formats.metrics_json import (FORMAT, VERSION, dumps, flatten, loads,
+                                              make_record)
 from relight_cli.metrics.compare import compare_metrics, lookup
 
 
@@ -62,7 +63,7 @@ def test_format_round_trip_and_validation():
     assert flatten(back["metrics"]) == [("stage.psnr", None), ("stage.ssim", 0.5)]
     assert list(back)[:4] == ["format", "version", "kind", "metrics"]
     from relight_cli.errors import DataError
-    newer = dict(back, version=2)
+    newer = dict(back, version=VERSION + 1)
     with pytest.raises(DataError, match="newer"):
         loads(json.dumps(newer), "x.json")
     with pytest.raises(DataError, match="not a relight/metrics"):

@@ -166,7 +166,7 @@ def test_cli_in_process_masked(run_cli, images):
     assert r.exit_code == 0, r.output
     rec = json.loads(out.read_text())
     assert list(rec)[:5] == ["format", "version", "kind", "metrics", "per_channel"]
-    assert rec["format"] == "relight/metrics" and rec["version"] == 1 and rec["kind"] == "image"
+    assert rec["format"] == "relight/metrics" and rec["version"] == 2 and rec["kind"] == "image"
     ref = image_metrics(pred, gt, mask, data_range=4.0)["metrics"]
     for k in ("mse", "psnr", "ssim", "mae"):
         assert rec["metrics"][k] == pytest.approx(ref[k], rel=1e-12)

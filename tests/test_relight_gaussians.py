@@ -149,6 +149,51 @@ def test_attenuate_and_shadow_factor():
                                1 - 0.5 * (1 - np.array([0.75, 0.0, 0.625])))
 
 
+def test_per_light_weights_attenuate_each_lights_direct_part():
+    """Sec. 3.3: light l's T_l scales only light l's share of the direct light, per channel."""
+    T = np.array([[0.2, 1.0, 0.0], [1.0, 0.5, 0.0]])            # [L=2, M=3]
+    intensities = np.array([3.0, 1.0])
+    # white lights: the intensity-weighted mean, in every channel
+    w = TF.direct_light_weights("intensity", intensities, np.ones((2, 3)))
+    assert w.shape == (2, 1, 3)
+    f = TF.shadow_factor(T, w)
+    np.testing.assert_allclose(f, np.repeat([[0.4], [0.875], [0.0]], 3, axis=1))
+    # a red light and a cyan light: each light's shadow removes only its own colour
+    colours = np.array([[1.0, 0, 0], [0, 1.0, 1.0]])
+    f = TF.shadow_factor(T, TF.direct_light_weights("intensity", intensities, colours))
+    np.testing.assert_allclose(f[0], [0.2, 1.0, 1.0])
+    np.testing.assert_allclose(f[1], [1.0, 0.5, 0.5])
+    # direct share s: (1 − s) of the colour is never shadowed
+    f = TF.shadow_factor(T, TF.direct_light_weights("intensity", intensities, colours), 0.25)
+    np.testing.assert_allclose(f[2], [0.75, 0.75, 0.75])
+    # a light of zero intensity casts no shadow; equal weights are the old plain mean
+    f = TF.shadow_factor(T, TF.direct_light_weights("intensity", [0.0, 1.0], np.ones((2, 3))))
+    np.testing.assert_allclose(f[:, 0], T[1])
+    f = TF.shadow_factor(T, TF.direct_light_weights("equal", n_lights=2))
+    np.testing.assert_allclose(f[:, 1], TF.shadow_factor(T))
+
+
+def test_irradiance_weights_and_unlit_receivers():
+    """irradiance: w_l = I_l C_l |n·ω_l| / r_l²; a receiver no light reaches keeps its colour."""
+    lights = np.array([[0.0, 1.0, 0.0], [2.0, 0.0, 0.0]])
+    points = np.zeros((2, 3))
+    normals = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])      # facing light 0; facing neither
+    w = TF.direct_light_weights("irradiance", [1.0, 8.0], np.ones((2, 3)), lights, points, normals)
+    assert w.shape == (2, 2, 3)
+    np.testing.assert_allclose(w[:, 0, 0], [1.0, 0.0])          # light 1 is at grazing incidence
+    np.testing.assert_allclose(w[:, 1, 0], [0.0, 0.0])
+    T = np.array([[0.3, 0.3], [0.9, 0.9]])
+    f = TF.shadow_factor(T, w)
+    np.testing.assert_allclose(f[0], 0.3)
+    np.testing.assert_allclose(f[1], 1.0)
+    # tilt the first receiver 45° towards light 1: |n·ω| = 1/√2 each, r² = 1 and 4
+    n45 = np.array([[1.0, 1.0, 0.0]]) / math.sqrt(2)
+    w = TF.direct_light_weights("irradiance", [1.0, 8.0], None, lights, points[:1], n45)
+    np.testing.assert_allclose(w[:, 0, 1], [1 / math.sqrt(2), 8 / (4 * math.sqrt(2))])
+    with pytest.raises(ValueError):
+        TF.direct_light_weights("bogus", [1.0])
+
+
 # ------------------------------------------------------------------ CLI
 
 
@@ -241,31 +286,41 @@ def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     assert not (files / "out.ply").exists() and not (files / "out.exr").exists()
 
 
-def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
-    """An opaque ball between a point light and a floor: receivers under it darken by the DGSM's
-    transmittance (equal to the engine's footprint lookup), receivers away from it do not."""
-    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr",
-                                   reason="formats/dgsm_exr.py (DGSM format) not in this tree")
-    from relight_cli.gaussians.dgsm import build_dgsm, sample_transmittance
+def _ball_over_floor(tmp_path, lights, grid, intensities=None):
+    """An opaque ball of Gaussians at 1 m over a grey floor grid (nx, nz, half-width in x);
+    writes ball.ply, floor.ply, a uniform probe p.json and the DGSM s.exr for ``lights``."""
+    from relight_cli.formats import dgsm_exr
+    from relight_cli.gaussians.dgsm import build_dgsm
+    from relight_cli.provenance import provenance
     rng = np.random.default_rng(0)
     d = rng.normal(size=(400, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     ball = Gaussians(d * 0.15 + [0, 1.0, 0], np.full((400, 3), 0.05), np.tile([1.0, 0, 0, 0], (400, 1)),
                      np.full(400, 0.95), np.zeros((400, 1, 3)), 0)
-    xs, zs = np.meshgrid(np.linspace(-1, 1, 15), np.linspace(-1, 1, 15))
+    nx, nz, half = grid
+    xs, zs = np.meshgrid(np.linspace(-half, half, nx), np.linspace(-1, 1, nz))
     m = xs.size
     floor = Gaussians(np.column_stack([xs.ravel(), np.zeros(m), zs.ravel()]), np.full((m, 3), 0.05),
                       np.tile([1.0, 0, 0, 0], (m, 1)), np.full(m, 0.9),
                       rgb_to_sh_dc(np.full((m, 3), 0.6))[:, None, :], 0)
-    light = np.array([[0.0, 2.5, 0.0]])
-    shadow = build_dgsm(ball, light, floor.means, size=(32, 32), bins=16)
-    from relight_cli.provenance import provenance
+    shadow = build_dgsm(ball, np.asarray(lights, float), floor.means, size=(32, 32), bins=16,
+                        intensities=intensities)
     dgsm_exr.write_dgsm(str(tmp_path / "s.exr"), shadow, provenance(dgsm_exr.FORMAT, dgsm_exr.VERSION))
     write_gaussians(str(tmp_path / "ball.ply"), ball)
     write_gaussians(str(tmp_path / "floor.ply"), floor)
     c = np.zeros((1, 3))
     c[0] = math.sqrt(4 * math.pi)
     write_probe(str(tmp_path / "p.json"), ShProbe(c, 0))
+    return shadow, floor
+
+
+def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
+    """An opaque ball between a point light and a floor: receivers under it darken by the DGSM's
+    transmittance (equal to the engine's footprint lookup), receivers away from it do not."""
+    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr",
+                                   reason="formats/dgsm_exr.py (DGSM format) not in this tree")
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    shadow, floor = _ball_over_floor(tmp_path, [[0.0, 2.5, 0.0]], (15, 15, 1.0))
     r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
                 tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
                 tmp_path / "floor-shadowed.ply", "--footprint", "centre", "-o", tmp_path / "o.ply",
@@ -278,6 +333,29 @@ def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
     centre = np.argmin(np.linalg.norm(floor.means, axis=1))
     corner = np.argmax(np.linalg.norm(floor.means, axis=1))
     assert ratio[centre] < 0.2 and ratio[corner] > 0.999
+    prov = read_gaussians(str(tmp_path / "floor-shadowed.ply")).provenance
+    settings = (prov or {}).get("settings", {})
+    if settings:
+        assert settings["dgsm_mapping"] == "avg" and settings["light_weights"] == "intensity"
+
+
+def test_cli_dgsm_weights_lights_by_intensity(run_cli, tmp_path):
+    """Two lights, each casting the ball's shadow on a different spot: the spot of the light of
+    intensity 3 darkens to (3·T + 1)/4, the one of intensity 1 to (3 + T)/4 (white lights)."""
+    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr")
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    shadow, floor = _ball_over_floor(tmp_path, [[-0.5, 2.0, 0.0], [0.5, 2.0, 0.0]], (21, 9, 1.5),
+                                     intensities=[3.0, 1.0])
+    T = sample_transmittance(shadow, floor.means, footprint="centre")           # [2, M]
+    for mode, want in (("intensity", (3 * T[0] + T[1]) / 4), ("equal", T.mean(axis=0))):
+        r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                    tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                    tmp_path / f"f-{mode}.ply", "--footprint", "centre", "--light-weights", mode,
+                    "-o", tmp_path / "o.ply", "-q")
+        assert r.exit_code == 0, r.output
+        ratio = read_gaussians(str(tmp_path / f"f-{mode}.ply")).colors() / floor.colors()
+        np.testing.assert_allclose(ratio, np.repeat(want[:, None], 3, axis=1), atol=1e-5)
+    assert T.min(axis=1).max() < 0.2          # both lights really cast a shadow on the floor
 
 
 # ------------------------------------------------------------------ light estimation (Sec. 3.1)
@@ -325,7 +403,13 @@ def test_estimate_lights_finds_compact_emitters():
     np.testing.assert_allclose(est.colors @ LUMA, 1.0, atol=1e-12)
     a = int(np.argmin(np.linalg.norm(est.positions - lamp_a, axis=1)))
     np.testing.assert_allclose(est.colors[a] / est.colors[a].max(), [1.0, 0.75, 0.5], atol=1e-6)
-    assert est.intensities[a] == pytest.approx(np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
+    # paper: intensity = the base score b = opacity·(Ȳ + Ŷ)/2·(½ + ½s)·(½ + ½δ); a lamp looks
+    # the same from everywhere (s = 1) and has no view-dependent SH energy (δ = 1)
+    assert est.intensities[a] == pytest.approx(0.9 * np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
+    v1 = estimate_lights(scene, 2, variant="v1")            # the earlier variant: mean luminance
+    np.testing.assert_allclose(sorted(v1.positions.tolist()), sorted(est.positions.tolist()))
+    a1 = int(np.argmin(np.linalg.norm(v1.positions - lamp_a, axis=1)))
+    assert v1.intensities[a1] == pytest.approx(np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
     # K = 3: the window (bright but extended) comes after both lamps; the glint never wins.
     est3 = estimate_lights(scene, 3)
     assert -0.6 < est3.positions[2, 0] < 0.6 and est3.positions[2, 2] < -1.9
@@ -344,3 +428,94 @@ def test_estimate_lights_roi_and_errors():
         parse_auto("auto:0")
     with pytest.raises(ValueError):
         parse_auto("auto:x")
+
+
+def test_cli_dgsm_version1_file_weights_lights_equally(run_cli, tmp_path):
+    """A version 1 shadow map (no intensities, mapping 'eq5') still relights: equal weights, said."""
+    from relight_cli.formats.exr import read_exr, write_exr
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    from relight_cli.provenance import provenance
+    shadow, floor = _ball_over_floor(tmp_path, [[-0.5, 2.0, 0.0], [0.5, 2.0, 0.0]], (21, 9, 1.5),
+                                     intensities=[3.0, 1.0])
+    img = read_exr(str(tmp_path / "s.exr"))
+    attrs = {k: v for k, v in img.attributes.items() if k.startswith("relight.dgsm.")
+             and k not in ("relight.dgsm.light_intensities", "relight.dgsm.light_colors")}
+    attrs["relight.dgsm.mapping"] = "eq5"
+    write_exr(str(tmp_path / "v1.exr"), dict(img.channels), attributes=attrs,
+              provenance=provenance("relight/dgsm", 1))
+    r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "v1.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                tmp_path / "f.ply", "--footprint", "centre", "-o", tmp_path / "o.ply")
+    assert r.exit_code == 0, r.output
+    assert "version 1" in r.output and "equally" in r.output
+    out = read_gaussians(str(tmp_path / "f.ply"))
+    T = sample_transmittance(shadow, floor.means, footprint="centre")
+    np.testing.assert_allclose(out.colors()[:, 0] / floor.colors()[:, 0], T.mean(axis=0), atol=1e-5)
+    assert out.provenance["settings"]["dgsm_mapping"] == "peak"
+    assert out.provenance["settings"]["light_weights"] == "equal"
+
+
+def test_estimate_lights_paper_details():
+    """Sec. 3.1: ROI and viewpoints at the character, soft clipping, colour toward the character."""
+    from relight_cli.gaussians.lights import colour_toward, estimate_lights, soft_clip
+    scene, lamp_a, lamp_b = room_with_lamps()
+    # the character stands next to lamp b: a 0.8 m ROI around it finds only that lamp
+    char = Gaussians(lamp_b + [0.3, -0.5, 0.0] + np.random.default_rng(1).normal(0, 0.1, (50, 3)),
+                     np.full((50, 3), 0.02), np.tile([1.0, 0, 0, 0], (50, 1)), np.full(50, 0.9),
+                     np.zeros((50, 1, 3)), 0)
+    est = estimate_lights(scene, 1, roi_radius=0.8, character=char)
+    np.testing.assert_allclose(est.positions[0], lamp_b, atol=0.04)
+    # soft clipping: below the fence untouched, order kept, bounded above
+    v = np.r_[np.linspace(0, 1, 200), 5.0, 50.0, 1e6]
+    c = soft_clip(v)
+    fence = 10 * np.percentile(v, 99)
+    np.testing.assert_array_equal(c[v <= fence], v[v <= fence])
+    assert c[200] == 5.0                                      # a lamp 5× the bulk: kept
+    assert np.all(np.diff(c) >= 0) and c.max() <= 2 * fence
+    # a blown-out floater (luminance 1e4): clipping keeps the order but not its 1000× margin,
+    # so its score no longer swamps the lamps (what an intensity-from-score light inherits)
+    from relight_cli.formats.gaussians_ply import concatenate
+    floater = Gaussians(np.array([[0.0, 1.5, 1.5]]), np.full((1, 3), 0.01), [[1.0, 0, 0, 0]],
+                        [0.9], np.concatenate([rgb_to_sh_dc(np.full((1, 3), 1e4))[:, None, :],
+                                               np.zeros((1, 3, 3))], axis=1), 1)
+    with_floater = concatenate([scene, floater])
+    paper = estimate_lights(with_floater, 2)
+    v1 = estimate_lights(with_floater, 2, variant="v1")
+    assert v1.positions[0][2] == pytest.approx(1.5) and paper.positions[0][2] == pytest.approx(1.5)
+    assert v1.scores[0] > 1000 * v1.scores[1]                 # unclipped (measured 3500×)
+    assert paper.scores[0] < 50 * paper.scores[1]             # soft-clipped (measured 20×)
+    # colour toward the character: the SH evaluated from the character's centroid
+    # (the glint is bright for viewing directions along +x, i.e. seen from a camera at −x)
+    glint = len(scene) - 5
+    from_minus_x = colour_toward(scene, [glint], scene.means[glint] - [1.0, 0, 0])
+    from_plus_x = colour_toward(scene, [glint], scene.means[glint] + [1.0, 0, 0])
+    assert from_minus_x[0].min() > 1.0 and from_plus_x[0].max() == 0.0
+    with pytest.raises(ValueError, match="estimator"):
+        estimate_lights(scene, 1, variant="bogus")
+
+
+def test_real_robot_view_dependence_survives_placement_and_relighting(shared):
+    """The real SH-degree-2 robot: placement (rotate-x=180, as captured it is upside down)
+    rotates its view-dependent bands, c'(d) = c(Qᵀd), and relighting by a uniform probe of
+    radiance 2 doubles its colour from every view direction (bands scaled with the DC)."""
+    from relight_cli.gaussians.placement import axis_rotation, parse_placement, place
+    robot = read_gaussians(str(shared("gaussians", "playbot-lod3.ply")))
+    assert robot.sh_degree == 2
+    rng = np.random.default_rng(0)
+    sub = robot.subset(rng.choice(len(robot), 400, replace=False))
+    sub = sub.subset(np.flatnonzero(sub.colors(clamp=False).min(axis=1) > 0))  # DC unclamped
+    placed = place(sub, parse_placement("rotate-x=180;translate=0.5,0,0"))
+    Q = axis_rotation("x", 180)
+    d = rng.normal(size=(len(sub), 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+
+    def colour(g, dirs):           # 3DGS colour before the clamp, seen along dirs
+        return 0.5 + np.einsum("nk,nkc->nc", sh_basis(dirs, g.sh_degree), g.sh)
+
+    view_dependent = np.abs(colour(sub, d) - colour(sub, -d)).max()
+    assert view_dependent > 0.05                       # the bands really carry something
+    np.testing.assert_allclose(colour(placed, d), colour(sub, d @ Q), atol=1e-9)
+    c = np.zeros((9, 3))
+    c[0] = 2.0 * math.sqrt(4 * math.pi)                 # uniform radiance 2 → factor 2
+    relit = TF.relight_gaussians(placed, c)
+    np.testing.assert_allclose(colour(relit, d), 2 * colour(placed, d), atol=1e-9)

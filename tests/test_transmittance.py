@@ -50,15 +50,26 @@ def reference_tau(mu, s, q, alpha, o, d, t0, t1, mapping, kappa):
     t_star = -float(A @ B) / a
     alpha = min(max(alpha, 0.0), TR.ALPHA_MAX)
     tau_star = -math.log1p(-alpha)
-    if mapping == "eq5":
+    # β from the definitions (paper Eq. 5; Sec. 4.4 B), written from the precision
+    # matrix Σ⁻¹ = R diag(1/s²) Rᵀ and the world-frame covariance, not from the
+    # module's normalized-scale formulas.
+    precision = R @ np.diag(1 / s ** 2) @ R.T
+    covariance = R @ np.diag(s ** 2) @ R.T
+    if mapping == "peak":            # direction-dependent: τ through the centre = κτ*
         beta = kappa * tau_star / (math.sqrt(2 * math.pi) * sigma_t)
+    elif mapping == "avg":
+        beta = kappa * tau_star * math.sqrt(np.trace(precision) / 3) / math.sqrt(2 * math.pi)
     elif mapping == "simple":
-        beta = kappa * alpha / (math.sqrt(2 * math.pi) * sigma_t)
+        beta = kappa * tau_star
     elif mapping == "mass":
-        beta = kappa * tau_star / (math.sqrt(2 * math.pi) * s.min())
-    else:
-        width = math.sqrt(float(((R.T @ d) ** 2 * s ** 2).sum()))
-        beta = kappa * tau_star / (math.sqrt(2 * math.pi) * max(width, sigma_t))
+        # det of a near-singular world-frame covariance loses relative precision
+        # (≈ cond·eps); where it is well conditioned use it, else its exact value Πs²
+        det = np.linalg.det(covariance) if s.min() > 1e-3 * s.max() else float(np.prod(s ** 2))
+        beta = kappa * tau_star / ((2 * math.pi) ** 1.5 * math.sqrt(det))
+    else:  # diag
+        beta = kappa * tau_star / ((2 * math.pi) ** 1.5 * float(np.prod(s)))
+    # the documented clip of the centre optical depth β√(2π)σ_t ≤ β√(2π)s_max ≤ 1e30
+    beta = min(beta, TR.TAU_CENTRE_MAX / (math.sqrt(2 * math.pi) * smax))
     Ax, Ay, Az = A
     Bx, By, Bz = B
 
@@ -188,8 +199,10 @@ def _check(cases, mapping, kappa):
 @pytest.mark.parametrize("mapping", TR.MAPPINGS)
 def test_random_cases_match_quadrature(mapping):
     rng = np.random.default_rng(TR.MAPPINGS.index(mapping))
-    cases = random_cases(rng, 800)  # 4 mappings × 800 = 3200 random cases
-    ref = _check(cases, mapping, kappa=2.0)
+    cases = random_cases(rng, 800)  # 5 mappings × 800 = 4000 random cases
+    # simple's τ through the centre is κτ*√(2π)σ_t (σ_t of cm): a larger κ so
+    # that its set also has dark rays
+    ref = _check(cases, mapping, kappa=40.0 if mapping == "simple" else 2.0)
     # the set must exercise both clear and dark rays, or it tests nothing
     T = np.exp(-ref)
     assert (T < 0.6).sum() > 20 and (T > 0.99).sum() > 20
@@ -225,8 +238,8 @@ def test_mixture_sum_matches_quadrature_of_whole_density():
         alpha = rng.uniform(0.2, 1.0, n)
         o = np.array([0.0, 2.0, 0.0]) + rng.normal(size=3) * 0.2
         d = _unit(rng.normal(size=3) * 0.2 - o)
-        mix = TR.prepare(mu, s, q, alpha, "eq5", 1.0)
-        ref = sum(reference_tau(mu[i], s[i], q[i], alpha[i], o, d, 0.0, 4.0, "eq5", 1.0)
+        mix = TR.prepare(mu, s, q, alpha, "avg", 1.0)
+        ref = sum(reference_tau(mu[i], s[i], q[i], alpha[i], o, d, 0.0, 4.0, "avg", 1.0)
                   for i in range(n))
         for dtype, tol in ((np.float64, TOL64), (np.float32, TOL32)):
             tau = TR.optical_depth(mix, o[None], d[None], 0.0, 4.0, dtype)[0]
@@ -237,14 +250,14 @@ def test_transmittance_between_point_at_light_is_one():
     mix = TR.prepare(np.zeros((1, 3)), np.full((1, 3), 0.1), np.array([[1.0, 0, 0, 0]]), [0.9])
     T = TR.transmittance_between(mix, [0.0, 0.0, 0.0], np.array([[0.0, 0.0, 0.0], [0, 0, 1.0]]))
     assert T[0] == 1.0
-    # from the centre outwards: half the Gaussian, T = (1−α)^(1/2) with the eq5 mapping
+    # from the centre outwards: half the Gaussian, T = (1−α)^(1/2) (isotropic: avg = peak)
     assert abs(T[1] - math.sqrt(0.1)) < 1e-12
 
 
-def test_eq5_ray_through_centre_has_splat_opacity():
-    """eq5: any full ray through μ sees exactly τ* = −ln(1−α), for any direction."""
+def test_peak_ray_through_centre_has_splat_opacity():
+    """peak: any full ray through μ sees exactly τ* = −ln(1−α), for any direction."""
     rng = np.random.default_rng(11)
-    mix = TR.prepare(np.zeros((1, 3)), [[0.3, 0.02, 0.1]], rng.normal(size=(1, 4)), [0.8], "eq5", 1.0)
+    mix = TR.prepare(np.zeros((1, 3)), [[0.3, 0.02, 0.1]], rng.normal(size=(1, 4)), [0.8], "peak", 1.0)
     d = rng.normal(size=(50, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     T = TR.transmittance(mix, -5 * d, d, 0.0, 10.0)
@@ -265,3 +278,109 @@ def test_erf_difference_edge_cases():
     width = u1[4] - u0[4]   # the representable interval (≈ 1e-13)
     assert abs(out[4] / (2 / math.sqrt(math.pi) * math.exp(-1) * width) - 1) < 1e-9
     assert abs(out[6] - (erf(1e-12) - erf(-1e-12))) < 1e-25
+
+
+# ------------------------------------------------------------------ the paper's mappings in closed form
+
+
+def _full_line_tau(mix, d, through=np.zeros(3)):
+    """τ along the whole line through ``through`` in direction d (± 50 m)."""
+    d = _unit(d)
+    return TR.optical_depth(mix, (through - 50 * d)[None], d[None], 0.0, 100.0)[0]
+
+
+@pytest.mark.parametrize("alpha", [0.3, 1 - 1e-9, 1 - 1e-15, 1.0])
+def test_mappings_through_the_centre_closed_forms(alpha):
+    """∫ β e^{−½ xᵀAx} along a line through μ = β √(2π) σ_t, σ_t = (dᵀAd)^{−½} (Gauss integral).
+
+    Written per mapping from the paper's β (Eq. 5; Sec. 4.4 B): isotropic and
+    axis-aligned anisotropic Gaussians, opacity up to exactly 1 (clipped to
+    1 − 1e-12, τ* ≈ 27.6, finite).
+    """
+    kappa = 0.7
+    tau_star = -math.log1p(-min(alpha, TR.ALPHA_MAX))
+    s = np.array([0.05, 0.02, 0.004])
+    trace = (1 / s ** 2).sum()
+    for axis in range(3):
+        d = np.eye(3)[axis]
+        expected = {
+            "avg": kappa * tau_star * math.sqrt(trace / 3) * s[axis],
+            "simple": kappa * tau_star * math.sqrt(2 * math.pi) * s[axis],
+            "mass": kappa * tau_star * s[axis] / (2 * math.pi * s.prod()),
+            "diag": kappa * tau_star * s[axis] / (2 * math.pi * s.prod()),
+            "peak": kappa * tau_star,
+        }
+        for mapping, want in expected.items():
+            mix = TR.prepare(np.zeros((1, 3)), s[None], [[1.0, 0, 0, 0]], [alpha], mapping, kappa)
+            got = _full_line_tau(mix, d)
+            assert np.isfinite(got)
+            assert abs(got / want - 1) < 1e-12, (mapping, axis, got, want)
+    # isotropic: avg = peak = κτ*, mass = diag = κτ*/(2π s²), simple = κτ*√(2π)s
+    iso = 0.03
+    for mapping, want in (("avg", kappa * tau_star), ("peak", kappa * tau_star),
+                          ("mass", kappa * tau_star / (2 * math.pi * iso ** 2)),
+                          ("simple", kappa * tau_star * math.sqrt(2 * math.pi) * iso)):
+        mix = TR.prepare(np.zeros((1, 3)), [[iso] * 3], [[0.3, 0.1, -0.5, 0.2]], [alpha], mapping,
+                         kappa)
+        got = _full_line_tau(mix, [0.3, -1.0, 0.2])
+        assert abs(got / want - 1) < 1e-12, (mapping, got, want)
+
+
+def test_mass_and_diag_coincide_and_match_the_covariance_determinant():
+    """Sec. 4.4: A = covariance in the local frame, so √det A = s_x s_y s_z (mass ≡ diag)."""
+    rng = np.random.default_rng(21)
+    n = 500
+    s = np.exp(rng.uniform(np.log(1e-3), np.log(0.3), (n, 3)))
+    q = rng.normal(size=(n, 4))
+    alpha = rng.uniform(0.01, 1, n)
+    mass = TR.prepare(np.zeros((n, 3)), s, q, alpha, "mass").absorption()
+    diag = TR.prepare(np.zeros((n, 3)), s, q, alpha, "diag").absorption()
+    np.testing.assert_allclose(mass, diag, rtol=1e-13)
+    R = np.array([_rotation(x) for x in q])
+    cov = np.einsum("nij,nj,nkj->nik", R, s ** 2, R)        # world-frame Σ
+    # world-frame det(Σ) carries rounding ∝ its condition number (≤ 9e4 here → rtol 1e-9)
+    expected = -np.log1p(-alpha) / ((2 * math.pi) ** 1.5 * np.sqrt(np.linalg.det(cov)))
+    np.testing.assert_allclose(mass, expected, rtol=1e-9)
+    # avg from the trace of the world-frame precision matrix (Eq. 5)
+    precision = np.einsum("nij,nj,nkj->nik", R, 1 / s ** 2, R)
+    avg = TR.prepare(np.zeros((n, 3)), s, q, alpha, "avg").absorption()
+    np.testing.assert_allclose(
+        avg, -np.log1p(-alpha) * np.sqrt(np.trace(precision, axis1=1, axis2=2) / 3)
+        / math.sqrt(2 * math.pi), rtol=1e-12)
+    # peak has no fixed β
+    assert np.isnan(TR.prepare(np.zeros((1, 3)), s[:1], q[:1], alpha[:1], "peak").absorption()).all()
+
+
+def test_flat_and_degenerate_gaussians_per_mapping():
+    """A disc of zero thickness (floored to 1e-6 of its width): finite, and avg ≈ κτ*/(√3 cos θ)."""
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=4)
+    R = _rotation(q)
+    normal = R[:, 2]
+    s = np.array([0.2, 0.1, 0.0])
+    tau_star = -math.log1p(-0.5)
+    for theta in (0.0, math.radians(60), math.radians(89)):
+        d = math.cos(theta) * normal + math.sin(theta) * R[:, 0]
+        mix = TR.prepare(np.zeros((1, 3)), s[None], q[None], [0.5], "avg", 1.0)
+        got = _full_line_tau(mix, d)
+        # tr(A)/3 ≈ 1/(3 s_z²) and σ_t ≈ s_z / cos θ (the in-plane terms are 1e-12 relative)
+        want = tau_star / (math.sqrt(3) * math.cos(theta))
+        assert abs(got / want - 1) < 1e-6, (theta, got, want)
+        for mapping in TR.MAPPINGS:
+            for dtype in (np.float64, np.float32):
+                mixm = TR.prepare(np.zeros((1, 3)), s[None], q[None], [0.5], mapping, 1.0)
+                tau = TR.optical_depth(mixm, (-50 * d)[None], d[None], 0.0, 100.0, dtype)
+                assert np.isfinite(tau).all() and (tau >= 0).all()
+    # all scales zero, opacity 1: finite, and mass/diag hit the documented clip
+    mix = TR.prepare(np.zeros((1, 3)), [[0.0, 0.0, 0.0]], [q], [1.0], "mass")
+    assert mix.peak_bound()[0] == TR.TAU_CENTRE_MAX
+    assert np.isfinite(_full_line_tau(mix, [0, 1.0, 0]))
+
+
+def test_legacy_eq5_name_reads_as_peak():
+    assert TR.canonical_mapping("eq5") == "peak"
+    mix = TR.prepare(np.zeros((1, 3)), [[0.1, 0.2, 0.3]], [[1.0, 0, 0, 0]], [0.5], "eq5")
+    assert mix.mapping == "peak"
+    assert TR.DEFAULT_MAPPING == "avg"
+    with pytest.raises(ValueError):
+        TR.canonical_mapping("nope")

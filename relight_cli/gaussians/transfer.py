@@ -19,9 +19,31 @@ Normals: the Gaussian's shortest axis (a flat splat's surface normal), or the
 smallest principal axis of its k nearest neighbours (local PCA), oriented away
 from the opacity-weighted centroid (outward for star-shaped avatars).
 
-Receivers (scene Gaussians) are darkened by DGSM transmittance:
-c' = c · (1 − s·(1 − T̄)), T̄ the mean transmittance over lights (weighted by
-light intensity when known), s the shadow strength (1: multiply by T̄).
+Receivers (scene Gaussians) are shadowed by DGSM transmittance (paper Sec. 3.3:
+"we multiply the direct term of its color by this transmittance").  A
+receiver's captured colour c is split into the direct light of the L point
+lights and the rest (ambient/indirect light and anything the lights do not
+explain, never shadowed):
+
+    c = (1 − s)·c  +  s·c,        s·c = Σ_l s·c·w_l,c / Σ_k w_k,c,
+
+with s the direct share (``--shadow-strength``, default 1: the whole captured
+colour is direct light) and w_l,c light l's share of the direct light in
+channel c.  Each light's part is multiplied by that light's transmittance T_l:
+
+    c'_c = c_c · [(1 − s) + s · Σ_l w_l,c T_l / Σ_l w_l,c]      (per channel).
+
+Weights (:func:`direct_light_weights`, ``--light-weights``):
+
+* ``intensity`` (default; the paper's "weighted by the light's intensity"):
+  w_l,c = I_l · C_l,c, the light's intensity times its colour (so a red light's
+  shadow takes away red);
+* ``irradiance`` (this toolkit's): w_l,c = I_l · C_l,c · |n·ω_l| / r_l², the
+  direct irradiance each light delivers to that receiver (n its normal, ω_l
+  and r_l the direction and distance to the light); a receiver no light
+  reaches (all w = 0) keeps its colour;
+* ``equal``: w = 1, the unweighted mean T of the versions before DGSM 2 (and
+  the fallback for version 1 maps, which stored no intensities).
 """
 
 from __future__ import annotations
@@ -156,22 +178,98 @@ def relight_gaussians(g: Gaussians, probe_coefficients: np.ndarray, q: float = 1
                      g.sh_degree, normals)
 
 
+LIGHT_WEIGHTS = ("intensity", "irradiance", "equal")
+
+
+def direct_light_weights(mode: str, intensities=None, colors=None, lights=None, points=None,
+                         normals=None, n_lights: int | None = None) -> np.ndarray:
+    """Each light's share of a receiver's direct light, per channel (paper Sec. 3.3).
+
+    Args:
+        mode: one of LIGHT_WEIGHTS (see the module doc).
+        intensities: [L] light intensities ≥ 0 (None: 1).
+        colors: [L, 3] linear RGB ≥ 0 (None: white).
+        lights: [L, 3] positions, metres, world (``irradiance`` only).
+        points: [M, 3] receiver centres, metres, world (``irradiance`` only).
+        normals: [M, 3] unit receiver normals, either orientation (``irradiance`` only).
+        n_lights: L, when neither intensities, colours nor positions are given.
+    Returns:
+        [L, 1, 3] (``intensity``, ``equal``) or [L, M, 3] (``irradiance``) weights ≥ 0.
+    """
+    if mode not in LIGHT_WEIGHTS:
+        raise ValueError(f"light weights must be one of {LIGHT_WEIGHTS}, got {mode!r}")
+    n = next(len(x) for x in (intensities, colors, lights, range(n_lights or 0)) if x is not None)
+    if mode == "equal":
+        return np.ones((n, 1, 3))
+    i = np.ones(n) if intensities is None else np.asarray(intensities, np.float64).reshape(n)
+    c = np.ones((n, 3)) if colors is None else np.asarray(colors, np.float64).reshape(n, 3)
+    w = (i[:, None] * c)[:, None, :]                                     # [L, 1, 3]
+    if mode == "intensity":
+        return w
+    v = np.asarray(lights, np.float64).reshape(n, 1, 3) - np.asarray(points, np.float64)[None]
+    r2 = (v * v).sum(axis=2)                                             # [L, M]
+    r = np.sqrt(r2)
+    cos = np.abs(np.einsum("lmi,mi->lm", v, np.asarray(normals, np.float64))) / np.where(r > 0, r, 1)
+    geometry = np.where(r2 > 0, cos / np.where(r2 > 0, r2, 1), 0.0)
+    return w * geometry[:, :, None]
+
+
+def effective_light_weights(mode: str, intensities) -> str:
+    """``mode``, or ``equal`` when the shadow map stores no intensities (DGSM version 1)."""
+    return "equal" if mode != "equal" and intensities is None else mode
+
+
+def dgsm_light_weights(mode: str, shadow_map, receivers: Gaussians,
+                       normals: np.ndarray | None = None) -> np.ndarray:
+    """:func:`direct_light_weights` for a DGSM's lights at ``receivers`` ([L, 1|M, 3]).
+
+    ``irradiance`` uses ``normals`` [M, 3] or the receivers' shortest axes.
+    """
+    if mode != "irradiance":
+        return direct_light_weights(mode, shadow_map.intensities, shadow_map.colors,
+                                    n_lights=len(shadow_map.lights))
+    if normals is None:
+        normals = estimate_normals(receivers, "axis")
+    return direct_light_weights("irradiance", shadow_map.intensities, shadow_map.colors,
+                                shadow_map.lights, receivers.means, normals)
+
+
 def shadow_factor(transmittance: np.ndarray, weights: np.ndarray | None = None,
                   strength: float = 1.0) -> np.ndarray:
-    """[M] multiplier 1 − s·(1 − T̄) from per-light transmittance [L, M] (weights [L], default equal)."""
+    """Multiplier (1 − s) + s·Σ_l w_l T_l / Σ_l w_l of receiver colours (module doc).
+
+    Args:
+        transmittance: [L, M] per-light T at the receivers.
+        weights: None (equal), [L] (one weight per light), [L, 3] or [L, 1|M, 3]
+            (per channel, from :func:`direct_light_weights`).
+        strength: s, the direct share of the receivers' colour.
+    Returns:
+        [M] for None/[L] weights, else [M, 3].  Where Σ_l w_l = 0 (no direct
+        light) the factor is 1.
+    """
     T = np.atleast_2d(np.asarray(transmittance, np.float64))
-    w = np.ones(len(T)) if weights is None else np.asarray(weights, np.float64)
-    mean = (w[:, None] * T).sum(0) / max(w.sum(), 1e-300)
+    if weights is None or np.ndim(weights) == 1:
+        w = np.ones(len(T)) if weights is None else np.asarray(weights, np.float64)
+        mean = (w[:, None] * T).sum(0) / max(w.sum(), 1e-300)
+        return 1.0 - strength * (1.0 - mean)
+    w = np.asarray(weights, np.float64)
+    if w.ndim == 2:
+        w = w[:, None, :]
+    w = np.broadcast_to(w, (T.shape[0], T.shape[1], 3))
+    total = w.sum(axis=0)                                                # [M, 3]
+    lit = (w * T[:, :, None]).sum(axis=0)
+    mean = np.where(total > 0, lit / np.where(total > 0, total, 1), 1.0)
     return 1.0 - strength * (1.0 - mean)
 
 
 def attenuate(g: Gaussians, factor: np.ndarray) -> Gaussians:
-    """A copy of receivers ``g`` with colours (all SH bands and the 0.5 offset) scaled by [M] factors.
+    """A copy of receivers ``g`` with colours (all SH bands and the 0.5 offset) scaled by factors.
 
-    Scaling the full colour 0.5 + Σ sh Y by f means DC' = f·DC + (f − 1)·0.5/C0 and
-    higher bands f·sh.
+    ``factor`` is [M] (grey) or [M, 3] (per channel).  Scaling the full colour
+    0.5 + Σ sh Y by f means DC' = f·DC + (f − 1)·0.5/C0 and higher bands f·sh.
     """
-    f = np.asarray(factor, np.float64).reshape(-1, 1)
+    f = np.asarray(factor, np.float64)
+    f = f.reshape(-1, 1) if f.ndim == 1 else f.reshape(-1, 3)
     sh = g.sh * f[:, None, :]
     sh[:, 0, :] = rgb_to_sh_dc(g.colors(clamp=False) * f)
     return Gaussians(g.means.copy(), g.scales.copy(), g.rotations.copy(), g.opacities.copy(), sh,

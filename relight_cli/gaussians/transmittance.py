@@ -40,30 +40,61 @@ Numerical stability (why each formula is written the way it is):
   along the query direction) has τ = 0, T = 1.  A light inside a Gaussian is
   ordinary: t0 = 0 lies inside the erf's transition.
 
-Opacity → absorption (β) mappings.  τ* = −ln(1 − α) is the optical depth that
-makes a slab of opacity α; κ scales all of them (the ablation's knob).
+Opacity → absorption (β) mappings (paper Sec. 3.2 Eq. 5 and Sec. 4.4 B, Table 4).
+τ* = −ln(1 − α) is the optical depth that makes a slab of opacity α; κ is the
+global strength knob.  The paper's four give each Gaussian ONE absorption
+amplitude β_i (units 1/m for Eq. 1 to be an absorption density), so a ray
+through the centre along d collects τ_centre(d) = β_i √(2π) σ_t,i(d), with
+σ_t(d) = (dᵀA d)^(−½) and A = Σ⁻¹ the precision matrix:
 
-* ``eq5`` (default): β_i(d) = κ τ*_i / (√(2π) σ_t,i(d)): every ray through the
-  centre sees optical depth exactly κτ*, i.e. T = (1 − α)^κ, the same peak
-  opacity the 3DGS splatting rasterizer uses, in every direction.  Off-centre
-  rays see κτ* e^{−½m²} — the splat's own footprint.
-* ``simple``: as eq5 with τ* replaced by α (linear; underestimates dense splats).
-* ``mass``: β_i = κ τ*_i / (√(2π) s_min,i), direction-independent: a ray along
-  the thinnest axis sees κτ*, other directions see more (a real volume).
-* ``diag``: β_i(d) = κ τ*_i / (√(2π) √(dᵀΣ_i d)): eq5 with the cheap
-  "diagonal" width √(dᵀΣd) (no inverse) in place of σ_t; never more than κτ*.
+* ``avg`` (default; paper Eq. 5, Table 4 mapping 2):
+  β = κ τ* √(tr(A)/3) / √(2π), tr(A) = Σ_k 1/s_k², the "direction-agnostic
+  proxy for √a".  τ_centre(d) = κ τ* √(tr(A)/3) / √(dᵀAd): exactly κτ* for an
+  isotropic Gaussian; for a flat disc (s_z → 0) ≈ κτ*/(√3 |cos θ|), θ the angle
+  to the disc normal (a slab's 1/cos).
+* ``simple`` (Table 4 mapping 1): β = κ τ*, i.e. τ_centre = κτ* √(2π) σ_t(d) —
+  shadow strength grows with the Gaussian's size in metres.
+* ``mass`` (Table 4 mapping 3): β = κ τ* / ((2π)^{3/2} √det A) with A, as the
+  paper's Sec. 4.4 defines it for mappings 3–4, the COVARIANCE in the Gaussian's
+  local frame: the absorption integrates to κτ* over space (∫σ dV = κτ*).
+  det is taken in the local frame (where Σ = diag(s²)); it is rotation
+  invariant, and the world-frame det(R S² Rᵀ) agrees to rounding.
+* ``diag`` (Table 4 mapping 4): β = κ τ* / ((2π)^{3/2} s_x s_y s_z), the
+  diagonal scales.  **mass and diag coincide**: in the local frame Σ =
+  diag(s_x², s_y², s_z²), so √det Σ = s_x s_y s_z for every 3DGS Gaussian (Σ =
+  R S² Rᵀ, det R = 1): the two give the same β (tested).  The paper's Table 4
+  reports different numbers for them (SAE 0.171 vs 0.177), which this reading
+  cannot reproduce; reading A in mapping 3 as the precision of Eq. 5 instead
+  would give β ∝ τ* s_x s_y s_z, not a density, so we follow Sec. 4.4's text.
+  The paper writes mappings 2–4 without κ; κ = 1 (the default) is the paper's.
+* ``peak`` (this toolkit's variant, called ``eq5`` before DGSM version 2):
+  direction-dependent β_i(d) = κ τ*_i / (√(2π) σ_t,i(d)), so every ray through
+  the centre sees optical depth exactly κτ*, i.e. T = (1 − α)^κ, the splat
+  rasterizer's own peak opacity, in every direction; off-centre rays see
+  κτ* e^{−½m²}.  Not a fixed absorption field (departs from Eq. 1); kept
+  because it reproduces 3DGS opacities exactly.  An old file saying ``eq5``
+  reads as ``peak``.
 
-These four definitions are this toolkit's reading of the paper's Eq. 5 and its
-alternatives; ``formats/dgsm_exr.md`` records which was used.
+Where two coincide besides mass ≡ diag: avg ≡ peak for isotropic Gaussians
+(tr(A)/3 = dᵀAd = 1/s²), and simple ≡ avg for isotropic ones of s = 1/√(2π) m.
+τ_centre is clipped at 1e30 to stay inside float32 (only mass/diag of
+Gaussians thinner than ~1e-9 m with α → 1 reach it, where T = 0 anyway).
+``formats/dgsm_exr.md`` and the provenance record which mapping ran.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-MAPPINGS = ("eq5", "simple", "mass", "diag")
+MAPPINGS = ("avg", "simple", "mass", "diag", "peak")
+DEFAULT_MAPPING = "avg"
+# names of DGSM version 1 files: "eq5" was what is now "peak"; version 1's
+# "simple", "mass" and "diag" were other (direction-dependent) definitions.
+LEGACY_MAPPINGS = {"eq5": "peak"}
+TAU_CENTRE_MAX = 1e30
 ALPHA_MAX = 1.0 - 1e-12
 SCALE_FLOOR_RELATIVE = 1e-6
 SCALE_FLOOR_ABSOLUTE = 1e-9  # metres
@@ -95,6 +126,9 @@ class Mixture:
         tau_star: [N] −ln(1 − α).
         mapping: one of MAPPINGS.
         kappa: global absorption scale κ.
+        beta_sigma: [N] β_i·√(2π)·s_max,i for the fixed-β mappings (avg,
+            simple, mass, diag): the centre ray's optical depth along d is
+            beta_sigma·σ̃(d), σ̃ = σ_t/s_max ≤ 1; NaN for ``peak``.
     """
 
     means: np.ndarray
@@ -106,8 +140,9 @@ class Mixture:
     scale_min: np.ndarray
     alpha: np.ndarray
     tau_star: np.ndarray
-    mapping: str = "eq5"
+    mapping: str = DEFAULT_MAPPING
     kappa: float = 1.0
+    beta_sigma: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.means)
@@ -116,15 +151,17 @@ class Mixture:
         return Mixture(self.means[index], self.scale_max[index], self.rotation[index],
                        self.var[index], self.cof[index], self.det[index],
                        self.scale_min[index], self.alpha[index], self.tau_star[index],
-                       self.mapping, self.kappa)
+                       self.mapping, self.kappa, self.beta_sigma[index])
 
     def peak_bound(self) -> np.ndarray:
         """[N] an upper bound of the optical depth any ray can collect from each Gaussian."""
-        if self.mapping == "simple":
-            return self.kappa * self.alpha
-        if self.mapping == "mass":
-            return self.kappa * self.tau_star / self.scale_min  # σ_t ≤ s_max
-        return self.kappa * self.tau_star  # eq5; diag by Cauchy–Schwarz
+        if self.mapping == "peak":
+            return self.kappa * self.tau_star
+        return self.beta_sigma  # σ_t ≤ s_max, so σ̃ ≤ 1
+
+    def absorption(self) -> np.ndarray:
+        """[N] β_i of Eq. 1 in 1/m (fixed-β mappings; NaN for the direction-dependent ``peak``)."""
+        return self.beta_sigma / (math.sqrt(2 * math.pi) * self.scale_max)
 
     def alpha_weighted_centroid(self) -> np.ndarray:
         """[3] Σ α_i μ_i / Σ α_i (metres, world); the plain mean if all α are 0."""
@@ -134,7 +171,15 @@ class Mixture:
         return (w[:, None] * self.means).sum(0) / w.sum()
 
 
-def prepare(means, scales, rotations, opacities, mapping: str = "eq5",
+def canonical_mapping(name: str) -> str:
+    """A mapping name of MAPPINGS, upgrading the legacy ``eq5`` to ``peak``."""
+    name = LEGACY_MAPPINGS.get(name, name)
+    if name not in MAPPINGS:
+        raise ValueError(f"mapping must be one of {MAPPINGS}, got {name!r}")
+    return name
+
+
+def prepare(means, scales, rotations, opacities, mapping: str = DEFAULT_MAPPING,
             kappa: float = 1.0) -> Mixture:
     """Build a :class:`Mixture` from raw 3DGS parameters.
 
@@ -146,8 +191,7 @@ def prepare(means, scales, rotations, opacities, mapping: str = "eq5",
         mapping: opacity→absorption mapping, one of MAPPINGS.
         kappa: absorption scale κ > 0.
     """
-    if mapping not in MAPPINGS:
-        raise ValueError(f"mapping must be one of {MAPPINGS}, got {mapping!r}")
+    mapping = canonical_mapping(mapping)
     if not (np.isfinite(kappa) and kappa > 0):
         raise ValueError(f"kappa must be positive and finite, got {kappa!r}")
     means = np.asarray(means, np.float64).reshape(-1, 3)
@@ -166,11 +210,39 @@ def prepare(means, scales, rotations, opacities, mapping: str = "eq5",
     det = s2.prod(axis=1)
     alpha = np.clip(np.asarray(opacities, np.float64).reshape(n), 0.0, ALPHA_MAX)
     tau_star = -np.log1p(-alpha)
+    beta_sigma = _beta_sigma(mapping, float(kappa), tau_star, s_max, s)
     return Mixture(means, s_max, R, s2, cof, det, s.min(axis=1), alpha, tau_star, mapping,
-                   float(kappa))
+                   float(kappa), beta_sigma)
 
 
-def from_gaussians(g, mapping: str = "eq5", kappa: float = 1.0) -> Mixture:
+def _beta_sigma(mapping, kappa, tau_star, s_max, s):
+    """[N] β·√(2π)·s_max per fixed-β mapping (paper Eq. 5; Sec. 4.4 B), from normalized scales s̃.
+
+    With Ã = s_max² A and Σ̃ = Σ / s_max² (both dimensionless):
+    avg:    β√(2π) s_max = κτ* √(tr Ã / 3)
+    simple: β√(2π) s_max = κτ* √(2π) s_max
+    mass:   β√(2π) s_max = κτ* / (2π s_max² √det Σ̃)   (det in the local frame)
+    diag:   β√(2π) s_max = κτ* / (2π s_max² s̃_x s̃_y s̃_z)
+    """
+    n = len(tau_star)
+    if mapping == "peak":
+        return np.full(n, np.nan)
+    kt = kappa * tau_star
+    if mapping == "avg":
+        out = kt * np.sqrt((1.0 / (s * s)).sum(axis=1) / 3.0)
+    elif mapping == "simple":
+        out = kt * math.sqrt(2 * math.pi) * s_max
+    elif mapping == "mass":
+        # det of the covariance in the Gaussian's local frame, where it is diag(s̃²)
+        # (paper Sec. 4.4): a world-frame det(R S² Rᵀ) would lose the relative
+        # precision of a thin disc's small eigenvalue (≈ 1e-4 at s_min/s_max = 1e-6).
+        out = kt / (2 * math.pi * s_max ** 2 * np.sqrt((s * s).prod(axis=1)))
+    else:  # diag
+        out = kt / (2 * math.pi * s_max ** 2 * s.prod(axis=1))
+    return np.minimum(out, TAU_CENTRE_MAX)
+
+
+def from_gaussians(g, mapping: str = DEFAULT_MAPPING, kappa: float = 1.0) -> Mixture:
     """:func:`prepare` from a :class:`relight_cli.formats.gaussians_ply.Gaussians`."""
     return prepare(g.means, g.scales, g.rotations, g.opacities, mapping, kappa)
 
@@ -255,16 +327,10 @@ def local_pair_terms(mix: Mixture, r_l, d_l, gaussian_index, dtype=np.float64) -
 
 def _tau_peak(mix: Mixture, gi, d_l, sigma_norm, var, dtype):
     """[P] optical depth through the centre along d, per mapping (see module doc)."""
-    k = mix.kappa
-    if mix.mapping == "eq5":
-        return (k * mix.tau_star[gi]).astype(dtype)
-    if mix.mapping == "simple":
-        return (k * mix.alpha[gi]).astype(dtype)
-    if mix.mapping == "mass":
-        return (k * mix.tau_star[gi]).astype(dtype) * sigma_norm / mix.scale_min[gi].astype(dtype)
-    # diag: σ_t / √(dᵀΣ̃d) (both normalized) ≤ 1 by Cauchy–Schwarz
-    width = np.sqrt(np.einsum("pi,pi->p", var, d_l * d_l))
-    return (k * mix.tau_star[gi]).astype(dtype) * np.minimum(sigma_norm / width, 1)
+    if mix.mapping == "peak":
+        return (mix.kappa * mix.tau_star[gi]).astype(dtype)
+    # fixed β (Eq. 1): β √(2π) σ_t(d) = beta_sigma · σ̃(d)
+    return mix.beta_sigma[gi].astype(dtype) * sigma_norm
 
 
 # ------------------------------------------------------------------ erf differences

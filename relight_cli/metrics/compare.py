@@ -34,6 +34,7 @@ DEFAULT_BETTER = {
     "boundary_precision": "higher", "boundary_recall": "higher",
     "mse": "lower", "mae": "lower", "lpips": "lower", "sae": "lower",
     "paa_y": "lower", "apf_y": "lower", "ncm_ab": "lower",
+    "paa_angle": "lower", "apf_rms": "lower", "ncm_ab_weighted": "lower",
 }
 DIRECTIONS = ("higher", "lower", "either")
 

@@ -1,7 +1,37 @@
 """Lighting consistency of a Gaussian avatar in a Gaussian scene: PAA-Y, APF-Y, NCM-ab.
 
-Our reading of the DGSM paper's Sec. 4.1 metrics (the exact formulas are ours
-where the paper leaves them open; formats/metrics_json.md documents them):
+Two families, each under its own names (``formats/metrics_json.md``):
+
+**The paper's (DGSM paper Sec. 4.1)** — ``paa_y``, ``apf_y``, ``ncm_ab``:
+
+* Irradiance is modelled directly as real SH of order L = 3 in the normal,
+  E(n̂; c) = Σ_{l ≤ 3} Σ_m c_lm Y_lm(n̂) (16 coefficients).
+* Scene neighbourhood N = scene Gaussians within ``radius`` of the avatar's
+  opacity-weighted centroid; its luminance factorizes as Y(I_i) ≈ α_i E(n̂_i;
+  c_scene), α_i ≥ 0 per Gaussian, with pseudo-normals n̂_i oriented towards the
+  avatar; the avatar likewise gives c_avatar and β_a ≥ 0 (normals outward).
+  :func:`factorize_luminance` fits it (Huber loss, 5 % trimming).  Two things the
+  paper leaves open are fixed here and documented: (i) the scale ambiguity
+  (α, c) ~ (α·s, c/s) is fixed by ‖c‖₂ = 1 with c_00 > 0, so c is the *shape*
+  of the lighting and α carries albedo × exposure (PAA-Y then lies in [0, 2√16];
+  Table 1's 0.3–0.6 are of that magnitude, the paper does not say which
+  normalization it used); (ii) with a free α_i per Gaussian any c with E(n̂_i) > 0 fits exactly,
+  so the α update is a ridge towards the set's mean scale ᾱ,
+  α_i = max(0, (E_i Y_i + λ ᾱ)/(E_i² + λ)), λ = ``albedo_ridge`` · mean(E²):
+  albedo varies only where the shading cannot explain Y.  Alternated
+  ``iterations`` times from α = 1.
+* PAA-Y = ‖c_avatar − c_scene‖₁ (16 coefficients, both of unit norm).
+* APF-Y = (1/|A|) Σ_a |Y_a − (s·E(n̂_a; c_scene) + b)|, the per-frame affine
+  calibration (s, b) fitted with the same robust fit.
+* NCM-ab = exact 1-Wasserstein distance (Euclidean ground cost, Lab units)
+  between the empirical (unweighted) distributions of (a*, b*) of the avatar
+  and of N: the transport LP on the full sets when |A|·|N| ≤
+  EXACT_TRANSPORT_MAX, otherwise exactly (an assignment problem) on seeded
+  uniform subsamples without replacement of min(``max_points``, |A|, |N|)
+  points per side; ``details.ncm_method`` says which and the size.
+
+**This toolkit's earlier variants** — ``paa_angle``, ``apf_rms``,
+``ncm_ab_weighted`` (the exact formulas are ours):
 
 1. **Pseudo-normals** (:func:`pseudo_normals`): 3DGS files carry no usable
    normals, so each avatar Gaussian gets the smallest-eigenvalue eigenvector of
@@ -21,14 +51,14 @@ where the paper leaves them open; formats/metrics_json.md documents them):
    (``scipy.optimize.least_squares``, scale 1.345 σ̂ from the MAD), then the 5 %
    largest residuals are trimmed and the fit repeated.
 
-   * **APF-Y** (affine photometric fit error) = RMS of the trimmed residuals /
+   * **apf_rms** (affine photometric fit error) = RMS of the trimmed residuals /
      mean trimmed Y: 0 when the avatar's shading is exactly an affine function
      of the scene's irradiance at its normals.
-   * **PAA-Y** (principal axis angle) = angle in degrees between the dominant
+   * **paa_angle** (principal axis angle) = angle in degrees between the dominant
      direction of the avatar's luminance — the l = 1 part of a robust order-3
      SH fit of Y_i over n_i — and that of the scene irradiance.  0 when the
      avatar is lit from where the scene's light comes from.
-4. **NCM-ab** (chromaticity mismatch) = the 1-Wasserstein distance, in CIE-Lab
+4. **ncm_ab_weighted** (chromaticity mismatch) = the 1-Wasserstein distance, in CIE-Lab
    units, between the opacity-weighted distributions of (a*, b*) of avatar and
    scene colours (``skimage.color.rgb2lab`` of the degree-0 colours, clipped to
    [0, 1] and read as sRGB).  Small sets are solved exactly as a transport
@@ -47,7 +77,8 @@ import numpy as np
 from relight_cli.sh import evaluate_sh, fit_sh, irradiance_coefficients, sh_basis
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
-SH_DEGREE = 2          # "order 3": bands 0, 1, 2
+SH_DEGREE = 2          # the variants' "order 3": bands 0, 1, 2 (9 coefficients)
+PAPER_ORDER = 3        # the paper's L = 3: bands 0..3 (16 coefficients)
 TRIM = 0.05            # fraction of largest residuals dropped after the Huber fit
 EXACT_TRANSPORT_MAX = 96 * 96  # Na·Nb up to which the transport LP is solved exactly
 
@@ -242,7 +273,100 @@ def wasserstein_2d(a: np.ndarray, b: np.ndarray, wa=None, wb=None, max_points: i
     return float(cost[r, c].mean()), "assignment-resampled"
 
 
-# ------------------------------------------------------------------ the metrics
+# ------------------------------------------------------------------ the paper's metrics
+
+
+def factorize_luminance(y, normals, weights=None, order: int = PAPER_ORDER,
+                        albedo_ridge: float = 1.0, iterations: int = 6, trim: float = TRIM,
+                        ridge: float = 1e-9):
+    """Y_i ≈ α_i E(n̂_i; c), α_i ≥ 0, ‖c‖₂ = 1 and c_00 > 0 (module doc; paper Sec. 4.1).
+
+    Args:
+        y: [N] luminance; normals: [N, 3] unit; weights: [N] (opacities) or None.
+        order: SH order L (E has (L+1)² coefficients).
+        albedo_ridge: λ relative to mean(E²) of the α update's pull towards ᾱ.
+        iterations: alternations (c by a robust fit given α; α in closed form given c).
+    Returns:
+        (c [(L+1)²], α [N], kept [N] bool of the last robust fit).
+    Raises:
+        ValueError: too few Gaussians, or luminance whose fitted mean is not positive.
+    """
+    y = np.asarray(y, np.float64)
+    w = np.ones(len(y)) if weights is None else np.asarray(weights, np.float64)
+    basis = sh_basis(normals, order)                                  # [N, K]
+    if len(y) < 2 * basis.shape[1]:
+        raise ValueError(f"{len(y)} Gaussians are too few for an order-{order} SH fit "
+                         f"(need at least {2 * basis.shape[1]})")
+    alpha = np.ones(len(y))
+    for it in range(iterations):
+        c, _, kept = robust_linear_fit(alpha[:, None] * basis, y, w, trim, ridge=ridge)
+        if not c[0] > 0:
+            raise ValueError("the luminance has no positive mean irradiance to factorize")
+        norm = float(np.linalg.norm(c))                               # the scale fix: |c|₂ = 1
+        alpha = alpha * norm
+        c = c / norm
+        if it == iterations - 1:
+            break
+        e = basis @ c
+        abar = float(np.average(alpha[kept], weights=w[kept]))
+        lam = albedo_ridge * float(np.average(e * e, weights=w))
+        alpha = np.maximum(0.0, (e * y + lam * abar) / (e * e + lam))
+    return c, alpha, kept
+
+
+def wasserstein_exact(a: np.ndarray, b: np.ndarray, max_points: int = 512, seed: int = 0):
+    """Exact 1-Wasserstein distance of two unweighted 2-D point sets (paper's NCM-ab).
+
+    Returns:
+        (distance, method): ``"exact-lp"`` on the full sets when |a|·|b| ≤
+        EXACT_TRANSPORT_MAX, ``"exact-assignment"`` for equal sizes up to
+        ``max_points``, else ``"exact-on-subsamples(n=…)"``: the exact assignment
+        between seeded uniform subsamples (without replacement) of n points each.
+    """
+    from scipy.optimize import linear_sum_assignment
+    from scipy.spatial.distance import cdist
+    from scipy.stats import wasserstein_distance_nd
+
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    if len(a) == len(b) and len(a) <= max_points:
+        cost = cdist(a, b)
+        r, c = linear_sum_assignment(cost)
+        return float(cost[r, c].mean()), "exact-assignment"
+    if len(a) * len(b) <= EXACT_TRANSPORT_MAX:
+        return float(wasserstein_distance_nd(a, b)), "exact-lp"
+    rng = np.random.default_rng(seed)
+    n = int(min(max_points, len(a), len(b)))
+    ia = rng.choice(len(a), n, replace=False)
+    ib = rng.choice(len(b), n, replace=False)
+    cost = cdist(a[ia], b[ib])
+    r, c = linear_sum_assignment(cost)
+    return float(cost[r, c].mean()), f"exact-on-subsamples(n={n})"
+
+
+def paper_avatar_metrics(y, normals, weights, ab, c_scene, scene_ab, max_points: int = 512,
+                         seed: int = 0) -> dict:
+    """PAA-Y, APF-Y, NCM-ab (paper Sec. 4.1) of one avatar frame against c_scene.
+
+    Args:
+        y: [N] avatar luminance; normals: [N, 3] outward unit; weights: [N] opacities.
+        ab: [N, 2] avatar (a*, b*); c_scene: [16] scene lighting (from
+            :func:`factorize_luminance`); scene_ab: [M, 2] of the neighbourhood.
+    """
+    c_avatar, beta, _ = factorize_luminance(y, normals, weights)
+    paa = float(np.abs(c_avatar - c_scene).sum())
+    e = sh_basis(normals, PAPER_ORDER) @ c_scene
+    (s, b), _, _ = robust_linear_fit(np.stack([e, np.ones_like(e)], axis=1), y, weights)
+    apf = float(np.mean(np.abs(y - (s * e + b))))
+    ncm, method = wasserstein_exact(ab, scene_ab, max_points, seed)
+    return {"metrics": {"paa_y": paa, "apf_y": apf, "ncm_ab": ncm},
+            "details": {"c_avatar": [float(v) for v in c_avatar],
+                        "calibration": {"s": float(s), "b": float(b)},
+                        "avatar_scale_median": float(np.median(beta)),
+                        "ncm_method": method}}
+
+
+# ------------------------------------------------------------------ the variants
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
@@ -252,7 +376,7 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
 def avatar_lighting_metrics(avatar_means, avatar_colors, avatar_opacities, irradiance_sh,
                             scene_ab, scene_ab_weights, normals=None, k: int = 16,
                             max_points: int = 512, seed: int = 0) -> dict:
-    """PAA-Y, APF-Y and NCM-ab of one avatar frame against the scene's lighting.
+    """The variants paa_angle, apf_rms, ncm_ab_weighted of one avatar frame (module doc).
 
     Args:
         avatar_means [N, 3], avatar_colors [N, 3] (degree-0 RGB), avatar_opacities [N].
@@ -261,7 +385,7 @@ def avatar_lighting_metrics(avatar_means, avatar_colors, avatar_opacities, irrad
         normals: [N, 3] or None for pseudo-normals.
 
     Returns:
-        {"metrics": {paa_y (degrees), apf_y, ncm_ab}, "details": {...}}.
+        {"metrics": {paa_angle (degrees), apf_rms, ncm_ab_weighted}, "details": {...}}.
     """
     from scipy.stats import wasserstein_distance
 
@@ -291,8 +415,8 @@ def avatar_lighting_metrics(avatar_means, avatar_colors, avatar_opacities, irrad
     ncm, method = wasserstein_2d(ab, scene_ab, w, scene_ab_weights, max_points, seed)
     ncm_a = float(wasserstein_distance(ab[:, 0], scene_ab[:, 0], w, scene_ab_weights))
     ncm_b = float(wasserstein_distance(ab[:, 1], scene_ab[:, 1], w, scene_ab_weights))
-    return {"metrics": {"paa_y": paa, "apf_y": apf, "ncm_ab": ncm},
-            "details": {"ncm_a": ncm_a, "ncm_b": ncm_b, "ncm_method": method,
+    return {"metrics": {"paa_angle": paa, "apf_rms": apf, "ncm_ab_weighted": ncm},
+            "details": {"ncm_a": ncm_a, "ncm_b": ncm_b, "ncm_weighted_method": method,
                         "calibration": {"scale": float(scale), "offset": float(offset)},
                         "kept_fraction": float(kept.mean()),
                         "avatar_direction": _unit_list(v_avatar),
@@ -306,16 +430,21 @@ def _unit_list(v):
     return [float(x) for x in (v / norm if norm > 0 else v)]
 
 
+METRIC_NAMES = ("paa_y", "apf_y", "ncm_ab", "paa_angle", "apf_rms", "ncm_ab_weighted")
+
+
 def lighting_metrics(scene, avatars, relits=None, radius: float = 1.5, k: int = 16,
                      use_file_normals: bool = False, max_points: int = 512, seed: int = 0) -> dict:
-    """Orig, relit and delta metrics over frames.
+    """Orig, relit and delta metrics over frames: the paper's and the variants (module doc).
 
     Args:
         scene: a :class:`relight_cli.formats.gaussians_ply.Gaussians` (the environment).
         avatars: list of Gaussians, one per frame (the original avatar).
         relits: None or a list of the same length (the relit avatar per frame).
         radius: scene Gaussians within this distance (metres) of each frame's
-            avatar centroid light the avatar.
+            avatar centroid are its neighbourhood N.
+        k: neighbours of the pseudo-normals; use_file_normals: the avatar PLY's normals.
+        max_points: subsample size of the exact transports of large sets.
 
     Returns:
         {"metrics": {"orig": {...}, ["relit": {...}, "delta": {relit − orig}]},
@@ -330,22 +459,33 @@ def lighting_metrics(scene, avatars, relits=None, radius: float = 1.5, k: int = 
         irr = irradiance_coefficients(radiance)
         scene_ab = lab_ab(scene_colors[select])
         scene_w = scene.opacities[select]
+        # the paper's scene lighting: its neighbourhood's own luminance over normals
+        # facing the avatar (pseudo-normals oriented towards the centroid)
+        scene_n = -pseudo_normals(scene.means[select], scene_w, k, centre=centre)
+        c_scene, alpha_scene, _ = factorize_luminance(luminance(scene_colors[select]), scene_n,
+                                                      scene_w)
         record = {"frame": i, "centre": [float(c) for c in centre],
-                  "scene_gaussians": int(select.sum())}
+                  "scene_gaussians": int(select.sum()),
+                  "c_scene": [float(v) for v in c_scene]}
         for role, g in (("orig", avatar), ("relit", None if relits is None else relits[i])):
             if g is None:
                 continue
             normals = g.normals if use_file_normals else None
-            record[role] = avatar_lighting_metrics(g.means, g.colors(), g.opacities, irr,
-                                                   scene_ab, scene_w, normals, k, max_points,
-                                                   seed + i)
+            variant = avatar_lighting_metrics(g.means, g.colors(), g.opacities, irr,
+                                              scene_ab, scene_w, normals, k, max_points, seed + i)
+            n = (pseudo_normals(g.means, g.opacities, k) if normals is None
+                 else np.asarray(normals, np.float64))
+            paper = paper_avatar_metrics(luminance(g.colors()), n, g.opacities, lab_ab(g.colors()),
+                                         c_scene, scene_ab, max_points, seed + i)
+            record[role] = {"metrics": {**paper["metrics"], **variant["metrics"]},
+                            "details": {**variant["details"], **paper["details"]}}
         frames.append(record)
     roles = ["orig"] + (["relit"] if relits is not None else [])
     metrics = {}
     for role in roles:
         metrics[role] = {name: float(np.mean([f[role]["metrics"][name] for f in frames]))
-                         for name in ("paa_y", "apf_y", "ncm_ab")}
+                         for name in METRIC_NAMES}
     if relits is not None:
         metrics["delta"] = {name: metrics["relit"][name] - metrics["orig"][name]
-                            for name in ("paa_y", "apf_y", "ncm_ab")}
+                            for name in METRIC_NAMES}
     return {"metrics": metrics, "frames": frames}
