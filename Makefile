@@ -52,6 +52,14 @@ demo: install
 		-o demo/hand_teacher_env.exr --preview demo/hand_teacher_env.png
 	$(RELIGHT) relight demo/capture/hand.npz --lights demo/teacher_light.json --model teacher \
 		--checkpoint demo/teacher.pt -o demo/hand_teacher_point.exr --preview demo/hand_teacher_point.png
+	# RelightableHands' student distilled from the teacher under env maps (one held out for
+	# evaluation), rendered in one pass from bake-features' texel maps, on one hand and on two
+	$(RELIGHT) distill demo/teacher.pt demo/capture --envs builtin:sky --envs builtin:studio \
+		--envs builtin:uniform --envs builtin:point -o demo/student.pt --preset tiny --metrics-out demo/student_val.json
+	$(RELIGHT) relight demo/capture/hand.npz builtin:studio --model student --checkpoint demo/student.pt \
+		-o demo/hand_student_env.exr --preview demo/hand_student_env.png
+	$(RELIGHT) relight builtin:two:fist builtin:sky --model student --checkpoint demo/student.pt \
+		-o demo/hands2_student_env.exr --preview demo/hands2_student_env.png
 	# spherical-harmonic light probes
 	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json
 	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json

@@ -234,6 +234,9 @@ class StudentConfig(_Config):
         rotations: augment training env maps with random rotations about +Y by whole
             longitude steps (exact: a column roll of the 16×32 grid).
         dram_code: DRAM's light code size (512).
+        lambda_s, lambda_b: Eq. 11 in the paper's units; λ_b = 0 by default (see
+            :mod:`relight_cli.neural.student`: without a shadow gate λ_b is a radiance
+            floor), 100 is the paper's.
         cache_mb: memory budget of the teacher's per-direction textures (pseudo ground
             truth); beyond it they go to the disk cache (``distill --cache DIR``) or are
             recomputed.
@@ -254,7 +257,7 @@ class StudentConfig(_Config):
     dram_code: int = 64
     cache_mb: int = 2048
     lambda_s: float = 25.0
-    lambda_b: float = 100.0
+    lambda_b: float = 0.0
     iters: int = 150
     batch: int = 2
     lr: float = 2e-3

@@ -5,7 +5,13 @@ and Phong α = 16, 32, 64 (9), Eq. 8–9, visibility-aware — concatenated with
 features J_s(θ) (the teacher's pose encoder, widths 16, 64, on the feature grid) =
 76 channels at 128²; decoder: an 8-layer CNN (76 → 256 → 256 → 128 → 128 → 64 → 64 →
 32 → 3), 3×3 convs, LeakyReLU(0.2) between; head Eq. 11: C = ReLU(λ_s T) + λ_b (no
-shadow map: shadows are in the features).  ``--no-specular`` drops the Phong maps
+shadow map: shadows are in the features).  Departure: the student has no shadow gate
+σ(S), so a positive λ_b is a floor under every texel's radiance — in our units
+(radiance over the env's mean radiance, see :mod:`relight_cli.neural.distill`) the
+paper's 100 is 0.125, brighter than a shadow under a sunny sky.  Our default is λ_b = 0
+with the head's bias initialized to λ_b,paper / λ_s, so training starts from the
+paper's mid-grey yet can reach black; ``lambda_b: 100`` in the config is the paper's
+form.  ``--no-specular`` drops the Phong maps
 (3 + 64 = 67 channels).
 
 DRAM (Bi et al. 2021) as RelightableHands adapted it: the 16×32 env map rotated into
@@ -27,6 +33,17 @@ from torch.nn import functional as F
 
 from .config import PAPER_UNIT
 from .models import PoseEncoder
+
+
+#: Eq. 11's λ_b in the paper's units, used as the starting grey when λ_b = 0.
+PAPER_LAMBDA_B = 100.0
+
+
+def _start_grey(head: nn.Conv2d, lambda_s: float, lambda_b: float) -> None:
+    """With λ_b = 0, start the head's output at the paper's λ_b (bias λ_b,paper / λ_s)."""
+    if lambda_b == 0:
+        with torch.no_grad():
+            head.bias.fill_(PAPER_LAMBDA_B / lambda_s)
 
 
 def _conv(cin, cout):
@@ -54,6 +71,7 @@ class StudentNet(nn.Module):
         self.head = _conv(widths[-1], 3)
         self.lambda_s = lambda_s * PAPER_UNIT
         self.lambda_b = lambda_b * PAPER_UNIT
+        _start_grey(self.head, lambda_s, lambda_b)
 
     def forward(self, features: torch.Tensor, pose: torch.Tensor, env_code=None,
                 return_raw: bool = False):
@@ -83,6 +101,7 @@ class DRAMNet(nn.Module):
         self.head = _conv(widths[-1], 3)
         self.lambda_s = lambda_s * PAPER_UNIT
         self.lambda_b = lambda_b * PAPER_UNIT
+        _start_grey(self.head, lambda_s, lambda_b)
 
     def forward(self, features: torch.Tensor, pose: torch.Tensor, env_code=None,
                 return_raw: bool = False):

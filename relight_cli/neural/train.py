@@ -340,7 +340,15 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         history.append(final)
     peak = (torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else
             _peak_rss_mb())
-    return TrainResult(checkpoint(config.iters), history, final, config.iters - start, seconds, peak)
+    result = TrainResult(checkpoint(config.iters), history, final, config.iters - start, seconds,
+                         peak)
+    if world > 1:
+        # every rank waits for rank 0's final validation, then the group closes cleanly (a
+        # rank leaving while another still talks through gloo aborts the whole job)
+        import torch.distributed as dist
+        dist.barrier()
+        dist.destroy_process_group()
+    return result
 
 
 def _peak_rss_mb() -> float:
