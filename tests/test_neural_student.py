@@ -305,3 +305,19 @@ def test_student_refuses_point_lights(setup, tmp_path):
                 "--checkpoint", ckpt, "-q", "-o", tmp_path / "x.exr")
     assert r.exit_code == 2 and "env-map model" in r.output
     assert not (tmp_path / "x.exr").exists()
+
+
+def test_distill_on_real_hdris(setup, tmp_path, shared):
+    """The Poly Haven HDRIs as a folder of --envs: split, rotated, distilled, validated."""
+    folder = shared("envmaps", "polyhaven")
+    out = tmp_path / "real.pt"
+    r = _invoke("distill", setup / "teacher.pt", setup / "cap", "--envs", folder, "--config",
+                setup / "student.json", "--iters", "3", "-q", "-o", out, "--metrics-out",
+                tmp_path / "v.json")
+    assert r.exit_code == 0, r.output
+    ck = torch.load(out, weights_only=True)
+    envs = json.loads(ck["extra"]["envs"])
+    assert len(envs["train"]) + len(envs["eval"]) == 6 and envs["eval"]
+    assert not set(envs["train"]) & set(envs["eval"])
+    metrics = json.loads((tmp_path / "v.json").read_text())["metrics"]
+    assert np.isfinite(metrics["vs_teacher"]["mse"])

@@ -60,7 +60,7 @@ def data():
     from relight_cli.gaussians.from_mesh import gaussians_from_mesh
     ball = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
     write_gaussians(str(folder / "ball.ply"), gaussians_from_mesh(ball.vertices, ball.faces))
-    room = trimesh.creation.box((1.0, 0.05, 1.0))
+    room = trimesh.creation.box((1.0, 0.05, 1.0)).subdivide().subdivide()   # ≥ 32 for order-3 SH fits
     write_gaussians(str(folder / "room.ply"),
                     gaussians_from_mesh(room.vertices - [0, 0.2, 0], room.faces))
     (folder / "lights.json").write_text(json.dumps(
