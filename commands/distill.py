@@ -6,6 +6,8 @@ import click
 
 from relight_cli.clitools import log, no_clobber_option, quiet_option
 
+from ._learned import training_options
+
 
 @click.command("distill",
                short_help="Distill a fast env-map student (or DRAM) from a trained teacher.")
@@ -30,17 +32,7 @@ from relight_cli.clitools import log, no_clobber_option, quiet_option
 @click.option("--cache", "cache_dir", default=None, metavar="DIR",
               help="Folder for the teacher's per-direction textures beyond the memory budget "
                    "(config cache_mb); without it they are recomputed.")
-@click.option("--vgg-weights", default=None, metavar="VGG16.pth",
-              help="Local torchvision vgg16 state dict enabling the VGG loss; nothing is "
-                   "downloaded. Without it λ_VGG is 0.")
-@click.option("--resume", default=None, metavar="CKPT.pt",
-              help="Continue a distillation from its checkpoint, exactly.")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto",
-              show_default=True, help="Where to train. Under torchrun: DDP over the processes.")
-@click.option("--metrics-out", default=None, metavar="VAL.json",
-              help="Validation metrics (relight/metrics, kind validation): held-out poses × "
-                   "evaluation env maps against the teacher and against ground truth.")
-@click.option("--seed", type=int, default=None, help="Seed [default: 0].")
+@training_options("held-out poses × evaluation env maps against the teacher and against ground truth")
 @no_clobber_option
 @quiet_option
 def command(teacher, capture, env_specs, output, student, preset, config_file, iters,
@@ -67,8 +59,10 @@ def command(teacher, capture, env_specs, output, student, preset, config_file, i
     """
     import os
 
-    from relight_cli.clitools import check_input, check_output
+    from relight_cli.clitools import check_input
     from relight_cli.errors import DataError, UsageProblem
+
+    from ._learned import check_outputs, write_validation
 
     # ---- usage checks before any work
     if iters is not None and iters < 1:
@@ -84,13 +78,7 @@ def command(teacher, capture, env_specs, output, student, preset, config_file, i
     specs = _expand_envs(env_specs)
     for spec in specs:
         check_input(spec)
-    check_output(output, no_clobber)
-    if not output.lower().endswith((".pt", ".pth")):
-        raise UsageProblem("-o is a checkpoint (name it .pt)", output)
-    if metrics_out is not None:
-        check_output(metrics_out, no_clobber, text=True)
-        if not metrics_out.lower().endswith(".json") and metrics_out != "-":
-            raise UsageProblem("--metrics-out is a JSON file (name it .json)", metrics_out)
+    check_outputs(output, metrics_out, no_clobber)
     if cache_dir is not None and os.path.exists(cache_dir) and not os.path.isdir(cache_dir):
         raise UsageProblem("--cache must be a folder", cache_dir)
     names = [_env_name(s) for s in specs]
@@ -102,7 +90,8 @@ def command(teacher, capture, env_specs, output, student, preset, config_file, i
     from relight_cli.features import discretize_env
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
     from relight_cli.neural import distill as D
-    from relight_cli.neural.config import STUDENT_PRESETS, StudentConfig, resolve_config
+    from relight_cli.neural.config import (STUDENT_PRESETS, StudentConfig, resolve_config,
+                                           resume_config)
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.train import fit, model_from_checkpoint, resolve_device
     from relight_cli.provenance import file_sha256, outside_transaction, provenance
@@ -115,24 +104,7 @@ def command(teacher, capture, env_specs, output, student, preset, config_file, i
     ckpt = None
     if resume is not None:
         ckpt = read_checkpoint(resume, kind="student")
-        try:
-            config = StudentConfig.from_dict(ckpt["config"], "checkpoint config")
-        except UsageProblem as exc:
-            raise DataError(exc.message, resume) from None
-        changed = sorted(k for k, v in overrides.items()
-                         if v is not None and k != "iters" and getattr(config, k) != v)
-        if changed or config_file is not None:
-            raise UsageProblem("--resume continues the checkpoint's own configuration; only "
-                               "--iters may change (got " + ", ".join(changed or ["--config"])
-                               + ")")
-        if iters is not None:
-            if iters <= int(ckpt["step"]):
-                raise UsageProblem(f"--iters {iters} is not beyond the checkpoint's step "
-                                   f"{ckpt['step']}")
-            config.iters = iters
-        elif int(ckpt["step"]) >= config.iters:
-            raise UsageProblem(f"the checkpoint already ran its {config.iters} iterations; give "
-                               f"--iters to continue further", resume)
+        config = resume_config(ckpt, StudentConfig, overrides, config_file, iters, resume)
     else:
         config = resolve_config(preset, config_file, overrides, StudentConfig, STUDENT_PRESETS)
     torch_device = resolve_device(device)
@@ -200,12 +172,8 @@ def command(teacher, capture, env_specs, output, student, preset, config_file, i
     if rank != 0:
         return
     write_checkpoint(output, result.checkpoint)
-    if metrics_out is not None:
-        from relight_cli.formats.metrics_json import make_record, write_metrics
-        write_metrics(metrics_out, make_record(
-            "validation", {k: v for k, v in result.metrics.items() if k != "step"},
-            {"teacher": {"path": teacher}, "capture": {"path": data.index_path}},
-            config.to_dict(), record, details={"history": result.history}))
+    write_validation(metrics_out, result, {"teacher": teacher, "capture": data.index_path},
+                     config, record)
     its = result.steps_run / result.seconds if result.seconds > 0 else float("inf")
     log(f"wrote {output}: {result.steps_run} step(s) in {result.seconds:.1f} s ({its:.2f} it/s); "
         f"{targets.computed} teacher texture set(s) computed; "

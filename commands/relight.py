@@ -406,8 +406,6 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image."""
     import time
 
-    import numpy as np
-
     from relight_cli.errors import DataError, UsageProblem
 
     # ---- usage checks before any work
@@ -427,22 +425,8 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
                            "student)")
     if model in ("teacher", "student"):
         return _relight_hand_learned(**locals())
-    if env is None and hand_lights is None:
-        raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
-    if not output.lower().endswith(".exr"):
-        raise UsageProblem("-o is the rendered EXR image (name it .exr)", output)
-    if hand_camera is not None and hand_size is not None:
-        raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
-    width, height = 256, 256
-    if hand_size is not None:
-        from relight_cli.clitools import parse_size
-        width, height = parse_size(hand_size, "--size")
-        if width > 8192 or height > 8192:
-            raise UsageProblem(f"--size must be at most 8192, got {hand_size!r}")
-    frame = 0 if hand_frame is None else hand_frame
-    if frame < 0:
-        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
-    env_h, env_w = _parse_env_res(env_res or "16x32")
+    width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, hand_camera,
+                                                            hand_size, hand_frame, env_res)
     tex = 256 if tex_res is None else tex_res
     if not 8 <= tex <= 4096:
         raise UsageProblem(f"--tex-res must be in [8, 4096], got {tex}")
@@ -475,7 +459,7 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     # ---- inputs (data errors)
     start = time.perf_counter()
     from relight_cli.commands.bake_features import _load_hand, _read_roughness_map
-    from relight_cli.hand.scene import posed_meshes, preview_camera
+    from relight_cli.hand.scene import preview_camera
     from relight_cli.render import appearance as A
     from relight_cli.render.shading import HandRenderer, PointLights, RenderSettings
     from relight_cli.provenance import provenance
@@ -502,13 +486,8 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     if roughness_map is not None and rough_value is None:
         rough = _read_roughness_map(roughness_map)
     mesh_name = hand_mesh or "fine"
-    try:
-        meshes = posed_meshes(data, frame, mesh_name)
-    except (IndexError, ValueError) as exc:
-        raise DataError(f"cannot pose frame {frame}: {exc}", input) from None
-    for pm in meshes:
-        if not np.isfinite(pm.vertices).all():
-            raise DataError(f"frame {frame}: posed vertices hold NaN/Inf", input)
+    from relight_cli.bake import pose_scene
+    meshes = pose_scene(data, frame, mesh_name, input)
     if hand_camera is not None:
         from relight_cli.formats.camera import read_camera
         camera = read_camera(hand_camera)
@@ -588,22 +567,8 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     if model == "student" and hand_lights is not None:
         raise UsageProblem("the student is an env-map model: it cannot take --lights (use "
                            "--model teacher for point lights)")
-    if env is None and hand_lights is None:
-        raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
-    if not output.lower().endswith(".exr"):
-        raise UsageProblem("-o is the rendered EXR image (name it .exr)", output)
-    if hand_camera is not None and hand_size is not None:
-        raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
-    width, height = 256, 256
-    if hand_size is not None:
-        from relight_cli.clitools import parse_size
-        width, height = parse_size(hand_size, "--size")
-        if width > 8192 or height > 8192:
-            raise UsageProblem(f"--size must be at most 8192, got {hand_size!r}")
-    frame = 0 if hand_frame is None else hand_frame
-    if frame < 0:
-        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
-    env_h, env_w = _parse_env_res(env_res or "16x32")
+    width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, hand_camera,
+                                                            hand_size, hand_frame, env_res)
     if aa is not None and not 1 <= aa <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
     bg = parse_vector(background, 3, "--background")
@@ -617,7 +582,7 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     start = time.perf_counter()
     from relight_cli.commands.bake_features import _load_hand
     from relight_cli.formats.checkpoint import read_checkpoint
-    from relight_cli.hand.scene import posed_meshes, preview_camera
+    from relight_cli.hand.scene import preview_camera
     from relight_cli.neural import teacher as T
     from relight_cli.neural.geometry import PoseTexels, uv_layout_digest
     from relight_cli.neural.train import model_from_checkpoint, resolve_device
@@ -650,13 +615,8 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     if hand_lights is not None:
         from relight_cli.formats.lights_json import read_lights
         lights = read_lights(hand_lights)
-    try:
-        meshes = posed_meshes(data, frame, "fine")
-    except (IndexError, ValueError) as exc:
-        raise DataError(f"cannot pose frame {frame}: {exc}", input) from None
-    for pm in meshes:
-        if not np.isfinite(pm.vertices).all():
-            raise DataError(f"frame {frame}: posed vertices hold NaN/Inf", input)
+    from relight_cli.bake import pose_scene
+    meshes = pose_scene(data, frame, "fine", input)
     if hand_camera is not None:
         from relight_cli.formats.camera import read_camera
         camera = read_camera(hand_camera)
@@ -783,6 +743,28 @@ def _write_student_render(net, config, ckpt, data, frame, meshes, camera, envmap
         write_preview(preview, rgb)
     log(f"wrote {output} ({camera.width}x{camera.height}, {time.perf_counter() - start:.2f} s: "
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
+
+
+def _hand_view_options(env, hand_lights, output, hand_camera, hand_size, hand_frame, env_res):
+    """Hand mode's shared usage checks: (width, height, frame, env H, env W)."""
+    from relight_cli.errors import UsageProblem
+    if env is None and hand_lights is None:
+        raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
+    if not output.lower().endswith(".exr"):
+        raise UsageProblem("-o is the rendered EXR image (name it .exr)", output)
+    if hand_camera is not None and hand_size is not None:
+        raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
+    width, height = 256, 256
+    if hand_size is not None:
+        from relight_cli.clitools import parse_size
+        width, height = parse_size(hand_size, "--size")
+        if width > 8192 or height > 8192:
+            raise UsageProblem(f"--size must be at most 8192, got {hand_size!r}")
+    frame = 0 if hand_frame is None else hand_frame
+    if frame < 0:
+        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
+    env_h, env_w = _parse_env_res(env_res or "16x32")
+    return width, height, frame, env_h, env_w
 
 
 def _parse_env_res(text: str) -> tuple[int, int]:

@@ -6,6 +6,8 @@ import click
 
 from relight_cli.clitools import log, no_clobber_option, quiet_option
 
+from ._learned import training_options
+
 
 @click.command("train-teacher",
                short_help="Train the OLAT teacher (or the GGX baseline) on a light-stage capture.")
@@ -26,18 +28,7 @@ from relight_cli.clitools import log, no_clobber_option, quiet_option
 @click.option("--tex-res", type=int, default=None, help="Texture size N of the U-Net (N×N).")
 @click.option("--no-visibility", is_flag=True,
               help="Ablation (RelightableHands Table 1): no ray-traced visibility input.")
-@click.option("--vgg-weights", default=None, metavar="VGG16.pth",
-              help="Local torchvision vgg16 state dict enabling the VGG loss (Eq. 5); nothing "
-                   "is downloaded: copy e.g. vgg16-397923af.pth from a machine that has it. "
-                   "Without it λ_VGG is 0.")
-@click.option("--resume", default=None, metavar="CKPT.pt",
-              help="Continue a run from its checkpoint, exactly (weights, Adam, step, RNG).")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto",
-              show_default=True, help="Where to train. Under torchrun: DDP over the processes.")
-@click.option("--metrics-out", default=None, metavar="VAL.json",
-              help="Validation metrics (relight/metrics, kind validation): held-out poses, "
-                   "fully lit frames, env-map ground truth, per validation step.")
-@click.option("--seed", type=int, default=None, help="Seed (initialization, sampling) [default: 0].")
+@training_options("held-out poses, fully lit frames, env-map ground truth, per validation step")
 @no_clobber_option
 @quiet_option
 def command(capture, output, preset, config_file, model, iters, batch, lr, tex_res, no_visibility,
@@ -65,8 +56,10 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     """
     import os
 
-    from relight_cli.clitools import check_input, check_output
+    from relight_cli.clitools import check_input
     from relight_cli.errors import UsageProblem
+
+    from ._learned import check_outputs, write_validation
 
     # ---- usage checks before any work
     if iters is not None and iters < 1:
@@ -82,19 +75,13 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     for path in (config_file, vgg_weights, resume):
         if path is not None:
             check_input(path)
-    check_output(output, no_clobber)
-    if not output.lower().endswith((".pt", ".pth")):
-        raise UsageProblem("-o is a checkpoint (name it .pt)", output)
-    if metrics_out is not None:
-        check_output(metrics_out, no_clobber, text=True)
-        if not metrics_out.lower().endswith(".json") and metrics_out != "-":
-            raise UsageProblem("--metrics-out is a JSON file (name it .json)", metrics_out)
+    check_outputs(output, metrics_out, no_clobber)
 
     import torch  # noqa: F401  (after usage checks: --help and usage errors stay fast)
 
     from relight_cli.errors import DataError
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
-    from relight_cli.neural.config import TeacherConfig, resolve_config
+    from relight_cli.neural.config import TeacherConfig, resolve_config, resume_config
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.train import resolve_device, train
     from relight_cli.provenance import outside_transaction, provenance
@@ -104,24 +91,7 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     ckpt = None
     if resume is not None:
         ckpt = read_checkpoint(resume, kind="teacher")
-        try:
-            config = TeacherConfig.from_dict(ckpt["config"], "checkpoint config")
-        except UsageProblem as exc:
-            raise DataError(exc.message, resume) from None
-        changed = {k: v for k, v in overrides.items()
-                   if v is not None and k != "iters" and getattr(config, k) != v}
-        if changed or config_file is not None:
-            raise UsageProblem("--resume continues the checkpoint's own configuration; only "
-                               "--iters may change (got " + ", ".join(sorted(changed) or
-                                                                     ["--config"]) + ")")
-        if iters is not None:
-            if iters <= int(ckpt["step"]):
-                raise UsageProblem(f"--iters {iters} is not beyond the checkpoint's step "
-                                   f"{ckpt['step']}")
-            config.iters = iters
-        elif int(ckpt["step"]) >= config.iters:
-            raise UsageProblem(f"the checkpoint already ran its {config.iters} iterations; give "
-                               f"--iters to continue further", resume)
+        config = resume_config(ckpt, TeacherConfig, overrides, config_file, iters, resume)
     else:
         config = resolve_config(preset, config_file, overrides)
     torch_device = resolve_device(device)
@@ -166,13 +136,7 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     if rank != 0:
         return
     write_checkpoint(output, result.checkpoint)
-    if metrics_out is not None:
-        from relight_cli.formats.metrics_json import make_record, write_metrics
-        write_metrics(metrics_out, make_record(
-            "validation", result.metrics and {k: v for k, v in result.metrics.items()
-                                              if k != "step"},
-            {"capture": {"path": data.index_path}}, config.to_dict(), record,
-            details={"history": result.history}))
+    write_validation(metrics_out, result, {"capture": data.index_path}, config, record)
     its = result.steps_run / result.seconds if result.seconds > 0 else float("inf")
     from relight_cli.neural.train import _summary
     log(f"wrote {output}: {result.steps_run} step(s) in {result.seconds:.1f} s ({its:.2f} it/s); "

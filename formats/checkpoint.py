@@ -96,3 +96,21 @@ def read_checkpoint(path: str, kind: str | None = None, model: str | None = None
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             raise DataError(f"checkpoint weight {name} holds NaN/Inf", path)
     return obj
+
+
+def read_state_dict(path: str, what: str = "weights") -> dict:
+    """A plain torch state dict file (e.g. local VGG or LPIPS weights), loaded with
+    ``weights_only=True``; DataError naming the file when it is anything else."""
+    import warnings
+
+    import torch
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for non-checkpoint files
+        msg = (str(exc).splitlines() or [type(exc).__name__])[0][:160]
+        raise DataError(f"not a loadable torch state dict: {msg}", path) from None
+    if not isinstance(state, dict):
+        raise DataError(f"{what} must be a state dict (key → tensor)", path)
+    return state

@@ -23,6 +23,20 @@ from relight_cli import features as F
 from relight_cli.errors import DataError
 
 
+def pose_scene(hand, frame: int, mesh: str = "coarse", source: str = "") -> list:
+    """Every hand of ``hand`` posed at ``frame`` (``PosedMesh`` list); DataError naming
+    ``source`` for a frame that cannot be posed or non-finite posed vertices."""
+    from relight_cli.hand.scene import posed_meshes
+    try:
+        posed = posed_meshes(hand, frame, mesh)
+    except (IndexError, ValueError) as exc:
+        raise DataError(f"cannot pose frame {frame}: {exc}", source) from None
+    for pm in posed:
+        if not np.isfinite(pm.vertices).all():
+            raise DataError(f"frame {frame}: posed vertices hold NaN/Inf", source)
+    return posed
+
+
 class PoseFeatures:
     """Texel-aligned features of one posed scene (one or more hands).
 
@@ -40,17 +54,9 @@ class PoseFeatures:
     def __init__(self, hand, frame: int, settings: F.FeatureSettings, env_res=(16, 32),
                  tex_res=(128, 128), mesh: str = "coarse", rasters: dict | None = None,
                  source: str = "", posed=None):
-        from relight_cli.hand.scene import posed_meshes
-
         t0 = time.perf_counter()
         if posed is None:
-            try:
-                posed = posed_meshes(hand, frame, mesh)
-            except (IndexError, ValueError) as exc:
-                raise DataError(f"cannot pose frame {frame}: {exc}", source) from None
-        for pm in posed:
-            if not np.isfinite(pm.vertices).all():
-                raise DataError(f"frame {frame}: posed vertices hold NaN/Inf", source)
+            posed = pose_scene(hand, frame, mesh, source)
         self.posed = posed
         self.frame = frame
         self.tex_res = (int(tex_res[0]), int(tex_res[1]))

@@ -267,8 +267,6 @@ def test_distill_bad_input(setup, tmp_path, case):
             setup / "student.json", "--iters", "2"]
     code = 1
     if case == "nan-env":
-        from relight_cli.envmap import EnvMap
-        from relight_cli.formats.envmap import write_envmap
         rad = np.ones((8, 16, 3), np.float32)
         rad[2, 3, 1] = np.nan
         bad = tmp_path / "nan.exr"
@@ -276,7 +274,6 @@ def test_distill_bad_input(setup, tmp_path, case):
         write_exr(str(bad), {"R": rad[..., 0], "G": rad[..., 1], "B": rad[..., 2]},
                   envmap="latlong")
         args += ["--envs", bad]
-        del EnvMap, write_envmap
     elif case == "student-as-teacher":
         ckpt = _distill(setup, tmp_path / "s.pt", "--iters", "1")
         args[1] = ckpt

@@ -38,14 +38,8 @@ def required_keys() -> list[str]:
 
 def load_lpips(path: str) -> dict:
     """Load and check a local LPIPS state dict; returns {key: tensor}.  Raises DataError."""
-    import torch
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for non-checkpoint files
-        msg = (str(exc).splitlines() or [type(exc).__name__])[0][:160]
-        raise DataError(f"not a loadable torch state dict: {msg}", path) from None
-    if not isinstance(state, dict):
-        raise DataError("LPIPS weights must be a state dict (key → tensor)", path)
+    from relight_cli.formats.checkpoint import read_state_dict
+    state = read_state_dict(path, "LPIPS weights")
     missing = [k for k in required_keys() if k not in state]
     if missing:
         raise DataError(f"LPIPS weights lack {len(missing)} key(s), e.g. {missing[0]} "

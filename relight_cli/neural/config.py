@@ -304,3 +304,30 @@ STUDENT_PRESETS = {
               "lr": 1e-3, "neg_start": 25_000, "val_every": 5000, "val_samples": 64,
               "save_every": 5000},
 }
+
+
+def resume_config(checkpoint: dict, cls, overrides: dict, config_file: str | None,
+                  iters: int | None, source: str):
+    """The configuration a ``--resume`` continues: the checkpoint's own, where only
+    ``iters`` may grow.  UsageProblem for other changed fields or a finished run."""
+    import json as _json
+    raw = checkpoint["config"]
+    try:
+        config = cls.from_dict(_json.loads(raw) if isinstance(raw, str) else raw,
+                               "checkpoint config")
+    except UsageProblem as exc:
+        raise DataError(exc.message, source) from None
+    changed = sorted(k for k, v in overrides.items()
+                     if v is not None and k != "iters" and getattr(config, k) != v)
+    if changed or config_file is not None:
+        raise UsageProblem("--resume continues the checkpoint's own configuration; only "
+                           "--iters may change (got " + ", ".join(changed or ["--config"]) + ")")
+    step = int(checkpoint["step"])
+    if iters is not None:
+        if iters <= step:
+            raise UsageProblem(f"--iters {iters} is not beyond the checkpoint's step {step}")
+        config.iters = iters
+    elif step >= config.iters:
+        raise UsageProblem(f"the checkpoint already ran its {config.iters} iterations; give "
+                           f"--iters to continue further", source)
+    return config

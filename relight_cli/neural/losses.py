@@ -117,13 +117,8 @@ def vgg_required_keys() -> list[str]:
 
 def load_vgg(path: str) -> VGGLoss:
     """The VGG loss from a local torchvision vgg16 state dict.  Raises DataError."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for non-checkpoint files
-        msg = (str(exc).splitlines() or [type(exc).__name__])[0][:160]
-        raise DataError(f"not a loadable torch state dict: {msg}", path) from None
-    if not isinstance(state, dict):
-        raise DataError("VGG weights must be a state dict (key → tensor)", path)
+    from relight_cli.formats.checkpoint import read_state_dict
+    state = read_state_dict(path, "VGG weights")
     missing = [k for k in vgg_required_keys() if k not in state]
     if missing:
         raise DataError(f"VGG weights lack {len(missing)} key(s), e.g. {missing[0]} (expected "

@@ -39,11 +39,23 @@ from .models import PoseEncoder
 PAPER_LAMBDA_B = 100.0
 
 
-def _start_grey(head: nn.Conv2d, lambda_s: float, lambda_b: float) -> None:
-    """With λ_b = 0, start the head's output at the paper's λ_b (bias λ_b,paper / λ_s)."""
-    if lambda_b == 0:
-        with torch.no_grad():
-            head.bias.fill_(PAPER_LAMBDA_B / lambda_s)
+class Eq11Head(nn.Module):
+    """Eq. 11: a 3×3 conv to T, then C = ReLU(λ_s T) + λ_b (paper units × PAPER_UNIT).
+    With λ_b = 0 the conv's bias starts at λ_b,paper / λ_s (the paper's grey)."""
+
+    def __init__(self, cin: int, lambda_s: float, lambda_b: float):
+        super().__init__()
+        self.conv = _conv(cin, 3)
+        self.lambda_s = lambda_s * PAPER_UNIT
+        self.lambda_b = lambda_b * PAPER_UNIT
+        if lambda_b == 0:
+            with torch.no_grad():
+                self.conv.bias.fill_(PAPER_LAMBDA_B / lambda_s)
+
+    def forward(self, h: torch.Tensor, return_raw: bool = False):
+        scaled = self.lambda_s * self.conv(h)
+        texture = F.relu(scaled) + self.lambda_b
+        return (texture, scaled) if return_raw else texture
 
 
 def _conv(cin, cout):
@@ -68,10 +80,7 @@ class StudentNet(nn.Module):
         self.pose = PoseEncoder(pose_dim, pose_channels)
         widths = [feature_channels + pose_channels[1], *decoder]
         self.convs = nn.ModuleList(_conv(a, b) for a, b in zip(widths[:-1], widths[1:]))
-        self.head = _conv(widths[-1], 3)
-        self.lambda_s = lambda_s * PAPER_UNIT
-        self.lambda_b = lambda_b * PAPER_UNIT
-        _start_grey(self.head, lambda_s, lambda_b)
+        self.head = Eq11Head(widths[-1], lambda_s, lambda_b)
 
     def forward(self, features: torch.Tensor, pose: torch.Tensor, env_code=None,
                 return_raw: bool = False):
@@ -79,9 +88,7 @@ class StudentNet(nn.Module):
         h = torch.cat([features, self.pose(pose, features.shape[-1])], 1)
         for conv in self.convs:
             h = F.leaky_relu(conv(h), 0.2)
-        scaled = self.lambda_s * self.head(h)
-        texture = F.relu(scaled) + self.lambda_b
-        return (texture, scaled) if return_raw else texture
+        return self.head(h, return_raw)
 
 
 class DRAMNet(nn.Module):
@@ -98,10 +105,7 @@ class DRAMNet(nn.Module):
         widths = [pose_channels[1], *decoder]
         self.convs = nn.ModuleList(_conv(a, b) for a, b in zip(widths[:-1], widths[1:]))
         self.film = nn.ModuleList(nn.Linear(code + pose_dim, 2 * w) for w in decoder)
-        self.head = _conv(widths[-1], 3)
-        self.lambda_s = lambda_s * PAPER_UNIT
-        self.lambda_b = lambda_b * PAPER_UNIT
-        _start_grey(self.head, lambda_s, lambda_b)
+        self.head = Eq11Head(widths[-1], lambda_s, lambda_b)
 
     def forward(self, features: torch.Tensor, pose: torch.Tensor, env_code=None,
                 return_raw: bool = False):
@@ -114,6 +118,4 @@ class DRAMNet(nn.Module):
         for conv, film in zip(self.convs, self.film):
             scale, shift = film(cond).chunk(2, dim=1)
             h = F.leaky_relu(conv(h) * (1 + scale[..., None, None]) + shift[..., None, None], 0.2)
-        scaled = self.lambda_s * self.head(h)
-        texture = F.relu(scaled) + self.lambda_b
-        return (texture, scaled) if return_raw else texture
+        return self.head(h, return_raw)

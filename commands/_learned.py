@@ -1,0 +1,56 @@
+"""Options and checks shared by the training commands (train-teacher, distill)."""
+
+from __future__ import annotations
+
+import click
+
+
+def training_options(validation: str):
+    """--vgg-weights, --resume, --device, --metrics-out (``validation`` says what it
+    scores) and --seed, in that order."""
+    options = [
+        click.option("--vgg-weights", default=None, metavar="VGG16.pth",
+                     help="Local torchvision vgg16 state dict enabling the VGG loss (Eq. 5); "
+                          "nothing is downloaded: copy e.g. vgg16-397923af.pth from a machine "
+                          "that has it. Without it λ_VGG is 0."),
+        click.option("--resume", default=None, metavar="CKPT.pt",
+                     help="Continue a run from its checkpoint, exactly (weights, Adam, step, "
+                          "RNG)."),
+        click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto",
+                     show_default=True,
+                     help="Where to train. Under torchrun: DDP over the processes."),
+        click.option("--metrics-out", default=None, metavar="VAL.json",
+                     help=f"Validation metrics (relight/metrics, kind validation): {validation}."),
+        click.option("--seed", type=int, default=None,
+                     help="Seed (initialization, sampling) [default: 0]."),
+    ]
+
+    def decorate(func):
+        for option in reversed(options):
+            func = option(func)
+        return func
+    return decorate
+
+
+def check_outputs(output: str, metrics_out: str | None, no_clobber: bool) -> None:
+    """-o is a .pt checkpoint, --metrics-out a .json (or -); registered before any work."""
+    from relight_cli.clitools import check_output
+    from relight_cli.errors import UsageProblem
+    check_output(output, no_clobber)
+    if not output.lower().endswith((".pt", ".pth")):
+        raise UsageProblem("-o is a checkpoint (name it .pt)", output)
+    if metrics_out is not None:
+        check_output(metrics_out, no_clobber, text=True)
+        if not metrics_out.lower().endswith(".json") and metrics_out != "-":
+            raise UsageProblem("--metrics-out is a JSON file (name it .json)", metrics_out)
+
+
+def write_validation(metrics_out: str | None, result, inputs: dict, config, record) -> None:
+    """The run's validation record (relight/metrics, kind validation), if asked for."""
+    if metrics_out is None:
+        return
+    from relight_cli.formats.metrics_json import make_record, write_metrics
+    write_metrics(metrics_out, make_record(
+        "validation", {k: v for k, v in result.metrics.items() if k != "step"},
+        {role: {"path": path} for role, path in inputs.items()}, config.to_dict(), record,
+        details={"history": result.history}))
