@@ -586,7 +586,6 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     from relight_cli.neural import teacher as T
     from relight_cli.neural.geometry import PoseTexels, uv_layout_digest
     from relight_cli.neural.train import model_from_checkpoint, resolve_device
-    from relight_cli.provenance import provenance
 
     from ._inputs import load_envmap
 
@@ -657,29 +656,35 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     rgb = image.cpu().numpy().astype(np.float32)
     mask = gbuffer.mask
     # passes are composited over black; the background fills the uncovered sample fraction
-    rgb = rgb + np.asarray(bg, np.float32)[None, None] * (1 - mask[..., None])
-    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
-    inputs = {"hand": input, "checkpoint": checkpoint}
-    if env is not None:
-        inputs["env"] = env
-    for role, path in (("camera", hand_camera), ("lights", hand_lights)):
-        if path is not None:
-            inputs[role] = path
-    record = provenance("relight/render", 1, inputs, {
+    inputs = {"hand": input, "checkpoint": checkpoint, "env": env, "camera": hand_camera,
+              "lights": hand_lights}
+    _write_learned(output, preview, rgb, mask, bg, model, camera, inputs, {
         "model": model, "teacher": config.model, "frame": frame, "mesh": "fine",
         "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
         "visibility": config.visibility, "falloff": config.falloff,
         "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
+    log(f"wrote {output} ({camera.width}x{camera.height}, {total} pass(es), "
+        f"{time.perf_counter() - start:.2f} s: "
+        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in timing.seconds.items()) + ")", quiet)
+
+
+def _write_learned(output, preview, rgb, mask, bg, model, camera, inputs, settings):
+    """A learned model's render: passes composited over black, the background filling the
+    uncovered sample fraction; EXR (R, G, B, A) with provenance, and the PNG preview."""
+    import numpy as np
+
     from relight_cli.formats.exr import write_exr
+    from relight_cli.provenance import provenance
+    rgb = rgb + np.asarray(bg, np.float32)[None, None] * (1 - mask[..., None])
+    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
+    record = provenance("relight/render", 1, {k: v for k, v in inputs.items() if v is not None},
+                        settings)
     write_exr(output, channels, attributes={"relight.model": model,
                                             "relight.camera": camera.to_json()},
               provenance=record)
     if preview is not None:
         from relight_cli.formats.image import write_preview
         write_preview(preview, rgb)
-    log(f"wrote {output} ({camera.width}x{camera.height}, {total} pass(es), "
-        f"{time.perf_counter() - start:.2f} s: "
-        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in timing.seconds.items()) + ")", quiet)
 
 
 def _write_student_render(net, config, ckpt, data, frame, meshes, camera, envmap, env_h, env_w,
@@ -694,7 +699,6 @@ def _write_student_render(net, config, ckpt, data, frame, meshes, camera, envmap
     from relight_cli.features import discretize_env
     from relight_cli.neural import distill as D
     from relight_cli.neural.teacher import composite
-    from relight_cli.provenance import provenance
     from relight_cli.render.gbuffer import render_gbuffer
 
     if env_res is None:
@@ -724,23 +728,12 @@ def _write_student_render(net, config, ckpt, data, frame, meshes, camera, envmap
     seconds["composite"] = time.perf_counter() - t0
     rgb = image.cpu().numpy().astype(np.float32)
     mask = gbuffer.mask
-    rgb = rgb + np.asarray(bg, np.float32)[None, None] * (1 - mask[..., None])
-    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
-    inputs = {"hand": input, "checkpoint": checkpoint, "env": env}
-    if hand_camera is not None:
-        inputs["camera"] = hand_camera
-    record = provenance("relight/render", 1, inputs, {
-        "model": model, "student": config.student, "frame": frame, "mesh": "fine",
-        "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
-        "specular": config.specular, "visibility": config.visibility,
-        "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
-    from relight_cli.formats.exr import write_exr
-    write_exr(output, channels, attributes={"relight.model": model,
-                                            "relight.camera": camera.to_json()},
-              provenance=record)
-    if preview is not None:
-        from relight_cli.formats.image import write_preview
-        write_preview(preview, rgb)
+    _write_learned(output, preview, rgb, mask, bg, model, camera,
+                   {"hand": input, "checkpoint": checkpoint, "env": env, "camera": hand_camera}, {
+                       "model": model, "student": config.student, "frame": frame, "mesh": "fine",
+                       "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
+                       "specular": config.specular, "visibility": config.visibility,
+                       "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
     log(f"wrote {output} ({camera.width}x{camera.height}, {time.perf_counter() - start:.2f} s: "
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
 

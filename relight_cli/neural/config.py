@@ -56,7 +56,26 @@ class _Config:
 
 
 @dataclass
-class TeacherConfig(_Config):
+class TrainingConfig(_Config):
+    """The optimization fields every learned model shares (see :class:`TeacherConfig`)."""
+
+    iters: int = 150
+    batch: int = 2
+    lr: float = 2e-3
+    lambda_mse: float = 1.0
+    lambda_vgg: float = 1.0
+    lambda_neg: float = 0.01
+    neg_eta: float = 5.0
+    neg_start: int = 40
+    neg_schedule: str = "decay"
+    val_every: int = 0
+    val_samples: int = 8
+    save_every: int = 0
+    seed: int = 0
+
+
+@dataclass
+class TeacherConfig(TrainingConfig):
     """How a teacher (``train-teacher``) is built and trained.
 
     Attributes:
@@ -99,22 +118,9 @@ class TeacherConfig(_Config):
     falloff: str = "analytic"
     lambda_s: float = 25.0
     lambda_b: float = 100.0
-    iters: int = 150
-    batch: int = 2
-    lr: float = 2e-3
-    lambda_mse: float = 1.0
-    lambda_vgg: float = 1.0
-    lambda_neg: float = 0.01
-    neg_eta: float = 5.0
-    neg_start: int = 40
-    neg_schedule: str = "decay"
     aa: int = 2
     holdout: float = 0.25
-    val_every: int = 0
-    val_samples: int = 8
-    save_every: int = 0
     cache_poses: int = 64
-    seed: int = 0
 
     def validate(self, where: str = "config") -> None:
         """Raise UsageProblem naming the first impossible field."""
@@ -217,7 +223,7 @@ def resolve_config(preset: str = "tiny", config_file: str | None = None,
 
 
 @dataclass
-class StudentConfig(_Config):
+class StudentConfig(TrainingConfig):
     """How a student (``distill``) is built and trained (RelightableHands App. A.2–A.3).
 
     Attributes:
@@ -258,19 +264,6 @@ class StudentConfig(_Config):
     cache_mb: int = 2048
     lambda_s: float = 25.0
     lambda_b: float = 0.0
-    iters: int = 150
-    batch: int = 2
-    lr: float = 2e-3
-    lambda_mse: float = 1.0
-    lambda_vgg: float = 1.0
-    lambda_neg: float = 0.01
-    neg_eta: float = 5.0
-    neg_start: int = 40
-    neg_schedule: str = "decay"
-    val_every: int = 0
-    val_samples: int = 8
-    save_every: int = 0
-    seed: int = 0
 
     def validate(self, where: str = "config") -> None:
         check = _Checker(self, where)
