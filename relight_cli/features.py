@@ -13,13 +13,17 @@ environment map discretized to M directions ω_m with exact solid angles Δω_m
                (cosine-weighted, 1 for an unoccluded receiver, env-independent)
 
 h is binary visibility: a ray from the receiver (offset along n_i) towards ω_m
-escapes every mesh of the scene (two hands shadow each other).
+escapes every mesh of the scene (two hands shadow each other), and ω_m is not below
+the receiver's tangent plane (n_i·ω_m > −10⁻⁹): a direction under the plane is
+blocked by the surface itself, which is what a ray would find on a closed surface —
+without casting it.  (It matters only for Phong, the one lobe Eq. 9 does not clip by
+n·ω; with ``visibility=False``, h ≡ 1 and Eq. 9 counts such directions as written.)
 
 Speed: visibility depends on the pose, not the lighting, so :class:`VisibilityCache`
 traces it once and every env map, shininess and specular model reuses it.  Only
 pairs (i, m) whose weight can be non-zero are traced: ω_m above i's tangent
-plane (diffuse, GGX, visibility channel) or, for Phong, inside the reflected
-lobe's support r_i·ω_m > 0 *and* lit by some env map.  Every stage of a new pose
+plane (diffuse, GGX, visibility channel, and Phong lobes, which without visibility
+also reach below it: r_i·ω_m inside the lobe's support *and* lit by some env map).  Every stage of a new pose
 is local to its receivers, so :meth:`FeatureBaker.bake` runs cull → trace
 (embree through :class:`relight_cli.raytrace.RayScene`) → transport → shade per
 block of receivers while the block's arrays are in cache, with blocks spread over
@@ -460,6 +464,10 @@ def _matvec(a: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.einsum("ij,j->i", a, x)
 
 
+#: n·ω below −BELOW_PLANE: the direction is under the receiver's tangent plane.
+BELOW_PLANE = 1e-9
+
+
 def needed_pairs(receivers: Receivers, reflected: np.ndarray | None, directions: np.ndarray,
                  lit: np.ndarray, settings: FeatureSettings,
                  cosines: np.ndarray | None = None) -> np.ndarray:
@@ -467,9 +475,13 @@ def needed_pairs(receivers: Receivers, reflected: np.ndarray | None, directions:
 
     * n·ω > 0 (above the tangent plane): diffuse, GGX and the visibility channel;
       the latter is env-independent, so every such pair is needed.
-    * r·ω > c and the texel is lit (Phong lobes: max(r·ω, 0)^α < 1e-30 for
-      r·ω ≤ c = :func:`lobe_cutoff`, and L = 0 on unlit texels).  Only pairs below
-      the tangent plane are new here.
+    * without visibility (h ≡ 1) also r·ω > c on lit texels (Phong lobes:
+      max(r·ω, 0)^α < 1e-30 for r·ω ≤ c = :func:`lobe_cutoff`, and L = 0 on unlit
+      texels), which adds pairs below the tangent plane.  With visibility those pairs
+      are never traced: a direction below a receiver's tangent plane cannot light it
+      (the surface itself blocks it), so h = 0 there by definition — RelightableHands'
+      h of Eq. 9 on a closed surface, without the rays (a third of the rays on the
+      built-in hand's proxy).
     Receivers with undefined normals need nothing (their features are 0).
     ``cosines`` optionally passes n·ω [N, M] already computed.
     """
@@ -484,7 +496,14 @@ def _needed_pairs(receivers, reflected, directions, lit, settings, cosines=None)
     lobes = None
     if settings.phong and reflected is not None:
         lobes = dot3(reflected, directions)
-        need |= (lobes > lobe_cutoff(settings.phong)) & lit[None, :]
+        lobe = (lobes > lobe_cutoff(settings.phong)) & lit[None, :]
+        if settings.visibility:
+            # a direction below the tangent plane is blocked by the surface itself: h = 0
+            # without a ray (an untraced pair is invisible).  Grazing pairs within
+            # BELOW_PLANE of the plane are still traced, so rounding of n·ω ≈ 0 (e.g. a
+            # rotated scene) never flips a Phong term.
+            lobe &= cos > -BELOW_PLANE
+        need |= lobe       # h ≡ 1: a Phong lobe below the plane counts (Eq. 9 as written)
     need &= receivers.defined[:, None]
     return need, lobes
 
@@ -554,10 +573,15 @@ def _transport_stacked(receivers, view, directions, solid_angle, visible, settin
         w = np.empty((len(names), b, m)) if out is None else out[:, sl]
         h = visible[sl]                                           # [b, M] bool
         cos = w[0]
+        above = None                  # Phong with visibility: h = 0 below the tangent plane
         if cosines is None:
             dot3(receivers.normals[sl], directions, out=cos)
+            if settings.phong and settings.visibility:
+                above = cos > -BELOW_PLANE
             np.maximum(cos, 0, out=cos)
         else:
+            if settings.phong and settings.visibility:
+                above = cosines[sl] > -BELOW_PLANE
             np.maximum(cosines[sl], 0, out=cos)
         denom = _matvec(cos, solid_angle)
         np.multiply(cos, h, out=cos)                              # W_diffuse = h·max(n·ω, 0)
@@ -567,6 +591,8 @@ def _transport_stacked(receivers, view, directions, solid_angle, visible, settin
             lobe = dot3(reflected[sl], directions) if lobes is None else lobes[sl]
             support = lobe > cutoff                               # the lobe's support ...
             support &= h                                          # ... where visible
+            if above is not None:
+                support &= above                                  # ... above the plane
             hl = np.multiply(lobe, support, out=lobe)             # h·max(r·ω, 0), 0 off-lobe
             positive = [a for a in settings.phong if a > 0]
             for alpha, power in zip(positive, _powers(hl, positive)):
@@ -973,7 +999,9 @@ def vertex_features_reference(meshes: list[PoseMesh], env: DiscreteEnv, eye,
                 continue
             if settings.visibility:
                 origins = np.repeat((x + offsets_per_mesh[mesh_index] * nrm)[None], m, axis=0)
-                h = ~_occluded_brute_force(all_v[all_f], origins[0], dirs)
+                # below the tangent plane the surface itself blocks the direction
+                h = (~_occluded_brute_force(all_v[all_f], origins[0], dirs)
+                     & (dirs @ nrm > -BELOW_PLANE))
             else:
                 h = np.ones(m, bool)
             v = eye - x
