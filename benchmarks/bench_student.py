@@ -183,12 +183,18 @@ def quality(iters: int, work: Path) -> dict:
     run("synth-capture", "-o", cap, "--cameras", "4", "--lights", "32", "--group", "4",
         "--frames", "16", "--res", "64", "--tex-res", "128", "--aa", "1", "--eval-poses", "2",
         "--eval-cameras", "2", "--eval-envs", "builtin:sky,builtin:studio", "-q")
-    run("train-teacher", cap, "-o", work / "teacher.pt", "--iters", str(2 * iters), "-q")
-    envs = ["--envs", "builtin:sky", "--envs", "builtin:studio", "--envs", "builtin:uniform",
-            "--envs", "builtin:point"]
+    run("train-teacher", cap, "-o", work / "teacher.pt", "--iters", str(2 * iters), "-q",
+        "--metrics-out", work / "t.json")
+    teacher = json.loads((work / "t.json").read_text())["metrics"]
+    envs = ["--envs", "builtin:sky", "--envs", "builtin:studio", "--envs", "builtin:uniform"]
     shared = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "envmaps" / "polyhaven"
-    if shared.is_dir():
-        envs += ["--envs", str(shared)]
+    hdris = sorted(shared.glob("*.hdr")) if shared.is_dir() else []
+    # a fixed split: the last two real HDRIs are never trained on (else sky + studio)
+    held = hdris[-2:] if len(hdris) >= 3 else []
+    for path in hdris[:-2] if held else hdris:
+        envs += ["--envs", str(path)]
+    for path in held:
+        envs += ["--eval-envs", str(path)]
     rows = {}
     for name, extra in (("student", []), ("w/o specular", ["--no-specular"]),
                         ("w/o visibility", ["--no-visibility"]), ("DRAM", ["--student", "dram"])):
@@ -197,6 +203,8 @@ def quality(iters: int, work: Path) -> dict:
             "-o", work / "s.pt", "--metrics-out", work / "s.json", *extra)
         record = json.loads((work / "s.json").read_text())
         rows[name] = {"metrics": record["metrics"], "seconds": time.perf_counter() - t0}
+    rows["(teacher, vs ground truth)"] = {"metrics": {"vs_ground_truth": teacher.get("env", {})},
+                                          "seconds": 0.0}
     return rows
 
 

@@ -16,6 +16,9 @@ from ._learned import training_options
 @click.option("--envs", "env_specs", multiple=True, required=True, metavar="ENV",
               help="Env maps to learn from (repeatable; files or builtin:NAME, or a folder of "
                    ".exr/.hdr files). A seeded env_holdout share is kept for evaluation only.")
+@click.option("--eval-envs", "eval_specs", multiple=True, metavar="ENV",
+              help="Env maps for evaluation only (repeatable, as --envs): a fixed split; then "
+                   "every --envs map trains and env_holdout is not used.")
 @click.option("-o", "--output", required=True, metavar="STUDENT.pt",
               help="Checkpoint to write (relight/checkpoint, kind student).")
 @click.option("--student", type=click.Choice(["student", "dram"]), default=None,
@@ -35,7 +38,7 @@ from ._learned import training_options
 @training_options("held-out poses × evaluation env maps against the teacher and against ground truth")
 @no_clobber_option
 @quiet_option
-def command(teacher, capture, env_specs, output, student, preset, config_file, iters,
+def command(teacher, capture, env_specs, eval_specs, output, student, preset, config_file, iters,
             no_specular, no_visibility, cache_dir, vgg_weights, resume, device, metrics_out, seed,
             no_clobber, quiet):
     """Distill RelightableHands' student from TEACHER.pt (train-teacher) on CAPTURE's
@@ -75,7 +78,9 @@ def command(teacher, capture, env_specs, output, student, preset, config_file, i
     for path in (config_file, vgg_weights, resume):
         if path is not None:
             check_input(path)
-    specs = _expand_envs(env_specs)
+    train_specs = _expand_envs(env_specs)
+    held_specs = _expand_envs(eval_specs)
+    specs = train_specs + held_specs
     for spec in specs:
         check_input(spec)
     check_outputs(output, metrics_out, no_clobber)
@@ -128,8 +133,12 @@ def command(teacher, capture, env_specs, output, student, preset, config_file, i
     for spec in specs:
         env = load_envmap(spec)
         envs.append(discretize_env(env, *config.env_res))
-    train_idx, eval_idx = D.split_envs(names, config.env_holdout, config.seed,
-                                       ", ".join(env_specs))
+    if held_specs:
+        train_idx = list(range(len(train_specs)))
+        eval_idx = list(range(len(train_specs), len(specs)))
+    else:
+        train_idx, eval_idx = D.split_envs(names, config.env_holdout, config.seed,
+                                           ", ".join(env_specs))
     if ckpt is not None:
         import json
         saved = json.loads(ckpt.get("extra", {}).get("envs", "{}") or "{}")

@@ -318,3 +318,14 @@ def test_distill_on_real_hdris(setup, tmp_path, shared):
     assert not set(envs["train"]) & set(envs["eval"])
     metrics = json.loads((tmp_path / "v.json").read_text())["metrics"]
     assert np.isfinite(metrics["vs_teacher"]["mse"])
+
+
+def test_fixed_evaluation_envs(setup, tmp_path):
+    """--eval-envs: those maps only evaluate, every --envs map trains."""
+    out = tmp_path / "fixed.pt"
+    r = _invoke("distill", setup / "teacher.pt", setup / "cap", "--envs", "builtin:sky",
+                "--envs", "builtin:uniform", "--eval-envs", "builtin:studio", "--config",
+                setup / "student.json", "--iters", "2", "-q", "-o", out)
+    assert r.exit_code == 0, r.output
+    envs = json.loads(torch.load(out, weights_only=True)["extra"]["envs"])
+    assert envs == {"train": ["sky", "uniform"], "eval": ["studio"]}
