@@ -139,12 +139,17 @@ class PoseTexels:
         self.renderer = HandRenderer(meshes, [None] * len(meshes), settings, rasters=rasters)
         self.surfaces = self.renderer.surfaces
         self.frames = []
+        # [K, 2, 3] ∂x/∂u, ∂x/∂v (metres per UV unit) in each texel's frame: URHand's
+        # displacement (Eq. 2) turns into refined normals through them
+        self.uv_derivatives = []
         for mesh, surf in zip(meshes, self.surfaces):
             du, dv = uv_tangents(mesh.vertices, mesh.faces, mesh.uv, mesh.faces_uv)
             raster = surf.raster
             du_t = raster.interpolate(du, mesh.faces_uv, fill=None)[surf.inside]
             dv_t = raster.interpolate(dv, mesh.faces_uv, fill=None)[surf.inside]
             self.frames.append(tangent_frames(surf.normals, du_t, dv_t))
+            self.uv_derivatives.append(to_local(self.frames[-1], np.stack([du_t, dv_t]))
+                                       .transpose(1, 0, 2).astype(np.float32))
 
     @property
     def n_hands(self) -> int:

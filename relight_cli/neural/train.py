@@ -317,8 +317,18 @@ def model_from_checkpoint(checkpoint: dict, device="cpu"):
     config = TeacherConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
                                      "checkpoint config")
     model = build_model(config, int(checkpoint["pose_dim"]))
+    load_weights(model, checkpoint["weights"])
+    model.to(device).eval()
+    mean = checkpoint.get("extra", {}).get("mean_texture")
+    if config.model == "ggx" and mean is None:
+        raise ValueError("a ggx checkpoint needs its mean texture (extra.mean_texture)")
+    return model, config, (None if mean is None else mean.to(device))
+
+
+def load_weights(model, weights: dict) -> None:
+    """Load a checkpoint's state dict, refusing missing, extra or mis-shaped tensors
+    (ValueError; the caller names the file)."""
     expected = model.state_dict()
-    weights = checkpoint["weights"]
     missing = [k for k in expected if k not in weights]
     if missing:
         raise ValueError(f"checkpoint lacks tensor {missing[0]} ({len(missing)} missing)")
@@ -330,8 +340,3 @@ def model_from_checkpoint(checkpoint: dict, device="cpu"):
             raise ValueError(f"tensor {k} has shape {tuple(weights[k].shape)}, the model "
                              f"expects {tuple(v.shape)}")
     model.load_state_dict(weights)
-    model.to(device).eval()
-    mean = checkpoint.get("extra", {}).get("mean_texture")
-    if config.model == "ggx" and mean is None:
-        raise ValueError("a ggx checkpoint needs its mean texture (extra.mean_texture)")
-    return model, config, (None if mean is None else mean.to(device))
