@@ -58,8 +58,9 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
 @click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
               help="Background radiance of --render.")
 @click.option("--model", default=None, metavar="NAME",
-              help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS) or "
-                   "'teacher' (a train-teacher checkpoint, --checkpoint) [default: physical].")
+              help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS), "
+                   "'teacher' (a train-teacher checkpoint, --checkpoint) or 'linear' (URHand's "
+                   "linear model, train-teacher --model linear) [default: physical].")
 @click.option("--checkpoint", default=None, metavar="CKPT.pt",
               help="[hand] The learned model of --model teacher (relight/checkpoint).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None,
@@ -323,12 +324,12 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
         raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply); "
                            f"a hand's view is --camera")
     model = model or "physical"
-    if model not in ("physical", "teacher"):
-        raise UsageProblem(f"--model {model!r} is not available; use physical or teacher (the "
-                           f"student comes with distill)")
+    if model not in ("physical", "teacher", "linear"):
+        raise UsageProblem(f"--model {model!r} is not available; use physical, teacher or "
+                           f"linear (the student comes with distill)")
     if model == "physical" and (checkpoint is not None or device is not None):
         raise UsageProblem("--checkpoint and --device belong to a learned --model (teacher)")
-    if model == "teacher":
+    if model in ("teacher", "linear"):
         return _relight_hand_learned(**locals())
     if env is None and hand_lights is None:
         raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
@@ -527,9 +528,13 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     from ._inputs import load_envmap
 
     torch_device = resolve_device(device or "auto")
-    ckpt = read_checkpoint(checkpoint, kind="teacher")
+    ckpt = read_checkpoint(checkpoint, kind="linear" if model == "linear" else "teacher")
+    if model == "linear":
+        from relight_cli.neural.linear import model_from_checkpoint as load_model
+    else:
+        load_model = model_from_checkpoint
     try:
-        net, config, mean_texture = model_from_checkpoint(ckpt, torch_device)
+        net, config, mean_texture = load_model(ckpt, torch_device)
     except (ValueError, UsageProblem) as exc:
         raise DataError(getattr(exc, "message", str(exc)), checkpoint) from None
     data = _load_hand(input)
@@ -583,8 +588,16 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     total = sum(len(w) for _, w in passes)
     poses = np.stack([inst.poses[frame] for inst in data.hands])
     image = None
-    with progress(total=total, desc="relight (teacher passes)", quiet=quiet) as bar:
+    with progress(total=total, desc=f"relight ({model} passes)", quiet=quiet) as bar:
         for light_inputs, weights in passes:
+            if model == "linear":
+                # one pass per lighting: the features are sums over its lights (Eq. 4)
+                from relight_cli.neural.linear_train import render_lights as linear_lights
+                part = linear_lights(net, texels, gbuffer, poses, light_inputs, weights,
+                                     mean_texture, timing)
+                bar.update(len(weights))
+                image = part if image is None else image + part
+                continue
             part = T.render_lights(net, texels, gbuffer, poses, light_inputs, weights,
                                    config.visibility, config.falloff, torch_device,
                                    mean_texture=mean_texture, progress=bar.update, timing=timing)

@@ -24,7 +24,9 @@ non-linear branch F_nl by Eq. 5:
 F_enc^j the encoder level of F_dec^j's resolution (none beyond the encoder's levels;
 F_dec^0 = 0).  F_nl is a 1×1 stem to ``light_decoder[0]`` then 7 layers of the same
 widths and resolutions (with bias, LeakyReLU 0.2) on F_G's bottleneck (F_θ,id: encoder
-⊕ tiled pose).  Nothing on the light path has a bias or a nonlinearity, so the output
+⊕ tiled pose).  Initialization (ours; the paper gives none): F_nl's layers start at
+≈ 1 (bias 1, weights × 0.1) and F_l's weights are variance preserving, so the product
+of seven modulated layers starts at a usable scale.  Nothing on the light path has a bias or a nonlinearity, so the output
 is exactly linear in the features.  The output's 4 channels are a gain g (3) and a bias
 b (1), and (Eq. 6)
 
@@ -91,8 +93,9 @@ class LinearConfig:
         displacement_mm: δd range (Eq. 2: 3 mm).
         sigma_t: σ_T of Eq. 6 in the paper's 8-bit units (64; × PAPER_UNIT in ours).
         residual: ours: g, b start from C^d, C^s/σ_T (see the module docstring).
-        iters, batch, lr, lr_final: Adam; lr drops to lr_final after 2/3 of the
-            iterations (the paper's multistep 1e-4 → 3e-5).
+        iters, batch, lr, lr_final, lr_drop: Adam; lr drops to lr_final at iteration
+            lr_drop (the paper's multistep 1e-4 → 3e-5; an iteration, not a fraction, so a
+            run extended by ``--resume --iters`` keeps its schedule).
         lambda_img, lambda_pb: Eq. 7's L1 weights of the neural and physical renders.
         lambda_vgg: perceptual loss (only with local weights; the paper's is EfficientNet).
         lambda_reg: Eq. 9's L1 on the light path's intermediate features (0.01).
@@ -123,6 +126,7 @@ class LinearConfig:
     batch: int = 2
     lr: float = 2e-3
     lr_final: float = 6e-4
+    lr_drop: int = 100
     lambda_img: float = 1.0
     lambda_pb: float = 1.0
     lambda_vgg: float = 1.0
@@ -170,6 +174,7 @@ class LinearConfig:
         choices = {"model": ("linear",), "light_path": LIGHT_PATHS, "features": FEATURES,
                    "fresnel": ("schlick", "sg")}
         ints = {"tex_res": (8, 4096), "light_levels": (0, 7), "iters": (1, 10 ** 9),
+                "lr_drop": (0, 10 ** 9),
                 "batch": (1, 4096), "linearity_every": (1, 10 ** 9), "aa": (1, 8),
                 "val_every": (0, 10 ** 9), "val_samples": (1, 100000), "save_every": (0, 10 ** 9),
                 "cache_poses": (1, 100000), "seed": (0, 2 ** 63 - 1)}
@@ -222,7 +227,7 @@ PRESETS = {
     "paper": {"tex_res": 1024, "encoder": (64,) * 6, "decoder": (64,) * 6,
               "pose_channels": (16, 64), "light_decoder": (128, 256, 128, 128, 64, 32, 16, 4),
               "light_levels": 6, "residual": False, "iters": 2_000_000, "batch": 3, "lr": 1e-4,
-              "lr_final": 3e-5, "val_every": 10000, "val_samples": 64, "save_every": 10000},
+              "lr_final": 3e-5, "lr_drop": 1_500_000, "val_every": 10000, "val_samples": 64, "save_every": 10000},
 }
 
 
@@ -270,6 +275,12 @@ class LightPath(nn.Module):
             prev = widths[levels - e]
         self.dec = nn.ModuleList(_up(widths[j], widths[j + 1], j < levels, False)
                                  for j in range(7))
+        # variance-preserving initialization of a linear chain: each output sums cin·9
+        # (3×3 conv) or cin·4 (4×4 stride-2 transposed conv) inputs
+        for layer in [*self.enc, *self.dec]:
+            taps = 4 if isinstance(layer, nn.ConvTranspose2d) else 9
+            cin = layer.in_channels
+            nn.init.normal_(layer.weight, 0.0, 1.0 / math.sqrt(cin * taps))
 
     def _act(self, x):
         return F.leaky_relu(x, 0.2) if self.nonlinear else x
@@ -305,6 +316,11 @@ class NonLinearBranch(nn.Module):
         self.layers = nn.ModuleList(_up(widths[j], widths[j + 1], j < levels, True)
                                     for j in range(7))
         self.levels = levels
+        # modulations start near 1 (bias 1, small weights): the product of seven Eq. 5
+        # factors neither vanishes nor explodes at initialization
+        for layer in self.layers:
+            layer.weight.data.mul_(0.1)
+            nn.init.ones_(layer.bias)
 
     def forward(self, joint: torch.Tensor, tex_res: int) -> list:
         size = tex_res >> self.levels

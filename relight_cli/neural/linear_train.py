@@ -14,7 +14,7 @@
   gradients averaged over torchrun ranks by one all-reduce (the model is called
   through its branches, not one forward, so DDP's hooks are not used), rank 0 writes; held-out poses, fully lit
   frames, env-map ground truth).  The learning rate drops from ``lr`` to ``lr_final``
-  after 2/3 of ``iters`` (a function of the step: resume stays exact).
+  at iteration ``lr_drop`` (a function of the step: resume stays exact).
 """
 
 from __future__ import annotations
@@ -207,7 +207,7 @@ def evaluate(model, data, config: LinearConfig, device, mean_texture, splits=Non
 
 
 def learning_rate(config: LinearConfig, step: int) -> float:
-    return config.lr if step < (2 * config.iters) // 3 else config.lr_final
+    return config.lr if step < config.lr_drop else config.lr_final
 
 
 def train(data, config: LinearConfig, device: torch.device, resume: dict | None = None,
@@ -314,3 +314,23 @@ def _average_gradients(model, world: int) -> None:
         n = g.numel()
         p.grad = flat[offset:offset + n].view_as(p).clone()
         offset += n
+
+
+@torch.no_grad()
+def render_lights(model, texels, gbuffer, poses, light_inputs: list, intensity, mean_texture,
+                  timing=None, background=0.0) -> torch.Tensor:
+    """Inference: [H, W, 3] image of a posed scene under L lights (point lights or an env
+    map's directions, :func:`relight_cli.neural.teacher.point_light_inputs` /
+    ``env_light_inputs``) in one pass of the model."""
+    t0 = time.perf_counter()
+    if len(intensity) == 0:
+        from .teacher import composite
+        n = texels.tex_res
+        image = composite([torch.zeros(3, n, n, device=mean_texture.device)] * texels.n_hands,
+                          gbuffer, background)
+    else:
+        image = render_image(model, texels, gbuffer, poses, light_inputs, intensity,
+                             mean_texture, background=background)[0]
+    if timing is not None:
+        timing.add("network", time.perf_counter() - t0)
+    return image

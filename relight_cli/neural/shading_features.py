@@ -19,7 +19,7 @@ roughness β, α = β², K = (β+1)²/8, F0 = 0.04).  Irradiance is in the captu
 (a synthetic stage's fully lit frame gives ≈ π, formats/capture.md).
 
 Departure: Eq. 13's Fresnel is UE4's spherical-Gaussian fit 2^((−5.55473 v·h − 6.98316)
-v·h); :mod:`relight_cli.brdf` uses Schlick's (1 − v·h)⁵, which it approximates to < 0.5 %
+v·h); :mod:`relight_cli.brdf` uses Schlick's (1 − v·h)⁵, which it approximates within 8 %
 of F; ``fresnel="sg"`` selects the paper's form.
 
 ``features="phong"`` (URHand Table 3 / RelightableHands' features) replaces them with
