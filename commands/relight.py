@@ -62,7 +62,7 @@ from relight_cli.clitools import (check_input, check_output, log, no_clobber_opt
                    "'teacher' (a train-teacher checkpoint, --checkpoint) or 'linear' (URHand's "
                    "linear model, train-teacher --model linear) [default: physical].")
 @click.option("--checkpoint", default=None, metavar="CKPT.pt",
-              help="[hand] The learned model of --model teacher (relight/checkpoint).")
+              help="[hand] The learned model of --model teacher or linear (relight/checkpoint).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None,
               help="[hand] Where a learned model runs [default: auto].")
 @click.option("--camera", "hand_camera", default=None, metavar="CAMERA.json",
@@ -131,6 +131,12 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     over its --env-res directions (linearity of light transport), each a
     distant light with its own ray-traced visibility; passes are batched.
 
+    With --model linear --checkpoint LINEAR.pt: URHand's linear lighting model
+    (train-teacher --model linear).  The shading features of all the lights (an
+    env map's --env-res directions, point lights with 1/r²; visibility traced)
+    are summed and go through the model once: it is linear in them, so no
+    distillation is needed.
+
     \b
     Examples:
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
@@ -140,6 +146,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
           --probe probe.json --dgsm shadows.exr --receivers room.ply --render cam.json -o view.exr
       relight relight hand.npz builtin:sky --model physical --camera cam.json -o img.exr
       relight relight hand.npz builtin:sky --model teacher --checkpoint teacher.pt -o img.exr
+      relight relight hand.npz builtin:sky --model linear --checkpoint linear.pt -o img.exr
     """
     from relight_cli.errors import UsageProblem
 

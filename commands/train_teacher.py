@@ -1,4 +1,5 @@
-"""``relight train-teacher``: RelightableHands' OLAT teacher (or its GGX baseline) from a capture."""
+"""``relight train-teacher``: RelightableHands' OLAT teacher (or its GGX baseline), or URHand's
+linear model, from a capture."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ from relight_cli.clitools import log, no_clobber_option, quiet_option
 
 
 @click.command("train-teacher",
-               short_help="Train the OLAT teacher (or the GGX baseline) on a light-stage capture.")
+               short_help="Train the OLAT teacher, its GGX baseline or URHand's linear model "
+                          "on a capture.")
 @click.argument("capture", metavar="CAPTURE")
 @click.option("-o", "--output", required=True, metavar="TEACHER.pt",
               help="Checkpoint to write (relight/checkpoint, formats/checkpoint.md).")
