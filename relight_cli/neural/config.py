@@ -173,11 +173,14 @@ PRESETS = {
 
 
 def resolve_config(preset: str = "tiny", config_file: str | None = None,
-                   overrides: dict | None = None) -> TeacherConfig:
-    """Preset, then the JSON object of ``config_file``, then ``overrides`` (flags)."""
-    if preset not in PRESETS:
-        raise UsageProblem(f"unknown preset {preset!r}; use one of {', '.join(PRESETS)}")
-    values = dict(PRESETS[preset])
+                   overrides: dict | None = None, presets: dict | None = None,
+                   config_class=TeacherConfig):
+    """Preset, then the JSON object of ``config_file``, then ``overrides`` (flags).
+    ``presets``/``config_class``: another model's (default: the teacher's)."""
+    presets = PRESETS if presets is None else presets
+    if preset not in presets:
+        raise UsageProblem(f"unknown preset {preset!r}; use one of {', '.join(presets)}")
+    values = dict(presets[preset])
     if config_file is not None:
         from relight_cli.formats._common import read_json
         obj = read_json(config_file)
@@ -185,4 +188,4 @@ def resolve_config(preset: str = "tiny", config_file: str | None = None,
             raise DataError("a config file holds one JSON object of fields", config_file)
         values.update(obj.get("config", obj) if "format" in obj else obj)
     values.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    return TeacherConfig.from_dict(values)
+    return config_class.from_dict(values)

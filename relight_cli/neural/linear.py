@@ -62,7 +62,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from relight_cli.errors import DataError, UsageProblem
+from relight_cli.errors import UsageProblem
 
 from .config import PAPER_UNIT
 from .models import UNet, pose_vector
@@ -234,18 +234,9 @@ PRESETS = {
 def resolve_config(preset: str = "tiny", config_file: str | None = None,
                    overrides: dict | None = None) -> LinearConfig:
     """Preset, then the JSON object of ``config_file``, then ``overrides`` (flags)."""
-    if preset not in PRESETS:
-        raise UsageProblem(f"unknown preset {preset!r}; use one of {', '.join(PRESETS)}")
-    values = dict(PRESETS[preset])
-    if config_file is not None:
-        from relight_cli.formats._common import read_json
-        obj = read_json(config_file)
-        if not isinstance(obj, dict):
-            raise DataError("a config file holds one JSON object of fields", config_file)
-        values.update(obj.get("config", obj) if "format" in obj else obj)
-    values.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    values.setdefault("model", "linear")
-    return LinearConfig.from_dict(values)
+    from .config import resolve_config as resolve
+    values = {k: v for k, v in (overrides or {}).items() if v is not None}
+    return resolve(preset, config_file, values, PRESETS, LinearConfig)
 
 
 # ---------------------------------------------------------------- networks

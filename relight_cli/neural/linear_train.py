@@ -28,8 +28,8 @@ import torch
 from relight_cli.errors import DataError
 
 from .linear import LinearConfig, URHandModel, render_textures
-from .train import (TrainResult, _metrics, _peak_rss_mb, _summary, batch_indices,
-                    distributed_context, rng_state, set_rng_state)
+from .train import (TrainResult, _peak_rss_mb, _summary, batch_indices, distributed_context,
+                    evaluate_splits, rng_state, set_rng_state)
 
 
 def albedo_texture(data, max_frames: int = 4, max_views: int = 64) -> np.ndarray:
@@ -164,46 +164,22 @@ def linearity_consistency(model, texels, sample, lights, intensity, mean_texture
 
 
 def evaluate(model, data, config: LinearConfig, device, mean_texture, splits=None) -> dict:
-    """Per split {mse, psnr, ssim, mae, samples} as :func:`relight_cli.neural.train.evaluate`."""
-    from relight_cli.features import discretize_env
-
+    """Per split {mse, psnr, ssim, mae, samples} (:func:`relight_cli.neural.train.evaluate_splits`)."""
     from .teacher import env_light_inputs
 
-    model.eval()
-    out = {}
-    all_splits = data.splits()
-    names = splits or [s for s in ("heldout", "fully_lit", "env") if all_splits.get(s)]
-    with torch.no_grad():
-        for name in names:
-            items = all_splits.get(name) or []
-            if not items:
-                continue
-            pick = np.unique(np.linspace(0, len(items) - 1, min(len(items), config.val_samples))
-                             .round().astype(int))
-            rows = []
-            for i in pick:
-                if name == "env":
-                    pose, env_name, camera, gt, mask = data.env_target(items[i][1])
-                    texels = data.texels(pose, held_out=True)
-                    gb = data.gbuffer(pose, camera, held_out=True)
-                    denv = discretize_env(data.env_map(env_name), *config.env_res)
-                    lights, weights = env_light_inputs(texels, denv, config.visibility)
-                    poses = data.poses(pose, True)
-                else:
-                    sample = data.sample(*items[i])
-                    texels, gb, poses = data.texels(sample.pose), sample.gbuffer, sample.poses
-                    lights, weights = lights_of(data, sample.frame)
-                    gt, mask = sample.image, sample.mask
-                pred = render_image(model, texels, gb, poses, lights, weights,
-                                    mean_texture)[0].cpu().numpy()
-                m = _metrics(pred, gt, mask)
-                if m:
-                    rows.append(m)
-            if rows:
-                out[name] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-                out[name]["samples"] = len(rows)
-    model.train()
-    return out
+    def frame(item):
+        sample = data.sample(*item)
+        lights, weights = lights_of(data, sample.frame)
+        pred = render_image(model, data.texels(sample.pose), sample.gbuffer, sample.poses,
+                            lights, weights, mean_texture)[0]
+        return pred.cpu().numpy(), sample.image, sample.mask
+
+    def env(texels, gbuffer, poses, denv):
+        lights, weights = env_light_inputs(texels, denv, config.visibility)
+        return render_image(model, texels, gbuffer, poses, lights, weights,
+                            mean_texture)[0].cpu().numpy()
+    return evaluate_splits(model, data, config.val_samples, frame, env, splits,
+                           tuple(config.env_res))
 
 
 def learning_rate(config: LinearConfig, step: int) -> float:
