@@ -11,8 +11,8 @@
 3. Quality (masked MSE, PSNR, SSIM) on held-out poses under grouped lights, on fully lit
    frames (novel illumination) and on the capture's env-map ground truth, for the full
    model, its paper form (no residual start), each ablation of URHand Tables 2–3 we built
-   (non-linear light path, + linearity loss Eq. 17, Phong features, w/o specular, w/o
-   visibility, w/o refiner), the OLAT teacher, and the physical renderer with the
+   (non-linear light path, + linearity loss Eq. 17, the holistic MLP model, Phong
+   features, w/o specular, w/o visibility, w/o refiner), the OLAT teacher, and the physical renderer with the
    stage's true materials (the upper bound only a synthetic stage has).
 
 Writes linear.{md,json} under --out (default benchmarks/out).  Run:
@@ -45,6 +45,7 @@ VARIANTS = {
     "linear (paper form)": {"residual": False},
     "non-linear light path": {"light_path": "nonlinear"},
     "non-linear + linearity loss": {"light_path": "nonlinear", "linearity_loss": 0.1},
+    "MLP-based linear [64] (holistic)": {"light_path": "mlp"},
     "Phong features": {"features": "phong"},
     "w/o specular": {"specular": False},
     "w/o visibility": {"visibility": False},

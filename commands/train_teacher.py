@@ -29,9 +29,10 @@ from relight_cli.clitools import log, no_clobber_option, quiet_option
 @click.option("--tex-res", type=int, default=None, help="Texture size N of the U-Net (N×N).")
 @click.option("--no-visibility", is_flag=True,
               help="Ablation (RelightableHands Table 1): no ray-traced visibility input.")
-@click.option("--light-path", type=click.Choice(["linear", "nonlinear"]), default=None,
-              help="[linear] Ablation (URHand Table 2): nonlinear puts LeakyReLU on the light "
-                   "path [default: linear].")
+@click.option("--light-path", type=click.Choice(["linear", "nonlinear", "mlp"]), default=None,
+              help="[linear] Ablations (URHand Table 2): nonlinear puts LeakyReLU on the light "
+                   "path; mlp is the holistic baseline (supp. 10.2: a 16x32 lighting map "
+                   "through one bias-free linear layer) [default: linear].")
 @click.option("--linearity-loss", type=float, default=None, metavar="λ",
               help="[linear] Eq. 17's linearity consistency weight (with --light-path "
                    "nonlinear).")

@@ -219,6 +219,38 @@ def test_env_render_equals_sum_of_direction_renders(capture_dir):  # noqa: F811
     assert float((env_img - halves[0] - halves[1]).abs().max()) <= 1e-5 * scale
 
 
+def test_mlp_baseline_is_linear_in_the_env(capture_dir):  # noqa: F811
+    """supp. 10.2's holistic model: env map → 16×32 lighting → one bias-free layer; the
+    render of an env map is the sum of its halves' renders, and a light's direction lands
+    in its own lat-long pixel."""
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.features import DiscreteEnv, discretize_env
+    from relight_cli.neural import teacher as T
+    from relight_cli.neural.linear_train import render_lights
+    from relight_cli.render.gbuffer import render_gbuffer
+
+    data = _data(capture_dir, 16)
+    model, _ = _model(pose_dim=data.pose_dim, light_path="mlp")
+    mean = torch.rand(1, 3, 16, 16) * 0.3
+    texels = data.texels(0)
+    gb = render_gbuffer(texels.meshes, data.capture.cameras[0], 1, scene=texels.renderer.scene)
+    denv = discretize_env(builtin_envmap("builtin:sky"), 16, 32)
+    whole = render_lights(model, texels, gb, data.poses(0), *T.env_light_inputs(texels, denv,
+                                                                                 True), mean)
+    parts = 0
+    for keep in (np.arange(512) < 200, np.arange(512) >= 200):
+        half = DiscreteEnv(denv.directions, denv.solid_angle, denv.radiance * keep[:, None],
+                           16, 32)
+        parts = parts + render_lights(model, texels, gb, data.poses(0),
+                                      *T.env_light_inputs(texels, half, True), mean)
+    assert float((whole - parts).abs().max()) <= 1e-5 * float(whole.abs().max())
+    one = DiscreteEnv(denv.directions, denv.solid_angle,
+                      np.eye(512)[77][:, None] * np.ones((1, 3)), 16, 32)
+    lights, weights = T.env_light_inputs(texels, one, False)
+    lat = LM.holistic_lighting(texels.frames[0], lights[0], weights)
+    assert np.flatnonzero(lat[0]).tolist() == [77]
+
+
 def test_rgb_light_is_per_channel_exact(capture_dir):  # noqa: F811
     """A coloured light = the sum of its R, G, B parts (one monochrome path per channel)."""
     from relight_cli.neural import teacher as T
@@ -274,8 +306,9 @@ def test_config_validation_and_presets():
     assert (paper.tex_res, paper.light_levels, paper.lr, paper.lr_final) == (1024, 6, 1e-4, 3e-5)
     assert paper.encoder == (64,) * 6 and paper.residual is False
     assert LM.resolve_config("tiny").sigma_t * LM.PAPER_UNIT == pytest.approx(64 / (255 * np.pi))
-    for bad in ({"light_decoder": [8, 8, 8, 8, 8, 8, 8, 3]}, {"light_path": "mlp"},
-                {"tex_res": 20}, {"linearity_loss": 1.0}, {"olat": 1}, {"refiner": 1}):
+    for bad in ({"light_decoder": [8, 8, 8, 8, 8, 8, 8, 3]},
+                {"tex_res": 20}, {"linearity_loss": 1.0}, {"light_path": "holistic"},
+                {"olat": 1}, {"refiner": 1}):
         with pytest.raises(UsageProblem):
             LM.LinearConfig.from_dict(bad)
     assert LM.LinearConfig.from_dict({"light_path": "nonlinear", "linearity_loss": 0.1})
@@ -297,8 +330,9 @@ def test_resume_is_exact_and_ablations_run(capture_dir, linear_config, tmp_path,
         assert torch.equal(a["weights"][k], b["weights"][k]), k
     cfg = json.loads(a["config"])
     assert cfg["light_path"] == "nonlinear" and cfg["linearity_loss"] == 0.1
-    for flags in (["--features", "phong", "--no-specular"], ["--no-visibility", "--no-refiner"]):
-        out = tmp_path / f"abl{len(flags)}{flags[0]}.pt"
+    for flags in (["--features", "phong", "--no-specular"], ["--no-visibility", "--no-refiner"],
+                  ["--light-path", "mlp"]):
+        out = tmp_path / f"abl{len(flags)}{flags[1]}.pt"
         r = run_cli("train-teacher", str(capture_dir), "--model", "linear", "--config",
                     str(linear_config), "--iters", "1", "-q", "-o", out, *flags)
         assert r.exit_code == 0, r.output

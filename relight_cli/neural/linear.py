@@ -44,7 +44,11 @@ every channel of the lighting, so RGB env maps are exact.  White lights (equal
 channels) take one pass.
 
 Ablations (URHand Tables 2–3, supp. 10.2): ``light_path="nonlinear"`` (LeakyReLU after
-every light-path layer), ``linearity_loss`` (Eq. 17 on that model), ``features="phong"``,
+every light-path layer), ``linearity_loss`` (Eq. 17 on that model), ``light_path="mlp"``
+(the holistic baseline: the lighting as a 16×32 lat-long map — point lights binned by
+their direction from the hand, weight I/r² averaged over its texels; env directions
+L Δω — through one bias-free linear layer to the decoder's bottleneck, no encoder skips,
+no spatial features, no residual start), ``features="phong"``,
 ``specular=False``, ``visibility=False``, ``refiner=False`` (coarse normals, δd ≡ 0).
 ``residual=True`` is ours (not the paper's): g and b start from the physical branch's
 own C^d and C^s/σ_T (still linear in the features), so a short CPU run starts from the
@@ -68,7 +72,8 @@ from .config import PAPER_UNIT
 from .models import UNet, pose_vector
 from .shading_features import map_to_texels, refined_normals, shading_features, texels_to_map
 
-LIGHT_PATHS = ("linear", "nonlinear")
+LIGHT_PATHS = ("linear", "nonlinear", "mlp")
+HOLISTIC_RES = (16, 32)
 FEATURES = ("pbr", "phong")
 
 
@@ -85,7 +90,8 @@ class LinearConfig:
             (supp. 8.3: 128, 256, 128, 128, 64, 32, 16, 4); F_nl has the same widths.
         light_levels: upsampling layers of the decoder (the bottleneck is N / 2^levels;
             paper 6: 1024 → 16², the 128×16×16 of supp. 10.2).
-        light_path: ``linear`` or ``nonlinear`` (Table 2's non-linear ablation).
+        light_path: ``linear``, ``nonlinear`` (Table 2's non-linear ablation) or ``mlp``
+            (Table 2's holistic MLP-based linear model of [64], supp. 10.2).
         features: ``pbr`` (Eq. 10–15) or ``phong`` (Table 3).
         specular, visibility, refiner: Table 3's ablations when False.
         fresnel: ``schlick`` (relight_cli.brdf) or ``sg`` (Eq. 13 as printed).
@@ -254,16 +260,23 @@ class LightPath(nn.Module):
     ``nonlinear=True`` puts LeakyReLU(0.2) after every layer (Table 2's ablation).
     """
 
-    def __init__(self, cin: int, widths, levels: int, nonlinear: bool = False):
+    def __init__(self, cin: int, widths, levels: int, nonlinear: bool = False,
+                 holistic: tuple | None = None):
         super().__init__()
         self.levels = levels
         self.nonlinear = nonlinear
+        self.holistic = holistic
         # encoder level e at N/2^e outputs the width of decoder input levels − e
         self.enc = nn.ModuleList()
         prev = cin
-        for e in range(levels + 1):
+        for e in range(levels + 1 if holistic is None else 0):
             self.enc.append(nn.Conv2d(prev, widths[levels - e], 3, padding=1, bias=False))
             prev = widths[levels - e]
+        if holistic is not None:
+            # supp. 10.2: [H·W] lighting → [w0, s, s] by one bias-free linear layer
+            inputs, size = holistic
+            self.mlp = nn.Linear(inputs, widths[0] * size * size, bias=False)
+            nn.init.normal_(self.mlp.weight, 0.0, 1.0 / math.sqrt(inputs))
         self.dec = nn.ModuleList(_up(widths[j], widths[j + 1], j < levels, False)
                                  for j in range(7))
         # variance-preserving initialization of a linear chain: each output sums cin·9
@@ -281,19 +294,22 @@ class LightPath(nn.Module):
         (and the intermediate feature maps for Eq. 9)."""
         skips = []
         h = features
+        if self.holistic is not None:
+            size = self.holistic[1]
+            skips = [None] * self.levels + [self.mlp(h).reshape(len(h), -1, size, size)]
         for e, conv in enumerate(self.enc):
             if e:
                 h = F.avg_pool2d(h, 2)
             h = self._act(conv(h))
             skips.append(h)
-        inter = list(skips)
+        inter = [x for x in skips if x is not None]
         h = skips[-1]                                   # F_enc^0 + F_dec^0 (F_dec^0 = 0)
         for j, layer in enumerate(self.dec):
             h = self._act(layer(h) * modulation[j]) / math.sqrt(2)
             nxt = self.levels - (j + 1)
             if j < 6:
                 inter.append(h)
-                if nxt >= 0:
+                if nxt >= 0 and skips[nxt] is not None:
                     h = h + skips[nxt]                  # F_enc^{j+1} + F_dec^{j+1}
         return (h, inter) if return_intermediate else h
 
@@ -335,8 +351,11 @@ class URHandModel(nn.Module):
         self.geometry = UNet(3, 2, config.encoder, config.decoder, pose_dim, config.pose_channels)
         joint = config.encoder[-1] + config.pose_channels[1]
         self.nonlinear = NonLinearBranch(joint, config.light_decoder, config.light_levels)
+        holistic = None
+        if config.light_path == "mlp":
+            holistic = (HOLISTIC_RES[0] * HOLISTIC_RES[1], config.tex_res >> config.light_levels)
         self.light = LightPath(2, config.light_decoder, config.light_levels,
-                               config.light_path == "nonlinear")
+                               config.light_path == "nonlinear", holistic)
         self.sigma_t = config.sigma_t * PAPER_UNIT
         self.register_buffer("feature_scale", torch.ones(()))
 
@@ -355,15 +374,18 @@ class URHandModel(nn.Module):
     # -- neural branch
 
     def neural(self, feature_maps: torch.Tensor, mean_texture: torch.Tensor, modulation: list,
-               return_intermediate: bool = False):
+               return_intermediate: bool = False, holistic: torch.Tensor | None = None):
         """C [3, N, N] of one hand from its per-channel features [C', 2, N, N] (C' = 1 for
-        white light, else 3), T̄ [3, N, N] and its 7 modulation maps [1, w, ·, ·] (Eq. 6)."""
+        white light, else 3), T̄ [3, N, N] and its 7 modulation maps [1, w, ·, ·] (Eq. 6);
+        the ``mlp`` light path takes its per-channel lat-long ``holistic`` [C', 512]
+        lighting instead of the features."""
         scale = self.feature_scale
         mod = [m.expand(feature_maps.shape[0], -1, -1, -1) for m in modulation]
-        out, inter = self.light(feature_maps / scale, mod, return_intermediate=True)
+        lighting = feature_maps if holistic is None else holistic
+        out, inter = self.light(lighting / scale, mod, return_intermediate=True)
         out = out * scale                                                  # [C', 4, N, N]
         gain, bias = out[:, :3], out[:, 3]
-        if self.config.residual:
+        if self.config.residual and holistic is None:
             gain = gain + feature_maps[:, 0:1]
             bias = bias + feature_maps[:, 1] / self.sigma_t
         if feature_maps.shape[0] == 1:
@@ -427,11 +449,39 @@ def render_textures(model: URHandModel, texels, views: list, light_inputs: list,
             out.physical.append(pb)
         stopped = maps.detach()
         modulation = [m[k:k + 1] for m in modulations]
-        colour, inter = model.neural(stopped, tex[k], modulation, return_intermediate=True)
+        holistic = None
+        if cfg.light_path == "mlp":
+            holistic = holistic_lighting(texels.frames[k], light_inputs[k], intensity)
+            holistic = torch.from_numpy(holistic[channels]).to(device)
+        colour, inter = model.neural(stopped, tex[k], modulation, return_intermediate=True,
+                                     holistic=holistic)
         out.neural.append(colour)
         out.features.append(stopped)
         out.intermediate.append(inter)
     return out
+
+
+def holistic_lighting(frames: np.ndarray, lights, intensity) -> np.ndarray:
+    """[3, 16·32] float32 lat-long lighting of the ``mlp`` light path (supp. 10.2).
+
+    Light i lands in the pixel of its mean world direction over the hand's texels
+    (R_kᵀ times the local direction; a distant light's own direction) with weight
+    I_i · mean_k(1/r²) (an env direction: L Δω), in OpenEXR's lat-long convention
+    (longitude atan2(x, z) from +π at the left edge, latitude +π/2 at the top row).
+    Linear in the intensities.
+    """
+    h, w = HOLISTIC_RES
+    world = np.einsum("kji,lkj->lki", frames, lights.local_light).mean(1)      # [L, 3]
+    world /= np.maximum(np.linalg.norm(world, axis=1, keepdims=True), 1e-12)
+    lon = np.arctan2(world[:, 0], world[:, 2])
+    lat = np.arcsin(np.clip(world[:, 1], -1, 1))
+    col = np.clip(((np.pi - lon) / (2 * np.pi) * w).astype(int), 0, w - 1)
+    row = np.clip(((np.pi / 2 - lat) / np.pi * h).astype(int), 0, h - 1)
+    weight = np.asarray(intensity, np.float64) * lights.falloff.mean(1)[:, None]  # [L, 3]
+    out = np.zeros((3, h * w))
+    for c in range(3):
+        np.add.at(out[c], row * w + col, weight[:, c])
+    return out.astype(np.float32)
 
 
 def model_from_checkpoint(checkpoint: dict, device="cpu"):
