@@ -24,7 +24,9 @@ of F; ``fresnel="sg"`` selects the paper's form.
 
 ``features="phong"`` (URHand Table 3 / RelightableHands' features) replaces them with
 C^d as above (coarse normal) and the normalized Phong lobe of bake-features,
-(α+2)/(2π) max(r·ω, 0)^α with r the mirrored view, α = ``shininess``.
+(α+2)/(2π) max(r·ω, 0)^α with r the mirrored view, α = ``shininess``, times F0 (the
+GGX lobe's reflectance at normal incidence, so that C_pb = C^d ⊙ T̄ + C^s stays a
+plausible render; the light path does not care about a constant factor).
 """
 
 from __future__ import annotations
@@ -112,7 +114,7 @@ def light_terms(normal: torch.Tensor, view: torch.Tensor, local_light: torch.Ten
     if features == "phong":
         mirror = 2 * (normal * view).sum(-1, keepdim=True) * normal - view
         rl = torch.clamp((local_light * mirror[None]).sum(-1), min=0)
-        spec = (shininess + 2) / (2 * math.pi) * rl ** shininess
+        spec = f0 * (shininess + 2) / (2 * math.pi) * rl ** shininess
     else:
         rho = torch.clamp(roughness, MIN_ROUGHNESS, 1.0)[None]
         n_, v_ = normal[None].expand_as(local_light), view[None].expand_as(local_light)
