@@ -12,7 +12,8 @@
    frames (novel illumination) and on the capture's env-map ground truth, for the full
    model, its paper form (no residual start), each ablation of URHand Tables 2–3 we built
    (non-linear light path, + linearity loss Eq. 17, the holistic MLP model, Phong
-   features, w/o specular, w/o visibility, w/o refiner), the OLAT teacher, and the physical renderer with the
+   features, w/o specular, w/o visibility, w/o refiner, + the adversarial loss with and
+   without its lighting prompt), the OLAT teacher, and the physical renderer with the
    stage's true materials (the upper bound only a synthetic stage has).
 
 Writes linear.{md,json} under --out (default benchmarks/out).  Run:
@@ -50,6 +51,8 @@ VARIANTS = {
     "w/o specular": {"specular": False},
     "w/o visibility": {"visibility": False},
     "w/o refiner": {"refiner": False},
+    "+ lighting-aware GAN (λ 0.01)": {"lambda_gan": 0.01},
+    "+ GAN w/o lighting prompt": {"lambda_gan": 0.01, "gan_conditioned": False},
 }
 
 

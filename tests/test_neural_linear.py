@@ -316,7 +316,9 @@ def test_config_validation_and_presets():
 
 def test_resume_is_exact_and_ablations_run(capture_dir, linear_config, tmp_path, run_cli):  # noqa: F811
     full, half, resumed = tmp_path / "full.pt", tmp_path / "half.pt", tmp_path / "resumed.pt"
-    common = [str(capture_dir), "--model", "linear", "--config", str(linear_config), "-q",
+    gan = tmp_path / "gan.json"                  # + the lighting-aware adversarial loss (Eq. 8)
+    gan.write_text(json.dumps({**SMALL, "lambda_gan": 0.05}))
+    common = [str(capture_dir), "--model", "linear", "--config", str(gan), "-q",
               "--light-path", "nonlinear", "--linearity-loss", "0.1"]
     assert run_cli("train-teacher", *common, "--iters", "4", "-o", full).exit_code == 0
     assert run_cli("train-teacher", *common, "--iters", "2", "-o", half).exit_code == 0
@@ -328,8 +330,16 @@ def test_resume_is_exact_and_ablations_run(capture_dir, linear_config, tmp_path,
     assert a["kind"] == b["kind"] == "linear" and a["step"] == b["step"] == 4
     for k in a["weights"]:
         assert torch.equal(a["weights"][k], b["weights"][k]), k
+    for k in a["extra"]["discriminator"]:
+        assert torch.equal(a["extra"]["discriminator"][k], b["extra"]["discriminator"][k]), k
     cfg = json.loads(a["config"])
     assert cfg["light_path"] == "nonlinear" and cfg["linearity_loss"] == 0.1
+    assert cfg["lambda_gan"] == 0.05
+    vanilla = tmp_path / "vanilla.json"          # w/o light-aware L_GAN (supp. 10.2)
+    vanilla.write_text(json.dumps({**SMALL, "lambda_gan": 0.05, "gan_conditioned": False}))
+    r = run_cli("train-teacher", str(capture_dir), "--model", "linear", "--config", str(vanilla),
+                "--iters", "1", "-q", "-o", tmp_path / "vanilla.pt")
+    assert r.exit_code == 0, r.output
     for flags in (["--features", "phong", "--no-specular"], ["--no-visibility", "--no-refiner"],
                   ["--light-path", "mlp"]):
         out = tmp_path / f"abl{len(flags)}{flags[1]}.pt"

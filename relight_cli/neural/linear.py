@@ -106,6 +106,10 @@ class LinearConfig:
         lambda_vgg: perceptual loss (only with local weights; the paper's is EfficientNet).
         lambda_reg: Eq. 9's L1 on the light path's intermediate features (0.01).
         linearity_loss: weight of Eq. 17 (0: off); applied every ``linearity_every`` steps.
+        lambda_gan: Eq. 8's lighting-aware hinge adversarial loss (paper 0.01; 0: off,
+            the tiny default: seconds matter more than sharpness there).
+        gan_conditioned: the discriminator sees the Phong lighting prompt {A, S} (False:
+            supp. 10.2's w/o light-aware L_GAN).  gan_width: its first conv width.
         aa, holdout, val_every, val_samples, save_every, cache_poses, seed: as for the
             teacher (:class:`~relight_cli.neural.config.TeacherConfig`).
         env_res: [H, W] env-map discretization of validation renders.
@@ -139,6 +143,9 @@ class LinearConfig:
     lambda_reg: float = 0.01
     linearity_loss: float = 0.0
     linearity_every: int = 1
+    lambda_gan: float = 0.0
+    gan_conditioned: bool = True
+    gan_width: int = 16
     aa: int = 2
     holdout: float = 0.25
     val_every: int = 0
@@ -181,13 +188,14 @@ class LinearConfig:
                    "fresnel": ("schlick", "sg")}
         ints = {"tex_res": (8, 4096), "light_levels": (0, 7), "iters": (1, 10 ** 9),
                 "lr_drop": (0, 10 ** 9),
-                "batch": (1, 4096), "linearity_every": (1, 10 ** 9), "aa": (1, 8),
+                "batch": (1, 4096), "linearity_every": (1, 10 ** 9), "gan_width": (1, 4096), "aa": (1, 8),
                 "val_every": (0, 10 ** 9), "val_samples": (1, 100000), "save_every": (0, 10 ** 9),
                 "cache_poses": (1, 100000), "seed": (0, 2 ** 63 - 1)}
         numbers = {"lr": (0, 10, True), "lr_final": (0, 10, True), "shininess": (0, 1e4, True),
                    "displacement_mm": (0, 100, False), "sigma_t": (0, 1e6, True),
                    "holdout": (0, 0.9, False)}
-        for name in ("lambda_img", "lambda_pb", "lambda_vgg", "lambda_reg", "linearity_loss"):
+        for name in ("lambda_img", "lambda_pb", "lambda_vgg", "lambda_reg", "linearity_loss",
+                     "lambda_gan"):
             numbers[name] = (0, 1e6, False)
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -202,7 +210,7 @@ class LinearConfig:
             if not is_num(v) or v < lo or v > hi or (open_lo and v == lo):
                 raise UsageProblem(f"{where}: {name} must be a finite number in "
                                    f"{'(' if open_lo else '['}{lo}, {hi}], got {v!r}")
-        for name in ("specular", "visibility", "refiner", "residual"):
+        for name in ("specular", "visibility", "refiner", "residual", "gan_conditioned"):
             if not isinstance(getattr(self, name), bool):
                 raise UsageProblem(f"{where}: {name} must be true or false")
         for name in ("encoder", "decoder", "pose_channels", "light_decoder", "env_res"):
@@ -232,7 +240,7 @@ PRESETS = {
     # rank; lr 1e-4 → 3e-5), σ_T 64, λ 1 / 0.01; the 1024² maps of the paper.
     "paper": {"tex_res": 1024, "encoder": (64,) * 6, "decoder": (64,) * 6,
               "pose_channels": (16, 64), "light_decoder": (128, 256, 128, 128, 64, 32, 16, 4),
-              "light_levels": 6, "residual": False, "iters": 2_000_000, "batch": 3, "lr": 1e-4,
+              "light_levels": 6, "residual": False, "lambda_gan": 0.01, "gan_width": 64, "iters": 2_000_000, "batch": 3, "lr": 1e-4,
               "lr_final": 3e-5, "lr_drop": 1_500_000, "val_every": 10000, "val_samples": 64, "save_every": 10000},
 }
 

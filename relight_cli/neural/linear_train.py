@@ -8,7 +8,9 @@
   + λ_VGG perceptual (local weights only) + λ_reg Σ_j mean |F_l^j| (Eq. 9, every
   intermediate light-path map, at the features' unit scale) + λ_lc L_lc (Eq. 17,
   ablation: the frame's LEDs split in two halves, random a₁, a₂ ∈ (0, 1), RMS).
-  Not built: the lighting-aware adversarial loss (Eq. 8).
+  + λ_GAN L_G (Eq. 8, :mod:`relight_cli.neural.adversarial`; its discriminator takes one
+  Adam step (β 0.5, 0.999) per step on the batch's real and rendered images, and its
+  weights and Adam state live in the checkpoint's ``extra``).
 * **Sampling, determinism, resume, DDP, validation**: those of
   :mod:`relight_cli.neural.train` (batches from (seed, step), RNG states stored,
   gradients averaged over torchrun ranks by one all-reduce (the model is called
@@ -101,8 +103,9 @@ def render_image(model, texels, gbuffer, poses, light_inputs, intensity, mean_te
 
 
 def sample_loss(model, data, item, config: LinearConfig, step: int, device, mean_texture,
-                vgg=None):
-    """(total loss, {l1, l1_pb, vgg, reg, lc}) of one (frame, camera) sample (Eq. 7)."""
+                vgg=None, disc=None):
+    """(total loss, {l1, l1_pb, vgg, reg, lc, gan}, discriminator inputs or None) of one
+    (frame, camera) sample (Eq. 7)."""
     sample = data.sample(*item)
     texels = data.texels(sample.pose)
     lights, intensity = lights_of(data, sample.frame)
@@ -130,7 +133,16 @@ def sample_loss(model, data, item, config: LinearConfig, step: int, device, mean
                                    np.random.default_rng([config.seed, step, item[0]]))
         total = total + config.linearity_loss * lc
         parts["lc"] = float(lc.detach())
-    return total, parts
+    d_inputs = None
+    if disc is not None:
+        from .adversarial import generator_loss, lighting_prompt
+        prompt = lighting_prompt(texels, sample.gbuffer, lights, intensity,
+                                 float(model.feature_scale), config.shininess, device)
+        gan = generator_loss(disc, image, prompt, mask)
+        total = total + config.lambda_gan * gan
+        parts["gan"] = float(gan.detach())
+        d_inputs = (target, image.detach(), prompt, mask)
+    return total, parts, d_inputs
 
 
 def linearity_consistency(model, texels, sample, lights, intensity, mean_texture, rng):
@@ -212,8 +224,17 @@ def train(data, config: LinearConfig, device: torch.device, resume: dict | None 
         mean_texture = torch.from_numpy(albedo_texture(data)).to(device)
         model.feature_scale.fill_(feature_scale(data))
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    disc = opt_d = None
+    if config.lambda_gan > 0:
+        from .adversarial import LightingAwareDiscriminator
+        disc = LightingAwareDiscriminator(config.gan_width, 2, config.gan_conditioned).to(device)
+        opt_d = torch.optim.Adam(disc.parameters(), lr=config.lr, betas=(0.5, 0.999))
     start = 0
     if resume is not None:
+        if disc is not None:
+            disc.load_state_dict({k: v.to(device) for k, v in
+                                  resume["extra"]["discriminator"].items()})
+            opt_d.load_state_dict(resume["extra"]["optimizer_discriminator"])
         optimizer.load_state_dict(resume["optimizer"])
         start = int(resume["step"])
         set_rng_state(resume["rng"])
@@ -231,6 +252,9 @@ def train(data, config: LinearConfig, device: torch.device, resume: dict | None 
     def checkpoint(step):
         extra = {"uv_layout": uv_layout_digest(data.hand.mesh("fine")),
                  "mean_texture": mean_texture.detach().cpu()}
+        if disc is not None:
+            extra["discriminator"] = {k: v.detach().cpu() for k, v in disc.state_dict().items()}
+            extra["optimizer_discriminator"] = opt_d.state_dict()
         return make_checkpoint("linear", "linear", config.to_dict(), step,
                                {k: v.detach().cpu() for k, v in model.state_dict().items()},
                                optimizer.state_dict(), rng_state(), data.key, data.pose_dim,
@@ -243,15 +267,25 @@ def train(data, config: LinearConfig, device: torch.device, resume: dict | None 
         mine = indices[rank * config.batch:(rank + 1) * config.batch]
         optimizer.zero_grad(set_to_none=True)
         parts_sum = {}
+        d_batch = []
         for index in mine:
-            loss, parts = sample_loss(model, data, items[int(index)], config, step, device,
-                                      mean_texture, vgg)
+            loss, parts, d_inputs = sample_loss(model, data, items[int(index)], config, step,
+                                                device, mean_texture, vgg, disc)
             (loss / len(mine)).backward()
+            d_batch.append(d_inputs)
             for k, v in parts.items():
                 parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
         if world > 1:
             _average_gradients(model, world)
         optimizer.step()
+        if disc is not None:
+            from .adversarial import discriminator_loss
+            opt_d.zero_grad(set_to_none=True)        # drops what L_G left in F_D
+            for real, fake, prompt, mask in d_batch:
+                (discriminator_loss(disc, real, fake, prompt, mask) / len(d_batch)).backward()
+            if world > 1:
+                _average_gradients(disc, world)
+            opt_d.step()
         done = step + 1
         if bar is not None:
             bar.set_postfix({k: f"{v:.3g}" for k, v in parts_sum.items()}, refresh=False)
