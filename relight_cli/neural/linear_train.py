@@ -7,15 +7,15 @@
 * **Loss** (Eq. 7): λ_img L1(C) + λ_pb L1(C_pb) (both renders supervised, Sec. 4.3)
   + λ_VGG perceptual (local weights only) + λ_reg Σ_j mean |F_l^j| (Eq. 9, every
   intermediate light-path map, at the features' unit scale) + λ_lc L_lc (Eq. 17,
-  ablation: the frame's LEDs split in two halves, random a₁, a₂ ∈ (0, 1), RMS).
+  ablation: the frame's LEDs split in two halves, random a₁, a₂ ∈ (0, 1), RMS)
   + λ_GAN L_G (Eq. 8, :mod:`relight_cli.neural.adversarial`; its discriminator takes one
   Adam step (β 0.5, 0.999) per step on the batch's real and rendered images, and its
   weights and Adam state live in the checkpoint's ``extra``).
 * **Sampling, determinism, resume, DDP, validation**: those of
-  :mod:`relight_cli.neural.train` (batches from (seed, step), RNG states stored,
-  gradients averaged over torchrun ranks by one all-reduce (the model is called
-  through its branches, not one forward, so DDP's hooks are not used), rank 0 writes; held-out poses, fully lit
-  frames, env-map ground truth).  The learning rate drops from ``lr`` to ``lr_final``
+  :mod:`relight_cli.neural.train` (batches from (seed, step), RNG states stored; rank 0
+  writes; held-out poses, fully lit frames, env-map ground truth).  Under torchrun the
+  gradients are averaged by one all-reduce per step: the model is called through its
+  branches, not one forward, so DDP's hooks would not see them.  The learning rate drops from ``lr`` to ``lr_final``
   at iteration ``lr_drop`` (a function of the step: resume stays exact).
 """
 
