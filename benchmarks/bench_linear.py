@@ -136,6 +136,8 @@ def main():
     ap.add_argument("--quick", action="store_true", help="small capture, 60 iterations")
     ap.add_argument("--iters", type=int, default=None, help="training iterations per variant")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--variants", default=None, metavar="A,B",
+                    help="only the quality variants whose names contain one of these words")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -154,8 +156,13 @@ def main():
         report["render"] = render_cost(folder, "tiny", 32) + render_cost(folder, "paper", 128)
         report["teacher_env"] = [env_render_cost(folder, "tiny", 32),
                                  env_render_cost(folder, "paper", 128)]
+        print(json.dumps({k: report[k] for k in ("throughput", "render", "teacher_env")},
+                         default=float), flush=True)
         quality = {}
+        words = args.variants.split(",") if args.variants else None
         for name, overrides in VARIANTS.items():
+            if words and not any(w in name for w in words):
+                continue
             quality[name] = train_linear(folder, overrides, iters)
             print(name, {k: round(v.get("psnr", 0), 2) for k, v in
                          quality[name]["metrics"].items() if isinstance(v, dict)}, flush=True)
