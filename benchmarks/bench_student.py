@@ -83,7 +83,7 @@ def frame_stages(hand, preset: str, peak: float) -> dict:
     from relight_cli.neural.teacher import composite
     from relight_cli.render.gbuffer import render_gbuffer
 
-    cfg = resolve_config(preset, None, {}, StudentConfig, STUDENT_PRESETS)
+    cfg = resolve_config(preset, None, {}, presets=STUDENT_PRESETS, config_class=StudentConfig)
     env = discretize_env(builtin_envmap("builtin:sky"), 16, 32)
     meshes = posed_meshes(hand, 0, "fine")
     cam = preview_camera(meshes, 256, 256)

@@ -111,7 +111,8 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
         ckpt = read_checkpoint(resume, kind="student")
         config = resume_config(ckpt, StudentConfig, overrides, config_file, iters, resume)
     else:
-        config = resolve_config(preset, config_file, overrides, StudentConfig, STUDENT_PRESETS)
+        config = resolve_config(preset, config_file, overrides, presets=STUDENT_PRESETS,
+                                config_class=StudentConfig)
     torch_device = resolve_device(device)
 
     # ---- inputs (data errors)

@@ -72,10 +72,11 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
               help="Background radiance of --render.")
 @click.option("--model", default=None, metavar="NAME",
-              help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS) or "
-                   "'teacher' (a train-teacher checkpoint, --checkpoint) [default: physical].")
+              help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS), "
+                   "'teacher' (a train-teacher checkpoint, --checkpoint) or 'linear' (URHand's "
+                   "linear model, train-teacher --model linear) [default: physical].")
 @click.option("--checkpoint", default=None, metavar="CKPT.pt",
-              help="[hand] The learned model of --model teacher (relight/checkpoint).")
+              help="[hand] The learned model of --model teacher or linear (relight/checkpoint).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None,
               help="[hand] Where a learned model runs [default: auto].")
 @click.option("--camera", "hand_camera", default=None, metavar="CAMERA.json",
@@ -148,6 +149,12 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     over its --env-res directions (linearity of light transport), each a
     distant light with its own ray-traced visibility; passes are batched.
 
+    With --model linear --checkpoint LINEAR.pt: URHand's linear lighting model
+    (train-teacher --model linear).  The shading features of all the lights (an
+    env map's --env-res directions, point lights with 1/r²; visibility traced)
+    are summed and go through the model once: it is linear in them, so no
+    distillation is needed.
+
     \b
     Examples:
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
@@ -157,6 +164,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
           --probe probe.json --dgsm shadows.exr --receivers room.ply --render cam.json -o view.exr
       relight relight hand.npz builtin:sky --model physical --camera cam.json -o img.exr
       relight relight hand.npz builtin:sky --model teacher --checkpoint teacher.pt -o img.exr
+      relight relight hand.npz builtin:sky --model linear --checkpoint linear.pt -o img.exr
     """
     from relight_cli.errors import UsageProblem
 
@@ -417,13 +425,13 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
         raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply); "
                            f"a hand's view is --camera")
     model = model or "physical"
-    if model not in ("physical", "teacher", "student"):
-        raise UsageProblem(f"--model {model!r} is not available; use physical, teacher or "
-                           f"student")
+    if model not in ("physical", "teacher", "student", "linear"):
+        raise UsageProblem(f"--model {model!r} is not available; use physical, teacher, student "
+                           f"or linear")
     if model == "physical" and (checkpoint is not None or device is not None):
         raise UsageProblem("--checkpoint and --device belong to a learned --model (teacher, "
-                           "student)")
-    if model in ("teacher", "student"):
+                           "student, linear)")
+    if model in ("teacher", "student", "linear"):
         return _relight_hand_learned(**locals())
     width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, hand_camera,
                                                             hand_size, hand_frame, env_res)
@@ -591,9 +599,13 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
 
     torch_device = resolve_device(device or "auto")
     ckpt = read_checkpoint(checkpoint, kind=model)
+    mean_texture = None
     try:
         if model == "teacher":
             net, config, mean_texture = model_from_checkpoint(ckpt, torch_device)
+        elif model == "linear":
+            from relight_cli.neural.linear import model_from_checkpoint as load_linear
+            net, config, mean_texture = load_linear(ckpt, torch_device)
         else:
             from relight_cli.neural.distill import student_from_checkpoint
             net, config = student_from_checkpoint(ckpt, torch_device)
@@ -647,8 +659,16 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     total = sum(len(w) for _, w in passes)
     poses = np.stack([inst.poses[frame] for inst in data.hands])
     image = None
-    with progress(total=total, desc="relight (teacher passes)", quiet=quiet) as bar:
+    with progress(total=total, desc=f"relight ({model} passes)", quiet=quiet) as bar:
         for light_inputs, weights in passes:
+            if model == "linear":
+                # one pass per lighting: the features are sums over its lights (Eq. 4)
+                from relight_cli.neural.linear_train import render_lights as linear_lights
+                part = linear_lights(net, texels, gbuffer, poses, light_inputs, weights,
+                                     mean_texture, timing)
+                bar.update(len(weights))
+                image = part if image is None else image + part
+                continue
             part = T.render_lights(net, texels, gbuffer, poses, light_inputs, weights,
                                    config.visibility, config.falloff, torch_device,
                                    mean_texture=mean_texture, progress=bar.update, timing=timing)

@@ -1,4 +1,5 @@
-"""``relight train-teacher``: RelightableHands' OLAT teacher (or its GGX baseline) from a capture."""
+"""``relight train-teacher``: RelightableHands' OLAT teacher (or its GGX baseline), or URHand's
+linear model, from a capture."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from ._learned import training_options
 
 
 @click.command("train-teacher",
-               short_help="Train the OLAT teacher (or the GGX baseline) on a light-stage capture.")
+               short_help="Train the OLAT teacher, its GGX baseline or URHand's linear model "
+                          "on a capture.")
 @click.argument("capture", metavar="CAPTURE")
 @click.option("-o", "--output", required=True, metavar="TEACHER.pt",
               help="Checkpoint to write (relight/checkpoint, formats/checkpoint.md).")
@@ -19,20 +21,34 @@ from ._learned import training_options
                    "sizes and 100k iterations (a GPU).")
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
               help="JSON object of config fields overriding the preset (see formats/checkpoint.md).")
-@click.option("--model", type=click.Choice(["olat", "ggx"]), default=None,
+@click.option("--model", type=click.Choice(["olat", "ggx", "linear"]), default=None,
               help="olat: the neural OLAT teacher (App. A.1); ggx: the physically based "
-                   "baseline (App. B, Eq. 12) [default: olat].")
+                   "baseline (App. B, Eq. 12); linear: URHand's linear lighting model with "
+                   "its physical branch (Sec. 4) [default: olat].")
 @click.option("--iters", type=int, default=None, help="Adam iterations (overrides the preset).")
 @click.option("--batch", type=int, default=None, help="Samples (frame × camera) per step and rank.")
 @click.option("--lr", type=float, default=None, help="Adam learning rate.")
 @click.option("--tex-res", type=int, default=None, help="Texture size N of the U-Net (N×N).")
 @click.option("--no-visibility", is_flag=True,
               help="Ablation (RelightableHands Table 1): no ray-traced visibility input.")
+@click.option("--light-path", type=click.Choice(["linear", "nonlinear", "mlp"]), default=None,
+              help="[linear] Ablations (URHand Table 2): nonlinear puts LeakyReLU on the light "
+                   "path; mlp is the holistic baseline (supp. 10.2: a 16x32 lighting map "
+                   "through one bias-free linear layer) [default: linear].")
+@click.option("--linearity-loss", type=float, default=None, metavar="λ",
+              help="[linear] Eq. 17's linearity consistency weight (with --light-path "
+                   "nonlinear).")
+@click.option("--features", "light_features", type=click.Choice(["pbr", "phong"]), default=None,
+              help="[linear] Shading features: pbr (Eq. 10-15) or phong (Table 3) "
+                   "[default: pbr].")
+@click.option("--no-specular", is_flag=True, help="[linear] Ablation: no specular feature.")
+@click.option("--no-refiner", is_flag=True,
+              help="[linear] Ablation: coarse normals (no displacement map).")
 @training_options("held-out poses, fully lit frames, env-map ground truth, per validation step")
 @no_clobber_option
 @quiet_option
 def command(capture, output, preset, config_file, model, iters, batch, lr, tex_res, no_visibility,
-            vgg_weights, resume, device, metrics_out, seed, no_clobber, quiet):
+            light_path, linearity_loss, light_features, no_specular, no_refiner, vgg_weights, resume, device, metrics_out, seed, no_clobber, quiet):
     """Train RelightableHands' teacher on CAPTURE (a relight/capture folder, e.g. from
     synth-capture) and write the checkpoint -o.
 
@@ -45,6 +61,13 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     frames of the training poses; validates on held-out poses, fully lit frames and the
     capture's env-map ground truth.
 
+    --model linear: URHand's model (Sec. 4): a U-Net on the mean texture and pose
+    refines normals (displacement) and roughness; GGX shading features of the
+    frame's LEDs (Eq. 10-15, visibility, 1/r²) feed a light path with no bias and
+    no nonlinearity, modulated by a pose/texture branch (Eq. 5), to a gain and a
+    bias over the mean texture (Eq. 6); both renders are L1-supervised (Eq. 7, 9).
+    Linear in its features, it renders env maps with no distillation.
+
     Data-parallel: torchrun --nproc_per_node=N $(which relight) train-teacher ...
     (gloo on CPU, NCCL on CUDA; rank 0 writes).
 
@@ -53,6 +76,7 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
       relight train-teacher capture/ -o teacher.pt --preset tiny
       relight train-teacher capture/ -o ggx.pt --model ggx --iters 500
       relight train-teacher capture/ -o teacher.pt --resume teacher_5k.pt --iters 10000
+      relight train-teacher capture/ -o linear.pt --model linear
     """
     import os
 
@@ -88,12 +112,26 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
 
     overrides = {"model": model, "iters": iters, "batch": batch, "lr": lr, "tex_res": tex_res,
                  "seed": seed, "visibility": False if no_visibility else None}
-    ckpt = None
-    if resume is not None:
-        ckpt = read_checkpoint(resume, kind="teacher")
-        config = resume_config(ckpt, TeacherConfig, overrides, config_file, iters, resume)
+    linear_only = {"light_path": light_path, "linearity_loss": linearity_loss,
+                   "features": light_features, "specular": False if no_specular else None,
+                   "refiner": False if no_refiner else None}
+    ckpt = read_checkpoint(resume) if resume is not None else None
+    kind = ckpt["kind"] if ckpt is not None else ("linear" if model == "linear" else "teacher")
+    config_class, resolve, train_model = TeacherConfig, resolve_config, train
+    if kind == "linear":
+        from relight_cli.neural import linear, linear_train
+        overrides.update(linear_only)
+        config_class, resolve, train_model = (linear.LinearConfig, linear.resolve_config,
+                                              linear_train.train)
+    elif kind != "teacher":
+        raise DataError(f"checkpoint holds a {kind!r} model, expected a teacher", resume)
+    elif any(v is not None for v in linear_only.values()):
+        raise UsageProblem("--light-path, --linearity-loss, --features, --no-specular and "
+                           "--no-refiner belong to --model linear")
+    if ckpt is not None:
+        config = resume_config(ckpt, config_class, overrides, config_file, iters, resume)
     else:
-        config = resolve_config(preset, config_file, overrides)
+        config = resolve(preset, config_file, overrides)
     torch_device = resolve_device(device)
 
     vgg = None
@@ -130,7 +168,7 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
         with outside_transaction():
             write_checkpoint(output, checkpoint)
 
-    result = train(data, config, torch_device, resume=ckpt, vgg=vgg, provenance=record,
+    result = train_model(data, config, torch_device, resume=ckpt, vgg=vgg, provenance=record,
                    save=save if rank == 0 else None, show_progress=not quiet,
                    log=lambda m: log(m, quiet))
     if rank != 0:

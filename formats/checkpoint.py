@@ -19,7 +19,7 @@ from ._common import check_format_version
 
 FORMAT = "relight/checkpoint"
 VERSION = 1
-KINDS = ("teacher", "student")
+KINDS = ("teacher", "student", "linear")
 REQUIRED = ("format", "version", "kind", "model", "config", "step", "weights", "optimizer",
             "rng", "capture_key", "pose_dim", "provenance")
 

@@ -14,6 +14,13 @@ Modules:
                 periodic validation, exact resume
     teacher     rendering with a trained teacher: point lights (near or far) and env maps
                 as sums over their directions (linearity of light transport)
+    shading_features  URHand's physically based features in torch (supp. 8.2, Eq. 10–15):
+                refined normals from a displacement map, diffuse and GGX specular with
+                visibility for point lights and env-map directions
+    linear      URHand's model (Sec. 4): physical branch F_G, non-linear branch F_nl,
+                bias-free light path F_l (Eq. 5–6), ``LinearConfig`` and its presets
+    linear_train  its training loop (Eq. 7, 9, 17) and one-pass rendering
+    adversarial   the lighting-aware patch discriminator and hinge losses (Eq. 8)
 
 Our hands are meshes with one UV layout, not MVP primitives, so the teacher follows
 URHand's mesh-based re-implementation of RelightableHands (URHand supp. 10.1, Eq. 16):

@@ -205,10 +205,12 @@ PRESETS = {
 
 
 def resolve_config(preset: str = "tiny", config_file: str | None = None,
-                   overrides: dict | None = None, cls=None, presets=None):
-    """Preset, then the JSON object of ``config_file``, then ``overrides`` (flags)."""
-    cls = cls or TeacherConfig
-    presets = presets or PRESETS
+                   overrides: dict | None = None, presets: dict | None = None,
+                   config_class=None, cls=None):
+    """Preset, then the JSON object of ``config_file``, then ``overrides`` (flags).
+    ``presets``/``config_class`` (alias ``cls``): another model's (default: the teacher's)."""
+    config_class = config_class or cls or TeacherConfig
+    presets = PRESETS if presets is None else presets
     if preset not in presets:
         raise UsageProblem(f"unknown preset {preset!r}; use one of {', '.join(presets)}")
     values = dict(presets[preset])
@@ -219,7 +221,7 @@ def resolve_config(preset: str = "tiny", config_file: str | None = None,
             raise DataError("a config file holds one JSON object of fields", config_file)
         values.update(obj.get("config", obj) if "format" in obj else obj)
     values.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    return cls.from_dict(values)
+    return config_class.from_dict(values)
 
 
 @dataclass

@@ -139,12 +139,26 @@ class PoseTexels:
         self.renderer = HandRenderer(meshes, [None] * len(meshes), settings, rasters=rasters)
         self.surfaces = self.renderer.surfaces
         self.frames = []
+        # [K, 2, 3] ∂x/∂u, ∂x/∂v (metres per UV unit) in each texel's frame: URHand's
+        # displacement (Eq. 2) turns into refined normals through them
+        self.uv_derivatives = []
         for mesh, surf in zip(meshes, self.surfaces):
             du, dv = uv_tangents(mesh.vertices, mesh.faces, mesh.uv, mesh.faces_uv)
             raster = surf.raster
             du_t = raster.interpolate(du, mesh.faces_uv, fill=None)[surf.inside]
             dv_t = raster.interpolate(dv, mesh.faces_uv, fill=None)[surf.inside]
             self.frames.append(tangent_frames(surf.normals, du_t, dv_t))
+            # uv_tangents sums area-weighted derivatives: divide by the summed weights
+            tex = np.asarray(mesh.uv, np.float64)[np.asarray(mesh.faces_uv, np.int64)]
+            d1, d2 = tex[:, 1] - tex[:, 0], tex[:, 2] - tex[:, 0]
+            area = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1])
+            total = np.zeros(len(mesh.uv))
+            for c in range(3):
+                np.add.at(total, np.asarray(mesh.faces_uv, np.int64)[:, c], area)
+            w_t = raster.interpolate(total[:, None], mesh.faces_uv, fill=None)[surf.inside]
+            mean = np.stack([du_t, dv_t]) / np.maximum(w_t, 1e-30)[None]
+            self.uv_derivatives.append(to_local(self.frames[-1], mean)
+                                       .transpose(1, 0, 2).astype(np.float32))
 
     @property
     def n_hands(self) -> int:

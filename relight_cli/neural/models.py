@@ -101,8 +101,11 @@ class UNet(nn.Module):
         self.head = nn.Conv2d(prev, cout, 3, padding=1)
         self.levels = levels
 
-    def forward(self, x: torch.Tensor, pose: torch.Tensor, hand_of: torch.Tensor) -> torch.Tensor:
-        """x [B, cin, N, N], pose [H, P], hand_of [B] int64 (which pose row) → [B, cout, N, N]."""
+    def forward(self, x: torch.Tensor, pose: torch.Tensor, hand_of: torch.Tensor,
+                return_bottleneck: bool = False):
+        """x [B, cin, N, N], pose [H, P], hand_of [B] int64 (which pose row) → [B, cout, N, N];
+        with ``return_bottleneck`` also the bottleneck (encoder ⊕ pose features, URHand's
+        joint feature F_θ,id) [B, encoder[-1] + pose_channels[1], s, s]."""
         n = x.shape[-1]
         skips = []
         h = x
@@ -113,14 +116,14 @@ class UNet(nn.Module):
             skips.append(h)
         size = h.shape[-1]
         joint = self.pose(pose, size)[hand_of]                                 # [B, C, s, s]
-        h = torch.cat([h, joint], 1)
+        h = bottleneck = torch.cat([h, joint], 1)
         for i, conv in enumerate(self.dec):
             h = F.leaky_relu(conv(h), 0.2)
             level = self.levels - 2 - i
             if level >= 0:
                 h = _resize(h, n >> level)
                 h = torch.cat([h, skips[level]], 1)
-        return self.head(h)
+        return (self.head(h), bottleneck) if return_bottleneck else self.head(h)
 
 
 class OLATTeacher(nn.Module):

@@ -146,6 +146,23 @@ def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=Non
              mean_texture=None, env_res=(16, 32)) -> dict:
     """Per split {mse, psnr, ssim, mae, samples}: means over at most ``val_samples``
     evenly spaced samples, masked by the ground-truth hand mask (> 0.5)."""
+    def frame(item):
+        sample = data.sample(*item)
+        pred = render_sample(model, sample, device, mean_texture)
+        return pred.cpu().numpy(), sample.image, sample.mask
+
+    def env(texels, gbuffer, poses, denv):
+        lights, weights = env_light_inputs(texels, denv, config.visibility)
+        return render_lights(model, texels, gbuffer, poses, lights, weights, config.visibility,
+                             config.falloff, device, mean_texture=mean_texture).cpu().numpy()
+    return evaluate_splits(model, data, config.val_samples, frame, env, splits, env_res)
+
+
+def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, predict_env,
+                    splits=None, env_res=(16, 32)) -> dict:
+    """The validation loop of any model: ``predict_frame(item)`` → (prediction, image, mask)
+    of a capture (frame, camera) item; ``predict_env(texels, gbuffer, poses, discretized
+    env)`` → the prediction of an ``eval/`` env render (held-out hand)."""
     from relight_cli.features import discretize_env
 
     model.eval()
@@ -157,7 +174,7 @@ def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=Non
             items = all_splits.get(name) or []
             if not items:
                 continue
-            pick = np.unique(np.linspace(0, len(items) - 1, min(len(items), config.val_samples))
+            pick = np.unique(np.linspace(0, len(items) - 1, min(len(items), val_samples))
                              .round().astype(int))
             rows = []
             for i in pick:
@@ -166,14 +183,9 @@ def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=Non
                     texels = data.texels(pose, held_out=True)
                     gb = data.gbuffer(pose, camera, held_out=True)
                     denv = discretize_env(data.env_map(env_name), *env_res)
-                    lights, weights = env_light_inputs(texels, denv, config.visibility)
-                    pred = render_lights(model, texels, gb, data.poses(pose, True), lights,
-                                         weights, config.visibility, config.falloff, device,
-                                         mean_texture=mean_texture).cpu().numpy()
+                    pred = predict_env(texels, gb, data.poses(pose, True), denv)
                 else:
-                    sample = data.sample(*items[i])
-                    pred = render_sample(model, sample, device, mean_texture).cpu().numpy()
-                    gt, mask = sample.image, sample.mask
+                    pred, gt, mask = predict_frame(items[i])
                 m = _metrics(pred, gt, mask)
                 if m:
                     rows.append(m)

@@ -1,0 +1,346 @@
+"""Training and rendering URHand's linear model (Sec. 4.3): grouped-light frames only.
+
+* **Inputs**: the capture's T̄ (:func:`albedo_texture`), per sample the frame's LEDs as
+  point lights (positions, RGB intensities, 1/r², visibility traced once per pose and
+  LED group by :class:`~relight_cli.neural.data.CaptureData`) and the camera's view.
+  One pass of the model per sample, whatever the number of lights: features are sums.
+* **Loss** (Eq. 7): λ_img L1(C) + λ_pb L1(C_pb) (both renders supervised, Sec. 4.3)
+  + λ_VGG perceptual (local weights only) + λ_reg Σ_j mean |F_l^j| (Eq. 9, every
+  intermediate light-path map, at the features' unit scale) + λ_lc L_lc (Eq. 17,
+  ablation: the frame's LEDs split in two halves, random a₁, a₂ ∈ (0, 1), RMS)
+  + λ_GAN L_G (Eq. 8, :mod:`relight_cli.neural.adversarial`; its discriminator takes one
+  Adam step (β 0.5, 0.999) per step on the batch's real and rendered images, and its
+  weights and Adam state live in the checkpoint's ``extra``).
+* **Sampling, determinism, resume, DDP, validation**: those of
+  :mod:`relight_cli.neural.train` (batches from (seed, step), RNG states stored; rank 0
+  writes; held-out poses, fully lit frames, env-map ground truth).  Under torchrun the
+  gradients are averaged by one all-reduce per step: the model is called through its
+  branches, not one forward, so DDP's hooks would not see them.  The learning rate drops from ``lr`` to ``lr_final``
+  at iteration ``lr_drop`` (a function of the step: resume stays exact).
+"""
+
+from __future__ import annotations
+
+import random
+import time
+
+import numpy as np
+import torch
+
+from relight_cli.errors import DataError
+
+from .linear import LinearConfig, URHandModel, render_textures
+from .train import (TrainResult, _peak_rss_mb, _summary, batch_indices, distributed_context,
+                    evaluate_splits, rng_state, set_rng_state)
+
+
+def albedo_texture(data, max_frames: int = 4, max_views: int = 64) -> np.ndarray:
+    """T̄ [1, 3, N, N] float32 in sr⁻¹: the capture's visibility-aware mean texture
+    (:meth:`CaptureData.mean_texture`, radiance) over the fully lit irradiance E of each
+    texel (its diffuse feature Eq. 10 under every LED, coarse normal, averaged over up to
+    ``max_frames`` fully lit frames), E clamped to ≥ ¼ of its median so texels deep in a
+    crevice do not blow up.  A white Lambertian texel gets 1/π.  Hands are averaged
+    (one identity)."""
+    mean = data.mean_texture(max_views).astype(np.float64)               # [H, 3, N, N]
+    frames = (data.fully_lit_frames or data.train_frames)[:max_frames]
+    n = data.tex_res
+    irradiance = np.zeros((data.n_hands, n, n))
+    for frame in frames:
+        texels = data.texels(frame.pose)
+        lights = data.light_inputs(frame.pose, frame.lights_on)
+        power = data.capture.light_intensity[np.asarray(frame.lights_on, np.int64)].mean(1)
+        for k in range(data.n_hands):
+            cos = np.clip(lights[k].local_light[..., 2], 0, None)
+            e = (power[:, None] * lights[k].falloff * lights[k].visibility * cos).sum(0)
+            irradiance[k] += texels.to_maps(k, e[:, None].astype(np.float64))[0]
+    irradiance /= max(len(frames), 1)
+    out = np.zeros_like(mean)
+    for k in range(data.n_hands):
+        inside = data.texels(frames[0].pose).inside(k)
+        e = irradiance[k]
+        floor = 0.25 * np.median(e[inside]) if inside.any() else 1.0
+        out[k] = mean[k] / np.maximum(e, max(floor, 1e-12))[None]
+    return out.mean(0, keepdims=True).astype(np.float32)
+
+
+def feature_scale(data, n_frames: int = 4) -> float:
+    """Mean diffuse irradiance over the inside texels of the first training frames: the
+    fixed scale features enter the light path at (the model stays the same linear map)."""
+    values = []
+    for frame in data.train_frames[:n_frames]:
+        lights = data.light_inputs(frame.pose, frame.lights_on)
+        power = data.capture.light_intensity[np.asarray(frame.lights_on, np.int64)].mean(1)
+        for li in lights:
+            cos = np.clip(li.local_light[..., 2], 0, None)
+            values.append(float((power[:, None] * li.falloff * li.visibility * cos).sum(0).mean()))
+    scale = float(np.mean(values)) if values else 1.0
+    return scale if scale > 0 and np.isfinite(scale) else 1.0
+
+
+def masked_l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean |pred − target| over mask pixels; [H, W, 3], mask [H, W] bool."""
+    m = mask.to(pred.dtype)[..., None]
+    return ((pred - target).abs() * m).sum() / torch.clamp(m.sum() * pred.shape[-1], min=1.0)
+
+
+def lights_of(data, frame_index: int, held_out: bool = False):
+    """(per-hand LightInputs, [L, 3] intensities) of a capture frame's LEDs."""
+    frame = data.frame(frame_index)
+    lights = data.light_inputs(frame.pose, frame.lights_on, held_out)
+    return lights, data.capture.light_intensity[np.asarray(frame.lights_on, np.int64)]
+
+
+def render_image(model, texels, gbuffer, poses, light_inputs, intensity, mean_texture,
+                 physical: bool = False, background=0.0):
+    """(image [H, W, 3], physical image or None, Textures) of a posed scene under lights."""
+    from .teacher import composite
+    views = [texels.local_view(k, gbuffer.eye) for k in range(texels.n_hands)]
+    tex = render_textures(model, texels, views, light_inputs, intensity, poses, mean_texture,
+                          physical)
+    image = composite(tex.neural, gbuffer, background)
+    pb = composite(tex.physical, gbuffer, background) if physical else None
+    return image, pb, tex
+
+
+def sample_loss(model, data, item, config: LinearConfig, step: int, device, mean_texture,
+                vgg=None, disc=None):
+    """(total loss, {l1, l1_pb, vgg, reg, lc, gan}, discriminator inputs or None) of one
+    (frame, camera) sample (Eq. 7)."""
+    sample = data.sample(*item)
+    texels = data.texels(sample.pose)
+    lights, intensity = lights_of(data, sample.frame)
+    image, pb, tex = render_image(model, texels, sample.gbuffer, sample.poses, lights, intensity,
+                                  mean_texture, physical=config.lambda_pb > 0)
+    target = torch.from_numpy(sample.image).to(device)
+    mask = torch.from_numpy((sample.mask > 0) | (sample.gbuffer.mask > 0)).to(device)
+    l1 = masked_l1(image, target, mask)
+    total = config.lambda_img * l1
+    parts = {"l1": float(l1.detach())}
+    if pb is not None:
+        l1_pb = masked_l1(pb, target, mask)
+        total = total + config.lambda_pb * l1_pb
+        parts["l1_pb"] = float(l1_pb.detach())
+    if vgg is not None and config.lambda_vgg > 0:
+        perceptual = vgg(image, target, mask)
+        total = total + config.lambda_vgg * perceptual
+        parts["vgg"] = float(perceptual.detach())
+    if config.lambda_reg > 0:
+        reg = sum(sum(f.abs().mean() for f in inter) for inter in tex.intermediate)
+        total = total + config.lambda_reg * reg
+        parts["reg"] = float(reg.detach())
+    if config.linearity_loss > 0 and step % config.linearity_every == 0 and len(intensity) > 1:
+        lc = linearity_consistency(model, texels, sample, lights, intensity, mean_texture,
+                                   np.random.default_rng([config.seed, step, item[0]]))
+        total = total + config.linearity_loss * lc
+        parts["lc"] = float(lc.detach())
+    d_inputs = None
+    if disc is not None:
+        from .adversarial import generator_loss, lighting_prompt
+        prompt = lighting_prompt(texels, sample.gbuffer, lights, intensity,
+                                 float(model.feature_scale), config.shininess, device)
+        gan = generator_loss(disc, image, prompt, mask)
+        total = total + config.lambda_gan * gan
+        parts["gan"] = float(gan.detach())
+        d_inputs = (target, image.detach(), prompt, mask)
+    return total, parts, d_inputs
+
+
+def linearity_consistency(model, texels, sample, lights, intensity, mean_texture, rng):
+    """Eq. 17: ‖a₁F_l(F¹) + a₂F_l(F²) − F_l(a₁F¹ + a₂F²)‖ (RMS over texels) with F¹, F²
+    the features of the two halves of the frame's LEDs (supp. 10.2)."""
+    from .geometry import LightInputs
+    half = len(intensity) // 2
+    a1, a2 = rng.uniform(0, 1, 2)
+
+    def part(sl, weight):
+        li = [LightInputs(x.local_light[sl], x.visibility[sl], x.falloff[sl]) for x in lights]
+        return render_textures(model, texels, [texels.local_view(k, sample.gbuffer.eye)
+                                               for k in range(texels.n_hands)],
+                               li, intensity[sl] * weight, sample.poses, mean_texture, False)
+    first, second = part(slice(0, half), 1.0), part(slice(half, None), 1.0)
+    both = [a1 * f + a2 * s for f, s in zip(first.features, second.features)]
+    err = 0.0
+    count = 0
+    tex = mean_texture.expand(texels.n_hands, -1, -1, -1) \
+        if mean_texture.shape[0] == 1 else mean_texture
+    from .models import pose_vector
+    _, _, joint = model.physical(tex, pose_vector(sample.poses).to(tex.device))
+    mods = model.nonlinear(joint, model.config.tex_res)
+    for k in range(texels.n_hands):
+        modulation = [m[k:k + 1] for m in mods]
+        mixed = model.neural(both[k], tex[k], modulation)
+        sep = a1 * first.neural[k] + a2 * second.neural[k]
+        err = err + ((mixed - sep) ** 2).sum()
+        count += mixed.numel()
+    return torch.sqrt(err / count + 1e-20)
+
+
+def evaluate(model, data, config: LinearConfig, device, mean_texture, splits=None) -> dict:
+    """Per split {mse, psnr, ssim, mae, samples} (:func:`relight_cli.neural.train.evaluate_splits`)."""
+    from .teacher import env_light_inputs
+
+    def frame(item):
+        sample = data.sample(*item)
+        lights, weights = lights_of(data, sample.frame)
+        pred = render_image(model, data.texels(sample.pose), sample.gbuffer, sample.poses,
+                            lights, weights, mean_texture)[0]
+        return pred.cpu().numpy(), sample.image, sample.mask
+
+    def env(texels, gbuffer, poses, denv):
+        lights, weights = env_light_inputs(texels, denv, config.visibility)
+        return render_image(model, texels, gbuffer, poses, lights, weights,
+                            mean_texture)[0].cpu().numpy()
+    return evaluate_splits(model, data, config.val_samples, frame, env, splits,
+                           tuple(config.env_res))
+
+
+def learning_rate(config: LinearConfig, step: int) -> float:
+    return config.lr if step < config.lr_drop else config.lr_final
+
+
+def train(data, config: LinearConfig, device: torch.device, resume: dict | None = None,
+          vgg=None, provenance: dict | None = None, save=None, show_progress: bool = True,
+          log=None) -> TrainResult:
+    """Train URHand's model on ``data``'s grouped frames (arguments as
+    :func:`relight_cli.neural.train.train`)."""
+    from relight_cli.formats.checkpoint import make_checkpoint
+
+    from .geometry import uv_layout_digest
+
+    rank, world, device = distributed_context(device)
+    items = data.splits()["train"]
+    if not items:
+        raise DataError("no training samples: the training frames list no images",
+                        data.index_path)
+    data.check_alignment(data.sample(*items[0]))
+    torch.manual_seed(config.seed)
+    np.random.seed(config.seed % (2 ** 32))
+    random.seed(config.seed)
+    model = URHandModel(config, data.pose_dim).to(device)
+    if resume is not None:
+        model.load_state_dict({k: v.to(device) for k, v in resume["weights"].items()})
+        mean_texture = resume["extra"]["mean_texture"].to(device)
+    else:
+        mean_texture = torch.from_numpy(albedo_texture(data)).to(device)
+        model.feature_scale.fill_(feature_scale(data))
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    disc = opt_d = None
+    if config.lambda_gan > 0:
+        from .adversarial import LightingAwareDiscriminator
+        disc = LightingAwareDiscriminator(config.gan_width, 2, config.gan_conditioned).to(device)
+        opt_d = torch.optim.Adam(disc.parameters(), lr=config.lr, betas=(0.5, 0.999))
+    start = 0
+    if resume is not None:
+        if disc is not None:
+            disc.load_state_dict({k: v.to(device) for k, v in
+                                  resume["extra"]["discriminator"].items()})
+            opt_d.load_state_dict(resume["extra"]["optimizer_discriminator"])
+        optimizer.load_state_dict(resume["optimizer"])
+        start = int(resume["step"])
+        set_rng_state(resume["rng"])
+    bar = None
+    if show_progress and rank == 0:
+        import sys
+
+        from tqdm import tqdm
+        bar = tqdm(total=config.iters, initial=start, desc="train-teacher (linear)",
+                   file=sys.stderr, leave=False, dynamic_ncols=True, unit="it")
+    history = []
+    t_start = time.perf_counter()
+    model.train()
+
+    def checkpoint(step):
+        extra = {"uv_layout": uv_layout_digest(data.hand.mesh("fine")),
+                 "mean_texture": mean_texture.detach().cpu()}
+        if disc is not None:
+            extra["discriminator"] = {k: v.detach().cpu() for k, v in disc.state_dict().items()}
+            extra["optimizer_discriminator"] = opt_d.state_dict()
+        return make_checkpoint("linear", "linear", config.to_dict(), step,
+                               {k: v.detach().cpu() for k, v in model.state_dict().items()},
+                               optimizer.state_dict(), rng_state(), data.key, data.pose_dim,
+                               provenance or {}, extra)
+
+    for step in range(start, config.iters):
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(config, step)
+        indices = batch_indices(config.seed, step, len(items), config.batch * world)
+        mine = indices[rank * config.batch:(rank + 1) * config.batch]
+        optimizer.zero_grad(set_to_none=True)
+        parts_sum = {}
+        d_batch = []
+        for index in mine:
+            loss, parts, d_inputs = sample_loss(model, data, items[int(index)], config, step,
+                                                device, mean_texture, vgg, disc)
+            (loss / len(mine)).backward()
+            d_batch.append(d_inputs)
+            for k, v in parts.items():
+                parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
+        if world > 1:
+            _average_gradients(model, world)
+        optimizer.step()
+        if disc is not None:
+            from .adversarial import discriminator_loss
+            opt_d.zero_grad(set_to_none=True)        # drops what L_G left in F_D
+            for real, fake, prompt, mask in d_batch:
+                (discriminator_loss(disc, real, fake, prompt, mask) / len(d_batch)).backward()
+            if world > 1:
+                _average_gradients(disc, world)
+            opt_d.step()
+        done = step + 1
+        if bar is not None:
+            bar.set_postfix({k: f"{v:.3g}" for k, v in parts_sum.items()}, refresh=False)
+            bar.update(1)
+        if config.val_every and done % config.val_every == 0 and done < config.iters and rank == 0:
+            record = {"step": done, **evaluate(model, data, config, device, mean_texture)}
+            history.append(record)
+            if log:
+                log(_summary(record))
+        if save is not None and rank == 0 and config.save_every and done % config.save_every == 0 \
+                and done < config.iters:
+            save(checkpoint(done))
+    if bar is not None:
+        bar.close()
+    seconds = time.perf_counter() - t_start
+    final = {}
+    if rank == 0:
+        final = {"step": config.iters, **evaluate(model, data, config, device, mean_texture)}
+        history.append(final)
+    peak = (torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else
+            _peak_rss_mb())
+    return TrainResult(checkpoint(config.iters), history, final, config.iters - start, seconds, peak)
+
+
+def _average_gradients(model, world: int) -> None:
+    """All-reduce (mean) every gradient over the ranks: the model is called through its
+    own methods (physical, nonlinear, neural), not DDP's forward, so DDP's hooks would
+    not see them; one flat all-reduce does the same job."""
+    import torch.distributed as dist
+    grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in model.parameters()]
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= world
+    offset = 0
+    for p, g in zip(model.parameters(), grads):
+        n = g.numel()
+        p.grad = flat[offset:offset + n].view_as(p).clone()
+        offset += n
+
+
+@torch.no_grad()
+def render_lights(model, texels, gbuffer, poses, light_inputs: list, intensity, mean_texture,
+                  timing=None, background=0.0) -> torch.Tensor:
+    """Inference: [H, W, 3] image of a posed scene under L lights (point lights or an env
+    map's directions, :func:`relight_cli.neural.teacher.point_light_inputs` /
+    ``env_light_inputs``) in one pass of the model."""
+    t0 = time.perf_counter()
+    if len(intensity) == 0:
+        from .teacher import composite
+        n = texels.tex_res
+        image = composite([torch.zeros(3, n, n, device=mean_texture.device)] * texels.n_hands,
+                          gbuffer, background)
+    else:
+        image = render_image(model, texels, gbuffer, poses, light_inputs, intensity,
+                             mean_texture, background=background)[0]
+    if timing is not None:
+        timing.add("network", time.perf_counter() - t0)
+    return image
