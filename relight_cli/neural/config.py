@@ -11,8 +11,10 @@ Presets:
             pose encoder (16, 64); λ_MSE 1, λ_VGG 1, λ_neg 0.01; λ_s 25, λ_b 100.  The
             texture is 1024² as in URHand's mesh re-implementation (supp. 10.1, which
             predicts 1024² textures; RelightableHands' MVP atlas is wS = 64·16 = 1024 wide).
-    tiny    the same model at a quarter of the widths on a 32² texture, 150 iterations:
-            a minute or two on 2 CPU cores, for tests and ``make demo``.
+    tiny    the same model at a quarter of the widths on a 32² texture, 150 iterations at
+            the paper's lr 1e-3 (2e-3 collapsed the shadow logit on a dim capture: σ(S)
+            saturates at 0 everywhere and no gradient brings it back), a minute or two on
+            2 CPU cores, for tests and ``make demo``.
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ class TrainingConfig(_Config):
 
     iters: int = 150
     batch: int = 2
-    lr: float = 2e-3
+    lr: float = 1e-3
     lambda_mse: float = 1.0
     lambda_vgg: float = 1.0
     lambda_neg: float = 0.01
@@ -266,6 +268,7 @@ class StudentConfig(TrainingConfig):
     cache_mb: int = 2048
     lambda_s: float = 25.0
     lambda_b: float = 0.0
+    lr: float = 2e-3
 
     def validate(self, where: str = "config") -> None:
         check = _Checker(self, where)
