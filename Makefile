@@ -52,6 +52,11 @@ demo: install
 		-o demo/hand_teacher_env.exr --preview demo/hand_teacher_env.png
 	$(RELIGHT) relight demo/capture/hand.npz --lights demo/teacher_light.json --model teacher \
 		--checkpoint demo/teacher.pt -o demo/hand_teacher_point.exr --preview demo/hand_teacher_point.png
+	# URHand's linear lighting model with its physical branch, trained on the grouped frames only,
+	# rendering an env map in one pass (no distillation)
+	$(RELIGHT) train-teacher demo/capture --model linear -o demo/linear.pt --preset tiny --metrics-out demo/linear_val.json
+	$(RELIGHT) relight demo/capture/hand.npz builtin:studio --model linear --checkpoint demo/linear.pt \
+		-o demo/hand_linear_env.exr --preview demo/hand_linear_env.png
 	# RelightableHands' student distilled from the teacher under env maps (one held out for
 	# evaluation), rendered in one pass from bake-features' texel maps, on one hand and on two
 	$(RELIGHT) distill demo/teacher.pt demo/capture --envs builtin:sky --envs builtin:studio \
