@@ -307,7 +307,14 @@ def train(data, config: LinearConfig, device: torch.device, resume: dict | None 
         history.append(final)
     peak = (torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else
             _peak_rss_mb())
-    return TrainResult(checkpoint(config.iters), history, final, config.iters - start, seconds, peak)
+    result = TrainResult(checkpoint(config.iters), history, final, config.iters - start, seconds,
+                         peak)
+    if world > 1:
+        # as train.fit: wait for rank 0's final validation, then close the group cleanly
+        import torch.distributed as dist
+        dist.barrier()
+        dist.destroy_process_group()
+    return result
 
 
 def _average_gradients(model, world: int) -> None:
