@@ -323,7 +323,7 @@ class StudentTask:
         if not self.items:
             raise DataError("no training poses in the capture", self.data.index_path)
 
-    def build(self, device):
+    def build(self, device, resume=None):
         return build_student(self.config, self.features.channels, self.pose_dim).to(device)
 
     def restore(self, resume, device):

@@ -21,7 +21,6 @@
 
 from __future__ import annotations
 
-import random
 import time
 
 import numpy as np
@@ -30,8 +29,7 @@ import torch
 from relight_cli.errors import DataError
 
 from .linear import LinearConfig, URHandModel, render_textures
-from .train import (TrainResult, _peak_rss_mb, _summary, batch_indices, distributed_context,
-                    evaluate_splits, rng_state, set_rng_state)
+from .train import TrainResult, average_gradients, evaluate_splits, fit
 
 
 def albedo_texture(data, max_frames: int = 4, max_views: int = 64) -> np.ndarray:
@@ -198,139 +196,97 @@ def learning_rate(config: LinearConfig, step: int) -> float:
     return config.lr if step < config.lr_drop else config.lr_final
 
 
+class LinearTask:
+    """What :func:`relight_cli.neural.train.fit` needs to train URHand's model: T̄ and the
+    feature scale on a fresh start, the lr drop before each step, the discriminator's own
+    Adam step after it, and gradients averaged by one all-reduce (``ddp = False``)."""
+
+    kind = "linear"
+    model_name = "linear"
+    desc = "train-teacher (linear)"
+    ddp = False
+
+    def __init__(self, data, config: LinearConfig, vgg=None):
+        self.data = data
+        self.config = config
+        self.vgg = vgg
+        self.items = data.splits()["train"]
+        self.capture_key = data.key
+        self.pose_dim = data.pose_dim
+        self.mean_texture = None
+        self.disc = self.opt_d = None
+        self._d_batch = []
+
+    def check(self):
+        if not self.items:
+            raise DataError("no training samples: the training frames list no images",
+                            self.data.index_path)
+        self.data.check_alignment(self.data.sample(*self.items[0]))
+
+    def build(self, device, resume=None):
+        config = self.config
+        model = URHandModel(config, self.pose_dim).to(device)
+        if resume is None:
+            self.mean_texture = torch.from_numpy(albedo_texture(self.data)).to(device)
+            model.feature_scale.fill_(feature_scale(self.data))
+        if config.lambda_gan > 0:
+            from .adversarial import LightingAwareDiscriminator
+            self.disc = LightingAwareDiscriminator(config.gan_width, 2,
+                                                   config.gan_conditioned).to(device)
+            self.opt_d = torch.optim.Adam(self.disc.parameters(), lr=config.lr,
+                                          betas=(0.5, 0.999))
+        return model
+
+    def restore(self, resume, device):
+        self.mean_texture = resume["extra"]["mean_texture"].to(device)
+        if self.disc is not None:
+            self.disc.load_state_dict({k: v.to(device) for k, v in
+                                       resume["extra"]["discriminator"].items()})
+            self.opt_d.load_state_dict(resume["extra"]["optimizer_discriminator"])
+
+    def before_step(self, optimizer, step):
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(self.config, step)
+
+    def loss(self, net, item, step, device):
+        loss, parts, d_inputs = sample_loss(net, self.data, item, self.config, step, device,
+                                            self.mean_texture, self.vgg, self.disc)
+        if d_inputs is not None:
+            self._d_batch.append(d_inputs)
+        return loss, parts
+
+    def after_step(self, step, world):
+        batch, self._d_batch = self._d_batch, []
+        if self.disc is None:
+            return
+        from .adversarial import discriminator_loss
+        self.opt_d.zero_grad(set_to_none=True)        # drops what L_G left in F_D
+        for real, fake, prompt, mask in batch:
+            (discriminator_loss(self.disc, real, fake, prompt, mask) / len(batch)).backward()
+        if world > 1:
+            average_gradients(self.disc, world)
+        self.opt_d.step()
+
+    def evaluate(self, model, device):
+        return evaluate(model, self.data, self.config, device, self.mean_texture)
+
+    def extra(self) -> dict:
+        from .geometry import uv_layout_digest
+        out = {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine")),
+               "mean_texture": self.mean_texture.detach().cpu()}
+        if self.disc is not None:
+            out["discriminator"] = {k: v.detach().cpu() for k, v in self.disc.state_dict().items()}
+            out["optimizer_discriminator"] = self.opt_d.state_dict()
+        return out
+
+
 def train(data, config: LinearConfig, device: torch.device, resume: dict | None = None,
           vgg=None, provenance: dict | None = None, save=None, show_progress: bool = True,
           log=None) -> TrainResult:
     """Train URHand's model on ``data``'s grouped frames (arguments as
-    :func:`relight_cli.neural.train.train`)."""
-    from relight_cli.formats.checkpoint import make_checkpoint
-
-    from .geometry import uv_layout_digest
-
-    rank, world, device = distributed_context(device)
-    items = data.splits()["train"]
-    if not items:
-        raise DataError("no training samples: the training frames list no images",
-                        data.index_path)
-    data.check_alignment(data.sample(*items[0]))
-    torch.manual_seed(config.seed)
-    np.random.seed(config.seed % (2 ** 32))
-    random.seed(config.seed)
-    model = URHandModel(config, data.pose_dim).to(device)
-    if resume is not None:
-        model.load_state_dict({k: v.to(device) for k, v in resume["weights"].items()})
-        mean_texture = resume["extra"]["mean_texture"].to(device)
-    else:
-        mean_texture = torch.from_numpy(albedo_texture(data)).to(device)
-        model.feature_scale.fill_(feature_scale(data))
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    disc = opt_d = None
-    if config.lambda_gan > 0:
-        from .adversarial import LightingAwareDiscriminator
-        disc = LightingAwareDiscriminator(config.gan_width, 2, config.gan_conditioned).to(device)
-        opt_d = torch.optim.Adam(disc.parameters(), lr=config.lr, betas=(0.5, 0.999))
-    start = 0
-    if resume is not None:
-        if disc is not None:
-            disc.load_state_dict({k: v.to(device) for k, v in
-                                  resume["extra"]["discriminator"].items()})
-            opt_d.load_state_dict(resume["extra"]["optimizer_discriminator"])
-        optimizer.load_state_dict(resume["optimizer"])
-        start = int(resume["step"])
-        set_rng_state(resume["rng"])
-    bar = None
-    if show_progress and rank == 0:
-        import sys
-
-        from tqdm import tqdm
-        bar = tqdm(total=config.iters, initial=start, desc="train-teacher (linear)",
-                   file=sys.stderr, leave=False, dynamic_ncols=True, unit="it")
-    history = []
-    t_start = time.perf_counter()
-    model.train()
-
-    def checkpoint(step):
-        extra = {"uv_layout": uv_layout_digest(data.hand.mesh("fine")),
-                 "mean_texture": mean_texture.detach().cpu()}
-        if disc is not None:
-            extra["discriminator"] = {k: v.detach().cpu() for k, v in disc.state_dict().items()}
-            extra["optimizer_discriminator"] = opt_d.state_dict()
-        return make_checkpoint("linear", "linear", config.to_dict(), step,
-                               {k: v.detach().cpu() for k, v in model.state_dict().items()},
-                               optimizer.state_dict(), rng_state(), data.key, data.pose_dim,
-                               provenance or {}, extra)
-
-    for step in range(start, config.iters):
-        for group in optimizer.param_groups:
-            group["lr"] = learning_rate(config, step)
-        indices = batch_indices(config.seed, step, len(items), config.batch * world)
-        mine = indices[rank * config.batch:(rank + 1) * config.batch]
-        optimizer.zero_grad(set_to_none=True)
-        parts_sum = {}
-        d_batch = []
-        for index in mine:
-            loss, parts, d_inputs = sample_loss(model, data, items[int(index)], config, step,
-                                                device, mean_texture, vgg, disc)
-            (loss / len(mine)).backward()
-            d_batch.append(d_inputs)
-            for k, v in parts.items():
-                parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
-        if world > 1:
-            _average_gradients(model, world)
-        optimizer.step()
-        if disc is not None:
-            from .adversarial import discriminator_loss
-            opt_d.zero_grad(set_to_none=True)        # drops what L_G left in F_D
-            for real, fake, prompt, mask in d_batch:
-                (discriminator_loss(disc, real, fake, prompt, mask) / len(d_batch)).backward()
-            if world > 1:
-                _average_gradients(disc, world)
-            opt_d.step()
-        done = step + 1
-        if bar is not None:
-            bar.set_postfix({k: f"{v:.3g}" for k, v in parts_sum.items()}, refresh=False)
-            bar.update(1)
-        if config.val_every and done % config.val_every == 0 and done < config.iters and rank == 0:
-            record = {"step": done, **evaluate(model, data, config, device, mean_texture)}
-            history.append(record)
-            if log:
-                log(_summary(record))
-        if save is not None and rank == 0 and config.save_every and done % config.save_every == 0 \
-                and done < config.iters:
-            save(checkpoint(done))
-    if bar is not None:
-        bar.close()
-    seconds = time.perf_counter() - t_start
-    final = {}
-    if rank == 0:
-        final = {"step": config.iters, **evaluate(model, data, config, device, mean_texture)}
-        history.append(final)
-    peak = (torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else
-            _peak_rss_mb())
-    result = TrainResult(checkpoint(config.iters), history, final, config.iters - start, seconds,
-                         peak)
-    if world > 1:
-        # as train.fit: wait for rank 0's final validation, then close the group cleanly
-        import torch.distributed as dist
-        dist.barrier()
-        dist.destroy_process_group()
-    return result
-
-
-def _average_gradients(model, world: int) -> None:
-    """All-reduce (mean) every gradient over the ranks: the model is called through its
-    own methods (physical, nonlinear, neural), not DDP's forward, so DDP's hooks would
-    not see them; one flat all-reduce does the same job."""
-    import torch.distributed as dist
-    grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in model.parameters()]
-    flat = torch.cat([g.reshape(-1) for g in grads])
-    dist.all_reduce(flat)
-    flat /= world
-    offset = 0
-    for p, g in zip(model.parameters(), grads):
-        n = g.numel()
-        p.grad = flat[offset:offset + n].view_as(p).clone()
-        offset += n
+    :func:`relight_cli.neural.train.train`; the loop is :func:`relight_cli.neural.train.fit`)."""
+    return fit(LinearTask(data, config, vgg), config, device, resume, provenance, save,
+               show_progress, log)
 
 
 @torch.no_grad()

@@ -219,9 +219,9 @@ class TeacherTask:
         # A hand that does not match the images fails before any training.
         self.data.check_alignment(self.data.sample(*self.items[0]))
 
-    def build(self, device):
+    def build(self, device, resume=None):
         model = build_model(self.config, self.data.pose_dim).to(device)
-        if self.config.model == "ggx":
+        if self.config.model == "ggx" and resume is None:    # a resumed run has its own T̄
             mean = self.data.mean_texture().mean(0, keepdims=True)          # [1, 3, N, N]
             self.mean_texture = torch.from_numpy(mean).to(device)
         return model
@@ -260,10 +260,14 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
 
     Args:
         task: the model's data and losses: ``items`` (training items), ``check()``,
-            ``build(device)`` → module, ``restore(resume, device)``,
+            ``build(device, resume)`` → module, ``restore(resume, device)``,
             ``loss(net, item, step, device)`` → (loss, parts), ``evaluate(model, device)``
             → {split: metrics}, ``extra()`` → checkpoint extras; ``kind``, ``model_name``,
-            ``capture_key``, ``pose_dim``, ``desc`` (progress label).
+            ``capture_key``, ``pose_dim``, ``desc`` (progress label).  Optional:
+            ``before_step(optimizer, step)`` (e.g. a learning-rate schedule),
+            ``after_step(step, world)`` (e.g. a discriminator's own step), and ``ddp =
+            False`` for a model not called through one forward (its gradients are then
+            averaged over the ranks by :func:`average_gradients` instead of DDP's hooks).
         config: a configuration with ``iters``, ``batch``, ``lr``, ``seed``, ``val_every``,
             ``save_every`` and ``to_dict()``.
         device: torch device (``resolve_device``).
@@ -284,7 +288,7 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
     torch.manual_seed(config.seed)
     np.random.seed(config.seed % (2 ** 32))
     random.seed(config.seed)
-    model = task.build(device)
+    model = task.build(device, resume)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
     start = 0
     if resume is not None:
@@ -294,7 +298,10 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         set_rng_state(resume["rng"])
         task.restore(resume, device)
     net = model
-    if world > 1:
+    use_ddp = world > 1 and getattr(task, "ddp", True)
+    before_step = getattr(task, "before_step", None)
+    after_step = getattr(task, "after_step", None)
+    if use_ddp:
         from torch.nn.parallel import DistributedDataParallel
         net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda"
                                       else None)
@@ -318,19 +325,25 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
                                task.pose_dim, provenance or {}, task.extra())
 
     for step in range(start, config.iters):
+        if before_step is not None:
+            before_step(optimizer, step)
         indices = batch_indices(config.seed, step, len(items), config.batch * world)
         mine = indices[rank * config.batch:(rank + 1) * config.batch]
         optimizer.zero_grad(set_to_none=True)
         parts_sum = {}
         for j, index in enumerate(mine):
-            sync = (j == len(mine) - 1) or world == 1
+            sync = (j == len(mine) - 1) or not use_ddp
             ctx = contextlib.nullcontext() if sync else net.no_sync()
             with ctx:
                 loss, parts = task.loss(net, items[int(index)], step, device)
                 (loss / len(mine)).backward()
             for k, v in parts.items():
                 parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
+        if world > 1 and not use_ddp:
+            average_gradients(model, world)
         optimizer.step()
+        if after_step is not None:
+            after_step(step, world)
         done = step + 1
         if bar is not None:
             bar.set_postfix({k: f"{v:.3g}" for k, v in parts_sum.items()}, refresh=False)
@@ -361,6 +374,22 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         dist.barrier()
         dist.destroy_process_group()
     return result
+
+
+def average_gradients(model, world: int) -> None:
+    """All-reduce (mean) every gradient over the ranks in one flat call: for models called
+    through several branches rather than one forward, whose gradients DDP's hooks would
+    not see."""
+    import torch.distributed as dist
+    grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in model.parameters()]
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= world
+    offset = 0
+    for p, g in zip(model.parameters(), grads):
+        n = g.numel()
+        p.grad = flat[offset:offset + n].view_as(p).clone()
+        offset += n
 
 
 def _peak_rss_mb() -> float:
