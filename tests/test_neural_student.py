@@ -261,7 +261,8 @@ def test_help(run_cli):
 
 
 @pytest.mark.parametrize("case", ["nan-env", "student-as-teacher", "no-training-envs",
-                                  "missing-envs", "bad-output-name"])
+                                  "missing-envs", "missing-eval-envs", "bad-output-name",
+                                  "cache-is-a-file", "output-is-the-teacher"])
 def test_distill_bad_input(setup, tmp_path, case):
     args = ["distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
             setup / "student.json", "--iters", "2"]
@@ -282,15 +283,29 @@ def test_distill_bad_input(setup, tmp_path, case):
         args[6] = tmp_path / "c.json"
     elif case == "missing-envs":
         args += ["--envs", tmp_path / "nope.exr"]
+    elif case == "missing-eval-envs":
+        args += ["--eval-envs", tmp_path / "nope.exr"]
     elif case == "bad-output-name":
+        code = 2
+    elif case == "cache-is-a-file":
+        (tmp_path / "cache").write_text("x")
+        args += ["--cache", tmp_path / "cache"]
         code = 2
     out = tmp_path / "out" / ("s.json" if case == "bad-output-name" else "s.pt")
     out.parent.mkdir()
+    if case == "output-is-the-teacher":
+        teacher = tmp_path / "out" / "t.pt"
+        teacher.write_bytes((setup / "teacher.pt").read_bytes())
+        args[1], out, code = teacher, teacher, 2
+    before = out.read_bytes() if out.exists() else None
     r = _invoke(*args, "-q", "-o", out)
     assert r.exit_code == code, r.output
     lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in r.output, r.output
-    assert list(out.parent.iterdir()) == []
+    if before is None:
+        assert list(out.parent.iterdir()) == []
+    else:
+        assert out.read_bytes() == before and "also an input" in lines[0]
 
 
 def test_student_refuses_point_lights(setup, tmp_path):

@@ -26,10 +26,9 @@ import time
 import numpy as np
 import torch
 
-from relight_cli.errors import DataError
-
 from .linear import LinearConfig, URHandModel, render_textures
-from .train import TrainResult, average_gradients, evaluate_splits, fit
+from .train import (TrainResult, average_gradients, check_training_frames, evaluate_splits,
+                    fit)
 
 
 def albedo_texture(data, max_frames: int = 4, max_views: int = 64) -> np.ndarray:
@@ -218,10 +217,7 @@ class LinearTask:
         self._d_batch = []
 
     def check(self):
-        if not self.items:
-            raise DataError("no training samples: the training frames list no images",
-                            self.data.index_path)
-        self.data.check_alignment(self.data.sample(*self.items[0]))
+        check_training_frames(self.data, self.items)
 
     def build(self, device, resume=None):
         config = self.config

@@ -196,6 +196,15 @@ def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, p
     return out
 
 
+def check_training_frames(data: CaptureData, items: list) -> None:
+    """Refuse a capture with no training samples, or whose hand does not match its images,
+    before any training (DataError naming the file)."""
+    if not items:
+        raise DataError("no training samples: the training frames list no images",
+                        data.index_path)
+    data.check_alignment(data.sample(*items[0]))
+
+
 class TeacherTask:
     """What :func:`fit` needs to train a teacher (``olat`` or ``ggx``) on a capture."""
 
@@ -213,11 +222,7 @@ class TeacherTask:
         self.pose_dim = data.pose_dim
 
     def check(self):
-        if not self.items:
-            raise DataError("no training samples: the training frames list no images",
-                            self.data.index_path)
-        # A hand that does not match the images fails before any training.
-        self.data.check_alignment(self.data.sample(*self.items[0]))
+        check_training_frames(self.data, self.items)
 
     def build(self, device, resume=None):
         model = build_model(self.config, self.data.pose_dim).to(device)
