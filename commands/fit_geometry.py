@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_json, log,
-                                  no_clobber_option, parse_size, quiet_option, seed_option)
+from relight_cli.clitools import (FiniteFloat, check_input, check_output, check_preview,
+                                  dumps_json, log, no_clobber_option, parse_size, quiet_option,
+                                  seed_option)
 
 
 @click.command("fit-geometry", short_help="Pose or fit the articulated hand; write hand.npz.")
@@ -70,7 +71,7 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
     if report is not None:
         check_output(report, no_clobber, text=True)
     if preview is not None:
-        check_output(preview, no_clobber)
+        check_preview(preview, no_clobber)
         size = parse_size(preview_size, "--preview-size")
     fitting = keypoints is not None or scans is not None
     if fitting and pose is not None:

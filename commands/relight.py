@@ -166,10 +166,12 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
       relight relight hand.npz builtin:sky --model teacher --checkpoint teacher.pt -o img.exr
       relight relight hand.npz builtin:sky --model linear --checkpoint linear.pt -o img.exr
     """
+    from relight_cli.clitools import check_preview_name
     from relight_cli.errors import UsageProblem
 
     from relight_cli.gaussians.placement import split_spec
 
+    check_preview_name(preview)
     lower = split_spec(input)[0].lower()
     gaussian_in = (lower.endswith((".ply", ".obj", ".glb", ".gltf", ".stl", ".off"))
                    or lower in ("builtin:hand", "builtin:room", "builtin:sphere"))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import log, quiet_option, seed_option
+from relight_cli.clitools import check_preview, log, preview_option, quiet_option, seed_option
 
 
 @click.command("synth-capture",
@@ -37,11 +37,13 @@ from relight_cli.clitools import log, quiet_option, seed_option
               help="Comma-separated env maps (files or builtin:NAME) of the evaluation renders.")
 @click.option("--eval-cameras", type=int, default=4, show_default=True,
               help="Cameras (the first N of the dome) of the evaluation renders.")
+@preview_option("Also write a labelled PNG contact sheet: a few cameras (rows) × fully lit, "
+                "grouped and held-out env-map frames (columns).")
 @seed_option
 @quiet_option
 def command(hand, output, cameras, lights, group, frames, full_every, res, motion,
             keyframe_every, tex_res, aa, no_sss, bounce, eval_poses, eval_envs, eval_cameras,
-            seed, quiet):
+            preview, seed, quiet):
     """Render a light-stage capture of HAND (a hand.npz, or builtin:right|left[:POSE];
     default builtin:right) into FOLDER in the relight/capture format
     (formats/capture.md): capture.json, the ground-truth hand.npz,
@@ -56,6 +58,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
     Examples:
       relight synth-capture -o capture/ --cameras 20 --lights 64 --frames 30
       relight synth-capture hand.npz -o capture/ --motion file --res 256
+      relight synth-capture -o capture/ --cameras 8 --frames 6 --preview capture.png
     """
     import os
     import time
@@ -95,6 +98,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                  .split(".", 1)[0] for e in env_specs]
     if len(set(env_names)) != len(env_names):
         raise UsageProblem("two --eval-envs maps have the same name")
+    check_preview(preview)
     if os.path.exists(output) and not os.path.isdir(output):
         raise UsageProblem("output exists and is not a folder", output)
     parent = os.path.dirname(os.path.abspath(output))
@@ -202,3 +206,11 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
         C.write_capture(index_path, capture)
     log(f"wrote {output}: {rendered} image(s) rendered, {skipped} already there "
         f"({time.perf_counter() - start:.1f} s)", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        from relight_cli.preview import capture_sheet
+        title = (f"synth-capture {hand} -> {output}: {settings.cameras} cameras, "
+                 f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})")
+        write_png(preview, capture_sheet(
+            capture, lambda rel: C.read_image(os.path.join(output, rel)), title))
+        log(f"wrote {preview}", quiet)

@@ -87,6 +87,24 @@ def check_output(path: str | None, no_clobber: bool = False, text: bool = False)
     declare_output(path)
 
 
+def preview_option(help: str):
+    """``--preview PNG``: a picture of the result (relight_cli.preview), never data."""
+    return click.option("--preview", default=None, metavar="PNG", help=help)
+
+
+def check_preview_name(path: str | None) -> None:
+    """``--preview`` must name a .png: anything else is a usage error (exit 2)."""
+    from .errors import UsageProblem
+    if path is not None and not path.lower().endswith(".png"):
+        raise UsageProblem("--preview writes a PNG picture: name it .png", path)
+
+
+def check_preview(path: str | None, no_clobber: bool = False) -> None:
+    """:func:`check_preview_name`, then :func:`check_output`."""
+    check_preview_name(path)
+    check_output(path, no_clobber)
+
+
 def check_input(path: str) -> str:
     """Fail early and clearly for a missing input or a directory given as a file."""
     from .errors import DataError

@@ -294,21 +294,18 @@ def test_fifo_with_reader_gets_the_bytes(data, tmp_path):
 
 # Two outputs of one command on one file: refused before any work.
 DUPLICATES = {
-    "envmap": lambda d, t: ["envmap", d / "sky.exr", "-o", t / "x.exr", "--preview",
-                            t / "x.exr"],
     "envmap-alias": lambda d, t: ["envmap", d / "sky.exr", "-o", t / "x.png", "--preview",
                                   f"{t}/./x.png"],
     "fit-geometry": lambda d, t: ["fit-geometry", "-o", t / "h.npz", "--report", t / "h.npz"],
-    "relight-hand": lambda d, t: ["relight", d / "hand.npz", d / "sky.exr", "-o", t / "r.exr",
-                                  "--preview", t / "r.exr"],
     "dgsm-build": lambda d, t: ["dgsm-build", d / "ball.ply", "--receivers", d / "room.ply",
                                 "--lights", d / "lights.json", "-o", t / "s.exr",
                                 "--occluders-out", t / "a.ply", "--receivers-out", t / "a.ply"],
     "metrics-image": lambda d, t: ["metrics", "image", d / "img.exr", d / "img2.exr",
                                    "-o", t / "m.json", "--jsonl", t / "m.json"],
     "bake-features": lambda d, t: ["bake-features", d / "hand.npz", d / "sky.exr",
-                                   "-o", t / "f.exr", "--preview", t / "f.exr"],
+                                   "-o", t / "f.png", "--preview", t / "f.png"],
 }
+# (-o X.exr --preview X.exr, formerly here, is now refused earlier: a preview is a .png.)
 
 
 @pytest.mark.parametrize("case", sorted(DUPLICATES))
@@ -553,6 +550,22 @@ BAD_OPTIONS = {
                                                    d / "img2.exr", "--threshold", "nan", "-o", o],
     "metrics compare --rtol bogus=0.1": lambda d, o: ["metrics", "compare", d / "m.json",
                                                       d / "m.json", "--rtol", "bogus=0.1"],
+    "envmap --preview x.jpg": lambda d, o: ["envmap", d / "sky.exr", "-o", o, "--preview",
+                                            o.parent / "x.jpg"],
+    "bake-features --preview x.exr": lambda d, o: ["bake-features", d / "hand.npz", d / "sky.exr",
+                                                   "-o", o, "--preview", o.parent / "x.exr"],
+    "sh-probe --preview x.json": lambda d, o: ["sh-probe", d / "sky.exr", "-o", o, "--preview",
+                                               o.parent / "x.json"],
+    "dgsm-build --preview x.tif": lambda d, o: ["dgsm-build", d / "ball.ply", "--t-max", "1",
+                                                "--lights", d / "lights.json", "-o", o,
+                                                "--preview", o.parent / "x.tif"],
+    "dgsm-build --preview-camera alone": lambda d, o: [
+        "dgsm-build", d / "ball.ply", "--t-max", "1", "--lights", d / "lights.json", "-o", o,
+        "--preview-camera", d / "lights.json"],
+    "synth-capture --preview x.exr": lambda d, o: ["synth-capture", "-o", o.parent / "cap",
+                                                   "--preview", o.parent / "x.exr"],
+    "relight --preview x.jpg": lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "-o", o,
+                                             "--preview", o.parent / "x.jpg"],
 }
 
 
@@ -679,12 +692,16 @@ def test_stale_temp_files_of_live_processes_are_kept(tmp_path):
 IDENTITY = {
     "envmap": lambda d, t: (["envmap", d / "sky.exr", "--size", "16x8", "-o", t / "e.exr",
                              "--preview", t / "e.png"], ["e.exr", "e.png"]),
-    "sh-probe": lambda d, t: (["sh-probe", d / "sky.exr", "-o", t / "p.json"], ["p.json"]),
+    "sh-probe": lambda d, t: (["sh-probe", d / "sky.exr", "-o", t / "p.json", "--preview",
+                               t / "p.png"], ["p.json", "p.png"]),
+    "envmap-cube": lambda d, t: (["envmap", d / "sky.exr", "--to", "cube", "--size", "4",
+                                  "-o", t / "c.exr", "--preview", t / "c.png"], ["c.exr", "c.png"]),
     "fit-geometry": lambda d, t: (["fit-geometry", "--pose", "random", "--frames", "2", "--seed",
                                    "3", "-o", t / "h.npz"], ["h.npz"]),
     "bake-features": lambda d, t: (["bake-features", d / "hand.npz", d / "sky.exr", "--res", "8",
                                     "--env-res", "4x8", "-o", t / "f.exr", "--per-vertex",
-                                    t / "f.npz"], ["f.exr", "f.npz"]),
+                                    t / "f.npz", "--preview", t / "f.png"],
+                                   ["f.exr", "f.npz", "f.png"]),
     "relight-hand": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--size", "8x8",
                                    "--tex-res", "8", "--aa", "1", "--env-res", "4x8",
                                    "-o", t / "r.exr"], ["r.exr"]),
@@ -692,7 +709,7 @@ IDENTITY = {
                                         "-o", t / "g.ply"], ["g.ply"]),
     "dgsm-build": lambda d, t: (["dgsm-build", d / "ball.ply", "--receivers", d / "room.ply",
                                  "--lights", d / "lights.json", "--size", "4", "--bins", "2",
-                                 "-o", t / "s.exr"], ["s.exr"]),
+                                 "-o", t / "s.exr", "--preview", t / "s.png"], ["s.exr", "s.png"]),
     "metrics-image": lambda d, t: (["metrics", "image", d / "img.exr", d / "img2.exr",
                                     "-o", t / "m.json"], ["m.json"]),
     "metrics-lighting": lambda d, t: (["metrics", "lighting", "--scene", d / "room.ply",
@@ -707,8 +724,9 @@ IDENTITY = {
     "synth-capture": lambda d, t: (["synth-capture", d / "hand.npz", "-o", t / "cap",
                                     "--cameras", "1", "--lights", "2", "--group", "1",
                                     "--frames", "1", "--res", "8", "--tex-res", "8", "--aa", "1",
-                                    "--eval-poses", "0", "--eval-cameras", "1"],
-                                   ["cap/capture.json", "cap/hand.npz",
+                                    "--eval-poses", "0", "--eval-cameras", "1", "--preview",
+                                    t / "cap.png"],
+                                   ["cap/capture.json", "cap/hand.npz", "cap.png",
                                     "cap/images/000000/cam000.exr"]),
 }
 
@@ -725,7 +743,7 @@ def _identity_run(data, folder, name, second):
     r = CliRunner().invoke(cli, (["--debug"] if second else []) + [str(a) for a in args] + extra)
     assert r.exit_code == 0, r.output
     if name == "synth-capture":
-        files = files[:2] + sorted(str(p.relative_to(folder))
+        files = files[:3] + sorted(str(p.relative_to(folder))
                                    for p in (folder / "cap" / "images").rglob("*.exr"))
     return {f: (folder / f).read_bytes() for f in files}
 
