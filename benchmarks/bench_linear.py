@@ -17,8 +17,8 @@
    stage's true materials (the upper bound only a synthetic stage has).
 
 Writes linear.{md,json,png} under --out (default benchmarks/out); the plot: held-out
-MSE against training seconds, one curve per model.  ``--quick``: a small capture, 20
-iterations, tiny widths, four of the variants and the teacher.  Run:
+MSE against training seconds, one curve per model.  ``--quick``: a small capture, 8
+iterations, tiny widths, two of the variants (no teacher).  Run:
     .venv/bin/python benchmarks/bench_linear.py [--quick] [--iters N] [--out DIR]
 """
 
@@ -37,10 +37,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as B  # noqa: E402
 from bench_teacher import (env_render_cost, make_capture,  # noqa: E402
-                           physical_upper_bound, train_variant, write_plot)
+                           physical_upper_bound, train_variant, validation, write_plot)
 
-QUICK_VARIANTS = ("linear (ours: residual start)", "non-linear light path", "Phong features",
-                  "w/o visibility")
+QUICK_VARIANTS = ("linear (ours: residual start)", "non-linear light path")
 
 VARIANTS = {
     "linear (ours: residual start)": {},
@@ -66,8 +65,7 @@ def _linear_data(folder: Path, cfg):
 def train_linear(folder: Path, overrides: dict, iters: int) -> dict:
     from relight_cli.neural.linear import resolve_config
     from relight_cli.neural.linear_train import train
-    cfg = resolve_config("tiny", None, {"iters": iters, "val_samples": 6, "lambda_vgg": 0.0,
-                                        "val_every": max(1, iters // 6),
+    cfg = resolve_config("tiny", None, {"iters": iters, "lambda_vgg": 0.0, **validation(iters),
                                         "lr_drop": (2 * iters) // 3, **overrides})
     data = _linear_data(folder, cfg)
     t0 = time.perf_counter()
@@ -136,13 +134,13 @@ def render_cost(folder: Path, preset: str, tex: int) -> list:
 
 
 def main():
-    ap = B.parser(__doc__, "small capture, 20 iterations, tiny widths, 4 variants")
+    ap = B.parser(__doc__, "small capture, 8 iterations, tiny widths, 2 variants")
     ap.add_argument("--iters", type=int, default=None, help="training iterations per variant")
     ap.add_argument("--variants", default=None, metavar="A,B",
                     help="only the quality variants whose names contain one of these words")
     args = ap.parse_args()
     out = B.start(args, "bench_linear.py")
-    iters = args.iters or (20 if args.quick else 150)
+    iters = args.iters or (8 if args.quick else 150)
     frames = 8 if args.quick else 24
     work = Path(tempfile.mkdtemp(prefix="bench_linear_"))
     report = {"machine": B.machine_limits(), "iters": iters}
@@ -154,7 +152,8 @@ def main():
         report["throughput"] = [throughput(folder, p, t, 10 if p == "tiny" and not args.quick
                                            else 2) for p, t in sizes]
         report["render"] = [r for p, t in sizes for r in render_cost(folder, p, t)]
-        report["teacher_env"] = [env_render_cost(folder, p, t) for p, t in sizes]
+        report["teacher_env"] = [] if args.quick else [env_render_cost(folder, p, t)
+                                                       for p, t in sizes]
         print(json.dumps({k: report[k] for k in ("throughput", "render", "teacher_env")},
                          default=float), flush=True)
         quality = {}
@@ -167,7 +166,8 @@ def main():
             quality[name] = train_linear(folder, overrides, iters)
             print(name, {k: round(v.get("psnr", 0), 2) for k, v in
                          quality[name]["metrics"].items() if isinstance(v, dict)}, flush=True)
-        quality["OLAT teacher (tiny)"] = train_variant(folder, "teacher", iters)
+        if not args.quick:         # (bench_teacher.py --quick covers the teacher)
+            quality["OLAT teacher (tiny)"] = train_variant(folder, "teacher", iters)
         quality["physical (true materials)"] = {"metrics": {"heldout": physical_upper_bound(folder)}}
         report["quality"] = quality
     finally:

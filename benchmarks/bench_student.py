@@ -277,6 +277,7 @@ def main():
     (out / "student.md").write_text("\n".join(lines) + "\n")
     (out / "student.json").write_text(json.dumps(report, indent=1, default=str) + "\n")
     write_plot(out / "student.png", report)
+    print("\n".join(lines))
 
 
 def write_plot(path: Path, report: dict) -> None:
@@ -305,7 +306,6 @@ def write_plot(path: Path, report: dict) -> None:
         B.plot(axes[1], curves, "distillation seconds", "MSE x 1e-3 (held-out poses x envs)",
                "quality against cost", logx=False)
     B.save(fig, path, report["machine"])
-    print("\n".join(lines))
 
 
 if __name__ == "__main__":
