@@ -101,6 +101,20 @@ def test_mask_greys_out_and_region_sets_the_exposure():
     assert np.allclose(display[:, :2], 1.0)
 
 
+def test_auto_exposure_counts_negative_values():
+    v = np.ones((10, 10))
+    v[:3] = -0.5
+    display, note, _ = PV.expose(v)
+    assert "30% < 0 (black)" in note and display[:3].max() == 0
+
+
+def test_large_cube_faces_are_shown_at_most_max_face():
+    from relight_cli.formats.envmap import EnvMap
+    n = PV.MAX_FACE + 8
+    radiance, inside, _ = PV.cube_cross(EnvMap(np.ones((6 * n, n, 3), np.float32), "cube"))
+    assert radiance.shape[:2] == (3 * PV.MAX_FACE, 4 * PV.MAX_FACE)
+
+
 def test_fixed_ranges():
     unit, note, _ = PV.expose(np.array([[-1.0, 0.0, 0.5, 2.0]]), "unit")
     assert np.allclose(unit[0, :, 0], [0, 0, 0.5, 1]) and "0" in note
