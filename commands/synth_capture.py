@@ -169,7 +169,8 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                   {"relight.frame": frame.index, "relight.camera": cam.name,
                                    "relight.lit": frame.lit},
                                   provenance("relight/capture-image", 1, inputs,
-                                             {"frame": frame.index, "camera": cam.name}))
+                                             {"frame": frame.index, "camera": cam.name}),
+                                  camera=cam)
                     rendered += 1
             frame.images = [c.name for c in plan.cameras]
         if evaluation is not None:
@@ -196,7 +197,8 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                       {"relight.pose": pose, "relight.env": name,
                                        "relight.camera": cam.name},
                                       provenance("relight/capture-image", 1, inputs,
-                                                 {"pose": pose, "env": name, "camera": cam.name}))
+                                                 {"pose": pose, "env": name, "camera": cam.name}),
+                                      camera=cam)
                         rendered += 1
         capture.complete = True
         C.write_capture(index_path, capture)

@@ -21,6 +21,7 @@ from .errors import RelightError
 # name -> "module:attribute"; the only place a subcommand is registered.
 COMMANDS: dict[str, str] = {
     "bake-features": "relight_cli.commands.bake_features:command",
+    "camera": "relight_cli.commands.camera:command",
     "dgsm-build": "relight_cli.commands.dgsm_build:command",
     "distill": "relight_cli.commands.distill:command",
     "envmap": "relight_cli.commands.envmap:command",

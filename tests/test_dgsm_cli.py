@@ -369,7 +369,7 @@ def test_shadow_protocol_from_the_command_line(tmp_path):
     for mode in ("dgsm", "mesh"):
         mattes[mode] = str(tmp_path / f"{mode}.exr")
         r = _run(["relight", sphere, "--shadow-matte", mode, "--dgsm", shadows, "--receivers",
-                  "builtin:room", "--render", str(tmp_path / "cam.json"), "--footprint", "centre",
+                  "builtin:room", "--camera", str(tmp_path / "cam.json"), "--footprint", "centre",
                   "-o", mattes[mode], "-q"])
         assert r.exit_code == 0, r.output
     from relight_cli.formats.exr import read_exr
@@ -387,13 +387,13 @@ def test_shadow_protocol_from_the_command_line(tmp_path):
     assert rec["metrics"]["sm_iou"] > 0.5 and rec["metrics"]["sae"] < 0.5
     # usage errors: a matte needs the DGSM (its lights) and a camera; the GT needs a mesh
     r = _run(["relight", sphere, "--shadow-matte", "dgsm", "--receivers", "builtin:room",
-              "--render", str(tmp_path / "cam.json"), "-o", str(tmp_path / "x.exr")])
+              "--camera", str(tmp_path / "cam.json"), "-o", str(tmp_path / "x.exr")])
     assert r.exit_code == 2 and "--dgsm" in r.output
     from relight_cli.formats.gaussians_ply import write_gaussians
     from relight_cli.gaussians.from_mesh import load_gaussians
     write_gaussians(str(tmp_path / "ball.ply"), load_gaussians("builtin:sphere"))
     r = _run(["relight", str(tmp_path / "ball.ply"), "--shadow-matte", "mesh", "--dgsm", shadows,
-              "--receivers", "builtin:room", "--render", str(tmp_path / "cam.json"),
+              "--receivers", "builtin:room", "--camera", str(tmp_path / "cam.json"),
               "-o", str(tmp_path / "x.exr")])
     assert r.exit_code == 1 and "mesh" in r.output
     r = _run(["metrics", "shadow", mattes["dgsm"], mattes["mesh"], "--roi-avatar", sphere])

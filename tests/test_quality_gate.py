@@ -76,7 +76,7 @@ def dgsm_shadow_resolution(work: Path) -> Path:
                         "--receivers-out", work / "room.ply", "-q"))
         renders[size] = work / f"render{size}.exr"
         _ok(run_relight("relight", work / "hand.ply", "--probe", work / "probe.json", "--dgsm", shadows,
-                        "--receivers", work / "room.ply", "--render", work / "cam.json",
+                        "--receivers", work / "room.ply", "--camera", work / "cam.json",
                         "-o", renders[size], "-q"))
     out = work / "dgsm_shadow_resolution.json"
     _ok(run_relight("metrics", "image", renders[128], renders[512], "--space", "srgb", "-o", out, "-q"))

@@ -238,7 +238,7 @@ def test_cli_render(run_cli, files):
     from relight_cli.formats.exr import read_exr
     out = files / "view.exr"
     r = run_cli("relight", files / "avatar.ply", "--probe", files / "probe.json", "--receivers",
-                files / "scene.ply", "--render", files / "cam.json", "-o", out, "--preview",
+                files / "scene.ply", "--camera", files / "cam.json", "-o", out, "--preview",
                 files / "view.png", "-q")
     assert r.exit_code == 0, r.output
     img = read_exr(str(out))
@@ -264,7 +264,7 @@ def test_cli_subprocess(files):
     (["avatar.ply"], 2, "needs --probe"),
     (["avatar.ply", "--probe", "probe.json", "--dgsm", "x.exr"], 2, "give --receivers"),
     (["avatar.ply", "--probe", "probe.json", "--lobe", "0"], 2, "--lobe"),
-    (["avatar.ply", "--probe", "probe.json", "--render", "cam.json"], 2, "-o is an EXR"),
+    (["avatar.ply", "--probe", "probe.json", "--camera", "cam.json"], 2, "-o is an EXR"),
     (["avatar.ply", "--probe", "missing.json"], 1, "no such file"),
     (["avatar.ply", "--probe", "bad_probe.json"], 1, "version 9 is newer"),
     (["avatar.ply", "--probe", "probe.json", "--normals", "stored"], 1, "no stored normals"),
@@ -279,7 +279,7 @@ def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     ply = plyfile.PlyData.read("nan.ply", mmap=False)
     ply["vertex"].data["x"][2] = np.nan
     ply.write("nan.ply")
-    target = "out.exr" if "--render" in args and "-o is an EXR" not in message else "out.ply"
+    target = "out.exr" if "--camera" in args and "-o is an EXR" not in message else "out.ply"
     r = run_cli("relight", *args, "-o", target)
     assert r.exit_code == code, r.output
     assert message in r.output, r.output
