@@ -151,7 +151,7 @@ def command(input, output, eye, target, up, fov, size, orbit, dome, radius, elev
                 cameras = [C.look_at(position, centre, up_vector, fov_deg, width, height,
                                      name or "")]
             except ValueError as exc:
-                raise UsageProblem(str(exc)) from None
+                raise UsageProblem(f"--eye, --target, --up: {exc}") from None
             settings.update(mode="look-at", eye=list(position), up=list(up_vector))
         else:
             elevations = _elevations(elevation, dome is not None)

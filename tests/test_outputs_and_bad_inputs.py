@@ -117,13 +117,14 @@ COMMANDS = {
     "relight-teacher": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
                                       "8x8", "--env-res", "4x8", "-o", o], ".exr"),
+    "camera": (lambda d, o: ["camera", "--eye", "0,0.1,0.5", "--size", "8x8", "-o", o], ".json"),
 }
 # An input of each command that the "output is an input" case writes over.
 FIRST_INPUT = {"envmap": "sky.exr", "sh-probe": "sky.exr", "fit-geometry": None,
                "bake-features": "hand.npz", "relight-hand": "sky.exr",
                "relight-gaussians": "ball.ply", "dgsm-build": "ball.ply",
                "metrics-image": "img.exr", "metrics-lighting": "room.ply",
-               "train-teacher": "small.json", "relight-teacher": "sky.exr"}
+               "train-teacher": "small.json", "relight-teacher": "sky.exr", "camera": None}
 
 
 def _snapshot(*folders) -> dict:
@@ -487,6 +488,7 @@ SLOTS = {
     "relight-gaussians:--probe": lambda d, b, o: ["relight", d / "ball.ply", "--probe", b,
                                                   "-o", o],
     "metrics-compare:NEW": lambda d, b, o: ["metrics", "compare", b, d / "m.json"],
+    "camera:IN": lambda d, b, o: ["camera", b, "-o", o],
 }
 # which bad inputs each slot gets (the generic ones go everywhere)
 GENERIC = ["missing", "directory", "empty", "garbage"]
@@ -500,14 +502,15 @@ SPECIFIC = {
     "dgsm-build:--lights": ["json-deep", "json-long-int", "json-nan"],
     "relight-gaussians:--probe": ["json-deep", "json-long-int"],
     "metrics-compare:NEW": ["json-deep", "json-long-int"],
+    "camera:IN": ["camera-bool-width", "json-deep", "json-long-int", "json-nan"],
 }
 SLOT_EXT = {"bake-features:HAND": ".npz", "relight-hand:HAND": ".npz",
             "fit-geometry:--template": ".npz", "relight-hand:--camera": ".json",
             "dgsm-build:--lights": ".json", "relight-gaussians:--probe": ".json",
-            "metrics-compare:NEW": ".json"}
+            "metrics-compare:NEW": ".json", "camera:IN": ".json"}
 OUT_EXT = {"envmap": ".exr", "sh-probe": ".json", "bake-features": ".exr", "relight-hand": ".exr",
            "fit-geometry": ".npz", "dgsm-build": ".exr", "relight-gaussians": ".ply",
-           "metrics-compare": ".json"}
+           "metrics-compare": ".json", "camera": ".json"}
 CASES = [(slot, kind) for slot in sorted(SLOTS) for kind in GENERIC + SPECIFIC.get(slot, [])]
 
 
@@ -553,13 +556,16 @@ BAD_OPTIONS = {
                                                    d / "img2.exr", "--threshold", "nan", "-o", o],
     "metrics compare --rtol bogus=0.1": lambda d, o: ["metrics", "compare", d / "m.json",
                                                       d / "m.json", "--rtol", "bogus=0.1"],
+    "camera --fov 0": lambda d, o: ["camera", "--eye", "0,0,1", "--fov", "0", "-o", o],
+    "camera --eye inf,0,0": lambda d, o: ["camera", "--eye", "inf,0,0", "-o", o],
+    "camera --orbit 0": lambda d, o: ["camera", "--orbit", "0", "--radius", "1", "-o", o],
 }
 
 
 @pytest.mark.parametrize("case", sorted(BAD_OPTIONS))
 def test_impossible_option_is_a_usage_error(data, tmp_path, case):
     out = tmp_path / ("out.ply" if "shadow-strength" in case else "out.exr")
-    if case.startswith(("sh-probe", "metrics")):
+    if case.startswith(("sh-probe", "metrics", "camera")):
         out = tmp_path / "out.json"
     if case.startswith("fit-geometry"):
         out = tmp_path / "out.npz"
@@ -704,6 +710,8 @@ IDENTITY = {
     "relight-teacher": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
                                       "8x8", "--env-res", "4x8", "-o", t / "r.exr"], ["r.exr"]),
+    "camera": lambda d, t: (["camera", "--orbit", "3", "--radius", "0.7", "--elevation", "20",
+                             "-o", t / "c.json"], ["c.json"]),
     "synth-capture": lambda d, t: (["synth-capture", d / "hand.npz", "-o", t / "cap",
                                     "--cameras", "1", "--lights", "2", "--group", "1",
                                     "--frames", "1", "--res", "8", "--tex-res", "8", "--aa", "1",
