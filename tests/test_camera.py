@@ -453,6 +453,8 @@ def _write_bad(tmp_path):
     (binary / "cameras.bin").write_bytes(b"\0" * 8)
     (tmp_path / "notes.txt").write_text("hello")
     write_cameras(str(tmp_path / "rig.json"), C.orbit(2, 1.0))
+    from relight_cli.formats.exr import write_exr
+    write_exr(str(tmp_path / "plain.exr"), {"R": np.ones((2, 2), np.float32)})
 
 
 @pytest.mark.parametrize("args, code, words", [
@@ -477,6 +479,7 @@ def _write_bad(tmp_path):
     (["scaled.json"], 1, ["not a rotation", "scaled.json"]),
     (["colmap"], 1, ["NaN", "cameras.txt"]),
     (["binary"], 1, ["model_converter"]),
+    (["plain.exr"], 1, ["worldToCamera", "plain.exr"]),
 ])
 def test_cli_bad_input(tmp_path, monkeypatch, args, code, words):
     from click.testing import CliRunner
