@@ -39,7 +39,8 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_
               help="Write a JSON report of per-frame residuals (MPJPE, scan distance in mm); "
                    "'-' for stdout.")
 @click.option("--preview", default=None, help="Also write a tone-mapped PNG of frame 0.")
-@click.option("--preview-size", default="320x320", show_default=True, help="Preview WxH.")
+@click.option("--preview-size", default="320x320", show_default=True,
+              help="Preview size WxH (or N for NxN).")
 @seed_option
 @no_clobber_option
 @quiet_option
@@ -64,13 +65,12 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
 
     from relight_cli.errors import UsageProblem
 
-    check_output(output, no_clobber)
     if output == "-":
         raise UsageProblem("hand.npz is binary and cannot go to stdout; give a file name")
-    if report is not None:
-        check_output(report, no_clobber, text=True)
+    check_output(output, no_clobber, kind="npz")
+    check_output(report, no_clobber, kind="json", what="--report")
     if preview is not None:
-        check_output(preview, no_clobber)
+        check_output(preview, no_clobber, kind="png", what="--preview")
         size = parse_size(preview_size, "--preview-size")
     fitting = keypoints is not None or scans is not None
     if fitting and pose is not None:

@@ -46,6 +46,7 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
       relight sh-probe builtin:sky -o sky.json
       relight sh-probe stage.exr --degree 2 -o stage.json
       relight sh-probe room.ply --at 0,1.2,0 -o room-probe.json
+      relight sh-probe builtin:sky -o - | relight relight avatar.ply --probe - -o relit.ply
     """
     import time
 
@@ -54,7 +55,7 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     from relight_cli.gaussians import probe as P
     from relight_cli.provenance import provenance
 
-    check_output(output, no_clobber, text=True)
+    check_output(output, no_clobber, kind="json")
     if degree == "auto":
         fixed = None
     else:

@@ -248,7 +248,7 @@ def test_cli_render(run_cli, files):
 
 def test_cli_subprocess(files):
     r = run_relight("relight", files / "avatar.ply", "--probe", files / "probe.json", "-o",
-                    files / "relit2.ply", "--normals", "pca", "--lobe", "3", "--t-max", "2")
+                    files / "relit2.ply", "--normals", "pca", "--lobe", "3", "--shading-clip", "2")
     assert r.returncode == 0, r.stderr
     assert len(read_gaussians(str(files / "relit2.ply"))) == 300
 

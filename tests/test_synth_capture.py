@@ -15,7 +15,7 @@ from relight_cli.formats import capture as C
 from relight_cli.formats.hand_npz import read_hand
 from relight_cli.render import capture as S
 
-TINY = ["--cameras", "2", "--lights", "6", "--group", "2", "--frames", "3", "--res", "12",
+TINY = ["--cameras", "2", "--leds", "6", "--group", "2", "--frames", "3", "--size", "12",
         "--tex-res", "32", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
         "--eval-envs", "builtin:uniform", "-q"]
 
@@ -149,7 +149,7 @@ def test_subprocess(tmp_path):
 
 
 @pytest.mark.parametrize("args, code, message", [
-    (["--group", "9", "--lights", "6"], 2, "exceeds --lights"),
+    (["--group", "9", "--leds", "6"], 2, "exceeds --leds"),
     (["--cameras", "0"], 2, "--cameras must be"),
     (["--eval-cameras", "5", "--cameras", "2"], 2, "exceeds --cameras"),
     (["--motion", "file"], 2, "needs a HAND.npz"),
@@ -160,7 +160,7 @@ def test_subprocess(tmp_path):
 ])
 def test_bad_input(run_cli, tmp_path, monkeypatch, args, code, message):
     monkeypatch.chdir(tmp_path)
-    r = run_cli("synth-capture", *args, "-o", "cap", "--frames", "2", "--res", "8")
+    r = run_cli("synth-capture", *args, "-o", "cap", "--frames", "2", "--size", "8")
     assert r.exit_code == code, r.output
     assert message in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert not (tmp_path / "cap").exists()
