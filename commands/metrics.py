@@ -555,8 +555,10 @@ def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, output
     directions = _parse_keyed(better, "--better", _direction)
     if None in directions:
         raise UsageProblem("--better needs METRIC=higher|lower|either")
-    new_record = read_metrics(check_input(new, stdin="NEW.json"))
-    base_record = read_metrics(check_input(baseline, stdin="BASELINE.json"))
+    check_input(new, stdin="NEW.json")
+    check_input(baseline, stdin="BASELINE.json")
+    new_record = read_metrics(new)
+    base_record = read_metrics(baseline)
     if new_record.get("kind") != base_record.get("kind"):
         raise DataError(f"kind {new_record.get('kind')!r} differs from the baseline's "
                         f"{base_record.get('kind')!r}", new)
