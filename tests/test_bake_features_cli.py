@@ -193,6 +193,14 @@ def test_usage_errors(tmp_path, hand_file):
     _bad(tmp_path, hand_file, "builtin:sky", "--eye", "1,2", code=2)
     _bad(tmp_path, "builtin:middle", "builtin:sky", code=2)
     assert "--env-res" in _bad(tmp_path, hand_file, "builtin:sky", "--env-res", "banana", code=2)
+    # sizes are WxH (issue 16): the old HxW default 16x32 says what it should be
+    assert "did you mean 32x16" in _bad(tmp_path, hand_file, "builtin:sky", "--env-res", "16x32",
+                                        code=2)
+    # renamed (issue 16): --frames is a count elsewhere; every frame is --all-frames
+    assert "--frames was renamed --all-frames" in _bad(tmp_path, hand_file, "builtin:sky",
+                                                       "--frames", "all", code=2)
+    assert "name it .png" in _bad(tmp_path, hand_file, "builtin:sky", "--preview",
+                                  tmp_path / "sheet.jpg", code=2)
 
 
 def test_no_clobber(tmp_path):

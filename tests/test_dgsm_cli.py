@@ -108,6 +108,28 @@ def test_installed_console_script(scene):
     assert "built in" in p.stderr
 
 
+def test_size_is_width_by_height(scene):
+    """--size WxH, width first as everywhere (issue 16): 8x4 is 8 texels wide, 4 tall."""
+    out = str(scene["dir"] / "wide.exr")
+    r = _run(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+              scene["lights"], "-o", out, "--size", "8x4", "--bins", "4", "-q"])
+    assert r.exit_code == 0, r.output
+    assert read_dgsm(out).transmittance.shape[-2:] == (4, 8)   # [L, K, H, W]
+    _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+            scene["lights"], "-o", out, "--size", "8x4x2"], 2, "WxH")
+
+
+def test_lights_from_stdin(scene):
+    out = scene["dir"] / "piped.exr"
+    text = Path(scene["lights"]).read_text()
+    r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", scene["floor"],
+                                 "--lights", "-", "-o", str(out), "--size", "8", "--bins", "4",
+                                 "-q"], input=text)
+    assert r.exit_code == 0, r.output
+    from relight_cli.formats.exr import read_exr
+    assert read_exr(str(out)).provenance()["inputs"]["lights"]["path"] == "-"
+
+
 def _fails(args, code, *words):
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == code, r.output

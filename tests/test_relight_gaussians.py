@@ -269,6 +269,11 @@ def test_cli_subprocess(files):
     (["avatar.ply", "--probe", "bad_probe.json"], 1, "version 9 is newer"),
     (["avatar.ply", "--probe", "probe.json", "--normals", "stored"], 1, "no stored normals"),
     (["nan.ply", "--probe", "probe.json"], 1, "non-finite"),
+    # renamed (issue 16): dgsm-build's --t-max is metres; relight's clip is --shading-clip
+    (["avatar.ply", "--probe", "probe.json", "--t-max", "2"], 2, "--t-max was renamed "
+                                                                 "--shading-clip"),
+    (["avatar.ply", "--probe", "probe.json", "--preview", "view.exr", "--render", "cam.json"],
+     2, "name it .png"),
 ])
 def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     monkeypatch.chdir(files)

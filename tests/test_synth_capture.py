@@ -166,6 +166,34 @@ def test_bad_input(run_cli, tmp_path, monkeypatch, args, code, message):
     assert not (tmp_path / "cap").exists()
 
 
+@pytest.mark.parametrize("old, value, hint", [("--lights", "6", "--leds"), ("--res", "8", "--size")])
+def test_renamed_options_are_refused_with_their_new_name(run_cli, tmp_path, old, value, hint):
+    """--lights (a count here, a JSON file elsewhere) is --leds; --res R is --size N."""
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", old, value)
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    assert f"{old} was renamed {hint}" in r.output
+    assert not (tmp_path / "cap").exists()
+
+
+def test_size_is_square(run_cli, tmp_path):
+    """The stage's cameras are square: --size N or NxN, a non-square WxH is refused."""
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", "--size", "16x8")
+    assert r.exit_code == 2 and "not square" in r.output, r.output
+    assert not (tmp_path / "cap").exists()
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", *TINY[:-1], "--size", "12x12",
+                "--eval-poses", "0", "-q")
+    assert r.exit_code == 0, r.output
+    assert C.read_capture(str(tmp_path / "cap")).cameras[0].width == 12
+
+
+def test_no_clobber_refuses_an_existing_capture(run_cli, tmp_path):
+    out = tmp_path / "cap"
+    out.mkdir()
+    r = run_cli("synth-capture", "-o", out, *TINY, "--no-clobber")
+    assert r.exit_code == 2 and "--no-clobber" in r.output, r.output
+    assert os.listdir(out) == []
+
+
 def test_bad_output_folders(run_cli, tmp_path):
     (tmp_path / "file").write_text("x")
     r = run_cli("synth-capture", "-o", tmp_path / "file")
