@@ -43,7 +43,7 @@ demo: install
 	$(RELIGHT) relight demo/hand.npz builtin:studio --model physical -o demo/hand_physical.exr \
 		--preview demo/hand_physical.png --aov normal,uv,depth
 	# a small synthetic light-stage capture (fully lit + grouped-light frames, held-out env renders)
-	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --lights 32 --frames 6 --res 96 --eval-poses 1 --eval-cameras 2
+	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --leds 32 --frames 6 --size 96 --eval-poses 1 --eval-cameras 2
 	# RelightableHands' OLAT teacher learned from that capture (tiny preset, ~1 min), with its
 	# validation scores; rendered under an env map (a sum over 16x32 directions) and one near point light
 	$(RELIGHT) train-teacher demo/capture -o demo/teacher.pt --preset tiny --metrics-out demo/teacher_val.json
