@@ -45,7 +45,7 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     """Distill RelightableHands' student from TEACHER.pt (train-teacher) on CAPTURE's
     poses and cameras under the --envs maps, and write the checkpoint -o.
 
-    The teacher's per-direction textures (16x32 directions, each with its own
+    The teacher's per-direction textures (32x16 directions, each with its own
     visibility) are computed once per pose and camera, so every env map's target
     is their weighted sum (linearity of light transport).  The student sees
     bake-features' texel maps of the pose under the env map (diffuse + Phong

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  parse_vector, quiet_option)
+from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_output, log,
+                                  no_clobber_option, parse_vector, quiet_option)
 
 
 @click.command("sh-probe", short_help="Fit an SH light probe to an env map or a Gaussian scene.")
@@ -23,8 +23,8 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="For --degree auto: the high reference degree.")
 @click.option("--at", "at", default=None, metavar="X,Y,Z",
               help="Probe position (metres, world) for a Gaussian scene IN (.ply).")
-@click.option("--face-size", type=click.IntRange(4, 1024), default=64, show_default=True,
-              help="Cube-face resolution rendered for a scene probe.")
+@click.option("--face-size", type=SquareSize(4, 1024), default=64, show_default=True,
+              help="Cube-face size N (or NxN) rendered for a scene probe.")
 @click.option("--near", type=FiniteFloat(0, min_open=True), default=0.01, show_default=True,
               help="Near plane (metres) of the scene probe's cube cameras.")
 @click.option("--nonfinite", type=click.Choice(["error", "zero", "clamp"]), default="error",

@@ -35,7 +35,7 @@ from ._learned import training_options
               help="Ablation (RelightableHands Table 1): no ray-traced visibility input.")
 @click.option("--light-path", type=click.Choice(["linear", "nonlinear", "mlp"]), default=None,
               help="[linear] Ablations (URHand Table 2): nonlinear puts LeakyReLU on the light "
-                   "path; mlp is the holistic baseline (supp. 10.2: a 16x32 lighting map "
+                   "path; mlp is the holistic baseline (supp. 10.2: a 32x16 lighting map "
                    "through one bias-free linear layer) [default: linear].")
 @click.option("--linearity-loss", type=float, default=None, metavar="λ",
               help="[linear] Eq. 17's linearity consistency weight (with --light-path "

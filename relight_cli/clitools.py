@@ -95,17 +95,24 @@ class SquareSize(click.ParamType):
 
     name = "N"
 
+    def __init__(self, minimum: int | None = None, maximum: int | None = None):
+        self.minimum, self.maximum = minimum, maximum
+
     def convert(self, value, param, ctx):
-        if isinstance(value, int):
-            return value
         from .errors import UsageProblem
         what = param.opts[0] if param is not None and param.opts else "size"
-        try:
-            w, h = parse_size(str(value), what, minimum=-(2**31), maximum=2**31)
-        except UsageProblem as exc:
-            self.fail(exc.message, param, ctx)
+        if isinstance(value, int):
+            w = h = value
+        else:
+            try:
+                w, h = parse_size(str(value), what, minimum=-(2**31), maximum=2**31)
+            except UsageProblem as exc:
+                self.fail(exc.message, param, ctx)
         if w != h:
             self.fail(f"{value!r} is not square: this size is N or NxN", param, ctx)
+        if ((self.minimum is not None and w < self.minimum)
+                or (self.maximum is not None and w > self.maximum)):
+            self.fail(f"{value!r} is not in the range {self.minimum}..{self.maximum}", param, ctx)
         return w
 
 

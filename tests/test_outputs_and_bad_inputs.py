@@ -65,6 +65,9 @@ def data():
                     gaussians_from_mesh(room.vertices - [0, 0.2, 0], room.faces))
     (folder / "lights.json").write_text(json.dumps(
         {"format": "relight/lights", "version": 1, "lights": [{"position": [0.0, 1.0, 0.0]}]}))
+    from relight_cli.formats.camera import Camera, write_cameras
+    write_cameras(str(folder / "cam.json"), [Camera.look_at([0, 0.1, 0.6], [0, 0.1, 0], width=8,
+                                                            height=8)])
     r = run("metrics", "image", folder / "img.exr", folder / "img2.exr", "-o", folder / "m.json")
     assert r.exit_code == 0, r.output
     # a tiny capture and teacher (train-teacher, relight --model teacher)
@@ -980,6 +983,12 @@ STDIN_INPUTS = {
     "relight --lights -": (lambda d, o: ["relight", d / "hand.npz", "--lights", "-", "--size",
                                          "8x8", "--tex-res", "8", "--aa", "1", "-o",
                                          o / "r.exr"], "lights.json"),
+    "relight --camera -": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--camera",
+                                         "-", "--tex-res", "8", "--aa", "1", "--env-res", "8x4",
+                                         "-o", o / "r.exr"], "cam.json"),
+    "bake-features --camera -": (lambda d, o: ["bake-features", d / "hand.npz", d / "sky.exr",
+                                               "--camera", "-", "--res", "8", "--env-res", "8x4",
+                                               "-o", o / "f.exr"], "cam.json"),
     "metrics compare NEW -": (lambda d, o: ["metrics", "compare", "-", d / "m.json", "-o",
                                             o / "c.json"], "m.json"),
     "metrics compare BASELINE -": (lambda d, o: ["metrics", "compare", d / "m.json", "-", "-o",
