@@ -16,7 +16,7 @@ from relight_cli.clitools import check_output, log, no_clobber_option, quiet_opt
                    "name); required with --all-frames / several env maps.")
 @click.option("--frame", type=int, default=None, help="Frame to bake [default: 0].")
 @click.option("--all-frames", "frames_all", is_flag=True,
-              help="Bake every frame (the output needs {frame}).")
+              help="Bake every frame (the output needs {frame}; formerly --frames all).")
 @renamed_option("--frames", "--all-frames", why="--frames is a count in other commands")
 @click.option("--mesh", type=click.Choice(["coarse", "fine"]), default="coarse", show_default=True,
               help="Receivers and occluders: the coarse proxy, or the fine mesh (ablations).")

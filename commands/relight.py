@@ -64,7 +64,8 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
 @click.option("--intensity", type=FiniteFloat(0, 1e6), default=1.0, show_default=True,
               help="[Gaussians] Global intensity γ.")
 @click.option("--shading-clip", "t_max", type=FiniteFloat(0, min_open=True), default=None,
-              help="[Gaussians] Clip t_max of the shading factor (default: no clip).")
+              help="[Gaussians] Clip t_max of the shading factor (default: no clip; formerly "
+                   "--t-max).")
 @renamed_option("--t-max", "--shading-clip",
                 why="--t-max is dgsm-build's radial extent in metres")
 @click.option("--normals", type=click.Choice(["auto", "axis", "pca", "stored"]), default="auto",

@@ -15,7 +15,7 @@ from relight_cli.clitools import (SquareSize, log, no_clobber_option, quiet_opti
               help="Capture folder (created; an existing capture of the same settings is resumed).")
 @click.option("--cameras", type=int, default=20, show_default=True, help="Cameras on the dome.")
 @click.option("--leds", type=int, default=64, show_default=True,
-              help="Number of LED point lights on the dome.")
+              help="Number of LED point lights on the dome (formerly --lights).")
 @renamed_option("--lights", "--leds N",
                 why="--lights is a lights JSON file in dgsm-build and relight")
 @click.option("--group", type=int, default=5, show_default=True,
@@ -24,7 +24,7 @@ from relight_cli.clitools import (SquareSize, log, no_clobber_option, quiet_opti
 @click.option("--full-every", type=int, default=3, show_default=True,
               help="Every N-th frame is fully lit (1: all frames fully lit).")
 @click.option("--size", "res", type=SquareSize(), default=128, show_default=True,
-              help="Image size N or NxN (the stage's cameras are square).")
+              help="Image size N or NxN (the stage's cameras are square; formerly --res).")
 @renamed_option("--res", "--size N", why="sizes are --size WxH or N everywhere")
 @click.option("--motion", type=click.Choice(["random", "file"]), default="random",
               show_default=True,

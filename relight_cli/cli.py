@@ -176,7 +176,10 @@ def cli(ctx, debug, quiet):
       writes a JSON output to stdout; binary outputs need a file name whose
       extension says what it is (.exr .png .json .npz .ply .pt);
       progress is a bar on a terminal, else a plain line every few seconds;
-      a closed stdout pipe (... | head) exits quietly with status 141.
+      a closed stdout pipe (... | head) exits quietly with status 141;
+      -q and --debug go before or after the subcommand; an old spelling of a
+      renamed option (synth-capture --lights/--res, relight --t-max,
+      bake-features --frames) is refused, naming the new one.
     """
     ctx.meta["relight.debug"] = debug
     ctx.meta["relight.quiet"] = quiet
