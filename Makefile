@@ -15,6 +15,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[test]'
+	# an editable install skips pyproject's data-files: put the man pages where `man` looks
+	# for this venv (PREFIX/share/man, found from PATH); a plain `pip install .` installs them itself
+	mkdir -p $(VENV)/share/man/man1 && cp man/*.1 $(VENV)/share/man/man1/
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -131,6 +134,7 @@ test: install
 
 man: install
 	$(PY) -m relight_cli.manpage man
+	mkdir -p $(VENV)/share/man/man1 && cp man/*.1 $(VENV)/share/man/man1/
 
 benchmarks: install
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
