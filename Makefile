@@ -8,7 +8,7 @@ PY     := $(VENV)/bin/python
 RELIGHT := $(VENV)/bin/relight
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test test-fast man benchmarks clean
+.PHONY: install demo example test test-fast man benchmarks clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -129,6 +129,11 @@ demo: install
 	fi
 	@echo "demo outputs are in demo/"
 
+# The README's example pipeline, exactly as written there (tools/readme_example.py extracts
+# it); outputs in example/.  Needs ../shared/data (a Poly Haven HDRI and the 3DGS donut).
+example: install
+	$(PY) tools/readme_example.py
+
 test: install
 	$(PY) -m pytest
 
@@ -140,4 +145,4 @@ benchmarks: install
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf demo build *.egg-info .pytest_cache
+	rm -rf demo example build *.egg-info .pytest_cache
