@@ -16,6 +16,7 @@ import re
 import numpy as np
 import pytest
 from conftest import run_relight, shared_path
+from test_fit_geometry_cli import _one_error
 
 from relight_cli.errors import DataError
 from relight_cli.formats.keypoints import read_keypoints
@@ -85,16 +86,6 @@ def _write(tmp_path, obj, name="capture.json"):
 def _with_nan(text):
     """The JSON text with its first pipPosition x replaced by a NaN literal."""
     return re.sub(r'("pipPosition": \[)[^,]+', r"\1NaN", text, count=1)
-
-
-def _one_error(result, code, needle=None):
-    text = result.output
-    assert result.exit_code == code, text
-    lines = [line for line in text.strip().splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("relight fit-geometry: error:"), text
-    assert "Traceback" not in text
-    if needle:
-        assert needle in lines[0], text
 
 
 # ----------------------------------------------------------------------------- the mapping
