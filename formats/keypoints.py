@@ -136,10 +136,19 @@ def _keypoints_from_json(obj, path: str, n_joints: int) -> Keypoints:
 
 
 def write_keypoints(path: str, kp: Keypoints, provenance: dict | None = None) -> None:
-    """Write keypoints as JSON (N × J × 4 with confidences), atomically."""
+    """Write keypoints as JSON (N × J × 4 with confidences), atomically.
+
+    Missing joints (confidence 0) are written as 0, 0, 0 with confidence 0 —
+    the format's only missing marker (JSON has no NaN) — whatever their
+    coordinates were (a Leap reader leaves them NaN).
+    """
     from relight_cli.provenance import write_text_atomic
 
-    data = np.concatenate([kp.positions, kp.confidence[..., None]], -1)
+    missing = kp.confidence <= 0
+    positions = np.where(missing[..., None], 0.0, kp.positions)
+    if not np.isfinite(positions).all():
+        raise ValueError("observed keypoints (confidence > 0) must be finite")
+    data = np.concatenate([positions, kp.confidence[..., None]], -1)
     obj = {"format": FORMAT, "version": VERSION, "frames": [int(f) for f in kp.frames],
            "keypoints": data.tolist()}
     if kp.joint_names is not None:

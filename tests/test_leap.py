@@ -108,6 +108,18 @@ def test_mapping_units_axes_and_missing_joints(truth):
     assert kp.source["never_observed_joints"] == [JOINT_NAMES[j] for j in NEVER]
 
 
+def test_exported_keypoints_keep_missing_joints_missing(truth, tmp_path):
+    """Leap keypoints written as relight/keypoints: missing joints stay missing
+    (confidence 0), measured ones round-trip."""
+    from relight_cli.formats.keypoints import write_keypoints
+    kp = leap_keypoints(leap_recording([[(1, "right", truth[4][0])]]), "x.json")
+    path = str(tmp_path / "kp.json")
+    write_keypoints(path, kp)
+    back = read_keypoints(path)
+    assert back.source is None and (back.confidence[:, NEVER] == 0).all()
+    np.testing.assert_allclose(back.positions[:, OBSERVED], kp.positions[:, OBSERVED])
+
+
 def test_wrist_and_carp_positions_are_used_when_present(truth):
     joints = truth[4]
     kp = leap_keypoints(leap_recording([[(1, "right", joints[0])]], extra=True), "x.json")
