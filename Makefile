@@ -38,6 +38,17 @@ demo: install
 	# the default hand (built-in model, fist pose) and a preview
 	$(RELIGHT) fit-geometry --pose fist -o demo/hand.npz --preview demo/hand.png
 	$(RELIGHT) fit-geometry --pose relaxed --two-hands -o demo/hands2.npz --preview demo/hands2.png
+	# real hand motion (if ../shared/data is here): a Leap Motion pinch, every 10th frame fitted, the
+	# frames between filled by slerp; rendered open (frame 0), closing (100) and pinched (180), palm side
+	if [ -f $(SHARED)/hands/leap/pinch.json ]; then \
+	  $(RELIGHT) fit-geometry --keypoints $(SHARED)/hands/leap/pinch.json --frame-range 0:300:10 \
+	    --interpolate -o demo/leap_hand.npz --report demo/leap_fit.json && \
+	  $(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/leap_cam.json', [Camera.look_at([-0.2,0.0,-0.2],[0.03,0.16,0.03],width=256,height=256,fov_y_deg=35)])" && \
+	  for k in 0 100 180; do \
+	    $(RELIGHT) relight demo/leap_hand.npz builtin:studio --model physical --camera demo/leap_cam.json \
+	      --frame $$k -o demo/leap_hand_$$k.exr --preview demo/leap_hand_$$k.png || exit 1; \
+	  done; \
+	fi
 	# texel-aligned, visibility-aware shading features under two environments (visibility traced once)
 	$(RELIGHT) bake-features demo/hand.npz builtin:sky builtin:studio -o 'demo/feats_{env}.exr' \
 		--per-vertex 'demo/feats_{env}.npz' --preview 'demo/feats_{env}.png' --specular both
