@@ -78,12 +78,15 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
 
     Each OCCLUDER and SCENE is a 3DGS PLY file, a triangle mesh (.obj .glb
     .gltf .stl .off, turned into flat surface Gaussians with their texture or
-    face colours), or builtin:hand | builtin:room | builtin:sphere.  An
+    face colours), a posed hand.npz (fit-geometry's output: its fine mesh at frame
+    0, or frame=K, as flat Gaussians with the hand's albedo; --occluders-out then
+    exports it as a PLY), or builtin:hand | builtin:room | builtin:sphere.  An
     OCCLUDER may carry its own placement, SOURCE:KEY=VALUE;...  with keys
     fit=SIZE (scale the opacity-weighted 1-99 % box of its centres to SIZE
     metres on its largest side and centre it at the origin), centre, scale=S,
     rotate-x|y|z=DEG, on-floor (rest that box's bottom on y = 0) and
-    translate=X,Y,Z, applied in that order whatever the order written.
+    translate=X,Y,Z, applied in that order whatever the order written
+    (frame=K only picks a hand.npz's pose).
 
     With several OCCLUDERs, one table per occluder is built (all sharing t_max)
     and stored besides their product: scene receivers read the product, and
@@ -323,7 +326,7 @@ def load_placed(source: str, placement, spec: str, offset=None):
     from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.gaussians.placement import place
 
-    g = load_gaussians(source)
+    g = load_gaussians(source, frame=getattr(placement, "frame", None))
     if len(g) == 0:
         raise DataError("no Gaussians", source)
     try:

@@ -143,6 +143,9 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     DGSM of several OCCLUDERs, each object is also multiplied by the
     transmittance through the OTHER objects (never its own).  Writes the relit
     objects as one PLY, or with --render an EXR view of receivers + objects.
+    A HAND.npz given with --probe, --dgsm, --receivers, --object or
+    --shadow-matte is its posed hand as Gaussians (fine mesh, the hand's
+    albedo; frame=K in its placement picks the pose), as in dgsm-build.
 
     IN = HAND.npz (or builtin:right|left|two[:POSE]) with --model physical:
     render the posed hand(s) under the env map ENV (EXR/HDR or
@@ -181,6 +184,11 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     lower = split_spec(input)[0].lower()
     gaussian_in = (lower.endswith((".ply", ".obj", ".glb", ".gltf", ".stl", ".off"))
                    or lower in ("builtin:hand", "builtin:room", "builtin:sphere"))
+    # a hand .npz given Gaussian options is the posed hand made into Gaussians (the bridge
+    # from the hand half to the Gaussian half; frame=K in its placement picks the pose)
+    if lower.endswith(".npz") and any(v is not None and v != () for v in
+                                      (probe, dgsm, receivers, shadow_matte, objects)):
+        gaussian_in = True
     if objects and not gaussian_in:
         raise UsageProblem("--object inserts Gaussian objects beside IN = AVATAR.ply (or a mesh, "
                            "builtin:hand|room|sphere); it does not apply to a hand .npz", input)
