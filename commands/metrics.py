@@ -524,11 +524,13 @@ def _direction(text):
               help="Also write the comparison as JSON (relight/metrics-comparison, "
                    "formats/metrics_json.md), written even when something regressed; with '-' "
                    "it goes to stdout and the table to stderr.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Write the comparison JSON to stdout (the same as -o -).")
 @no_clobber_option
 @quiet_option
 @click.pass_context
-def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, output, no_clobber,
-                    quiet):
+def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, output, as_json,
+                    no_clobber, quiet):
     """Compare metrics record NEW.json with BASELINE.json and print what moved.
 
     Each metric regresses when it moved in its bad direction by more than
@@ -549,6 +551,10 @@ def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, output
     from relight_cli.formats.metrics_json import decode_value, flatten, read_metrics
     from relight_cli.metrics.compare import compare_metrics, format_table
 
+    if as_json:
+        if output not in (None, "-"):
+            raise UsageProblem("--json writes the comparison to stdout; it cannot go with -o FILE")
+        output = "-"
     check_output(output, no_clobber, kind="json")
     rtols = _parse_keyed(rtol, "--rtol", _tolerance)
     atols = _parse_keyed(atol, "--atol", _tolerance)

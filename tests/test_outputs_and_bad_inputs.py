@@ -922,6 +922,8 @@ JSON_TO_STDOUT = {
                       "relight/metrics"),
     "metrics compare": (lambda d: ["metrics", "compare", d / "m.json", d / "m.json", "-o", "-"],
                         "relight/metrics-comparison"),
+    "metrics compare --json": (lambda d: ["metrics", "compare", d / "m.json", d / "m.json",
+                                          "--json"], "relight/metrics-comparison"),
     "dgsm-build --lights-out": (lambda d: ["dgsm-build", d / "ball.ply", "--receivers",
                                            d / "room.ply", "--lights", d / "lights.json",
                                            "--size", "4", "--bins", "2", "-o", "{t}/s.exr",
