@@ -8,13 +8,16 @@ PY     := $(VENV)/bin/python
 RELIGHT := $(VENV)/bin/relight
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test test-fast man benchmarks clean
+.PHONY: install demo example test test-fast man benchmarks clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[test]'
+	# an editable install skips pyproject's data-files: put the man pages where `man` looks
+	# for this venv (PREFIX/share/man, found from PATH); a plain `pip install .` installs them itself
+	mkdir -p $(VENV)/share/man/man1 && cp man/*.1 $(VENV)/share/man/man1/
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -35,6 +38,17 @@ demo: install
 	# the default hand (built-in model, fist pose) and a preview
 	$(RELIGHT) fit-geometry --pose fist -o demo/hand.npz --preview demo/hand.png
 	$(RELIGHT) fit-geometry --pose relaxed --two-hands -o demo/hands2.npz --preview demo/hands2.png
+	# real hand motion (if ../shared/data is here): a Leap Motion pinch, every 10th frame fitted, the
+	# frames between filled by slerp; rendered open (frame 0), closing (100) and pinched (180), palm side
+	if [ -f $(SHARED)/hands/leap/pinch.json ]; then \
+	  $(RELIGHT) fit-geometry --keypoints $(SHARED)/hands/leap/pinch.json --frame-range 0:300:10 \
+	    --interpolate -o demo/leap_hand.npz --report demo/leap_fit.json && \
+	  $(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/leap_cam.json', [Camera.look_at([-0.2,0.0,-0.2],[0.03,0.16,0.03],width=256,height=256,fov_y_deg=35)])" && \
+	  for k in 0 100 180; do \
+	    $(RELIGHT) relight demo/leap_hand.npz builtin:studio --model physical --camera demo/leap_cam.json \
+	      --frame $$k -o demo/leap_hand_$$k.exr --preview demo/leap_hand_$$k.png || exit 1; \
+	  done; \
+	fi
 	# texel-aligned, visibility-aware shading features under two environments (visibility traced once)
 	$(RELIGHT) bake-features demo/hand.npz builtin:sky builtin:studio -o 'demo/feats_{env}.exr' \
 		--per-vertex 'demo/feats_{env}.npz' --preview 'demo/feats_{env}.png' --specular both
@@ -50,7 +64,7 @@ demo: install
 		-o demo/hand_cam001.exr --preview demo/hand_cam001.png
 	$(RELIGHT) camera demo/hand_cam001.exr -o demo/hand_cam001_from_exr.json
 	# a small synthetic light-stage capture (fully lit + grouped-light frames, held-out env renders)
-	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --lights 32 --frames 6 --res 96 --eval-poses 1 --eval-cameras 2
+	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --leds 32 --frames 6 --size 96 --eval-poses 1 --eval-cameras 2
 	# RelightableHands' OLAT teacher learned from that capture (tiny preset, ~1 min), with its
 	# validation scores; rendered under an env map (a sum over 16x32 directions) and one near point light
 	$(RELIGHT) train-teacher demo/capture -o demo/teacher.pt --preset tiny --metrics-out demo/teacher_val.json
@@ -133,14 +147,20 @@ demo: install
 	fi
 	@echo "demo outputs are in demo/"
 
+# The README's example pipeline, exactly as written there (tools/readme_example.py extracts
+# it); outputs in example/.  Needs ../shared/data (a Poly Haven HDRI and the 3DGS donut).
+example: install
+	$(PY) tools/readme_example.py
+
 test: install
 	$(PY) -m pytest
 
 man: install
 	$(PY) -m relight_cli.manpage man
+	mkdir -p $(VENV)/share/man/man1 && cp man/*.1 $(VENV)/share/man/man1/
 
 benchmarks: install
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf demo build *.egg-info .pytest_cache
+	rm -rf demo example build *.egg-info .pytest_cache

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  parse_vector, quiet_option, seed_option)
+from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_output, log,
+                                  no_clobber_option, parse_vector, quiet_option, renamed_option,
+                                  seed_option)
 
 
 @click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows), or a hand.")
@@ -23,7 +24,8 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("-o", "--output", required=True,
               help="Relit Gaussians PLY, or with --camera an EXR image; for a hand the EXR image.")
 @click.option("--probe", default=None, metavar="PROBE.json",
-              help="[Gaussians] SH light probe (relight sh-probe) lighting the avatar.")
+              help="[Gaussians] SH light probe (relight sh-probe) lighting the avatar ('-': "
+                   "stdin).")
 @click.option("--dgsm", default=None, metavar="SHADOWS.exr",
               help="[Gaussians] Deep Gaussian Shadow Map (relight dgsm-build) darkening --receivers.")
 @click.option("--receivers", default=None, metavar="SCENE.ply",
@@ -61,19 +63,21 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="[Gaussians] Cosine lobe exponent q of the transfer (1 = Lambertian).")
 @click.option("--intensity", type=FiniteFloat(0, 1e6), default=1.0, show_default=True,
               help="[Gaussians] Global intensity γ.")
-@click.option("--t-max", "t_max", type=FiniteFloat(0, min_open=True), default=None,
-              help="[Gaussians] Clip of the shading factor (default: no clip).")
+@click.option("--shading-clip", "t_max", type=FiniteFloat(0, min_open=True), default=None,
+              help="[Gaussians] Clip t_max of the shading factor (default: no clip; formerly "
+                   "--t-max).")
+@renamed_option("--t-max", "--shading-clip",
+                why="--t-max is dgsm-build's radial extent in metres")
 @click.option("--normals", type=click.Choice(["auto", "axis", "pca", "stored"]), default="auto",
               show_default=True,
               help="[Gaussians] Normals: shortest ellipsoid axis, local PCA of neighbours, the "
                    "file's nx ny nz; auto = stored if present, else axis. Oriented outward.")
 @click.option("--camera", "camera", default=None, metavar="CAMERA.json",
-              help="The OpenCV camera of the view (relight camera; formats/camera.md). "
-                   "Gaussians: render receivers + relit objects to -o as an EXR (R, G, B, A) "
-                   "instead of writing a PLY. Hand: default a camera framing the hands from "
-                   "the front.")
-@click.option("--render", "render_renamed", default=None, hidden=True,
-              help="Renamed --camera.")
+              help="The OpenCV camera of the view (relight camera; formats/camera.md; '-': "
+                   "stdin). Gaussians: render receivers + relit objects to -o as an EXR (R, G, "
+                   "B, A) instead of writing a PLY (formerly --render). Hand: default a camera "
+                   "framing the hands from the front.")
+@renamed_option("--render", "--camera", why="one camera option for hands and Gaussians")
 @click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
               help="Background radiance of the rendered image.")
 @click.option("--model", default=None, metavar="NAME",
@@ -85,17 +89,18 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None,
               help="[hand] Where a learned model runs [default: auto].")
 @click.option("--size", "hand_size", default=None, metavar="WxH",
-              help="[hand] Image size of the default camera [default: 256x256].")
+              help="[hand] Image size WxH (or N) of the default camera [default: 256x256].")
 @click.option("--lights", "hand_lights", default=None, metavar="LIGHTS.json",
-              help="[hand] Point lights (relight/lights JSON): radiance falls as 1/r².")
+              help="[hand] Point lights (relight/lights JSON, '-': stdin): radiance falls as "
+                   "1/r².")
 @click.option("--frame", "hand_frame", type=int, default=None,
               help="[hand] Frame of HAND to render [default: 0].")
 @click.option("--mesh", "hand_mesh", type=click.Choice(["fine", "coarse"]), default=None,
               help="[hand] Mesh rendered (and shadowing) [default: fine].")
-@click.option("--env-res", "env_res", default=None, metavar="HxW",
-              help="[hand] Lat-long grid the env map is integrated over, exactly as "
-                   "bake-features --env-res [default: 16x32].")
-@click.option("--tex-res", "tex_res", type=int, default=None,
+@click.option("--env-res", "env_res", default=None, metavar="WxH",
+              help="[hand] Lat-long grid WxH (width first) the env map is integrated over, "
+                   "exactly as bake-features --env-res [default: 32x16].")
+@click.option("--tex-res", "tex_res", type=SquareSize(), default=None,
               help="[hand] Texture-space lighting/SSS map size N (N×N) [default: 256].")
 @click.option("--aa", type=int, default=None,
               help="[hand] Stratified sub-pixel samples per axis (aa² per pixel) [default: 2].")
@@ -118,7 +123,7 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @quiet_option
 def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
             shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals,
-            camera, render_renamed, background, model, checkpoint, device, hand_size,
+            camera, background, model, checkpoint, device, hand_size,
             hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
             preview, seed, no_clobber, quiet):
@@ -128,7 +133,8 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     IN = AVATAR.ply (3DGS Gaussians; also a mesh or builtin:hand|room|sphere,
     optionally placed as SOURCE:KEY=VALUE;... like dgsm-build's OCCLUDERs):
     per-Gaussian SH radiance transfer from --probe (paper Eq. 9-10): colour =
-    γ · albedo · clip(S(n), 0, t_max), S the cosine-lobe (exponent q) weighted
+    γ · albedo · clip(S(n), 0, t_max), t_max = --shading-clip, S the cosine-lobe
+    (exponent q) weighted
     mean probe radiance around the normal n (normals per object).  --object
     inserts more objects, relit the same way.  With --dgsm and --receivers, each
     light's transmittance attenuates that light's share of a receiver's direct
@@ -138,6 +144,9 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     DGSM of several OCCLUDERs, each object is also multiplied by the
     transmittance through the OTHER objects (never its own).  Writes the relit
     objects as one PLY, or with --camera an EXR view of receivers + objects.
+    A HAND.npz given with --probe, --dgsm, --receivers, --object or
+    --shadow-matte is its posed hand as Gaussians (fine mesh, the hand's
+    albedo; frame=K in its placement picks the pose), as in dgsm-build.
 
     IN = HAND.npz (or builtin:right|left|two[:POSE]) with --model physical:
     render the posed hand(s) under the env map ENV (EXR/HDR or
@@ -171,13 +180,16 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     """
     from relight_cli.errors import UsageProblem
 
-    if render_renamed is not None:
-        raise UsageProblem("--render is now --camera: give --camera CAMERA.json")
     from relight_cli.gaussians.placement import split_spec
 
     lower = split_spec(input)[0].lower()
     gaussian_in = (lower.endswith((".ply", ".obj", ".glb", ".gltf", ".stl", ".off"))
                    or lower in ("builtin:hand", "builtin:room", "builtin:sphere"))
+    # a hand .npz given Gaussian options is the posed hand made into Gaussians (the bridge
+    # from the hand half to the Gaussian half; frame=K in its placement picks the pose)
+    if lower.endswith(".npz") and any(v is not None and v != () for v in
+                                      (probe, dgsm, receivers, shadow_matte, objects)):
+        gaussian_in = True
     if objects and not gaussian_in:
         raise UsageProblem("--object inserts Gaussian objects beside IN = AVATAR.ply (or a mesh, "
                            "builtin:hand|room|sphere); it does not apply to a hand .npz", input)
@@ -235,15 +247,19 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     if camera is None and not output.lower().endswith(".ply"):
         raise UsageProblem("-o is the relit Gaussians PLY (name it .ply), or use --camera CAM "
                            "-o IMAGE.exr", output)
-    for path in (output, receivers_out, preview):
-        check_output(path, no_clobber)
+    check_output(output, no_clobber)
+    check_output(receivers_out, no_clobber, kind="ply", what="--receivers-out")
+    check_output(preview, no_clobber, kind="png", what="--preview")
     from relight_cli.commands.dgsm_build import load_placed, parse_occluder
 
     specs = [input] + list(objects)
     parsed = [parse_occluder(spec, "IN/--object") for spec in specs]
-    for path in [source for source, _ in parsed] + [probe, dgsm, receivers, camera]:
+    for path in [source for source, _ in parsed] + [dgsm, receivers]:
         if path is not None:
             check_input(path)
+    for path, role in ((probe, "--probe"), (camera, "--camera")):
+        if path is not None:
+            check_input(path, stdin=role)
 
     start = time.perf_counter()
     if shadow_matte is not None:
@@ -463,11 +479,11 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
             if not 0 < rough_value <= 1:
                 raise UsageProblem(f"--roughness must be in (0, 1], got {roughness_map}")
     bg = parse_vector(background, 3, "--background", minimum=0)
-    for path in (output, preview):
-        check_output(path, no_clobber)
-    for path in (camera, hand_lights, albedo_map):
+    check_output(output, no_clobber, kind="exr")
+    check_output(preview, no_clobber, kind="png", what="--preview")
+    for path, role in ((camera, "--camera"), (hand_lights, "--lights"), (albedo_map, None)):
         if path is not None:
-            check_input(path)
+            check_input(path, stdin=role)
 
     # ---- inputs (data errors)
     start = time.perf_counter()
@@ -585,11 +601,11 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
     if aa is not None and not 1 <= aa <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
     bg = parse_vector(background, 3, "--background")
-    for path in (output, preview):
-        check_output(path, no_clobber)
-    for path in (checkpoint, camera, hand_lights):
+    check_output(output, no_clobber, kind="exr")
+    check_output(preview, no_clobber, kind="png", what="--preview")
+    for path, role in ((checkpoint, None), (camera, "--camera"), (hand_lights, "--lights")):
         if path is not None:
-            check_input(path)
+            check_input(path, stdin=role)
 
     # ---- inputs (data errors)
     start = time.perf_counter()
@@ -730,8 +746,8 @@ def _write_student_render(net, config, ckpt, data, frame, meshes, view, envmap, 
         env_h, env_w = config.env_res            # the student's own grid
     if (env_h, env_w) != tuple(config.env_res):
         from relight_cli.errors import UsageProblem
-        raise UsageProblem(f"the student was trained on a {config.env_res[0]}x"
-                           f"{config.env_res[1]} env grid; --env-res must match")
+        raise UsageProblem(f"the student was trained on a {config.env_res[1]}x"
+                           f"{config.env_res[0]} (WxH) env grid; --env-res must match")
     seconds = {}
     t0 = time.perf_counter()
     features = D.StudentFeatures(config)
@@ -768,30 +784,20 @@ def _hand_view_options(env, hand_lights, output, camera, hand_size, hand_frame, 
     from relight_cli.errors import UsageProblem
     if env is None and hand_lights is None:
         raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
-    if not output.lower().endswith(".exr"):
-        raise UsageProblem("-o is the rendered EXR image (name it .exr)", output)
+    from relight_cli.clitools import check_extension
+    check_extension(output, "exr")
     if camera is not None and hand_size is not None:
         raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
     width, height = 256, 256
     if hand_size is not None:
         from relight_cli.clitools import parse_size
-        width, height = parse_size(hand_size, "--size")
-        if width > 8192 or height > 8192:
-            raise UsageProblem(f"--size must be at most 8192, got {hand_size!r}")
+        width, height = parse_size(hand_size, "--size", maximum=8192)
     frame = 0 if hand_frame is None else hand_frame
     if frame < 0:
         raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
-    env_h, env_w = _parse_env_res(env_res or "16x32")
+    from relight_cli.clitools import parse_env_res
+    env_w, env_h = parse_env_res(env_res or "32x16")
     return width, height, frame, env_h, env_w
-
-
-def _parse_env_res(text: str) -> tuple[int, int]:
-    from relight_cli.commands.bake_features import _parse_hw
-    from relight_cli.errors import UsageProblem
-    h, w = _parse_hw(text, "--env-res")
-    if h < 2 or w < 2:
-        raise UsageProblem("--env-res needs at least 2x2 directions")
-    return h, w
 
 
 def _read_dgsm(path: str):
