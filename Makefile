@@ -43,7 +43,7 @@ demo: install
 	if [ -f $(SHARED)/hands/leap/pinch.json ]; then \
 	  $(RELIGHT) fit-geometry --keypoints $(SHARED)/hands/leap/pinch.json --frame-range 0:300:10 \
 	    --interpolate -o demo/leap_hand.npz --report demo/leap_fit.json && \
-	  $(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/leap_cam.json', [Camera.look_at([-0.2,0.0,-0.2],[0.03,0.16,0.03],width=256,height=256,fov_y_deg=35)])" && \
+	  $(RELIGHT) camera --eye -0.2,0.0,-0.2 --target 0.03,0.16,0.03 --fov 35 --size 256x256 -o demo/leap_cam.json && \
 	  for k in 0 100 180; do \
 	    $(RELIGHT) relight demo/leap_hand.npz builtin:studio --model physical --camera demo/leap_cam.json \
 	      --frame $$k -o demo/leap_hand_$$k.exr --preview demo/leap_hand_$$k.png || exit 1; \
@@ -59,10 +59,10 @@ demo: install
 	# cameras: a ring of 8 around the hand, one of them picked to render the hand (the EXR header
 	# records it: worldToCamera, worldToNDC), and that camera read back from the render
 	$(RELIGHT) camera --orbit 8 --radius 0.4 --elevation 25 --target 0,0.03,0.02 --fov 30 --size 192x192 -o demo/hand_orbit.json
-	$(RELIGHT) camera demo/hand_orbit.json --select cam001 -o demo/hand_cam001.json
+	$(RELIGHT) camera --from demo/hand_orbit.json --select cam001 -o demo/hand_cam001.json
 	$(RELIGHT) relight demo/hand.npz builtin:studio --model physical --camera demo/hand_cam001.json \
 		-o demo/hand_cam001.exr --preview demo/hand_cam001.png
-	$(RELIGHT) camera demo/hand_cam001.exr -o demo/hand_cam001_from_exr.json
+	$(RELIGHT) camera --from demo/hand_cam001.exr -o demo/hand_cam001_from_exr.json
 	# a small synthetic light-stage capture (fully lit + grouped-light frames, held-out env renders)
 	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --leds 32 --frames 6 --size 96 --eval-poses 1 --eval-cameras 2
 	# RelightableHands' OLAT teacher learned from that capture (tiny preset, ~1 min), with its

@@ -11,7 +11,6 @@ from relight_cli.clitools import (FiniteFloat, check_output, log, no_clobber_opt
 
 
 @click.command("camera", short_help="Make cameras (look-at, orbit, dome) or import them (COLMAP, nerfstudio).")
-@click.argument("input", metavar="[IN]", required=False, default=None)
 @click.option("-o", "--output", required=True, help="Camera JSON ('-' for stdout).")
 @click.option("--eye", default=None, metavar="X,Y,Z",
               help="Look-at: the camera centre (metres, world).")
@@ -41,21 +40,25 @@ from relight_cli.clitools import (FiniteFloat, check_output, log, no_clobber_opt
 @click.option("--name", default=None,
               help="Look-at: the camera's name; orbit/dome: the names' prefix [default: cam → "
                    "cam000, cam001, ...].")
+@click.option("--from", "source", default=None, metavar="SOURCE",
+              help="Import the cameras of SOURCE: a COLMAP text model (folder, cameras.txt or "
+                   "images.txt), a nerfstudio transforms.json, a relight camera or capture "
+                   "JSON, or an EXR render ('-': JSON on stdin).")
 @click.option("--select", default=None, metavar="NAME[,NAME...]",
-              help="Keep only these cameras (by name, in this order) of IN or of the rig.")
+              help="Keep only these cameras (by name, in this order) of --from or of the rig.")
 @click.option("--drop-distortion", is_flag=True,
               help="Import: ignore the lens distortion of COLMAP SIMPLE_RADIAL, RADIAL, OPENCV, "
                    "FULL_OPENCV or nerfstudio OPENCV cameras (refused by default).")
 @no_clobber_option
 @quiet_option
-def command(input, output, eye, target, up, fov, size, orbit, dome, radius, elevation, azimuth,
-            name, select, drop_distortion, no_clobber, quiet):
+def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, azimuth,
+            name, source, select, drop_distortion, no_clobber, quiet):
     """Write cameras as relight/camera JSON (formats/camera.md): OpenCV pinhole
     K, world→camera R, t, width, height, name.  One camera is a JSON object,
     several a rig ({"cameras": [...]}).
 
     \b
-    Make one (no IN):
+    Make them:
       --eye X,Y,Z [--target X,Y,Z] [--up X,Y,Z]   a look-at camera
       --orbit N --radius R [--elevation DEG,...]   rings of N cameras around --target
       --dome N --radius R [--elevation MIN]        N cameras over a dome around --target
@@ -65,15 +68,16 @@ def command(input, output, eye, target, up, fov, size, orbit, dome, radius, elev
     elevation up in their image, which stays defined straight above.
 
     \b
-    Or import IN:
+    Or import them, --from SOURCE:
       a COLMAP text model: a folder with cameras.txt and images.txt (or either file);
         models SIMPLE_PINHOLE, PINHOLE; SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV
         only without distortion, or with --drop-distortion; one camera per image,
         named after it, sorted by name
-      a nerfstudio / instant-ngp transforms.json ('-' reads it from stdin): one
-        camera per frame, named by its file_path, in file order
-      a relight/camera JSON (to --select from a rig), or an EXR render (its
-        worldToCamera and worldToNDC header attributes)
+      a nerfstudio / instant-ngp transforms.json: one camera per frame, named by
+        its file_path, in file order
+      a relight camera JSON (a rig to --select from) or capture.json (its rig)
+      an EXR render: its worldToCamera and worldToNDC header attributes
+      '-': any of the JSON ones on stdin
     COLMAP and nerfstudio put the centre of the top-left pixel at (0.5, 0.5),
     relight at (0, 0): the principal point moves by -0.5 pixel.  nerfstudio's
     camera→world OpenGL poses (y up, looking down -z) become OpenCV's world→camera.
@@ -85,9 +89,9 @@ def command(input, output, eye, target, up, fov, size, orbit, dome, radius, elev
       relight camera --eye 0.45,0.55,0.6 --target 0,0.15,0 --fov 45 --size 320x240 -o cam.json
       relight camera --orbit 8 --radius 0.6 --elevation 15,45 --target 0,0.1,0 -o rig.json
       relight camera --dome 40 --radius 1 --elevation -20 --size 128x128 -o dome.json
-      relight camera sparse/0 -o colmap_cams.json
-      relight camera transforms.json --select images/frame_00001.png -o cam.json
-      cat transforms.json | relight camera - -o - | jq '.cameras | length'
+      relight camera --from sparse/0 -o colmap_cams.json
+      relight camera --from capture/capture.json --select cam000 -o cam000.json
+      cat transforms.json | relight camera --from - -o - | jq '.cameras | length'
     """
     from relight_cli import cameras as C
     from relight_cli.errors import UsageProblem
@@ -96,21 +100,20 @@ def command(input, output, eye, target, up, fov, size, orbit, dome, radius, elev
 
     # ---- usage checks before any work
     made = {"--eye": eye, "--orbit": orbit, "--dome": dome}
-    modes = [k for k, v in made.items() if v is not None] + (["IN"] if input is not None else [])
+    modes = [k for k, v in {**made, "--from": source}.items() if v is not None]
     if len(modes) != 1:
-        raise UsageProblem("give exactly one of IN (to import), --eye (look-at), --orbit N or "
-                           "--dome N" + (f"; got {', '.join(modes)}" if modes else ""))
+        raise UsageProblem("give exactly one of --eye (look-at), --orbit N, --dome N or --from "
+                           "SOURCE (import)" + (f"; got {', '.join(modes)}" if modes else ""))
     synthetic = {"--target": target, "--up": up, "--fov": fov, "--size": size,
                  "--radius": radius, "--elevation": elevation, "--azimuth": azimuth,
                  "--name": name}
-    if input is not None:
+    if source is not None:
         given = [k for k, v in synthetic.items() if v is not None]
         if given:
-            raise UsageProblem(f"{', '.join(given)} make cameras; they do not apply to an "
-                               f"imported IN")
+            raise UsageProblem(f"{', '.join(given)} make cameras; they do not apply to --from")
     else:
         if drop_distortion:
-            raise UsageProblem("--drop-distortion applies to an imported IN")
+            raise UsageProblem("--drop-distortion applies to imported cameras (--from)")
         rig_only = {"--radius": radius, "--elevation": elevation, "--azimuth": azimuth}
         if eye is not None:
             given = [k for k, v in rig_only.items() if v is not None]
@@ -122,9 +125,7 @@ def command(input, output, eye, target, up, fov, size, orbit, dome, radius, elev
                                    "direction of increasing elevation up")
             if radius is None:
                 raise UsageProblem(f"{modes[0]} needs --radius R (metres)")
-    if not output.lower().endswith(".json") and output != "-":
-        raise UsageProblem("-o is a camera JSON (name it .json, or '-' for stdout)", output)
-    check_output(output, no_clobber, text=True)
+    check_output(output, no_clobber, kind="json")
     names = None
     if select is not None:
         names = [n.strip() for n in select.split(",") if n.strip()]
@@ -136,7 +137,7 @@ def command(input, output, eye, target, up, fov, size, orbit, dome, radius, elev
     # ---- cameras
     settings: dict = {}
     inputs: dict = {}
-    if input is None:
+    if source is None:
         width, height = 256, 256
         if size is not None:
             from relight_cli.clitools import parse_size
@@ -167,15 +168,15 @@ def command(input, output, eye, target, up, fov, size, orbit, dome, radius, elev
                 settings.update(mode="dome", n=dome)
             settings.update(radius=radius, elevation=elevations, azimuth=start)
     else:
-        cameras, inputs, source = _import(input, drop_distortion, settings)
-        settings.update(mode="import", source=source, drop_distortion=drop_distortion)
+        cameras, inputs, kind = _import(source, drop_distortion)
+        settings.update(mode="import", source=kind, drop_distortion=drop_distortion)
     if names is not None:
         try:
             cameras = C.select(cameras, names)
         except KeyError as exc:
             listed = ", ".join(c.name or "''" for c in cameras[:6])
             raise UsageProblem(f"--select: no camera named {exc.args[0]!r} (cameras: {listed}"
-                               f"{', ...' if len(cameras) > 6 else ''})", input) from None
+                               f"{', ...' if len(cameras) > 6 else ''})", source) from None
         settings["select"] = names
     record = provenance(FORMAT, VERSION, inputs, settings)
     write_cameras(output, cameras, record)
@@ -199,27 +200,20 @@ def _elevations(text, dome: bool) -> list[float]:
     return values
 
 
-def _import(path: str, drop_distortion: bool, settings: dict):
-    """(cameras, provenance inputs, what kind of source) of IN; stdin, which has no file
-    to hash, is recorded in ``settings`` by its SHA-256."""
-    import hashlib
+def _import(path: str, drop_distortion: bool):
+    """(cameras, provenance inputs, what kind of source) of --from."""
     import os
-    import sys
 
     from relight_cli.clitools import check_input
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats import camera_imports as I
-    from relight_cli.formats.camera import cameras_from_json
 
-    if path == "-":
-        from relight_cli.formats._common import parse_json
-        text = sys.stdin.read()
-        settings["stdin_sha256"] = hashlib.sha256(text.encode("utf-8")).hexdigest()
-        obj = parse_json(text, "<stdin>")
-        if I.is_nerfstudio(obj):
-            return I.cameras_from_nerfstudio(obj, "<stdin>", drop_distortion), {}, "nerfstudio"
-        return cameras_from_json(obj, "<stdin>"), {}, "relight/camera"
     lower = path.lower()
+    if path == "-" or lower.endswith(".json"):
+        from relight_cli.formats._common import read_json
+        obj = read_json(check_input(path, stdin="--from"))
+        cameras, kind = I.cameras_from_any_json(obj, path, drop_distortion)
+        return cameras, {"source": path}, kind
     if os.path.isdir(path) or os.path.basename(lower) in ("cameras.txt", "images.txt"):
         if not os.path.exists(path):
             raise DataError("no such file", path)
@@ -228,24 +222,17 @@ def _import(path: str, drop_distortion: bool, settings: dict):
             check_input(p)
         return (I.read_colmap_model(path, drop_distortion),
                 {"colmap_cameras": cameras_path, "colmap_images": images_path}, "colmap")
-    if lower.endswith(".json"):
-        from relight_cli.formats._common import read_json
-        obj = read_json(check_input(path))
-        if I.is_nerfstudio(obj):
-            return (I.cameras_from_nerfstudio(obj, path, drop_distortion),
-                    {"transforms": path}, "nerfstudio")
-        return cameras_from_json(obj, path), {"cameras": path}, "relight/camera"
     if lower.endswith(".exr"):
         from relight_cli.formats.camera import camera_from_openexr
         from relight_cli.formats.exr import read_exr
         image = read_exr(check_input(path))
-        found = [k for k in ("worldToCamera", "worldToNDC") if k in image.attributes]
-        if len(found) != 2:
+        if not all(k in image.attributes for k in ("worldToCamera", "worldToNDC")):
             raise DataError("no worldToCamera and worldToNDC header attributes: not a camera "
                             "render", path)
         camera = camera_from_openexr(image.attributes["worldToCamera"],
                                      image.attributes["worldToNDC"], image.width, image.height,
                                      path)
         return [camera], {"render": path}, "openexr"
-    raise UsageProblem("IN must be a COLMAP text model (folder, cameras.txt or images.txt), a "
-                       "transforms.json or camera .json ('-' for stdin), or an EXR render", path)
+    raise UsageProblem("--from takes a COLMAP text model (folder, cameras.txt or images.txt), "
+                       "a .json (transforms.json, cameras, capture; '-' for stdin) or an EXR "
+                       "render", path)

@@ -1,4 +1,5 @@
-"""Cameras from other tools: COLMAP text models and nerfstudio ``transforms.json``.
+"""Cameras from other tools: COLMAP text models and nerfstudio ``transforms.json``
+(and from relight's own JSON files that hold cameras: camera rigs, capture indexes).
 
 Spec: ``formats/camera.md`` (section *Imports*).  Both tools put the centre of the
 top-left pixel at (0.5, 0.5); ``relight/camera`` puts it at (0, 0) (OpenCV), so the
@@ -248,7 +249,9 @@ _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "came
 
 
 def is_nerfstudio(obj) -> bool:
-    return isinstance(obj, dict) and "frames" in obj
+    """A transforms.json: frames, and no relight format tag (a capture index has frames too)."""
+    return (isinstance(obj, dict) and "frames" in obj
+            and not str(obj.get("format", "")).startswith("relight/"))
 
 
 def cameras_from_nerfstudio(obj, path: str = "transforms.json",
@@ -318,3 +321,18 @@ def cameras_from_nerfstudio(obj, path: str = "transforms.json",
         names.add(name)
         out.append(Camera(base.K, R, t, base.width, base.height, name))
     return out
+
+
+# ----------------------------------------------------------------------------- any JSON
+
+
+def cameras_from_any_json(obj, path: str, drop_distortion: bool = False):
+    """(cameras, kind) of a parsed JSON file holding cameras: a nerfstudio/instant-ngp
+    transforms.json, a ``relight/capture`` index (its rig) or a ``relight/camera`` file."""
+    from .camera import cameras_from_json
+    if is_nerfstudio(obj):
+        return cameras_from_nerfstudio(obj, path, drop_distortion), "nerfstudio"
+    from . import capture
+    if isinstance(obj, dict) and obj.get("format") == capture.FORMAT:
+        return capture.capture_from_json(obj, path).cameras, capture.FORMAT
+    return cameras_from_json(obj, path), "relight/camera"

@@ -347,14 +347,14 @@ def test_hand_render_header_is_its_camera(tmp_path, run_cli):
     cam = C.look_at([0.05, 0.1, 0.45], [0, 0.06, 0], fov_y_deg=30, width=24, height=20)
     write_cameras(str(tmp_path / "cam.json"), [cam])
     r = run_cli("relight", "builtin:right", "builtin:uniform", "--camera", tmp_path / "cam.json",
-                "--tex-res", "16", "--aa", "1", "--env-res", "4x8", "-o", tmp_path / "h.exr", "-q")
+                "--tex-res", "16", "--aa", "1", "--env-res", "8x4", "-o", tmp_path / "h.exr", "-q")
     assert r.exit_code == 0, r.output
     from relight_cli.formats.exr import read_exr
     attrs = read_exr(str(tmp_path / "h.exr")).attributes
     to_camera, to_ndc = openexr_matrices(cam)
     np.testing.assert_array_equal(np.asarray(attrs["worldToCamera"], np.float32), to_camera)
     np.testing.assert_array_equal(np.asarray(attrs["worldToNDC"], np.float32), to_ndc)
-    r = run_cli("camera", tmp_path / "h.exr", "-o", tmp_path / "back.json", "-q")
+    r = run_cli("camera", "--from", tmp_path / "h.exr", "-o", tmp_path / "back.json", "-q")
     assert r.exit_code == 0, r.output
     back = read_camera(str(tmp_path / "back.json"))
     np.testing.assert_allclose(back.K, cam.K, rtol=1e-5)
@@ -380,11 +380,12 @@ def test_cli_look_at_orbit_select_and_stdout(tmp_path, run_cli):
     r = run_cli("camera", "--orbit", "6", "--radius", "0.8", "--elevation", "15,45", "-o",
                 tmp_path / "rig.json", "-q")
     assert r.exit_code == 0 and len(read_cameras(str(tmp_path / "rig.json"))) == 12
-    r = run_cli("camera", tmp_path / "rig.json", "--select", "cam007,cam002", "-o", "-")
+    r = run_cli("camera", "--from", tmp_path / "rig.json", "--select", "cam007,cam002", "-o", "-")
     assert r.exit_code == 0, r.output
     picked = json.loads(r.stdout)
     assert [c["name"] for c in picked["cameras"]] == ["cam007", "cam002"]
-    r = run_cli("camera", tmp_path / "rig.json", "--select", "cam003", "-o", tmp_path / "c3.json")
+    r = run_cli("camera", "--from", tmp_path / "rig.json", "--select", "cam003", "-o",
+                tmp_path / "c3.json")
     assert read_camera(str(tmp_path / "c3.json")).name == "cam003"
 
 
@@ -399,7 +400,8 @@ def test_cli_imports_colmap_folder_and_nerfstudio_from_stdin(tmp_path):
     (model / "cameras.txt").write_text(cams_txt)
     (model / "images.txt").write_text(imgs_txt)
     for source in (model, model / "images.txt"):
-        r = CliRunner().invoke(cli, ["camera", str(source), "-o", str(tmp_path / "c.json")])
+        r = CliRunner().invoke(cli, ["camera", "--from", str(source), "-o",
+                                     str(tmp_path / "c.json")])
         assert r.exit_code == 0, r.output
         back = read_camera(str(tmp_path / "c.json"))
         np.testing.assert_allclose(back.K, cam.K, atol=1e-12)
@@ -408,11 +410,14 @@ def test_cli_imports_colmap_folder_and_nerfstudio_from_stdin(tmp_path):
         (tmp_path / "c.json").unlink()
     doc = {"fl_x": 70.0, "fl_y": 65.0, "cx": 30.75, "cy": 26.25, "w": 64, "h": 48,
            "frames": [{"file_path": "a.png", "transform_matrix": nerfstudio_frame(cam)}]}
-    r = CliRunner().invoke(cli, ["camera", "-", "-o", "-"], input=json.dumps(doc))
+    text = json.dumps(doc)
+    r = CliRunner().invoke(cli, ["camera", "--from", "-", "-o", "-"], input=text)
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout)
     np.testing.assert_allclose(out["R"], cam.R, atol=1e-12)
-    assert len(out["provenance"]["settings"]["stdin_sha256"]) == 64
+    import hashlib
+    assert (out["provenance"]["inputs"]["source"]["sha256"]
+            == hashlib.sha256(text.encode()).hexdigest())
 
 
 def test_cli_output_is_byte_identical(tmp_path, run_cli):
@@ -428,7 +433,7 @@ def test_console_script_writes_a_camera_and_relight_renders_with_it(tmp_path):
                     "--size", "16x12", "-o", tmp_path / "cam.json")
     assert r.returncode == 0 and r.stdout == "" and "wrote" in r.stderr, r.stderr
     r = run_relight("relight", "builtin:right", "builtin:uniform", "--camera", tmp_path / "cam.json",
-                    "--tex-res", "16", "--aa", "1", "--env-res", "4x8", "-o", tmp_path / "h.exr",
+                    "--tex-res", "16", "--aa", "1", "--env-res", "8x4", "-o", tmp_path / "h.exr",
                     "-q")
     assert r.returncode == 0, r.stderr
     r = run_relight("camera", "--eye", "0,0,0", "-o", tmp_path / "x.json")
@@ -463,23 +468,23 @@ def _write_bad(tmp_path):
     (["--eye", "0,1,nan"], 2, ["--eye"]),
     (["--fov", "180", "--eye", "0,0,1"], 2, ["--fov"]),
     ([], 2, ["exactly one of"]),
-    (["rig.json", "--eye", "0,0,1"], 2, ["exactly one of"]),
-    (["rig.json", "--fov", "30"], 2, ["--fov", "imported"]),
+    (["--from", "rig.json", "--eye", "0,0,1"], 2, ["exactly one of"]),
+    (["--from", "rig.json", "--fov", "30"], 2, ["--fov", "--from"]),
     (["--orbit", "4"], 2, ["--radius"]),
     (["--orbit", "4", "--radius", "1", "--up", "0,0,1"], 2, ["--up"]),
     (["--orbit", "4", "--radius", "1", "--elevation", "95"], 2, ["--elevation"]),
     (["--dome", "4", "--radius", "1", "--elevation", "10,20"], 2, ["--dome"]),
     (["--eye", "0,0,1", "--radius", "1"], 2, ["--radius"]),
     (["--eye", "0,0,1", "--drop-distortion"], 2, ["--drop-distortion"]),
-    (["rig.json", "--select", "cam009"], 2, ["cam009", "cam000"]),
-    (["notes.txt"], 2, ["IN must be"]),
-    (["missing.json"], 1, ["no such file", "missing.json"]),
-    (["nan.json"], 1, ["NaN", "nan.json"]),
-    (["ns.json"], 1, ["lens distortion", "ns.json"]),
-    (["scaled.json"], 1, ["not a rotation", "scaled.json"]),
-    (["colmap"], 1, ["NaN", "cameras.txt"]),
-    (["binary"], 1, ["model_converter"]),
-    (["plain.exr"], 1, ["worldToCamera", "plain.exr"]),
+    (["--from", "rig.json", "--select", "cam009"], 2, ["cam009", "cam000"]),
+    (["--from", "notes.txt"], 2, ["--from takes"]),
+    (["--from", "missing.json"], 1, ["no such file", "missing.json"]),
+    (["--from", "nan.json"], 1, ["NaN", "nan.json"]),
+    (["--from", "ns.json"], 1, ["lens distortion", "ns.json"]),
+    (["--from", "scaled.json"], 1, ["not a rotation", "scaled.json"]),
+    (["--from", "colmap"], 1, ["NaN", "cameras.txt"]),
+    (["--from", "binary"], 1, ["model_converter"]),
+    (["--from", "plain.exr"], 1, ["worldToCamera", "plain.exr"]),
 ])
 def test_cli_bad_input(tmp_path, monkeypatch, args, code, words):
     from click.testing import CliRunner
@@ -504,5 +509,28 @@ def test_relight_render_option_is_renamed(tmp_path, run_cli):
     from relight_cli.cli import cli
     r = CliRunner().invoke(cli, ["relight", "builtin:sphere", "--probe", "p.json", "--render",
                                  "cam.json", "-o", str(tmp_path / "v.exr")])
-    assert r.exit_code == 2 and "--camera" in r.stderr and r.stderr.count("\n") == 1
-    assert "--render" not in CliRunner().invoke(cli, ["relight", "--help"]).output
+    assert r.exit_code == 2 and "--render was renamed --camera" in r.stderr
+    assert r.stderr.count("\n") == 1
+    assert "  --render" not in CliRunner().invoke(cli, ["relight", "--help"]).output   # hidden
+
+
+def test_cli_cameras_of_a_capture(tmp_path, run_cli):
+    """`--from capture.json --select cam001`: one camera of a synthetic light stage's rig,
+    exactly as the capture stores it (the README's example uses it)."""
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", "--cameras", "2", "--leds", "2",
+                "--group", "1", "--frames", "1", "--size", "8", "--tex-res", "8", "--aa", "1",
+                "--eval-poses", "0", "--eval-cameras", "1", "-q")
+    assert r.exit_code == 0, r.output
+    r = run_cli("camera", "--from", tmp_path / "cap" / "capture.json", "--select", "cam001",
+                "-o", tmp_path / "c.json", "-q")
+    assert r.exit_code == 0, r.output
+    stored = json.loads((tmp_path / "cap" / "capture.json").read_text())["cameras"][1]
+    cam = read_camera(str(tmp_path / "c.json"))
+    assert cam.name == "cam001"
+    np.testing.assert_array_equal(cam.K, stored["K"])
+    np.testing.assert_array_equal(cam.R, stored["R"])
+    # and its image carries the same camera in its header
+    from relight_cli.formats.exr import read_exr
+    attrs = read_exr(str(tmp_path / "cap" / "images" / "000000" / "cam001.exr")).attributes
+    np.testing.assert_array_equal(np.asarray(attrs["worldToNDC"], np.float32),
+                                  openexr_matrices(cam)[1])

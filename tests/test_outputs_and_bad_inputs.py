@@ -495,7 +495,7 @@ SLOTS = {
     "relight-gaussians:--probe": lambda d, b, o: ["relight", d / "ball.ply", "--probe", b,
                                                   "-o", o],
     "metrics-compare:NEW": lambda d, b, o: ["metrics", "compare", b, d / "m.json"],
-    "camera:IN": lambda d, b, o: ["camera", b, "-o", o],
+    "camera:--from": lambda d, b, o: ["camera", "--from", b, "-o", o],
 }
 # which bad inputs each slot gets (the generic ones go everywhere)
 GENERIC = ["missing", "directory", "empty", "garbage"]
@@ -509,12 +509,12 @@ SPECIFIC = {
     "dgsm-build:--lights": ["json-deep", "json-long-int", "json-nan"],
     "relight-gaussians:--probe": ["json-deep", "json-long-int"],
     "metrics-compare:NEW": ["json-deep", "json-long-int"],
-    "camera:IN": ["camera-bool-width", "json-deep", "json-long-int", "json-nan"],
+    "camera:--from": ["camera-bool-width", "json-deep", "json-long-int", "json-nan"],
 }
 SLOT_EXT = {"bake-features:HAND": ".npz", "relight-hand:HAND": ".npz",
             "fit-geometry:--template": ".npz", "relight-hand:--camera": ".json",
             "dgsm-build:--lights": ".json", "relight-gaussians:--probe": ".json",
-            "metrics-compare:NEW": ".json", "camera:IN": ".json"}
+            "metrics-compare:NEW": ".json", "camera:--from": ".json"}
 OUT_EXT = {"envmap": ".exr", "sh-probe": ".json", "bake-features": ".exr", "relight-hand": ".exr",
            "fit-geometry": ".npz", "dgsm-build": ".exr", "relight-gaussians": ".ply",
            "metrics-compare": ".json", "camera": ".json"}
@@ -881,6 +881,7 @@ WRONG_EXTENSION = {
                                               "-o", t / "c.exr"], ".json"),
     "train-teacher -o .json": (lambda d, t: ["train-teacher", d / "cap", "-o", t / "t.json"],
                                ".pt"),
+    "camera -o .txt": (lambda d, t: ["camera", "--eye", "0,0,1", "-o", t / "c.txt"], ".json"),
     "train-teacher --metrics-out .txt": (lambda d, t: ["train-teacher", d / "cap", "-o",
                                                        t / "t.pt", "--metrics-out", t / "v.txt"],
                                          ".json"),
@@ -996,6 +997,7 @@ STDIN_INPUTS = {
     "relight --camera -": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--camera",
                                          "-", "--tex-res", "8", "--aa", "1", "--env-res", "8x4",
                                          "-o", o / "r.exr"], "cam.json"),
+    "camera --from -": (lambda d, o: ["camera", "--from", "-", "-o", o / "c.json"], "cam.json"),
     "bake-features --camera -": (lambda d, o: ["bake-features", d / "hand.npz", d / "sky.exr",
                                                "--camera", "-", "--res", "8", "--env-res", "8x4",
                                                "-o", o / "f.exr"], "cam.json"),
@@ -1047,8 +1049,8 @@ STDIN_TWICE = {
     "metrics compare - -": lambda d, o: ["metrics", "compare", "-", "-"],
     "relight --camera - --lights -": lambda d, o: ["relight", d / "hand.npz", "--camera", "-",
                                                    "--lights", "-", "-o", o],
-    "relight --probe - --render -": lambda d, o: ["relight", d / "ball.ply", "--probe", "-",
-                                                  "--render", "-", "-o", o],
+    "relight --probe - --camera -": lambda d, o: ["relight", d / "ball.ply", "--probe", "-",
+                                                  "--camera", "-", "-o", o],
 }
 
 

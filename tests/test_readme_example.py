@@ -57,7 +57,7 @@ def test_readme_example_runs_as_written(tmp_path):
 
     # a camera above the floor, looking down at the scene
     cam = read_camera(str(ex / "room_cam.json"))
-    assert cam.center()[1] > 0.2
+    assert cam.center[1] > 0.2
     # the donut lies flat, resting on the floor
     script = example_script(str(ROOT / "README.md"))
     spec = re.search(r"'(\.\./shared/data/gaussians/donut-fused\.ply:[^']*)'", script).group(1)

@@ -273,7 +273,7 @@ def test_cli_hand_npz_as_gaussians(run_cli, files):
     mattes = {}
     for mode in ("dgsm", "mesh"):
         r = run_cli("relight", spec, "--shadow-matte", mode, "--dgsm", files / "sh.exr",
-                    "--receivers", files / "floor.ply", "--render", files / "hcam.json",
+                    "--receivers", files / "floor.ply", "--camera", files / "hcam.json",
                     "-o", files / f"{mode}.exr", "-q")
         assert r.exit_code == 0, r.output
         mattes[mode] = read_exr(str(files / f"{mode}.exr")).channels["R"]
@@ -309,7 +309,7 @@ def test_cli_subprocess(files):
     # renamed (issue 16): dgsm-build's --t-max is metres; relight's clip is --shading-clip
     (["avatar.ply", "--probe", "probe.json", "--t-max", "2"], 2, "--t-max was renamed "
                                                                  "--shading-clip"),
-    (["avatar.ply", "--probe", "probe.json", "--preview", "view.exr", "--render", "cam.json"],
+    (["avatar.ply", "--probe", "probe.json", "--preview", "view.exr", "--camera", "cam.json"],
      2, "name it .png"),
 ])
 def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
