@@ -130,7 +130,7 @@ def read_camera(path: str) -> Camera:
     cams = read_cameras(path)
     if len(cams) != 1:
         raise DataError(f"expected one camera, file holds {len(cams)} (pick one with "
-                        f"relight camera RIG.json --select NAME)", path)
+                        f"relight camera --from RIG.json --select NAME)", path)
     return cams[0]
 
 
