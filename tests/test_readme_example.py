@@ -15,7 +15,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
-NEEDS = [SHARED / "data/envmaps/polyhaven/studio_small_03.hdr",
+NEEDS = [SHARED / "data/envmaps/polyhaven/studio_small_03_1k.hdr",
          SHARED / "data/gaussians/donut-fused.ply"]
 
 sys.path.insert(0, str(ROOT / "tools"))
