@@ -258,7 +258,7 @@ def test_probe_sheet_has_source_and_probe_rows():
 # ------------------------------------------------------------------ commands
 
 
-SMALL = ["--res", "16", "--env-res", "4x8"]
+SMALL = ["--res", "16", "--env-res", "8x4"]
 
 
 def test_bake_features_contact_sheet(tmp_path):
@@ -364,8 +364,8 @@ def test_dgsm_build_preview_without_receivers_shows_the_atlas(small_scene, tmp_p
 
 def test_synth_capture_contact_sheet(tmp_path):
     png = tmp_path / "cap.png"
-    args = ["synth-capture", "-o", tmp_path / "cap", "--cameras", "3", "--lights", "4",
-            "--group", "2", "--frames", "2", "--res", "16", "--tex-res", "16", "--aa", "1",
+    args = ["synth-capture", "-o", tmp_path / "cap", "--cameras", "3", "--leds", "4",
+            "--group", "2", "--frames", "2", "--size", "16", "--tex-res", "16", "--aa", "1",
             "--eval-poses", "1", "--eval-cameras", "1", "--eval-envs", "builtin:sky", "-q",
             "--preview", png]
     r = invoke(*args)
