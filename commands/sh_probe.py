@@ -119,5 +119,8 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     if preview is not None:
         from relight_cli.formats.image import write_png
         from relight_cli.preview import probe_sheet
+        if is_scene:   # what the probe was fitted to: the splatted cube faces
+            from relight_cli.preview import samples_latlong
+            env = samples_latlong(samples.directions, samples.radiance)
         write_png(preview, probe_sheet(coefficients, chosen, input, env, position))
         log(f"wrote {preview}", quiet)

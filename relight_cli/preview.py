@@ -329,6 +329,20 @@ def probe_latlong(coefficients, height: int = 128) -> np.ndarray:
     return evaluate_sh(coefficients, d.reshape(-1, 3)).reshape(height, 2 * height, 3)
 
 
+def samples_latlong(directions, radiance, height: int = 64):
+    """Radiance samples on the sphere (a scene probe's cube faces: directions [N, 3],
+    radiance [N, 3]) as a lat-long EnvMap [H, 2H] by nearest sample, for pictures only."""
+    from scipy.spatial import cKDTree
+
+    from relight_cli import envmap as E
+    from relight_cli.formats.envmap import EnvMap
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    _, nearest = cKDTree(d).query(E.latlong_directions(height, 2 * height).reshape(-1, 3))
+    values = np.asarray(radiance, np.float64).reshape(-1, 3)[nearest]
+    return EnvMap(values.reshape(height, 2 * height, 3).astype(np.float32), "latlong")
+
+
 def probe_sheet(coefficients, degree: int, source: str = "", source_env=None,
                 position=None, height: int = 128) -> np.ndarray:
     """The probe on a lat-long map, labelled with its degree and source.

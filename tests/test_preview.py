@@ -309,6 +309,19 @@ def test_sh_probe_preview(tmp_path):
     assert json.loads((tmp_path / "p.json").read_text())["degree"] == 2
 
 
+def test_sh_probe_preview_of_a_scene_shows_its_cube_faces(small_scene, tmp_path):
+    png = tmp_path / "p.png"
+    r = invoke("sh-probe", small_scene / "floor.ply", "--at", "0,0.3,0", "--face-size", "8",
+               "--degree", "1", "-o", tmp_path / "p.json", "--preview", png, "-q")
+    assert r.exit_code == 0, r.output
+    image = read_png(png)
+    assert image.shape[:2][::-1] == grid_size(2, 2, 512, 256)
+    # the source tile: the floor below (bottom half) is lit, the empty sky above is black
+    y0 = PV.PAD + PV.TITLE_SIZE + 5 + PV.PAD + 2 * (PV.LABEL_SIZE + 4) + 4
+    source = image[y0:y0 + 256, PV.PAD:PV.PAD + 512]
+    assert source[200:].mean() > 50 and source[:40].mean() < 5
+
+
 @pytest.fixture(scope="module")
 def small_scene(tmp_path_factory):
     import trimesh
@@ -382,13 +395,13 @@ def test_synth_capture_contact_sheet(tmp_path):
 
 @pytest.mark.parametrize("args", [
     ["envmap", "builtin:sky", "-o", "{t}/e.exr", "--preview", "{t}/e.jpg"],
-    ["bake-features", "builtin:right", "builtin:sky", "-o", "{t}/f.exr", "--preview", "{t}/f.exr"],
+    ["bake-features", "builtin:right", "builtin:sky", "-o", "{t}/f.exr", "--preview", "{t}/f.jpg"],
     ["sh-probe", "builtin:sky", "-o", "{t}/p.json", "--preview", "{t}/p.PNG.txt"],
     ["dgsm-build", "builtin:sphere", "--t-max", "1", "--lights", "{d}/lights.json",
      "-o", "{t}/s.exr", "--preview", "{t}/s.tif"],
     ["synth-capture", "-o", "{t}/cap", "--preview", "{t}/cap"],
     ["fit-geometry", "-o", "{t}/h.npz", "--preview", "{t}/h.jpeg"],
-    ["relight", "builtin:right", "builtin:sky", "-o", "{t}/r.exr", "--preview", "{t}/r.exr"],
+    ["relight", "builtin:right", "builtin:sky", "-o", "{t}/r.exr", "--preview", "{t}/r.jpg"],
     ["dgsm-build", "builtin:sphere", "--t-max", "1", "--lights", "{d}/lights.json",
      "-o", "{t}/s.exr", "--preview-camera", "{d}/lights.json"],
 ], ids=lambda a: a[0] + (" --preview-camera" if "--preview-camera" in a else ""))
