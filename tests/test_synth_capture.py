@@ -214,3 +214,136 @@ def test_format_round_trip_and_rejections(tmp_path):
         with pytest.raises(DataError) as info:
             C.read_capture(str(path))
         assert message in str(info.value) and str(path) in str(info.value)
+
+
+# ---------------------------------------------------------------- two interacting hands
+
+
+def _surface_distance(a, b) -> float:
+    """Exact smallest distance from a vertex of mesh ``a`` to the triangles of mesh ``b``
+    (slow twin of the stage's vertex–vertex distance): for each of a's vertices near b, the
+    closest point on every triangle of b that can hold it (a triangle whose corners lie
+    within the nearest-vertex distance + the largest triangle diameter)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(b.vertices)
+    d, _ = tree.query(a.vertices, k=1)
+    tri = b.vertices[b.faces]
+    diameter = np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2).max()
+    faces_of = [[] for _ in range(len(b.vertices))]
+    for f, corners in enumerate(b.faces):
+        for v in corners:
+            faces_of[v].append(f)
+    best = np.inf
+    for i in np.nonzero(d < d.min() + 0.003)[0]:
+        faces = np.unique(np.concatenate([faces_of[v] for v in
+                                          tree.query_ball_point(a.vertices[i], d[i] + diameter)]))
+        closest = trimesh.triangles.closest_point(tri[faces], np.repeat(a.vertices[i][None],
+                                                                        len(faces), 0))
+        best = min(best, float(np.linalg.norm(closest - a.vertices[i], axis=1).min()))
+    return best
+
+
+@pytest.fixture(scope="module")
+def two_motion():
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.hand.scene import two_hands
+    return S.hand_motion(two_hands(builtin_hand("right")), 12, seed=5, keyframe_every=4)
+
+
+def test_two_hands_move_close_but_apart(two_motion):
+    from relight_cli.hand.scene import handedness, posed_meshes
+    motion = two_motion
+    assert handedness(motion) == ["right", "left"] and len(motion.hands) == 2
+    # both hands move: their own finger poses (not mirrors of each other) change over time
+    for inst in motion.hands:
+        assert np.abs(np.diff(inst.poses[:, 1:], axis=0)).max() > 1e-3
+    from relight_cli.hand.skinning import mirror_pose
+    assert not np.allclose(mirror_pose(motion.hands[0].poses[:, 1:]), motion.hands[1].poses[:, 1:])
+    for f in range(0, 12, 3):
+        m0, m1 = posed_meshes(motion, f, "fine")
+        gap = min(_surface_distance(m0, m1), _surface_distance(m1, m0))
+        # never touching (the documented margin), but interacting: a few centimetres at most
+        assert S.TWO_HAND_MARGIN <= gap <= S.TWO_HAND_GAP[1] + 1e-3, (f, gap)
+        assert S.hand_distance(motion, f) >= S.TWO_HAND_GAP[0] - 1e-9
+    # held-out poses of a pair: every frame its own key pose, still apart
+    held = S.hand_motion(motion, 3, seed=9, keyframe_every=1)
+    assert all(S.hand_distance(held, f) >= S.TWO_HAND_GAP[0] - 1e-9 for f in range(3))
+    assert not np.allclose(held.hands[1].translations, held.hands[1].translations[0])
+
+
+def test_two_hands_shadow_occlude_and_light_each_other(two_motion):
+    """What makes a pair harder than two single hands: with the other hand present, some
+    texels lose LEDs (cast shadows), some camera samples see the other hand instead
+    (occlusion), and one bounce brings light from the other hand's skin."""
+    from relight_cli.hand.scene import posed_meshes
+    from relight_cli.render.appearance import hand_materials
+    from relight_cli.render.gbuffer import render_gbuffer
+    from relight_cli.render.shading import HandRenderer, RenderSettings
+
+    settings = S.StageSettings(cameras=8, lights=24, frames=12, res=24, tex_res=48)
+    plan = S.plan_capture(two_motion, settings, motion=two_motion)
+    meshes = posed_meshes(two_motion, 6, "fine")
+    materials = hand_materials(two_motion, "fine", 64)
+    rs = RenderSettings(tex_res=48, aa=1, sss=False, specular=False, direct="texel", bounce=True)
+    both = HandRenderer(meshes, materials, rs)
+    alone = HandRenderer(meshes[:1], materials[:1], rs)
+    vis_both = both.light_visibility(0, positions=plan.lights.positions)
+    vis_alone = alone.light_visibility(0, positions=plan.lights.positions)
+    assert not (vis_both & ~vis_alone).any()                  # the other hand only takes light
+    assert (vis_alone & ~vis_both).mean() > 0.002             # … and it does: cast shadows
+    occluded = 0
+    for cam in plan.cameras:
+        gb_both = render_gbuffer(meshes, cam, 1)
+        gb_alone = render_gbuffer(meshes[:1], cam, 1)
+        occluded += int(((gb_alone.hand == 0) & (gb_both.hand == 1)).sum())
+    assert occluded > 0
+    lights = plan.lights
+    bounce_both = both._bounce(both.light(lights).direct)[0]
+    bounce_alone = alone._bounce(alone.light(lights).direct)[0]
+    assert (bounce_both - bounce_alone).max() > 0.01 * bounce_alone.max()
+
+
+def test_two_hand_capture(run_cli, tmp_path):
+    """builtin:two: both hands in every image, per-hand coverage channels summing to the
+    mask, held-out env renders of the pair, the placement recorded in capture.json."""
+    from relight_cli.hand.scene import handedness
+    out = tmp_path / "two"
+    r = run_cli("synth-capture", "builtin:two", "-o", out, *TINY[:TINY.index("--res")],
+                "--res", "24", *TINY[TINY.index("--res") + 2:])
+    assert r.exit_code == 0, r.output
+    cap = C.read_capture(str(out))
+    hand = read_hand(str(out / "hand.npz"))
+    assert handedness(hand) == ["right", "left"]
+    assert handedness(read_hand(str(out / cap.evaluation["hand"]))) == ["right", "left"]
+    record = cap.settings["two_hands"]
+    assert record["closest_mm"] >= 1000 * S.TWO_HAND_GAP[0] - 1e-6
+    assert record["eval_closest_mm"] >= 1000 * S.TWO_HAND_GAP[0] - 1e-6
+    seen = np.zeros(2)
+    paths = [out / C.image_path(f.index, c) for f in cap.frames for c in f.images]
+    paths += [out / r["image"] for r in cap.evaluation["renders"]]
+    for path in paths:
+        rgb, mask, hands = C.read_image_hands(str(path), None, 2)
+        assert hands.shape == (2,) + mask.shape
+        np.testing.assert_allclose(hands.sum(0), mask, atol=1e-3)   # half floats
+        seen += hands.sum((1, 2))
+    assert (seen > 0).all()
+    # one-hand readers still read every image (extra channels are ignored)
+    C.read_image(str(paths[0]))
+    assert C.read_image_hands(str(paths[0]), None, 1)[2] is None
+
+
+def test_left_hand_skin_is_the_left_hand_of_the_pair():
+    """One subject: the left hand of a two-hand scene has exactly the skin of a left-hand
+    capture, the right that of a right-hand one (so per-hand teachers apply to the pair)."""
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.hand.scene import two_hands
+    from relight_cli.render.appearance import hand_materials
+    pair = hand_materials(two_hands(builtin_hand("right")), "fine", 64, seed=3)
+    right = hand_materials(builtin_hand("right"), "fine", 64, seed=3)[0]
+    left = hand_materials(builtin_hand("left"), "fine", 64, seed=3)[0]
+    np.testing.assert_array_equal(pair[0].albedo, right.albedo)
+    np.testing.assert_array_equal(pair[1].albedo, left.albedo)
+    np.testing.assert_array_equal(pair[1].roughness, left.roughness)
+    assert np.abs(left.albedo - right.albedo).max() > 0.01          # two different hands
