@@ -99,7 +99,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
             raise UsageProblem(f"{name} must be in [{lo}, {hi}], got {value}")
     if group > lights:
         raise UsageProblem(f"--group {group} exceeds --lights {lights}")
-    if eval_cameras > cameras:
+    if eval_poses and eval_cameras > cameras:
         raise UsageProblem(f"--eval-cameras {eval_cameras} exceeds --cameras {cameras}")
     if motion == "file" and hand.startswith("builtin:"):
         raise UsageProblem("--motion file needs a HAND.npz with frames")

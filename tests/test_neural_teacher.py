@@ -23,7 +23,7 @@ from relight_cli.neural.config import PAPER_UNIT, TeacherConfig, resolve_config 
 # A capture small enough for seconds of training: 3 cameras, 12 LEDs, 8 frames (6 grouped).
 CAPTURE_ARGS = ["--cameras", "3", "--lights", "12", "--group", "3", "--frames", "8", "--res",
                 "32", "--tex-res", "64", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
-                "--eval-envs", "builtin:sky", "-q"]
+                "--eval-envs", "builtin:sky", "--eval-env-res", "16x32", "-q"]
 # The smallest teacher: 16² texture, 4-wide U-Net (resume/DDP/CLI tests need seconds only).
 SMALL = {"tex_res": 16, "encoder": [4, 4, 4], "decoder": [8, 8, 8], "pose_channels": [4, 4],
          "val_samples": 2}
