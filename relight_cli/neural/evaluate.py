@@ -228,6 +228,12 @@ def render_scene(models: list, texels: list, gbuffer, poses, light_inputs: list,
     return composite(textures, gbuffer, background)
 
 
+def spread(n_items: int, count: int | None) -> np.ndarray:
+    """Indices of at most ``count`` evenly spaced items of ``n_items`` (None: all)."""
+    count = n_items if count is None else min(n_items, count)
+    return np.unique(np.linspace(0, n_items - 1, count).round().astype(int))
+
+
 def _win(image) -> int:
     return min(7, (min(image.shape[:2]) // 2) * 2 - 1)
 
@@ -258,7 +264,7 @@ def hand_names(sides: list) -> list:
                                                             range(len(sides))]
 
 
-def _mean_scores(rows: list) -> dict:
+def mean_scores(rows: list) -> dict:
     """Means of per-sample score dicts (nested per-hand dicts averaged over the samples
     where that hand is visible), with their sample counts."""
     out = {}
@@ -271,7 +277,7 @@ def _mean_scores(rows: list) -> dict:
     out["samples"] = len(flat)
     nested = dict.fromkeys(k for r in flat for k, v in r.items() if isinstance(v, dict))
     for name in nested:
-        out[name] = _mean_scores([r[name] for r in flat if name in r])
+        out[name] = mean_scores([r[name] for r in flat if name in r])
     return out
 
 
@@ -281,8 +287,9 @@ class CaptureEvaluator:
     Args:
         capture: a capture folder (holding capture.json) or a ``CaptureData``.
         models: :class:`HandModel` list (one for every hand, or one per handedness).
-        device: torch device.  aa: G-buffer samples per pixel axis (default: the first
-            hand's model's).  env_res: (H, W) grid the models integrate env maps over.
+        device: torch device.  aa: G-buffer samples per pixel axis (default: a given
+            CaptureData's, else the first model's).  env_res: (H, W) grid the models
+            integrate env maps over.
         cache_poses: poses whose texel G-buffers stay cached.
     """
 
@@ -291,19 +298,19 @@ class CaptureEvaluator:
         from relight_cli.hand.scene import handedness
 
         from .data import CaptureData
-        first = models[0] if models else None
+        if not models:
+            raise ValueError("give at least one model")
+        first = models[0]
+        given = capture if isinstance(capture, CaptureData) else None
         self.device = device
         self.env_res = tuple(env_res)
-        self.aa = int(aa if aa is not None else (first.config.aa if first is not None else 2))
-        folder = capture.folder if isinstance(capture, CaptureData) else capture
+        self.aa = int(aa if aa is not None else given.aa if given is not None else first.config.aa)
+        folder = given.folder if given is not None else capture
         self._data = {}
         self._make_data = lambda tex_res, vis: CaptureData(
             folder, tex_res, self.aa, vis, holdout=getattr(first.config, "holdout", 0.25),
             cache_poses=cache_poses)
-        base = capture if isinstance(capture, CaptureData) else None
-        if base is None:
-            base = self._make_data(first.tex_res if first else 32,
-                                   first.visibility if first else True)
+        base = given or self._make_data(first.tex_res, first.visibility)
         self.data = base
         self._data[(base.tex_res, base.visibility)] = base
         sides = handedness(base.hand)
@@ -346,17 +353,18 @@ class CaptureEvaluator:
     # ---------------------------------------------------------------- one sample
 
     def predict(self, item, timing: Timing | None = None):
-        """(prediction [H, W, 3], ground truth, mask, per-hand masks [H, n, W] or None)
+        """(prediction [H, W, 3], ground truth, mask, per-hand masks [n, H, W] or None)
         of one split item: a capture (frame, camera) or an ``("env", render record)``."""
         from relight_cli.formats import capture as C
         data = self.data
         n = data.n_hands
         if item[0] == "env":
             render = item[1]
-            camera = data._cameras.get(render["camera"])
-            if camera is None:
+            try:
+                camera = data.capture.camera(render["camera"])
+            except KeyError:
                 raise DataError(f"evaluation render names unknown camera "
-                                f"{render['camera']!r}", data.index_path)
+                                f"{render['camera']!r}", data.index_path) from None
             gt, mask, hands = C.read_image_hands(os.path.join(data.folder, render["image"]),
                                                  camera, n)
             pose, held_out = int(render["pose"]), True
@@ -368,7 +376,7 @@ class CaptureEvaluator:
             intensity = [w for _, w in inputs]
         else:
             frame = data.frame(item[0])
-            camera = data._cameras[item[1]]
+            camera = data.capture.camera(item[1])
             path = os.path.join(data.folder, C.image_path(frame.index, camera.name))
             if not os.path.isfile(path):
                 raise DataError(f"frame {frame.index} lists camera {camera.name!r} but its "
@@ -409,14 +417,12 @@ class CaptureEvaluator:
             items = all_splits.get(name) or []
             if not items:
                 continue
-            count = len(items) if max_samples is None else min(len(items), max_samples)
-            pick = np.unique(np.linspace(0, len(items) - 1, count).round().astype(int))
             rows = []
-            for i in pick:
+            for i in spread(len(items), max_samples):
                 rows.append(self.score(items[i]))
                 if progress is not None:
                     progress(1)
-            scores = _mean_scores(rows)
+            scores = mean_scores(rows)
             if scores:
                 out[name] = scores
         return out
