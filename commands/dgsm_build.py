@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  progress, quiet_option, seed_option)
+                                  parse_size, preview_option, progress, quiet_option, seed_option)
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
@@ -20,18 +20,19 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--receivers-out", default=None, metavar="FILE.ply",
               help="Also write the receiver Gaussians used.")
 @click.option("--lights", "lights_spec", required=True, metavar="LIGHTS.json|auto:K",
-              help="Point lights (relight/lights JSON), or auto:K to estimate K lights "
-                   "from the receivers' scene.")
+              help="Point lights (relight/lights JSON, '-': stdin), or auto:K to estimate "
+                   "K lights from the receivers' scene.")
 @click.option("--estimator", type=click.Choice(["paper", "v1"]), default="paper",
               show_default=True,
               help="Light estimator of --lights auto:K (paper Sec. 3.1: ROI and viewpoints at "
                    "the occluders' centroid, soft-clipped cues, mean-neighbourhood peakness, "
                    "colour toward the character, intensity = base score; v1: the earlier variant).")
 @click.option("--lights-out", default=None, metavar="FILE.json",
-              help="Also write the lights used (e.g. the auto:K estimate).")
+              help="Also write the lights used (e.g. the auto:K estimate; '-': stdout).")
 @click.option("-o", "--output", required=True, help="Output EXR (relight/dgsm).")
 @click.option("--size", default="128", show_default=True,
-              help="Octahedral atlas HxW or N (a cube atlas gets faces with as many texels).")
+              help="Octahedral atlas WxH (width first) or N for NxN (a cube atlas gets faces "
+                   "with as many texels).")
 @click.option("--bins", type=click.IntRange(1, 999), default=64, show_default=True,
               help="Radial bins K per texel.")
 @click.option("--atlas", type=click.Choice(["octahedral", "cube"]), default="octahedral",
@@ -64,25 +65,34 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--allow-light-inside", is_flag=True,
               help="Build even if a light lies inside an occluder Gaussian (1σ).")
 @click.option("--half", is_flag=True, help="Store 16-bit half floats (default float32).")
+@preview_option("Also write a labelled PNG: the receivers shadowed (with the occluders) and "
+                "their shadow matte, seen from --preview-camera, and each light's atlas slice "
+                "(min T over the bins).")
+@click.option("--preview-camera", default=None, metavar="CAMERA.json",
+              help="OpenCV camera of --preview (default: one framing the occluders and their "
+                   "shadow, from the side and above).")
 @seed_option
 @no_clobber_option
 @quiet_option
 def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, estimator,
             lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
-            allow_light_inside, half, seed, no_clobber, quiet):
+            allow_light_inside, half, preview, preview_camera, seed, no_clobber, quiet):
     """Tabulate the transmittance from each light through the OCCLUDER Gaussians
     (closed-form erf optical depth, T = exp(−τ)) on K radial shells over an
     octahedral atlas of directions (Mir et al., Deep Gaussian Shadow Maps).
 
     Each OCCLUDER and SCENE is a 3DGS PLY file, a triangle mesh (.obj .glb
     .gltf .stl .off, turned into flat surface Gaussians with their texture or
-    face colours), or builtin:hand | builtin:room | builtin:sphere.  An
+    face colours), a posed hand.npz (fit-geometry's output: its fine mesh at frame
+    0, or frame=K, as flat Gaussians with the hand's albedo; --occluders-out then
+    exports it as a PLY), or builtin:hand | builtin:room | builtin:sphere.  An
     OCCLUDER may carry its own placement, SOURCE:KEY=VALUE;...  with keys
     fit=SIZE (scale the opacity-weighted 1-99 % box of its centres to SIZE
     metres on its largest side and centre it at the origin), centre, scale=S,
     rotate-x|y|z=DEG, on-floor (rest that box's bottom on y = 0) and
-    translate=X,Y,Z, applied in that order whatever the order written.
+    translate=X,Y,Z, applied in that order whatever the order written
+    (frame=K only picks a hand.npz's pose).
 
     With several OCCLUDERs, one table per occluder is built (all sharing t_max)
     and stored besides their product: scene receivers read the product, and
@@ -101,7 +111,8 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
       relight dgsm-build hand.ply --receivers floor.ply --lights lights.json \\
           --atlas cube --mapping mass -o shadows-cube.exr
       relight dgsm-build builtin:hand --translate 0,0.3,0 --receivers builtin:room \\
-          --lights lights.json -o shadows.exr --occluders-out hand.ply --receivers-out room.ply
+          --lights lights.json -o shadows.exr --occluders-out hand.ply --receivers-out room.ply \\
+          --preview shadows.png
       relight dgsm-build 'builtin:hand:translate=0,0.25,0' \\
           'donut.ply:fit=0.15;rotate-y=30;on-floor;translate=-0.1,0,-0.05' \\
           --receivers builtin:room --lights lights.json -o shadows.exr
@@ -126,21 +137,15 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     from relight_cli.provenance import provenance
 
     start = time.perf_counter()
-    check_output(output, no_clobber)
-    if output == "-":
-        raise UsageProblem("the EXR output cannot go to stdout; give a file name")
-    if lights_out is not None:
-        check_output(lights_out, no_clobber, text=True)
-    for extra_out in (occluders_out, receivers_out):
-        if extra_out is not None:
-            check_output(extra_out, no_clobber)
-            if extra_out == "-":
-                raise UsageProblem("PLY outputs cannot go to stdout; give a file name")
+    check_output(output, no_clobber, kind="exr")
+    check_output(lights_out, no_clobber, kind="json", what="--lights-out")
+    check_output(occluders_out, no_clobber, kind="ply", what="--occluders-out")
+    check_output(receivers_out, no_clobber, kind="ply", what="--receivers-out")
+    check_output(preview, no_clobber, kind="png", what="--preview")
+    if preview_camera is not None and preview is None:
+        raise UsageProblem("--preview-camera needs --preview PNG")
     offset = None if translate is None else np.array(parse_vector(translate, 3, "--translate"))
-    try:
-        h, w = _parse_hw(size)
-    except ValueError:
-        raise UsageProblem(f"--size must look like HxW or N (2..4096), got {size!r}") from None
+    w, h = parse_size(size, "--size", minimum=2, maximum=4096)
     if receivers is None and t_max is None:
         raise UsageProblem("give --receivers SCENE.ply (or --t-max for a receiver-free build)")
     auto_k = _parse_auto(lights_spec)
@@ -160,8 +165,12 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         check_input(receivers)
         scene = load_gaussians(receivers)
 
+    view = None
+    if preview_camera is not None:
+        from relight_cli.formats.camera import read_camera
+        view = read_camera(check_input(preview_camera))
     if auto_k is None:
-        check_input(lights_spec)
+        check_input(lights_spec, stdin="--lights")
         lights = read_lights(lights_spec)
     else:
         lights = _estimate_lights(scene, auto_k, lights_spec, occ, estimator)
@@ -247,19 +256,15 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                                         lights.names, lights.extra),
                      provenance(LFORMAT, LVERSION, inputs, settings))
         log(f"wrote {lights_out}", quiet)
-
-
-def _parse_hw(text: str) -> tuple[int, int]:
-    parts = text.lower().split("x")
-    if len(parts) == 1:
-        h = w = int(parts[0])
-    elif len(parts) == 2:
-        h, w = int(parts[0]), int(parts[1])
-    else:
-        raise ValueError(text)
-    if not (2 <= h <= 4096 and 2 <= w <= 4096):
-        raise ValueError(text)
-    return h, w
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        from relight_cli.preview import dgsm_sheet
+        title = (f"dgsm-build: {len(lights)} light(s), {atlas} atlas {w}x{h}, {bins} bins, "
+                 f"mapping {mapping}\noccluders: {' '.join(occluders)}"
+                 + (f"\nreceivers: {receivers}" if receivers else ""))
+        image, _ = dgsm_sheet(shadow_map, occ, scene, view, footprint, samples, seed, title)
+        write_png(preview, image)
+        log(f"wrote {preview}", quiet)
 
 
 def _parse_auto(spec: str):
@@ -344,7 +349,7 @@ def load_placed(source: str, placement, spec: str, offset=None):
     from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.gaussians.placement import place
 
-    g = load_gaussians(source)
+    g = load_gaussians(source, frame=getattr(placement, "frame", None))
     if len(g) == 0:
         raise DataError("no Gaussians", source)
     try:

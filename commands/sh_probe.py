@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  parse_vector, quiet_option)
+from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_output, log,
+                                  no_clobber_option, parse_vector, preview_option, quiet_option)
 
 
 @click.command("sh-probe", short_help="Fit an SH light probe to an env map or a Gaussian scene.")
@@ -23,16 +23,18 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="For --degree auto: the high reference degree.")
 @click.option("--at", "at", default=None, metavar="X,Y,Z",
               help="Probe position (metres, world) for a Gaussian scene IN (.ply).")
-@click.option("--face-size", type=click.IntRange(4, 1024), default=64, show_default=True,
-              help="Cube-face resolution rendered for a scene probe.")
+@click.option("--face-size", type=SquareSize(4, 1024), default=64, show_default=True,
+              help="Cube-face size N (or NxN) rendered for a scene probe.")
 @click.option("--near", type=FiniteFloat(0, min_open=True), default=0.01, show_default=True,
               help="Near plane (metres) of the scene probe's cube cameras.")
 @click.option("--nonfinite", type=click.Choice(["error", "zero", "clamp"]), default="error",
               show_default=True, help="What to do with NaN/Inf env-map pixels.")
+@preview_option("Also write the probe's radiance as a labelled lat-long PNG (beside the "
+                "env map it was fitted to, on one exposure).")
 @no_clobber_option
 @quiet_option
 def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, near, nonfinite,
-            no_clobber, quiet):
+            preview, no_clobber, quiet):
     """Fit radiance L(ω) ≈ Σ c_k Y_k(ω) by solid-angle-weighted ridge least squares.
 
     IN is an environment map (EXR lat-long or cube, .hdr, builtin:sky|studio|
@@ -44,8 +46,9 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     \b
     Examples:
       relight sh-probe builtin:sky -o sky.json
-      relight sh-probe stage.exr --degree 2 -o stage.json
+      relight sh-probe stage.exr --degree 2 -o stage.json --preview stage.png
       relight sh-probe room.ply --at 0,1.2,0 -o room-probe.json
+      relight sh-probe builtin:sky -o - | relight relight avatar.ply --probe - -o relit.ply
     """
     import time
 
@@ -54,7 +57,8 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     from relight_cli.gaussians import probe as P
     from relight_cli.provenance import provenance
 
-    check_output(output, no_clobber, text=True)
+    check_output(output, no_clobber, kind="json")
+    check_output(preview, no_clobber, kind="png", what="--preview")
     if degree == "auto":
         fixed = None
     else:
@@ -73,6 +77,7 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     start = time.perf_counter()
     settings = {"degree": degree, "ridge": ridge}
     position = None
+    env = None
     if is_scene:
         from relight_cli.clitools import progress
         from relight_cli.formats.gaussians_ply import read_gaussians
@@ -111,3 +116,11 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     if output != "-":
         log(f"wrote {output} (degree {chosen}, {len(coefficients)} coefficients, "
             f"{time.perf_counter() - start:.2f} s)", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        from relight_cli.preview import probe_sheet
+        if is_scene:   # what the probe was fitted to: the splatted cube faces
+            from relight_cli.preview import samples_latlong
+            env = samples_latlong(samples.directions, samples.radiance)
+        write_png(preview, probe_sheet(coefficients, chosen, input, env, position))
+        log(f"wrote {preview}", quiet)

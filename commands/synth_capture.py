@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import log, quiet_option, seed_option
+from relight_cli.clitools import (SquareSize, check_output, log, no_clobber_option,
+                                  preview_option, quiet_option, renamed_option, seed_option)
 
 
 @click.command("synth-capture",
@@ -13,19 +14,24 @@ from relight_cli.clitools import log, quiet_option, seed_option
 @click.option("-o", "--output", required=True, metavar="FOLDER",
               help="Capture folder (created; an existing capture of the same settings is resumed).")
 @click.option("--cameras", type=int, default=20, show_default=True, help="Cameras on the dome.")
-@click.option("--lights", type=int, default=64, show_default=True, help="LED point lights on the dome.")
+@click.option("--leds", type=int, default=64, show_default=True,
+              help="Number of LED point lights on the dome (formerly --lights).")
+@renamed_option("--lights", "--leds N",
+                why="--lights is a lights JSON file in dgsm-build and relight")
 @click.option("--group", type=int, default=5, show_default=True,
               help="Lights on in a grouped (partially lit) frame.")
 @click.option("--frames", type=int, default=12, show_default=True, help="Frames of hand motion.")
 @click.option("--full-every", type=int, default=3, show_default=True,
               help="Every N-th frame is fully lit (1: all frames fully lit).")
-@click.option("--res", type=int, default=128, show_default=True, help="Image size R (R×R).")
+@click.option("--size", "res", type=SquareSize(), default=128, show_default=True,
+              help="Image size N or NxN (the stage's cameras are square; formerly --res).")
+@renamed_option("--res", "--size N", why="sizes are --size WxH or N everywhere")
 @click.option("--motion", type=click.Choice(["random", "file"]), default="random",
               show_default=True,
               help="random: slerp between random key poses; file: HAND's own frames.")
 @click.option("--keyframe-every", type=int, default=10, show_default=True,
               help="Frames between random key poses.")
-@click.option("--tex-res", type=int, default=256, show_default=True,
+@click.option("--tex-res", type=SquareSize(), default=256, show_default=True,
               help="Renderer's texture-space lighting map size.")
 @click.option("--aa", type=int, default=2, show_default=True,
               help="Stratified sub-pixel samples per axis.")
@@ -37,17 +43,20 @@ from relight_cli.clitools import log, quiet_option, seed_option
               help="Comma-separated env maps (files or builtin:NAME) of the evaluation renders.")
 @click.option("--eval-cameras", type=int, default=4, show_default=True,
               help="Cameras (the first N of the dome) of the evaluation renders.")
-@click.option("--eval-env-res", default="32x64", show_default=True, metavar="HxW",
-              help="Lat-long grid the ground-truth env renders integrate over (the env maps "
-                   "are stored in eval/envs/ resampled to twice it).")
+@click.option("--eval-env-res", default="64x32", show_default=True, metavar="WxH",
+              help="Lat-long grid the ground-truth env renders integrate over; the env maps "
+                   "are stored in eval/envs/ resampled to it.")
 @click.option("--skin-seed", type=int, default=0, show_default=True,
               help="Seed of the procedural skin: the subject (keep it across the right, left "
                    "and two-hand captures of one study; --seed changes their motion).")
+@preview_option("Also write a labelled PNG contact sheet: a few cameras (rows) × fully lit, "
+                "grouped and held-out env-map frames (columns).")
 @seed_option
+@no_clobber_option
 @quiet_option
-def command(hand, output, cameras, lights, group, frames, full_every, res, motion,
+def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
             keyframe_every, tex_res, aa, no_sss, bounce, eval_poses, eval_envs, eval_cameras,
-            eval_env_res, skin_seed, seed, quiet):
+            eval_env_res, skin_seed, preview, seed, no_clobber, quiet):
     """Render a light-stage capture of HAND (a hand.npz, or
     builtin:right|left|two[:POSE]; default builtin:right) into FOLDER in the
     relight/capture format (formats/capture.md): capture.json, the ground-truth
@@ -55,9 +64,10 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
     also hand0.A, hand1.A: each hand's coverage) and held-out evaluation renders
     under env maps in eval/.
 
-    Frames are time-multiplexed: every --full-every-th frame has all lights on,
-    the others a group of --group neighbouring lights.  Rerunning the same
-    command resumes: frames whose images exist and are valid are skipped.
+    Frames are time-multiplexed: every --full-every-th frame has all --leds on,
+    the others a group of --group neighbouring LEDs.  Rerunning the same
+    command resumes: frames whose images exist and are valid are skipped
+    (--no-clobber refuses an existing FOLDER instead).
 
     Two hands (builtin:two, or a hand.npz with two hands): both move through
     their own random poses and interact: the second hand faces the first one's
@@ -66,9 +76,10 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
 
     \b
     Examples:
-      relight synth-capture -o capture/ --cameras 20 --lights 64 --frames 30
+      relight synth-capture -o capture/ --cameras 20 --leds 64 --frames 30
       relight synth-capture builtin:two -o both/ --seed 3
-      relight synth-capture hand.npz -o capture/ --motion file --res 256
+      relight synth-capture hand.npz -o capture/ --motion file --size 256
+      relight synth-capture -o capture/ --cameras 8 --frames 6 --preview capture.png
     """
     import os
     import time
@@ -88,9 +99,10 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
     from ._inputs import load_envmap
 
     # ---- usage checks before any work
-    for name, value, lo, hi in (("--cameras", cameras, 1, 1000), ("--lights", lights, 1, 10000),
+    lights = leds
+    for name, value, lo, hi in (("--cameras", cameras, 1, 1000), ("--leds", leds, 1, 10000),
                                 ("--group", group, 1, 10000), ("--frames", frames, 1, 100000),
-                                ("--full-every", full_every, 1, 100000), ("--res", res, 8, 4096),
+                                ("--full-every", full_every, 1, 100000), ("--size", res, 8, 4096),
                                 ("--keyframe-every", keyframe_every, 1, 100000),
                                 ("--tex-res", tex_res, 8, 4096), ("--aa", aa, 1, 8),
                                 ("--eval-poses", eval_poses, 0, 1000),
@@ -98,7 +110,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
         if not lo <= value <= hi:
             raise UsageProblem(f"{name} must be in [{lo}, {hi}], got {value}")
     if group > lights:
-        raise UsageProblem(f"--group {group} exceeds --lights {lights}")
+        raise UsageProblem(f"--group {group} exceeds --leds {leds}")
     if eval_poses and eval_cameras > cameras:
         raise UsageProblem(f"--eval-cameras {eval_cameras} exceeds --cameras {cameras}")
     if motion == "file" and hand.startswith("builtin:"):
@@ -110,10 +122,14 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                  .split(".", 1)[0] for e in env_specs]
     if len(set(env_names)) != len(env_names):
         raise UsageProblem("two --eval-envs maps have the same name")
-    from .bake_features import _parse_hw
-    env_res = _parse_hw(eval_env_res, "--eval-env-res")
-    if not (2 <= env_res[0] <= 512 and 2 <= env_res[1] <= 1024):
-        raise UsageProblem(f"--eval-env-res must be within 2x2 and 512x1024, got {eval_env_res}")
+    from relight_cli.clitools import parse_env_res
+    env_w, env_h = parse_env_res(eval_env_res, "--eval-env-res")
+    env_res = (env_h, env_w)
+    if output in ("", "-"):
+        raise UsageProblem("-o is the capture FOLDER; give a folder name", repr(output))
+    if no_clobber and os.path.lexists(output):
+        raise UsageProblem("output exists and --no-clobber was given", output)
+    check_output(preview, no_clobber, kind="png", what="--preview")
     if os.path.exists(output) and not os.path.isdir(output):
         raise UsageProblem("output exists and is not a folder", output)
     parent = os.path.dirname(os.path.abspath(output))
@@ -146,7 +162,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
     eval_hand = (hand_motion(data, eval_poses, seed + 7919, keyframe_every=1)
                  if eval_poses else None)
     log(f"{'resuming' if existing else 'writing'} {output}: {settings.cameras} cameras, "
-        f"{settings.lights} lights, {len(plan.frames)} frames ({res}x{res})", quiet)
+        f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})", quiet)
 
     # ---- write: every finished file lands at once (resumable), see C.immediate_writes
     inputs = {"hand": hand}
@@ -190,7 +206,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                    "relight.lit": frame.lit},
                                   provenance("relight/capture-image", 1, inputs,
                                              {"frame": frame.index, "camera": cam.name}),
-                                  hand_coverage(result, n_hands))
+                                  camera=cam, hand_masks=hand_coverage(result, n_hands))
                     rendered += 1
             frame.images = [c.name for c in plan.cameras]
         if evaluation is not None:
@@ -218,9 +234,17 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                        "relight.camera": cam.name},
                                       provenance("relight/capture-image", 1, inputs,
                                                  {"pose": pose, "env": name, "camera": cam.name}),
-                                      hand_coverage(result, n_hands))
+                                      camera=cam, hand_masks=hand_coverage(result, n_hands))
                         rendered += 1
         capture.complete = True
         C.write_capture(index_path, capture)
     log(f"wrote {output}: {rendered} image(s) rendered, {skipped} already there "
         f"({time.perf_counter() - start:.1f} s)", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        from relight_cli.preview import capture_sheet
+        title = (f"synth-capture {hand} -> {output}: {settings.cameras} cameras, "
+                 f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})")
+        write_png(preview, capture_sheet(
+            capture, lambda rel: C.read_image(os.path.join(output, rel)), title))
+        log(f"wrote {preview}", quiet)

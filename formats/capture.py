@@ -246,16 +246,17 @@ def hand_channel(hand: int) -> str:
 
 def write_image(path: str, rgb: np.ndarray, mask: np.ndarray, key: str,
                 attributes: dict | None = None, provenance: dict | None = None,
-                hand_masks=None) -> None:
+                camera=None, hand_masks=None) -> None:
     """Write one capture image: R, G, B (linear radiance, half floats), A (mask) and, for a
-    scene of several hands, each hand's coverage (``hand_masks``: [H, W] per hand)."""
+    scene of several hands, each hand's coverage (``hand_masks``: [H, W] per hand); with
+    ``camera``, also OpenEXR's worldToCamera and worldToNDC (formats/exr.py)."""
     from relight_cli.formats.exr import write_exr
     channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
     for k, coverage in enumerate(hand_masks or []):
         channels[hand_channel(k)] = coverage
     attrs = {"relight.capture_key": key, **(attributes or {})}
     record = dict(provenance or {}, format=IMAGE_FORMAT, version=IMAGE_VERSION)
-    write_exr(path, channels, attributes=attrs, half=True, provenance=record)
+    write_exr(path, channels, attributes=attrs, half=True, provenance=record, camera=camera)
 
 
 def read_image(path: str, camera=None) -> tuple[np.ndarray, np.ndarray]:

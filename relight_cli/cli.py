@@ -21,6 +21,7 @@ from .errors import RelightError
 # name -> "module:attribute"; the only place a subcommand is registered.
 COMMANDS: dict[str, str] = {
     "bake-features": "relight_cli.commands.bake_features:command",
+    "camera": "relight_cli.commands.camera:command",
     "dgsm-build": "relight_cli.commands.dgsm_build:command",
     "distill": "relight_cli.commands.distill:command",
     "envmap": "relight_cli.commands.envmap:command",
@@ -49,12 +50,14 @@ class RelightGroup(click.Group):
     def invoke(self, ctx):
         from .provenance import output_transaction
         try:
+            # Library warnings (numpy, torch, pygltflib...) would come before the one error
+            # line or mix with progress: the subcommand's --debug option (clitools.quiet_option,
+            # which also sees `relight --debug CMD`) silences them inside this block unless
+            # --debug was given.
             with output_transaction(), warnings.catch_warnings():
-                if not ctx.params.get("debug"):
-                    # Library warnings (numpy, torch, pygltflib...) would come before the
-                    # one error line or mix with progress; --debug shows them.
-                    warnings.simplefilter("ignore")
                 return super().invoke(ctx)
+        except BrokenPipeError:
+            _broken_pipe()
         except RelightError as exc:
             _report(ctx, exc, exc.exit_code)
         except click.exceptions.Exit:
@@ -84,6 +87,8 @@ class RelightGroup(click.Group):
             return super().main(args, prog_name or "relight", complete_var, False, **extra)
         try:
             rv = super().main(args, prog_name or "relight", complete_var, False, **extra)
+        except BrokenPipeError:   # e.g. `relight --help | head -1`
+            _broken_pipe()
         except click.UsageError as exc:
             where = exc.ctx.command_path if exc.ctx is not None else "relight"
             hint = f" (see '{where} --help')" if exc.ctx is not None else ""
@@ -96,6 +101,25 @@ class RelightGroup(click.Group):
             click.echo("relight: aborted", err=True)
             sys.exit(1)
         sys.exit(rv if isinstance(rv, int) else 0)
+
+
+#: Exit status when stdout (or stderr) is a pipe whose reader went away (`relight ... -o - |
+#: head -c 10`): 128 + SIGPIPE, what the shell reports for a program killed by SIGPIPE (as git
+#: exits); no message, no traceback, no output committed.
+EXIT_BROKEN_PIPE = 141
+
+
+def _broken_pipe():
+    """The reader of stdout went away: exit quietly (Python's documented recipe: point
+    stdout at /dev/null so that the interpreter's final flush cannot fail again)."""
+    import os
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            os.dup2(devnull, stream.fileno())
+        except (AttributeError, OSError, ValueError):   # not a real file (CliRunner)
+            pass
+    sys.exit(EXIT_BROKEN_PIPE)
 
 
 class Terminated(BaseException):
@@ -133,15 +157,33 @@ def _report(ctx, exc: RelightError, code: int):
 
 @click.group(cls=RelightGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="relight")
-@click.option("--debug", is_flag=True, help="Show a traceback for errors (for bug reports).")
+@click.option("--debug", is_flag=True,
+              help="Show a traceback for errors and library warnings (for bug reports); "
+                   "also accepted after the subcommand.")
+@click.option("--quiet", "-q", is_flag=True,
+              help="Silence progress and log messages on stderr; also accepted after the "
+                   "subcommand.")
 @click.pass_context
-def cli(ctx, debug):
+def cli(ctx, debug, quiet):
     """Relight articulated hands and 3D Gaussian avatars.
 
     Each subcommand reads and writes documented file formats (see formats/ and
     the man pages), so pipelines chain them in shell scripts and Make.
+
+    \b
+    Conventions of every subcommand:
+      sizes are WxH (width first, as OpenImageIO writes them), or N for NxN;
+      '-' reads a JSON input from stdin (one per command line), and -o -
+      writes a JSON output to stdout; binary outputs need a file name whose
+      extension says what it is (.exr .png .json .npz .ply .pt);
+      progress is a bar on a terminal, else a plain line every few seconds;
+      a closed stdout pipe (... | head) exits quietly with status 141;
+      -q and --debug go before or after the subcommand; an old spelling of a
+      renamed option (synth-capture --lights/--res, relight --t-max,
+      bake-features --frames) is refused, naming the new one.
     """
     ctx.meta["relight.debug"] = debug
+    ctx.meta["relight.quiet"] = quiet
 
 
 def main():  # console-script entry point

@@ -56,6 +56,8 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     p = str(path)
     if p.startswith("builtin:"):
         return "builtin:" + hashlib.sha256(p.encode()).hexdigest()[:16]
+    if p == "-":
+        return hashlib.sha256(stdin_bytes()).hexdigest()
     h = hashlib.sha256()
     with open(p, "rb") as f:
         while True:
@@ -102,6 +104,8 @@ class _Run:
     def __init__(self):
         self.inputs: list[tuple[str, tuple]] = []
         self.outputs: list[tuple[str, tuple]] = []
+        self.stdin_role: str | None = None     # the one input given as '-'
+        self.stdin: bytes | None = None        # its bytes, read once
 
 
 # Outputs staged by the running command: all are committed together when it
@@ -127,6 +131,39 @@ def _same(a: tuple, b: tuple) -> bool:
     if a[2] or b[2]:  # a character device (/dev/null) may take any number of streams
         return False
     return a[0] == b[0] or (a[1] is not None and a[1] == b[1])
+
+
+def claim_stdin(role: str) -> None:
+    """Register that input ``role`` (e.g. ``"--lights"``) reads stdin (``-``): a second
+    input on stdin, or stdin left at a terminal, is a usage error before any work."""
+    from .errors import UsageProblem
+    if _RUN is not None:
+        if _RUN.stdin_role not in (None, role):
+            raise UsageProblem(f"only one input can come from stdin: {_RUN.stdin_role} and "
+                               f"{role} both say '-'")
+        _RUN.stdin_role = role
+    if _RUN is None or _RUN.stdin is None:
+        try:
+            interactive = sys.stdin is None or sys.stdin.isatty()
+        except (AttributeError, ValueError):
+            interactive = False
+        if interactive:
+            raise UsageProblem(f"{role} - reads JSON from stdin, but stdin is a terminal; "
+                               f"pipe the JSON in or give a file name")
+
+
+def stdin_bytes() -> bytes:
+    """The bytes of stdin, read once per command (the input given as ``-``); provenance
+    hashes the same bytes (file_sha256("-"))."""
+    if _RUN is not None and _RUN.stdin is not None:
+        return _RUN.stdin
+    stream = getattr(sys.stdin, "buffer", sys.stdin)
+    data = stream.read() if stream is not None else b""
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    if _RUN is not None:
+        _RUN.stdin = data
+    return data
 
 
 def declare_input(path: str) -> None:

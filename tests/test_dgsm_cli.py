@@ -108,6 +108,28 @@ def test_installed_console_script(scene):
     assert "built in" in p.stderr
 
 
+def test_size_is_width_by_height(scene):
+    """--size WxH, width first as everywhere (issue 16): 8x4 is 8 texels wide, 4 tall."""
+    out = str(scene["dir"] / "wide.exr")
+    r = _run(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+              scene["lights"], "-o", out, "--size", "8x4", "--bins", "4", "-q"])
+    assert r.exit_code == 0, r.output
+    assert read_dgsm(out).transmittance.shape[-2:] == (4, 8)   # [L, K, H, W]
+    _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+            scene["lights"], "-o", out, "--size", "8x4x2"], 2, "WxH")
+
+
+def test_lights_from_stdin(scene):
+    out = scene["dir"] / "piped.exr"
+    text = Path(scene["lights"]).read_text()
+    r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", scene["floor"],
+                                 "--lights", "-", "-o", str(out), "--size", "8", "--bins", "4",
+                                 "-q"], input=text)
+    assert r.exit_code == 0, r.output
+    from relight_cli.formats.exr import read_exr
+    assert read_exr(str(out)).provenance()["inputs"]["lights"]["path"] == "-"
+
+
 def _fails(args, code, *words):
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == code, r.output
@@ -369,7 +391,7 @@ def test_shadow_protocol_from_the_command_line(tmp_path):
     for mode in ("dgsm", "mesh"):
         mattes[mode] = str(tmp_path / f"{mode}.exr")
         r = _run(["relight", sphere, "--shadow-matte", mode, "--dgsm", shadows, "--receivers",
-                  "builtin:room", "--render", str(tmp_path / "cam.json"), "--footprint", "centre",
+                  "builtin:room", "--camera", str(tmp_path / "cam.json"), "--footprint", "centre",
                   "-o", mattes[mode], "-q"])
         assert r.exit_code == 0, r.output
     from relight_cli.formats.exr import read_exr
@@ -387,14 +409,37 @@ def test_shadow_protocol_from_the_command_line(tmp_path):
     assert rec["metrics"]["sm_iou"] > 0.5 and rec["metrics"]["sae"] < 0.5
     # usage errors: a matte needs the DGSM (its lights) and a camera; the GT needs a mesh
     r = _run(["relight", sphere, "--shadow-matte", "dgsm", "--receivers", "builtin:room",
-              "--render", str(tmp_path / "cam.json"), "-o", str(tmp_path / "x.exr")])
+              "--camera", str(tmp_path / "cam.json"), "-o", str(tmp_path / "x.exr")])
     assert r.exit_code == 2 and "--dgsm" in r.output
     from relight_cli.formats.gaussians_ply import write_gaussians
     from relight_cli.gaussians.from_mesh import load_gaussians
     write_gaussians(str(tmp_path / "ball.ply"), load_gaussians("builtin:sphere"))
     r = _run(["relight", str(tmp_path / "ball.ply"), "--shadow-matte", "mesh", "--dgsm", shadows,
-              "--receivers", "builtin:room", "--render", str(tmp_path / "cam.json"),
+              "--receivers", "builtin:room", "--camera", str(tmp_path / "cam.json"),
               "-o", str(tmp_path / "x.exr")])
     assert r.exit_code == 1 and "mesh" in r.output
     r = _run(["metrics", "shadow", mattes["dgsm"], mattes["mesh"], "--roi-avatar", sphere])
     assert r.exit_code == 2 and "--camera" in r.output
+
+
+def test_hand_npz_occluder_frame_and_export(scene, tmp_path):
+    """A posed hand.npz is an occluder (frame=K picks the pose) and --occluders-out
+    exports it as a Gaussian PLY that relight reads: the hand half meets the Gaussian half."""
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    hand = tmp_path / "hand.npz"
+    assert _run(["fit-geometry", "--pose", "random", "--frames", "2", "-o", str(hand)]).exit_code == 0
+    out, ply = tmp_path / "sh.exr", tmp_path / "hand.ply"
+    r = _run(["dgsm-build", f"{hand}:frame=1;translate=0,0.3,0", "--receivers", scene["floor"],
+              "--lights", scene["lights"], "--size", "64", "-o", str(out),
+              "--occluders-out", str(ply), "-q"])
+    assert r.exit_code == 0, r.output
+    g = read_gaussians(str(ply))
+    assert len(g) > 1000 and g.means[:, 1].min() > 0.2
+    assert read_dgsm(str(out)) is not None
+    _fails(["dgsm-build", f"{hand}:frame=2", "--receivers", scene["floor"], "--lights",
+            scene["lights"], "-o", str(tmp_path / "x.exr")], 1, "out of range", "hand.npz")
+    _fails(["dgsm-build", f"{scene['occ']}:frame=0", "--receivers", scene["floor"], "--lights",
+            scene["lights"], "-o", str(tmp_path / "x.exr")], 2, "hand .npz")
+    _fails(["dgsm-build", f"{hand}:frame=x", "--receivers", scene["floor"], "--lights",
+            scene["lights"], "-o", str(tmp_path / "x.exr")], 2, "frame must be an integer")
+    assert not (tmp_path / "x.exr").exists()

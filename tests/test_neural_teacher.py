@@ -21,9 +21,9 @@ from relight_cli.neural import geometry as G  # noqa: E402
 from relight_cli.neural.config import PAPER_UNIT, TeacherConfig, resolve_config  # noqa: E402
 
 # A capture small enough for seconds of training: 3 cameras, 12 LEDs, 8 frames (6 grouped).
-CAPTURE_ARGS = ["--cameras", "3", "--lights", "12", "--group", "3", "--frames", "8", "--res",
+CAPTURE_ARGS = ["--cameras", "3", "--leds", "12", "--group", "3", "--frames", "8", "--size",
                 "32", "--tex-res", "64", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
-                "--eval-envs", "builtin:sky", "--eval-env-res", "16x32", "-q"]
+                "--eval-envs", "builtin:sky", "--eval-env-res", "32x16", "-q"]
 # The smallest teacher: 16² texture, 4-wide U-Net (resume/DDP/CLI tests need seconds only).
 SMALL = {"tex_res": 16, "encoder": [4, 4, 4], "decoder": [8, 8, 8], "pose_channels": [4, 4],
          "val_samples": 2}
@@ -654,9 +654,9 @@ def test_relight_teacher_bad_input(case, capture_dir, small_config, tmp_path, ru
 # RelightableHands Sec. 5: each hand is captured and learned alone; two-hand sequences are
 # for evaluation only.  Tiny captures of the left hand and of both hands (other seeds than
 # the right hand's capture, so their poses are new to it).
-HAND_ARGS = ["--cameras", "3", "--lights", "8", "--group", "2", "--frames", "4", "--res", "24",
+HAND_ARGS = ["--cameras", "3", "--leds", "8", "--group", "2", "--frames", "4", "--size", "24",
              "--tex-res", "48", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "2",
-             "--eval-envs", "builtin:sky", "--eval-env-res", "8x16", "-q"]
+             "--eval-envs", "builtin:sky", "--eval-env-res", "16x8", "-q"]
 
 
 def _synth(tmp_path_factory, spec, seed):
@@ -912,7 +912,7 @@ def test_relight_two_teachers_cli(two_capture, hand_teachers, tmp_path, run_cli)
     ("left-extra", 2, "matches no hand"),
     ("bad-split", 2, "--splits takes"),
     ("capture-view-option", 2, "do not apply to a capture"),
-    ("capture-exr", 2, "relight/metrics JSON"),
+    ("capture-exr", 2, "-o is a JSON file"),
     ("capture-physical", 2, "--model teacher or linear"),
     ("split-on-hand", 2, "only apply to a capture"),
     ("student-two", 2, "takes one --checkpoint"),

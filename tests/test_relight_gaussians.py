@@ -238,7 +238,7 @@ def test_cli_render(run_cli, files):
     from relight_cli.formats.exr import read_exr
     out = files / "view.exr"
     r = run_cli("relight", files / "avatar.ply", "--probe", files / "probe.json", "--receivers",
-                files / "scene.ply", "--render", files / "cam.json", "-o", out, "--preview",
+                files / "scene.ply", "--camera", files / "cam.json", "-o", out, "--preview",
                 files / "view.png", "-q")
     assert r.exit_code == 0, r.output
     img = read_exr(str(out))
@@ -246,9 +246,46 @@ def test_cli_render(run_cli, files):
     assert img.channels["A"].max() > 0.9 and (files / "view.png").exists()
 
 
+def test_cli_hand_npz_as_gaussians(run_cli, files):
+    """With Gaussian options a hand.npz is its posed hand as Gaussians: relit, shadowed
+    into a scene, and the mesh pseudo-GT matte (Sec. 4.2) reads the same posed mesh."""
+    from relight_cli.formats.exr import read_exr
+    hand = files / "hand.npz"
+    assert run_cli("fit-geometry", "--pose", "fist", "-o", hand, "-q").exit_code == 0
+    r = run_cli("relight", hand, "--probe", files / "probe.json", "-o", files / "hand.ply", "-q")
+    assert r.exit_code == 0, r.output
+    relit = read_gaussians(str(files / "hand.ply"))
+    assert len(relit) > 1000 and relit.provenance["inputs"]["input"]["path"].endswith("hand.npz")
+    write_cameras(str(files / "hcam.json"),
+                  [Camera.look_at([0.0, 0.25, 0.45], [0, 0.03, 0], width=48, height=36)])
+    lights = files / "lights.json"
+    lights.write_text('{"format": "relight/lights", "version": 1, "lights": [{"position": '
+                      '[0.1, 1.5, 0.2], "color": [1, 1, 1], "intensity": 5}]}')
+    xs, zs = np.meshgrid(np.linspace(-0.3, 0.3, 40), np.linspace(-0.3, 0.3, 40))
+    n = xs.size
+    floor = Gaussians(np.column_stack([xs.ravel(), np.zeros(n), zs.ravel()]),
+                      np.tile([0.012, 0.001, 0.012], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                      np.full(n, 0.9), np.full((n, 1, 3), 1.0), 0)
+    write_gaussians(str(files / "floor.ply"), floor)
+    spec = f"{hand}:translate=0,0.1,0"
+    assert run_cli("dgsm-build", spec, "--receivers", files / "floor.ply", "--lights", lights,
+                   "--size", "64", "-o", files / "sh.exr", "-q").exit_code == 0
+    mattes = {}
+    for mode in ("dgsm", "mesh"):
+        r = run_cli("relight", spec, "--shadow-matte", mode, "--dgsm", files / "sh.exr",
+                    "--receivers", files / "floor.ply", "--camera", files / "hcam.json",
+                    "-o", files / f"{mode}.exr", "-q")
+        assert r.exit_code == 0, r.output
+        mattes[mode] = read_exr(str(files / f"{mode}.exr")).channels["R"]
+    assert mattes["mesh"].max() > 0.5                     # the hand does shadow the floor
+    shadowed = mattes["mesh"] > 0.5
+    assert np.abs(mattes["dgsm"] - mattes["mesh"]).mean() < 0.05
+    assert np.abs(mattes["dgsm"] - mattes["mesh"])[shadowed].mean() < 0.2
+
+
 def test_cli_subprocess(files):
     r = run_relight("relight", files / "avatar.ply", "--probe", files / "probe.json", "-o",
-                    files / "relit2.ply", "--normals", "pca", "--lobe", "3", "--t-max", "2")
+                    files / "relit2.ply", "--normals", "pca", "--lobe", "3", "--shading-clip", "2")
     assert r.returncode == 0, r.stderr
     assert len(read_gaussians(str(files / "relit2.ply"))) == 300
 
@@ -257,18 +294,23 @@ def test_cli_subprocess(files):
     (["hand.npz"], 2, "give an env map ENV"),   # hand mode: lighting is required
     (["thing.xyz", "--probe", "probe.json"], 2, "IN must be a Gaussians .ply"),
     (["thing.obj", "--probe", "probe.json"], 1, "no such file"),   # meshes are Gaussian inputs
-    (["hand.npz", "--object", "avatar.ply"], 2, "--object inserts Gaussian objects"),
+    (["hand.npz", "--object", "avatar.ply"], 2, "needs --probe"),   # a hand.npz as Gaussians
     (["avatar.ply:scale=0", "--probe", "probe.json"], 2, "scale must be > 0"),
     (["avatar.ply", "--object", "avatar.ply:spin=3", "--probe", "probe.json"], 2,
      "unknown placement key 'spin'"),
     (["avatar.ply"], 2, "needs --probe"),
     (["avatar.ply", "--probe", "probe.json", "--dgsm", "x.exr"], 2, "give --receivers"),
     (["avatar.ply", "--probe", "probe.json", "--lobe", "0"], 2, "--lobe"),
-    (["avatar.ply", "--probe", "probe.json", "--render", "cam.json"], 2, "-o is an EXR"),
+    (["avatar.ply", "--probe", "probe.json", "--camera", "cam.json"], 2, "-o is an EXR"),
     (["avatar.ply", "--probe", "missing.json"], 1, "no such file"),
     (["avatar.ply", "--probe", "bad_probe.json"], 1, "version 9 is newer"),
     (["avatar.ply", "--probe", "probe.json", "--normals", "stored"], 1, "no stored normals"),
     (["nan.ply", "--probe", "probe.json"], 1, "non-finite"),
+    # renamed (issue 16): dgsm-build's --t-max is metres; relight's clip is --shading-clip
+    (["avatar.ply", "--probe", "probe.json", "--t-max", "2"], 2, "--t-max was renamed "
+                                                                 "--shading-clip"),
+    (["avatar.ply", "--probe", "probe.json", "--preview", "view.exr", "--camera", "cam.json"],
+     2, "name it .png"),
 ])
 def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     monkeypatch.chdir(files)
@@ -279,7 +321,7 @@ def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     ply = plyfile.PlyData.read("nan.ply", mmap=False)
     ply["vertex"].data["x"][2] = np.nan
     ply.write("nan.ply")
-    target = "out.exr" if "--render" in args and "-o is an EXR" not in message else "out.ply"
+    target = "out.exr" if "--camera" in args and "-o is an EXR" not in message else "out.ply"
     r = run_cli("relight", *args, "-o", target)
     assert r.exit_code == code, r.output
     assert message in r.output, r.output

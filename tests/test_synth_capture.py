@@ -15,9 +15,9 @@ from relight_cli.formats import capture as C
 from relight_cli.formats.hand_npz import read_hand
 from relight_cli.render import capture as S
 
-TINY = ["--cameras", "2", "--lights", "6", "--group", "2", "--frames", "3", "--res", "12",
+TINY = ["--cameras", "2", "--leds", "6", "--group", "2", "--frames", "3", "--size", "12",
         "--tex-res", "32", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
-        "--eval-envs", "builtin:uniform", "--eval-env-res", "8x16", "-q"]
+        "--eval-envs", "builtin:uniform", "--eval-env-res", "16x8", "-q"]
 
 
 def test_help(run_cli):
@@ -149,7 +149,7 @@ def test_subprocess(tmp_path):
 
 
 @pytest.mark.parametrize("args, code, message", [
-    (["--group", "9", "--lights", "6"], 2, "exceeds --lights"),
+    (["--group", "9", "--leds", "6"], 2, "exceeds --leds"),
     (["--cameras", "0"], 2, "--cameras must be"),
     (["--eval-cameras", "5", "--cameras", "2"], 2, "exceeds --cameras"),
     (["--motion", "file"], 2, "needs a HAND.npz"),
@@ -160,10 +160,38 @@ def test_subprocess(tmp_path):
 ])
 def test_bad_input(run_cli, tmp_path, monkeypatch, args, code, message):
     monkeypatch.chdir(tmp_path)
-    r = run_cli("synth-capture", *args, "-o", "cap", "--frames", "2", "--res", "8")
+    r = run_cli("synth-capture", *args, "-o", "cap", "--frames", "2", "--size", "8")
     assert r.exit_code == code, r.output
     assert message in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert not (tmp_path / "cap").exists()
+
+
+@pytest.mark.parametrize("old, value, hint", [("--lights", "6", "--leds"), ("--res", "8", "--size")])
+def test_renamed_options_are_refused_with_their_new_name(run_cli, tmp_path, old, value, hint):
+    """--lights (a count here, a JSON file elsewhere) is --leds; --res R is --size N."""
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", old, value)
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    assert f"{old} was renamed {hint}" in r.output
+    assert not (tmp_path / "cap").exists()
+
+
+def test_size_is_square(run_cli, tmp_path):
+    """The stage's cameras are square: --size N or NxN, a non-square WxH is refused."""
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", "--size", "16x8")
+    assert r.exit_code == 2 and "not square" in r.output, r.output
+    assert not (tmp_path / "cap").exists()
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", *TINY[:-1], "--size", "12x12",
+                "--eval-poses", "0", "-q")
+    assert r.exit_code == 0, r.output
+    assert C.read_capture(str(tmp_path / "cap")).cameras[0].width == 12
+
+
+def test_no_clobber_refuses_an_existing_capture(run_cli, tmp_path):
+    out = tmp_path / "cap"
+    out.mkdir()
+    r = run_cli("synth-capture", "-o", out, *TINY, "--no-clobber")
+    assert r.exit_code == 2 and "--no-clobber" in r.output, r.output
+    assert os.listdir(out) == []
 
 
 def test_bad_output_folders(run_cli, tmp_path):
@@ -310,8 +338,8 @@ def test_two_hand_capture(run_cli, tmp_path):
     mask, held-out env renders of the pair, the placement recorded in capture.json."""
     from relight_cli.hand.scene import handedness
     out = tmp_path / "two"
-    r = run_cli("synth-capture", "builtin:two", "-o", out, *TINY[:TINY.index("--res")],
-                "--res", "24", *TINY[TINY.index("--res") + 2:])
+    r = run_cli("synth-capture", "builtin:two", "-o", out, *TINY[:TINY.index("--size")],
+                "--size", "24", *TINY[TINY.index("--size") + 2:])
     assert r.exit_code == 0, r.output
     cap = C.read_capture(str(out))
     hand = read_hand(str(out / "hand.npz"))
@@ -356,8 +384,8 @@ def _capture_images(run_cli, out, *extra):
     # 2.3 mm texels (--tex-res 128): the skin profile's widest Gaussians (σ 1.4 and 2.7 mm,
     # red) span texels; narrower ones act below the texture's resolution (no blur)
     args = [a for a in TINY if a not in ("--tex-res", "32")]
-    r = run_cli("synth-capture", "-o", out, *args[:args.index("--res")], "--res", "24",
-                *args[args.index("--res") + 2:], "--tex-res", "128", "--eval-poses", "0", *extra)
+    r = run_cli("synth-capture", "-o", out, *args[:args.index("--size")], "--size", "24",
+                *args[args.index("--size") + 2:], "--tex-res", "128", "--eval-poses", "0", *extra)
     assert r.exit_code == 0, r.output
     cap = C.read_capture(str(out))
     return cap, {(f.index, c): C.read_image(str(out / C.image_path(f.index, c)))
@@ -432,7 +460,7 @@ def test_skin_seed_not_seed_decides_the_skin(run_cli, tmp_path):
     def full_frame(name, *extra):
         out = tmp_path / name
         r = run_cli("synth-capture", path, "-o", out, "--motion", "file", "--cameras", "1",
-                    "--lights", "8", "--res", "16", "--tex-res", "32", "--aa", "1",
+                    "--leds", "8", "--size", "16", "--tex-res", "32", "--aa", "1",
                     "--eval-poses", "0", "-q", *extra)
         assert r.exit_code == 0, r.output
         return C.read_image(str(out / C.image_path(0, "cam000")))[0]
@@ -496,9 +524,9 @@ def test_polyhaven_eval_env(run_cli, tmp_path, shared):
     from relight_cli.formats.envmap import read_envmap
     hdr = shared("envmaps", "polyhaven", "lebombo_1k.hdr")
     out = tmp_path / "cap"
-    args = [a for a in TINY if a != "builtin:uniform"]
+    args = list(TINY)
     args[args.index("--eval-envs") + 1] = str(hdr)
-    r = run_cli("synth-capture", "-o", out, *args, "--eval-env-res", "16x32")
+    r = run_cli("synth-capture", "-o", out, *args, "--eval-env-res", "32x16")
     assert r.exit_code == 0, r.output
     cap = C.read_capture(str(out))
     stored = read_envmap(str(out / cap.evaluation["envs"]["lebombo_1k"]))

@@ -207,15 +207,49 @@ def builtin_gaussians(name: str) -> Gaussians:
     raise ValueError(f"unknown built-in Gaussians {name!r}; choose from {', '.join(BUILTINS)}")
 
 
+def hand_gaussians(hand, frame: int = 0, opacity: float = 0.99) -> Gaussians:
+    """A posed hand (HandData, every hand of it) as flat Gaussians on its fine mesh.
+
+    One Gaussian per triangle of the skinned fine mesh at ``frame``
+    (:func:`gaussians_from_mesh`), coloured by the hand's albedo (its procedural
+    per-region material, or its image maps) at the triangle's UV centroid, with
+    the triangle's normal stored: the bridge from the hand half of the toolkit
+    (hand.npz) to the Gaussian half (dgsm-build, relight --object).
+    """
+    from relight_cli.formats.gaussians_ply import concatenate
+    from relight_cli.hand.scene import posed_meshes
+    from relight_cli.render.appearance import hand_materials
+
+    if not 0 <= frame < hand.n_frames:
+        raise ValueError(f"frame {frame} is out of range: the hand has {hand.n_frames} "
+                         f"frame(s)")
+    parts = []
+    for pm, material in zip(posed_meshes(hand, frame, "fine"), hand_materials(hand, "fine")):
+        uv_centroid = pm.uv[pm.faces_uv].mean(axis=1)
+        colors = np.clip(material.albedo_at(uv_centroid), 0.0, 1.0)
+        parts.append(gaussians_from_mesh(pm.vertices, pm.faces, colors, opacity=opacity))
+    return concatenate(parts)
+
+
 MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".stl", ".off")
 
 
-def load_gaussians(spec: str) -> Gaussians:
+def load_gaussians(spec: str, frame: int | None = None) -> Gaussians:
     """Gaussians from ``builtin:NAME``, a mesh file (.obj .glb .gltf .stl .off → flat
-    Gaussians with texture/face colours), or a 3DGS PLY.  Raises DataError."""
+    Gaussians with texture/face colours), a hand .npz (its pose at ``frame``, default
+    0, by :func:`hand_gaussians`) or a 3DGS PLY.  Raises DataError."""
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.gaussians_ply import read_gaussians
 
+    if frame is not None and not spec.lower().endswith(".npz"):
+        raise UsageProblem("frame=K applies to a hand .npz source only", spec)
+    if spec.lower().endswith(".npz"):
+        from relight_cli.formats.hand_npz import read_hand
+        hand = read_hand(spec)
+        try:
+            return hand_gaussians(hand, 0 if frame is None else frame)
+        except ValueError as exc:
+            raise DataError(str(exc), spec) from None
     if spec.startswith("builtin:"):
         name = spec.split(":", 1)[1]
         if name not in BUILTINS:  # a misspelt name is a usage error, as for builtin env maps

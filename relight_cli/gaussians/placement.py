@@ -26,6 +26,8 @@ Spec language (``SOURCE[:KEY=VALUE;KEY=VALUE;FLAG]``, see :func:`split_spec`):
 ``rotate-z=deg``
 ``on-floor``       then lift/lower so the robust box's bottom is at y = 0
 ``translate=x,y,z`` finally add this offset (metres)
+``frame=K``        for a hand .npz source: the pose (frame K) made into Gaussians
+                   (not a transform; refused for other sources)
 =================  ==============================================================
 
 The order is fixed, whatever the order of the keys: fit/centre → scale →
@@ -46,9 +48,10 @@ from relight_cli.formats.gaussians_ply import (Gaussians, matrix_to_quaternion,
                                                quaternion_to_matrix)
 from relight_cli.sh import sh_basis
 
-KEYS = ("fit", "centre", "scale", "rotate-x", "rotate-y", "rotate-z", "on-floor", "translate")
+KEYS = ("fit", "centre", "scale", "rotate-x", "rotate-y", "rotate-z", "on-floor", "translate",
+        "frame")
 USAGE = ("SOURCE[:KEY=VALUE;...] with keys fit=SIZE, centre, scale=S, rotate-x|y|z=DEG, "
-         "on-floor, translate=X,Y,Z (e.g. donut.ply:fit=0.15;on-floor;translate=0.3,0,0)")
+         "on-floor, translate=X,Y,Z, frame=K (a hand .npz's pose) (e.g. donut.ply:fit=0.15;on-floor;translate=0.3,0,0)")
 
 
 @dataclass
@@ -62,6 +65,7 @@ class Placement:
         rotations: [(axis "x"|"y"|"z", degrees)] in the order applied.
         on_floor: rest the robust box's bottom on y = 0.
         translate: [3] final offset, metres.
+        frame: for a hand .npz source, the frame whose pose becomes Gaussians (None: 0).
     """
 
     fit: float | None = None
@@ -70,6 +74,7 @@ class Placement:
     rotations: list = field(default_factory=list)
     on_floor: bool = False
     translate: tuple = (0.0, 0.0, 0.0)
+    frame: int | None = None
 
     def is_identity(self) -> bool:
         return (self.fit is None and not self.centre and self.scale == 1.0
@@ -286,6 +291,11 @@ def parse_placement(text: str | None) -> Placement:
             if len(vec) != 3 or not all(math.isfinite(v) for v in vec):
                 raise ValueError(f"translate must be 3 finite numbers X,Y,Z, got {value!r}")
             p.translate = vec
+            continue
+        if key == "frame":
+            if not value.isdigit():
+                raise ValueError(f"frame must be an integer ≥ 0, got {value!r}")
+            p.frame = int(value)
             continue
         try:
             number = float(value)

@@ -107,7 +107,8 @@ def avatar_roi(avatar, camera, radius: float = 1.0, floor: float | None = None,
 def load_placed_mesh(source: str, placement, gaussians_before=None):
     """(vertices [V, 3], faces [F, 3]) of a mesh IN placed exactly as its Gaussians are.
 
-    ``source`` is a mesh file (.obj .glb .gltf .stl .off) or builtin:hand|sphere;
+    ``source`` is a mesh file (.obj .glb .gltf .stl .off), a hand .npz (its posed fine
+    meshes at the placement's frame) or builtin:hand|sphere;
     the placement's similarity is resolved on the mesh's own Gaussians (fit and
     on-floor read their robust box), so mesh and Gaussians coincide.  Raises
     ValueError for inputs that have no mesh (a 3DGS PLY, builtin:room).
@@ -124,6 +125,18 @@ def load_placed_mesh(source: str, placement, gaussians_before=None):
         import trimesh
         s = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
         v, f = np.asarray(s.vertices, np.float64), np.asarray(s.faces)
+    elif source.lower().endswith(".npz"):
+        from relight_cli.formats.hand_npz import read_hand
+        from relight_cli.hand.scene import posed_meshes
+        hand = read_hand(source)
+        frame = 0 if getattr(placement, "frame", None) is None else placement.frame
+        if not 0 <= frame < hand.n_frames:
+            raise ValueError(f"frame {frame} is out of range: the hand has {hand.n_frames} "
+                             f"frame(s)")
+        pms = posed_meshes(hand, frame, "fine")
+        offsets = np.cumsum([0] + [len(pm.vertices) for pm in pms[:-1]])
+        v = np.concatenate([pm.vertices for pm in pms]).astype(np.float64)
+        f = np.concatenate([pm.faces + o for pm, o in zip(pms, offsets)])
     elif source.lower().endswith(MESH_SUFFIXES):
         import trimesh
         m = trimesh.load(source, force="mesh", process=False)
@@ -133,5 +146,6 @@ def load_placed_mesh(source: str, placement, gaussians_before=None):
                          ".stl .off or builtin:hand|sphere), not Gaussians")
     if placement is None or placement.is_identity():
         return v, f
-    g = gaussians_before if gaussians_before is not None else load_gaussians(source)
+    g = (gaussians_before if gaussians_before is not None
+         else load_gaussians(source, frame=getattr(placement, "frame", None)))
     return resolve(placement, g).apply(v), f
