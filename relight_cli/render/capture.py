@@ -39,7 +39,7 @@ class StageSettings:
         skin_seed: seeds the procedural skin (the subject: keep it across the right, left
             and two-hand captures of one study, while ``seed`` changes their motion).
         eval_env_res: (H, W) lat-long grid over which the ground-truth env renders
-            integrate their env maps (the learned models use their own, 16×32 by default).
+            integrate their env maps (the learned models use their own, 32×16 by default).
     """
 
     cameras: int = 20
