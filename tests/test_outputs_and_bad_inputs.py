@@ -120,6 +120,9 @@ COMMANDS = {
     "relight-teacher": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
                                       "8x8", "--env-res", "8x4", "-o", o], ".exr"),
+    "relight-capture": (lambda d, o: ["relight", d / "cap", "--model", "teacher",
+                                      "--checkpoint", d / "teacher.pt", "--eval-samples", "1",
+                                      "-o", o], ".json"),
     "camera": (lambda d, o: ["camera", "--eye", "0,0.1,0.5", "--size", "8x8", "-o", o], ".json"),
 }
 # An input of each command that the "output is an input" case writes over.
@@ -127,7 +130,8 @@ FIRST_INPUT = {"envmap": "sky.exr", "sh-probe": "sky.exr", "fit-geometry": None,
                "bake-features": "hand.npz", "relight-hand": "sky.exr",
                "relight-gaussians": "ball.ply", "dgsm-build": "ball.ply",
                "metrics-image": "img.exr", "metrics-lighting": "room.ply",
-               "train-teacher": "small.json", "relight-teacher": "sky.exr", "camera": None}
+               "train-teacher": "small.json", "relight-teacher": "sky.exr", "camera": None,
+               "relight-capture": "teacher.pt"}
 
 
 def _snapshot(*folders) -> dict:
@@ -737,6 +741,9 @@ IDENTITY = {
     "relight-teacher": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
                                       "8x8", "--env-res", "8x4", "-o", t / "r.exr"], ["r.exr"]),
+    "relight-capture": lambda d, t: (["relight", d / "cap", "--model", "teacher",
+                                      "--checkpoint", d / "teacher.pt", "--eval-samples", "1",
+                                      "-o", t / "s.json"], ["s.json"]),
     "camera": lambda d, t: (["camera", "--orbit", "3", "--radius", "0.7", "--elevation", "20",
                              "-o", t / "c.json"], ["c.json"]),
     "synth-capture": lambda d, t: (["synth-capture", d / "hand.npz", "-o", t / "cap",
