@@ -315,10 +315,13 @@ class Study:
         folder.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
         stamp = folder / ".complete"          # holds the seconds the capture took
-        if not ((folder / "capture.json").is_file() and stamp.is_file()):
-            self.log(f"capture {hand}: synth-capture into {folder}")
-            synth_capture(folder, HANDS[hand], self.settings["capture"], self.envs["eval"])
-            stamp.write_text(f"{time.perf_counter() - t0:.1f}\n")
+        import fcntl
+        with open(folder.with_suffix(".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # two runners sharing --out make it once
+            if not ((folder / "capture.json").is_file() and stamp.is_file()):
+                self.log(f"capture {hand}: synth-capture into {folder}")
+                synth_capture(folder, HANDS[hand], self.settings["capture"], self.envs["eval"])
+                stamp.write_text(f"{time.perf_counter() - t0:.1f}\n")
         made = stamp.read_text().strip()
         self.captures[hand] = folder
         self.capture_info[hand] = {**spec, "folder": str(folder),
@@ -447,7 +450,10 @@ class Study:
         from relight_cli.neural.train import model_from_checkpoint
 
         specs = self.envs["train"] + self.envs["eval"]
-        envs = [discretize_env(load_envmap(s), *config.env_res) for s in specs]
+        key = ("envs", tuple(config.env_res))
+        if key not in self._memo:
+            self._memo[key] = [discretize_env(load_envmap(s), *config.env_res) for s in specs]
+        envs = self._memo[key]
         names = [Path(s.split(":", 1)[-1]).name.split(".", 1)[0] for s in specs]
         n_train = len(self.envs["train"])
         # the teacher's per-direction textures are shared by every student of this teacher
@@ -500,6 +506,57 @@ def _final_splits(base, score, splits, curve):
         def evaluate(self, model, device):
             return score(self, model, device, list(splits) if self.final else [curve[0]])
     return Task
+
+
+# ---------------------------------------------------------------------------- the CI gate
+
+#: the orderings tests/test_study_gate.py checks at the tiny scale: check → (kind, the
+#: paper's better row, its worse row, split.metric).  Each is measured as the ratio
+#: MSE(worse) / MSE(better) (> 1: the paper's ordering holds).  Rows are shared: the
+#: student rows distill the first check's teacher.
+GATE = {
+    "teacher_visibility": ("teacher", {}, {"visibility": False}, "heldout.mse"),
+    "student_vs_dram": ("student", {}, {"student": "dram"}, "vs_teacher.mse"),
+}
+GATE_HAND = "right"
+
+
+def gate_metrics(study: "Study", seed: int = 0, checks=None) -> dict:
+    """{check: {"mse_ratio": MSE(worse) / MSE(better)}} of :data:`GATE` (or ``checks``) for
+    one seed, training (or reusing) the rows of ``study``."""
+    teacher = study.row("teacher", GATE_HAND, {}, seed, ("heldout",), ("heldout", "mse"))
+    out = {}
+    for name in checks or GATE:
+        kind, better, worse, metric = GATE[name]
+        split = metric.split(".")[0]
+        if kind == "teacher":
+            splits, parent = ("heldout",), None
+        else:
+            splits, parent = ("vs_teacher", "vs_ground_truth"), teacher
+        rows = [study.row(kind, GATE_HAND, o, seed, splits, (split, "mse"), parent)
+                for o in (better, worse)]
+        b, w = (r["metrics"][split]["mse"] for r in rows)
+        out[name] = {"mse_ratio": w / b}
+    return out
+
+
+def gate_spread(study: "Study", seeds: list, path: Path) -> dict:
+    """Every gate ratio for each seed, their spread and the margin derived from it: the
+    gate's threshold is halfway between 1 (no effect) and the smallest ratio over the
+    seeds; a check whose smallest ratio is ≤ 1 is not robust (reported, never gated)."""
+    per_seed = {seed: gate_metrics(study, seed) for seed in seeds}
+    checks = {}
+    for name in GATE:
+        stats = mean_std([per_seed[s][name]["mse_ratio"] for s in seeds])
+        low = min(stats["values"])
+        checks[name] = {**stats, "min": low, "robust": low > 1.0,
+                        "threshold": 1.0 + (low - 1.0) / 2 if low > 1.0 else None}
+    record = {"scale": study.scale, "hand": GATE_HAND, "seeds": seeds, "checks": checks,
+              "machine": machine(), "settings": study.settings}
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n")
+    os.replace(tmp, path)
+    return record
 
 
 # ---------------------------------------------------------------------------- statistics
@@ -733,6 +790,12 @@ def main(argv=None):
                     help=f"comma-separated subset of {', '.join(TABLES)}")
     ap.add_argument("--report", action="store_true",
                     help="rewrite the Markdown and plots from the tables' JSON; no training")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch threads (default 1: on a shared machine 2 threads ran a "
+                         "teacher 10× slower than 1, OpenMP workers spinning for cores)")
+    ap.add_argument("--gate-spread", metavar="FILE.json", default=None,
+                    help="instead of tables: the CI gate's ratios for each seed and the "
+                         "margins they imply (tests/baseline/study_gate_spread.json)")
     args = ap.parse_args(argv)
     names = [t.strip() for t in args.tables.split(",") if t.strip()]
     unknown = [n for n in names if n not in TABLES]
@@ -741,6 +804,8 @@ def main(argv=None):
     if args.seeds < 1:
         ap.error("--seeds must be ≥ 1")
     require_matplotlib()
+    import torch
+    torch.set_num_threads(max(1, args.threads))
     results = Path(args.results or args.out)
     if args.report:
         for name in names:
@@ -753,6 +818,10 @@ def main(argv=None):
                                                              else argv)
     where = machine()
     study = Study(args.scale, out, log=lambda m: print(m, file=sys.stderr, flush=True))
+    if args.gate_spread:
+        record = gate_spread(study, list(range(args.seeds)), Path(args.gate_spread))
+        print(json.dumps(record["checks"], indent=1))
+        return
     t0 = time.perf_counter()
     seeds = list(range(args.seeds))
     records = {}
