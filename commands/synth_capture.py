@@ -37,24 +37,37 @@ from relight_cli.clitools import log, quiet_option, seed_option
               help="Comma-separated env maps (files or builtin:NAME) of the evaluation renders.")
 @click.option("--eval-cameras", type=int, default=4, show_default=True,
               help="Cameras (the first N of the dome) of the evaluation renders.")
+@click.option("--eval-env-res", default="32x64", show_default=True, metavar="HxW",
+              help="Lat-long grid the ground-truth env renders integrate over (the env maps "
+                   "are stored in eval/envs/ resampled to twice it).")
+@click.option("--skin-seed", type=int, default=0, show_default=True,
+              help="Seed of the procedural skin: the subject (keep it across the right, left "
+                   "and two-hand captures of one study; --seed changes their motion).")
 @seed_option
 @quiet_option
 def command(hand, output, cameras, lights, group, frames, full_every, res, motion,
             keyframe_every, tex_res, aa, no_sss, bounce, eval_poses, eval_envs, eval_cameras,
-            seed, quiet):
-    """Render a light-stage capture of HAND (a hand.npz, or builtin:right|left[:POSE];
-    default builtin:right) into FOLDER in the relight/capture format
-    (formats/capture.md): capture.json, the ground-truth hand.npz,
-    images/{frame:06d}/{camera}.exr (R, G, B, A = mask) and held-out
-    evaluation renders under env maps in eval/.
+            eval_env_res, skin_seed, seed, quiet):
+    """Render a light-stage capture of HAND (a hand.npz, or
+    builtin:right|left|two[:POSE]; default builtin:right) into FOLDER in the
+    relight/capture format (formats/capture.md): capture.json, the ground-truth
+    hand.npz, images/{frame:06d}/{camera}.exr (R, G, B, A = mask; with two hands
+    also hand0.A, hand1.A: each hand's coverage) and held-out evaluation renders
+    under env maps in eval/.
 
     Frames are time-multiplexed: every --full-every-th frame has all lights on,
     the others a group of --group neighbouring lights.  Rerunning the same
     command resumes: frames whose images exist and are valid are skipped.
 
+    Two hands (builtin:two, or a hand.npz with two hands): both move through
+    their own random poses and interact: the second hand faces the first one's
+    palm and slides in until the hands are 6-25 mm apart, so they shadow,
+    occlude and light (--bounce) each other but never touch.
+
     \b
     Examples:
       relight synth-capture -o capture/ --cameras 20 --lights 64 --frames 30
+      relight synth-capture builtin:two -o both/ --seed 3
       relight synth-capture hand.npz -o capture/ --motion file --res 256
     """
     import os
@@ -67,7 +80,9 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
     from relight_cli.formats.hand_npz import write_hand
     from relight_cli.provenance import provenance
     from relight_cli.render.appearance import hand_materials
-    from relight_cli.render.capture import FrameRenderer, StageSettings, hand_motion, plan_capture
+    from relight_cli.render.capture import (FrameRenderer, StageSettings, hand_coverage,
+                                            hand_motion, plan_capture, stage_envmap,
+                                            two_hand_record)
 
     from .bake_features import _load_hand
     from ._inputs import load_envmap
@@ -84,7 +99,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
             raise UsageProblem(f"{name} must be in [{lo}, {hi}], got {value}")
     if group > lights:
         raise UsageProblem(f"--group {group} exceeds --lights {lights}")
-    if eval_cameras > cameras:
+    if eval_poses and eval_cameras > cameras:
         raise UsageProblem(f"--eval-cameras {eval_cameras} exceeds --cameras {cameras}")
     if motion == "file" and hand.startswith("builtin:"):
         raise UsageProblem("--motion file needs a HAND.npz with frames")
@@ -95,6 +110,10 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                  .split(".", 1)[0] for e in env_specs]
     if len(set(env_names)) != len(env_names):
         raise UsageProblem("two --eval-envs maps have the same name")
+    from .bake_features import _parse_hw
+    env_res = _parse_hw(eval_env_res, "--eval-env-res")
+    if not (2 <= env_res[0] <= 512 and 2 <= env_res[1] <= 1024):
+        raise UsageProblem(f"--eval-env-res must be within 2x2 and 512x1024, got {eval_env_res}")
     if os.path.exists(output) and not os.path.isdir(output):
         raise UsageProblem("output exists and is not a folder", output)
     parent = os.path.dirname(os.path.abspath(output))
@@ -110,25 +129,22 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
 
     # ---- inputs (data errors)
     data = _load_hand(hand)
-    envs = [load_envmap(spec) for spec in env_specs]
+    # each env map is resampled once (exactly, power preserving) to the stage's working
+    # grid: what eval/envs/ stores and the ground truth integrates
+    envs = [stage_envmap(load_envmap(spec), env_res) for spec in env_specs]
     settings = StageSettings(cameras=cameras, lights=lights, group=group,
                              frames=frames if motion == "random" else data.n_frames,
                              full_every=full_every, res=res, keyframe_every=keyframe_every,
-                             seed=seed, tex_res=tex_res, aa=aa, sss=not no_sss, bounce=bounce)
+                             seed=seed, tex_res=tex_res, aa=aa, sss=not no_sss, bounce=bounce,
+                             skin_seed=skin_seed, eval_env_res=tuple(env_res))
     plan = plan_capture(data, settings, motion=data if motion == "file" else None)
     if existing is not None and existing.key != plan.key:
         raise UsageProblem("output folder holds a different capture (other settings or hand); "
                            "give a new folder to start another", output)
-    materials = hand_materials(plan.motion, "fine", max(tex_res, 256), seed)
+    materials = hand_materials(plan.motion, "fine", max(tex_res, 256), skin_seed)
+    # held-out poses: a random motion of the scene's hands (both interacting, for two)
     eval_hand = (hand_motion(data, eval_poses, seed + 7919, keyframe_every=1)
                  if eval_poses else None)
-    if eval_hand is not None and len(plan.motion.hands) == 2:
-        # two hands: the held-out poses keep the scene's pair (the second mirrors the first,
-        # at the scene's own placement), so evaluation renders match the training scene
-        from relight_cli.hand.scene import two_hands
-        eval_hand = two_hands(eval_hand)
-        for mine, theirs in zip(eval_hand.hands, plan.motion.hands):
-            mine.root = theirs.root.copy()
     log(f"{'resuming' if existing else 'writing'} {output}: {settings.cameras} cameras, "
         f"{settings.lights} lights, {len(plan.frames)} frames ({res}x{res})", quiet)
 
@@ -144,9 +160,13 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                    "image": f"eval/{p:03d}/{n}/{c.name}.exr"}
                                   for p in range(eval_poses) for n in env_names
                                   for c in plan.cameras[:eval_cameras]]}
+    n_hands = len(plan.motion.hands)
+    stage = asdict(settings)
+    if n_hands == 2:
+        stage["two_hands"] = two_hand_record(plan.motion, eval_hand, placed=motion == "random")
     capture = C.Capture(plan.cameras, plan.lights.positions, plan.lights.intensity,
                         plan.light_names, plan.frames, "hand.npz", settings.fps, evaluation,
-                        plan.key, False, asdict(settings), record)
+                        plan.key, False, stage, record)
     start = time.perf_counter()
     rendered = skipped = 0
     with C.immediate_writes():
@@ -169,7 +189,8 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                   {"relight.frame": frame.index, "relight.camera": cam.name,
                                    "relight.lit": frame.lit},
                                   provenance("relight/capture-image", 1, inputs,
-                                             {"frame": frame.index, "camera": cam.name}))
+                                             {"frame": frame.index, "camera": cam.name}),
+                                  hand_coverage(result, n_hands))
                     rendered += 1
             frame.images = [c.name for c in plan.cameras]
         if evaluation is not None:
@@ -196,7 +217,8 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                       {"relight.pose": pose, "relight.env": name,
                                        "relight.camera": cam.name},
                                       provenance("relight/capture-image", 1, inputs,
-                                                 {"pose": pose, "env": name, "camera": cam.name}))
+                                                 {"pose": pose, "env": name, "camera": cam.name}),
+                                      hand_coverage(result, n_hands))
                         rendered += 1
         capture.complete = True
         C.write_capture(index_path, capture)

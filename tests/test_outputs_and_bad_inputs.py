@@ -117,13 +117,17 @@ COMMANDS = {
     "relight-teacher": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
                                       "8x8", "--env-res", "4x8", "-o", o], ".exr"),
+    "relight-capture": (lambda d, o: ["relight", d / "cap", "--model", "teacher",
+                                      "--checkpoint", d / "teacher.pt", "--eval-samples", "1",
+                                      "-o", o], ".json"),
 }
 # An input of each command that the "output is an input" case writes over.
 FIRST_INPUT = {"envmap": "sky.exr", "sh-probe": "sky.exr", "fit-geometry": None,
                "bake-features": "hand.npz", "relight-hand": "sky.exr",
                "relight-gaussians": "ball.ply", "dgsm-build": "ball.ply",
                "metrics-image": "img.exr", "metrics-lighting": "room.ply",
-               "train-teacher": "small.json", "relight-teacher": "sky.exr"}
+               "train-teacher": "small.json", "relight-teacher": "sky.exr",
+               "relight-capture": "teacher.pt"}
 
 
 def _snapshot(*folders) -> dict:
@@ -704,6 +708,9 @@ IDENTITY = {
     "relight-teacher": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
                                       "8x8", "--env-res", "4x8", "-o", t / "r.exr"], ["r.exr"]),
+    "relight-capture": lambda d, t: (["relight", d / "cap", "--model", "teacher",
+                                      "--checkpoint", d / "teacher.pt", "--eval-samples", "1",
+                                      "-o", t / "s.json"], ["s.json"]),
     "synth-capture": lambda d, t: (["synth-capture", d / "hand.npz", "-o", t / "cap",
                                     "--cameras", "1", "--lights", "2", "--group", "1",
                                     "--frames", "1", "--res", "8", "--tex-res", "8", "--aa", "1",

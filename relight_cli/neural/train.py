@@ -243,8 +243,9 @@ class TeacherTask:
         return evaluate(model, self.data, self.config, device, mean_texture=self.mean_texture)
 
     def extra(self) -> dict:
-        from .geometry import uv_layout_digest
-        out = {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine"))}
+        from .geometry import hand_records, uv_layout_digest
+        out = {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine")),
+               "hands": hand_records(self.data.hand)}
         if self.mean_texture is not None:
             out["mean_texture"] = self.mean_texture.detach().cpu()
         return out
