@@ -664,7 +664,9 @@ def gate_markdown(record: dict, command: str) -> str:
               "ratio fell to ≤ 1 for some seed are reported here and in the study tables, "
               "not gated: at this size the ordering is not robust.", "",
               "To re-measure (then regenerate the baseline, `RELIGHT_REGEN_BASELINE=1`): "
-              f"`{command}`.", ""]
+              "`.venv/bin/python benchmarks/study_hands.py --scale tiny --seeds 5 --out DIR "
+              "--gate-spread tests/baseline/study_gate_spread.json` (about half an hour on 2 "
+              "shared cores).", ""]
     return "\n".join(lines)
 
 
