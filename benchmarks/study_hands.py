@@ -431,9 +431,7 @@ class Study:
             path = runs / f"{key}.pt"
             write_checkpoint(str(path), result.checkpoint)
             record["checkpoint"] = str(path)
-        tmp = cached.with_suffix(".tmp")
-        tmp.write_text(json.dumps(record, indent=1))
-        os.replace(tmp, cached)
+        write_json(cached, record)
         self._memo[key] = record
         self.log(f"  {seconds:.0f} s: " + ", ".join(
             f"{s} " + " ".join(f"{m} {v:.4g}" for m, v in record["metrics"].get(s, {}).items()
@@ -480,9 +478,7 @@ class Study:
         record = {"key": key, "kind": kind, "hand": hand, "seed": seed, "overrides": overrides,
                   "metrics": {split: scores["grouped"]}, "curve": [],
                   "seconds": round(time.perf_counter() - t0, 1), "models": spec["models"]}
-        tmp = cached.with_suffix(".tmp")
-        tmp.write_text(json.dumps(record, indent=1))
-        os.replace(tmp, cached)
+        write_json(cached, record)
         self.log(f"  {record['seconds']:.0f} s: {split} mse {scores['grouped']['mse']:.4g} "
                  f"ssim {scores['grouped']['ssim']:.4g}")
         return record
@@ -630,9 +626,7 @@ def gate_spread(study: "Study", seeds: list, path: Path) -> dict:
                         "threshold": 1.0 + (low - 1.0) / 2 if low > 1.0 else None}
     record = {"scale": study.scale, "hand": GATE_HAND, "seeds": seeds, "checks": checks,
               "machine": machine(), "settings": study.settings}
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n")
-    os.replace(tmp, path)
+    write_json(path, record)
     return record
 
 
@@ -862,10 +856,10 @@ def plot(table: Table, record: dict, path: Path) -> None:
         ax.legend(fontsize=8)
     fig.suptitle(f"{table.title} ({record['scale']}, seeds {record['seeds']})", fontsize=9)
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110, metadata={"Software": None})
+    from relight_cli.provenance import atomic_path
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, metadata={"Software": None})
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def machine() -> str:
@@ -877,12 +871,17 @@ def machine() -> str:
 
 
 def write_table(table: Table, record: dict, results: Path) -> None:
+    from relight_cli.provenance import write_text_atomic
     results.mkdir(parents=True, exist_ok=True)
-    tmp = results / f"study_{table.name}.json.tmp"
-    tmp.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n")
-    os.replace(tmp, results / f"study_{table.name}.json")
-    (results / f"study_{table.name}.md").write_text(markdown(table, record))
+    write_json(results / f"study_{table.name}.json", record)
+    write_text_atomic(str(results / f"study_{table.name}.md"), markdown(table, record))
     plot(table, record, results / f"study_{table.name}.png")
+
+
+def write_json(path: Path, obj) -> None:
+    """Atomically (the project's output helper): an interrupted run leaves no half file."""
+    from relight_cli.provenance import write_text_atomic
+    write_text_atomic(str(path), json.dumps(obj, indent=1, ensure_ascii=False) + "\n")
 
 
 def require_matplotlib() -> None:
@@ -897,7 +896,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scale", choices=("tiny", "medium", "paper"), default="tiny")
     ap.add_argument("--seeds", type=int, default=3, help="seeds 0 … N−1 per row (default 3)")
-    ap.add_argument("--out", required=True, help="work folder: captures, trained rows (cache)")
+    ap.add_argument("--out", help="work folder: captures, trained rows (cache); required "
+                                  "unless --report")
     ap.add_argument("--results", default=None,
                     help="where the tables go (default: --out; the committed ones are in "
                          "benchmarks/results)")
@@ -921,12 +921,16 @@ def main(argv=None):
     require_matplotlib()
     import torch
     torch.set_num_threads(max(1, args.threads))
-    results = Path(args.results or args.out)
+    results = Path(args.results or args.out or ".")
     if args.report:
         for name in names:
-            record = json.loads((results / f"study_{name}.json").read_text())
-            write_table(TABLES[name], record, results)
+            source = results / f"study_{name}.json"
+            if not source.is_file():
+                ap.error(f"--report needs {source} (run the table first)")
+            write_table(TABLES[name], json.loads(source.read_text()), results)
         return
+    if not args.out:
+        ap.error("--out DIR is required (the captures and trained rows go there)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     command = "python benchmarks/study_hands.py " + " ".join(sys.argv[1:] if argv is None
@@ -936,7 +940,8 @@ def main(argv=None):
     if args.gate_spread:
         path = Path(args.gate_spread)
         record = gate_spread(study, list(range(args.seeds)), path)
-        path.with_suffix(".md").write_text(gate_markdown(record, command))
+        from relight_cli.provenance import write_text_atomic
+        write_text_atomic(str(path.with_suffix(".md")), gate_markdown(record, command))
         print(json.dumps(record["checks"], indent=1))
         return
     t0 = time.perf_counter()

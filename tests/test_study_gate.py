@@ -158,3 +158,26 @@ def test_gate_fails_without_visibility(gate_run, tmp_path, monkeypatch):
         assert worse[name]["mse_ratio"] == pytest.approx(1.0, abs=1e-6), name
         line = next(row for row in result.stdout.splitlines() if f"{name}.mse_ratio" in row)
         assert "REGRESSED" in line, result.stdout
+
+
+def test_claim_verdicts():
+    """A claim's verdict from same-seed differences: in the paper's direction by more
+    than their std → reproduced; as clearly the other way → reversed; else within the
+    spread (MSE: lower is better; SSIM: higher)."""
+    study_hands = _study_module()
+
+    def runs(better, worse, metric):
+        return {name: {"right": [{"seed": s, "metrics": {"heldout": {metric: v}}}
+                                 for s, v in enumerate(values)]}
+                for name, values in (("A", better), ("B", worse))}
+
+    def word(better, worse, metric="mse"):
+        claim = study_hands.Claim("A beats B", "A", "B", f"heldout.{metric}")
+        return study_hands.verdict(None, claim, runs(better, worse, metric))["hands"]["right"]
+
+    assert word([1.0, 1.1, 0.9], [1.5, 1.6, 1.4])["verdict"] == "reproduced"
+    assert word([1.5, 1.6, 1.4], [1.0, 1.1, 0.9])["verdict"] == "not reproduced (reversed)"
+    assert word([1.0, 1.2, 0.9], [1.1, 1.0, 1.0])["verdict"].endswith("(within the seed spread)")
+    assert word([0.9, 0.8, 0.85], [0.7, 0.6, 0.65], "ssim")["verdict"] == "reproduced"
+    gap = word([1.0, 1.1, 0.9], [1.5, 1.6, 1.4])["gap"]
+    assert gap["mean"] == pytest.approx(0.5) and gap["std"] == pytest.approx(0.0, abs=1e-12)
