@@ -785,11 +785,11 @@ def markdown(table: Table, record: dict) -> str:
                    f"({metric}{' ×10⁻³' if scale != 1 else ''}, {c['worse']} − {c['better']}"
                    f"{'' if metric in LOWER else ', negated'}, paired by seed)"
                    if g["n"] else "")
-            line = f"- {c['text']} — {hand}: **{v['verdict']}**; {gap}."
+            line = f"- {c['text']} — {hand}: **{v['verdict']}**" + (f"; {gap}." if gap else ".")
             # the table's current wording (a --report after the run may refine it)
             explain = next((k.explain for k in table.claims if k.text == c["text"]),
                            c["explain"])
-            if not v["verdict"].startswith("reproduced") and explain:
+            if g["n"] and not v["verdict"].startswith("reproduced") and explain:
                 line += f" What we believe explains it: {explain}."
             lines.append(line)
     lines += ["", "A claim is *reproduced* when the paired difference over seeds is in the "
