@@ -27,7 +27,7 @@ run continues where it stopped.  ``--report`` rewrites the Markdown and plots fr
 JSON without training.
 
 Sizes: ``benchmarks/studies/scales.json`` (tiny: the CI gate's, seconds per row; medium:
-the committed tables, about an hour on 2 CPU cores; paper: the papers' sizes, a GPU job).
+the committed tables, about 45 min on 2 shared CPU cores; paper: the papers' sizes, a GPU job).
 Plots need matplotlib (``pip install -e '.[bench]'``).
 
 Run:
