@@ -8,7 +8,7 @@ PY     := $(VENV)/bin/python
 RELIGHT := $(VENV)/bin/relight
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo example test test-fast man benchmarks clean
+.PHONY: install demo example test test-fast man benchmarks study clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -176,6 +176,15 @@ $(BENCH_STAMP): $(STAMP)
 benchmarks: $(BENCH_STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; \
 	  $(PY) $$b --out $(BENCH_OUT) $(if $(QUICK),--quick) || exit 1; done
+
+# The papers' comparison tables (benchmarks/README.md): SCALE=tiny|medium (paper: a GPU job),
+# one process per paper; the tables go to benchmarks/results.
+SCALE ?= medium
+study: $(BENCH_STAMP)
+	nice -n 5 $(PY) benchmarks/study_hands.py --scale $(SCALE) --seeds 3 --out benchmarks/out/study_$(SCALE) \
+		--results benchmarks/results --tables rh_t13,rh_t2 & first=$$!; \
+	nice -n 5 $(PY) benchmarks/study_hands.py --scale $(SCALE) --seeds 3 --out benchmarks/out/study_$(SCALE) \
+		--results benchmarks/results --tables ur_t2,ur_t3 && wait $$first
 
 clean:
 	rm -rf demo example build *.egg-info .pytest_cache
