@@ -1,0 +1,570 @@
+"""Every promise of formats/README.md, checked (issue 16).
+
+Each sentence of that page is a promise to users.  The ones no other test
+checked are checked here, one test each, named after the promise; the others
+are checked where they were already (the map below names the file).  Inputs
+are tiny (the data folder of test_outputs_and_bad_inputs.py), so the module
+runs in about a minute of CPU.
+
+Promise (formats/README.md) → test
+==================================
+
+The table
+  format names, versions and specs ........ test_table_versions_and_specs_match_the_code
+  "written by" ............................ test_table_writers_write_the_format
+  "read by" ............................... test_table_readers_read_the_format
+  readers reject newer versions ........... test_table_readers_read_the_format (a version-99
+                                            file through every reader),
+                                            test_python_readers_refuse_a_newer_version
+Provenance
+  the record and its fields ............... test_every_output_records_its_format_and_provenance
+  EXR header attributes ................... test_exr_provenance_is_three_header_attributes
+  JSON top-level fields ................... test_json_provenance_is_top_level_fields
+  npz keys ................................ test_npz_provenance_is_three_keys
+  PLY obj_info lines ...................... test_ply_provenance_is_obj_info_lines
+  checkpoint entries ...................... test_checkpoint_provenance_is_plain_entries
+  no timestamps / timings, identical bytes  test_outputs_and_bad_inputs.py::
+                                            test_identical_inputs_give_identical_bytes
+  fixed zip member dates .................. test_npz_members_have_fixed_zip_dates
+  command line without -q/--debug/... ..... test_command_line_leaves_out_presentation_flags
+  builtin inputs hashed by name ........... test_builtin_inputs_are_hashed_by_name
+Atomic writes
+  temp file name and folder ............... test_temporary_file_is_named_and_placed_as_documented
+  fsync ................................... test_finished_output_is_fsynced_before_the_rename
+  not empty ............................... test_empty_output_is_refused
+  read back on a full disk ................ test_full_disk_reads_exr_and_png_back (statvfs
+                                            reports 0 free blocks; a damaged file is refused),
+                                            test_outputs_and_bad_inputs.py::
+                                            test_full_file_system_never_leaves_an_empty_output
+                                            (a real 8 KiB tmpfs in a user namespace)
+  renamed into place ...................... test_output_is_renamed_into_place
+  several outputs: all or nothing ......... test_failed_second_output_leaves_the_first_unwritten,
+                                            test_foundation.py::test_output_transaction_is_all_or_nothing
+  Ctrl-C, SIGTERM, SIGHUP clean up ........ test_interrupted_run_leaves_nothing (SIGINT, SIGHUP),
+                                            test_outputs_and_bad_inputs.py::
+                                            test_killed_run_leaves_no_temp_files_after_the_next_run
+                                            (SIGTERM)
+  SIGKILL's temp removed by the next run .. test_outputs_and_bad_inputs.py::
+                                            test_killed_run_leaves_no_temp_files_after_the_next_run
+                                            (SIGKILL), test_stale_temp_files_of_live_processes_are_kept
+What an output may be (test_outputs_and_bad_inputs.py unless named here)
+  symlink written through ................. test_symlink_output_is_written_through
+  character device in place, /dev/null .... test_character_device_is_written_in_place (a node of
+                                            /dev/null's device, so a bug cannot replace /dev/null)
+  FIFO in place / without a reader ........ test_fifo_with_reader_gets_the_bytes,
+                                            test_fifo_without_reader_is_refused_and_kept
+  folder, block device, socket refused .... test_bad_output_target[*-directory],
+                                            test_block_device_and_socket_are_refused,
+                                            test_socket_output_is_refused (needs no root)
+  output = input, two outputs on one file . test_bad_output_target[*-input],
+                                            test_two_outputs_on_one_file_are_refused
+  ... before any work ..................... test_output_that_is_an_input_is_refused_before_any_work
+  hard links and ./ aliases ............... test_hard_link_to_an_input_is_refused,
+                                            test_two_outputs_on_one_file_are_refused[envmap-alias]
+  permissions ............................. test_read_only_folder (root without its override)
+  /proc, name too long .................... test_bad_output_target[*-proc], [*-name-too-long]
+  read-only file system ................... test_read_only_file_system_is_one_line
+  full disk ............................... see "read back on a full disk" above
+Reading JSON
+  one parser: NaN/Infinity, 1e400, depth,
+  long integers ........................... test_every_json_reader_refuses_what_json_cannot_hold,
+                                            test_json_nesting_limit_is_64_levels
+  metrics files read NaN as NaN ........... test_outputs_and_bad_inputs.py::
+                                            test_metrics_compare_fails_on_nan_and_inf
+  true/false are not numbers .............. test_json_booleans_are_not_numbers
+  one line naming the file, exit 1 ........ test_json_refusals_are_one_line_exit_1,
+                                            test_outputs_and_bad_inputs.py::test_bad_input[*json*]
+Images
+  linear EXR, half or float ............... test_exr_outputs_are_half_or_float
+  channel names ........................... test_exr_channels_are_named_by_layer
+  PNG preview: Reinhard + sRGB ............ test_png_preview_is_reinhard_then_srgb
+Conventions
+  world right-handed, +Y up, metres ....... test_world_is_right_handed_y_up_in_metres
+  cameras OpenCV, world→camera ............ test_foundation.py::
+                                            test_camera_look_at_projects_target_to_principal_point
+  UV v = 0 at the bottom row .............. test_uvraster.py::test_texel_centres_v_up,
+                                            test_uvraster.py::test_bottom_triangle_lands_in_bottom_rows
+  SH real, orthonormal, CS phase, index ... test_foundation.py::
+                                            test_sh_basis_matches_scipy_complex_harmonics,
+                                            test_sh_degree1_is_the_3dgs_convention
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import re
+import shutil
+import signal
+import stat
+import subprocess
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import ROOT, relight_executable
+from relight_cli.cli import COMMANDS as REGISTRY
+from relight_cli.cli import cli
+from relight_cli.errors import DataError, OutputError
+from test_outputs_and_bad_inputs import (TEMP_MARK, _assert_one_error, _inproc,
+                                         _run_inproc_fail, _snapshot, _subprocess,
+                                         _wait_for_temp, data)
+
+__all__ = ["data"]   # the sweep's tiny inputs, a fixture of this module too
+
+README = ROOT / "formats" / "README.md"
+
+
+# ----------------------------------------------------------------------------- what relight writes
+
+
+def _written_runs(d: Path, w: Path) -> dict[str, list[list]]:
+    """command -> the runs (argv) that make every kind of output it writes, into ``w``."""
+    return {
+        "envmap": [["envmap", "builtin:sky", "--size", "8x4", "-o", w / "env.exr",
+                    "--preview", w / "env.png"],
+                   ["envmap", d / "sky.exr", "--half", "-o", w / "half.exr"]],
+        "sh-probe": [["sh-probe", d / "sky.exr", "--degree", "1", "-o", w / "probe.json"]],
+        "fit-geometry": [["fit-geometry", "--pose", "fist", "-o", w / "hand.npz"]],
+        "bake-features": [["bake-features", d / "hand.npz", d / "sky.exr", "--res", "8",
+                           "--env-res", "4x8", "-o", w / "feats.exr", "--per-vertex",
+                           w / "feats.npz"]],
+        "relight": [["relight", d / "hand.npz", d / "sky.exr", "--size", "8x8", "--tex-res", "8",
+                     "--aa", "1", "--env-res", "4x8", "--aov", "normal", "-o", w / "render.exr"],
+                    ["relight", d / "ball.ply", "--probe", d / "probe.json", "-o",
+                     w / "relit.ply"]],
+        "dgsm-build": [["dgsm-build", d / "ball.ply", "--receivers", d / "room.ply", "--lights",
+                        d / "lights.json", "--size", "4", "--bins", "2", "-o", w / "shadows.exr",
+                        "--lights-out", w / "lights.json", "--occluders-out", w / "occ.ply"]],
+        "metrics": [["metrics", "image", d / "img.exr", d / "img2.exr", "-o", w / "m.json"]],
+        "synth-capture": [["synth-capture", d / "hand.npz", "-o", w / "cap", "--cameras", "1",
+                           "--lights", "3", "--group", "1", "--frames", "3", "--res", "8",
+                           "--tex-res", "8", "--aa", "1", "--eval-poses", "1", "--eval-cameras",
+                           "1", "--eval-envs", "builtin:sky"]],
+        "train-teacher": [["train-teacher", d / "cap", "--config", d / "small.json", "--iters",
+                           "1", "-o", w / "teacher.pt", "--metrics-out", w / "teacher.json"]],
+        "distill": [["distill", d / "teacher.pt", d / "cap", "--envs", "builtin:sky", "--iters",
+                     "1", "-o", w / "student.pt", "--metrics-out", w / "student.json"]],
+    }
+
+
+@pytest.fixture(scope="module")
+def written(data, tmp_path_factory):
+    """(folder, {output path: command that wrote it}): every command, every kind of output."""
+    folder = tmp_path_factory.mktemp("written")
+    made = {}
+    for command, runs in _written_runs(data, folder).items():
+        for args in runs:
+            before = set(folder.rglob("*"))
+            r = _inproc(*args, "-q")
+            assert r.exit_code == 0, (args, r.output)
+            made.update({p: command for p in set(folder.rglob("*")) - before if p.is_file()})
+    return folder, made
+
+
+def _tag(path: Path) -> tuple[str, int, dict]:
+    """(format, version, provenance record) as stored in ``path``, read without relight."""
+    suffix = path.suffix
+    if suffix == ".exr":
+        import OpenEXR
+        header = OpenEXR.File(str(path)).header()
+        return (header["relight.format"], header["relight.version"],
+                json.loads(header["relight.provenance"]))
+    if suffix == ".json":
+        obj = json.loads(path.read_text())
+        return obj["format"], obj["version"], obj["provenance"]
+    if suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            return str(z["format"]), int(z["version"]), json.loads(str(z["provenance"]))
+    if suffix == ".ply":
+        lines = _ply_obj_info(path)
+        fmt = [ln.split()[1:] for ln in lines if ln.startswith("relight.format ")]
+        prov = [ln.split(" ", 1)[1] for ln in lines if ln.startswith("relight.provenance ")]
+        return fmt[0][0], int(fmt[0][1]), json.loads(prov[0])
+    if suffix == ".pt":
+        import torch
+        obj = torch.load(path, weights_only=True)
+        return obj["format"], obj["version"], json.loads(obj["provenance"])
+    raise AssertionError(f"no reader for {path}")
+
+
+def _ply_obj_info(path: Path) -> list[str]:
+    header = path.read_bytes().split(b"end_header\n", 1)[0].decode("ascii")
+    return [ln[len("obj_info "):] for ln in header.splitlines() if ln.startswith("obj_info ")]
+
+
+def _data_files(written):
+    """Every output but PNG previews (which are not a format)."""
+    folder, made = written
+    return {p: c for p, c in made.items() if p.suffix != ".png"}
+
+
+# ----------------------------------------------------------------------------- the table
+
+
+def _table() -> dict[str, dict]:
+    """format -> {"version", "files", "spec", "written by", "read by"} from the README."""
+    rows = {}
+    for line in README.read_text().splitlines():
+        cells = [c.strip() for c in re.split(r"(?<!\\)\|", line.strip())[1:-1]]
+        if len(cells) != 6 or not cells[0].startswith("`relight/"):
+            continue
+        rows[cells[0].strip("`")] = dict(zip(("version", "files", "spec", "written by",
+                                              "read by"), cells[1:]))
+    return rows
+
+
+def _commands_in(cell: str) -> set[str]:
+    """The subcommands named (in backquotes, options after the name) in a table cell."""
+    names = {m.split()[0] for m in re.findall(r"`([^`]+)`", cell)}
+    return {n for n in names if n in REGISTRY}
+
+
+def test_table_versions_and_specs_match_the_code():
+    """Each row's version is the one its module writes and reads, its spec exists, and
+    every format name the code uses has a row."""
+    from relight_cli import formats
+    rows = _table()
+    declared = {}
+    for module_file in Path(formats.__file__).parent.glob("*.py"):
+        text = module_file.read_text()
+        for name, fmt in re.findall(r'^(\w*FORMAT) = "(relight/[\w-]+)"', text, re.M):
+            version = re.search(rf"^{name.replace('FORMAT', 'VERSION')} = (\d+)", text, re.M)
+            declared[fmt] = int(version.group(1))
+    for source in [*(ROOT / "commands").glob("*.py"), *(ROOT / "relight_cli").rglob("*.py")]:
+        for fmt, version in re.findall(r'provenance\("(relight/[\w-]+)", (\d+)',
+                                       source.read_text()):
+            assert declared.setdefault(fmt, int(version)) == int(version), (source, fmt)
+    assert sorted(declared) == sorted(rows)
+    for fmt, row in rows.items():
+        assert int(row["version"]) == declared[fmt], fmt
+        spec = re.fullmatch(r"\[([\w.]+)\]\(([\w.]+)\)", row["spec"])
+        assert spec and (README.parent / spec.group(2)).is_file(), (fmt, row["spec"])
+
+
+def test_table_writers_write_the_format(written):
+    """"written by" names exactly the commands whose outputs carry the format."""
+    seen: dict[str, set[str]] = {}
+    for path, command in _data_files(written).items():
+        seen.setdefault(_tag(path)[0], set()).add(command)
+    rows = _table()
+    assert set(seen) <= set(rows)
+    for fmt, row in rows.items():
+        assert _commands_in(row["written by"]) == seen.get(fmt, set()), fmt
+
+
+
+def _newer(src: Path, dst: Path) -> Path:
+    """A copy of relight's file ``src`` that says it is version 99 of its format."""
+    if src.is_dir():   # a capture folder: its index and every image say 99
+        shutil.copytree(src, dst)
+        _newer(src / "capture.json", dst / "capture.json")
+        return dst
+    if src.suffix == ".exr":
+        from relight_cli.formats.exr import VERSION_KEY, read_exr, write_exr
+        image = read_exr(str(src))
+        write_exr(str(dst), image.channels, dict(image.attributes, **{VERSION_KEY: 99}),
+                  envmap=image.envmap)
+    elif src.suffix == ".json":
+        dst.write_text(json.dumps(dict(json.loads(src.read_text()), version=99)))
+    elif src.suffix == ".npz":
+        with np.load(src, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        np.savez(dst, **dict(arrays, version=np.array(99)))
+    elif src.suffix == ".ply":
+        old = b"relight.format relight/gaussians 1\n"
+        dst.write_bytes(src.read_bytes().replace(old, old.replace(b" 1\n", b" 99\n"), 1))
+    elif src.suffix == ".pt":
+        import torch
+        torch.save(dict(torch.load(src, weights_only=True), version=99), dst)
+    return dst
+
+
+def _newer_images(src: Path, dst: Path) -> Path:
+    """A copy of capture folder ``src`` whose images and renders say they are version 99."""
+    shutil.copytree(src, dst)
+    for image in dst.rglob("*.exr"):
+        if image.parent.name != "envs":
+            _newer(image, image.with_name("v99.exr")).replace(image)
+    return dst
+
+
+def _bad_camera(src, dst: Path) -> Path:
+    """Cameras carry no version tag: a camera whose R is no rotation shows it was read."""
+    dst.write_text(json.dumps({"K": [[8, 0, 4], [0, 8, 4], [0, 0, 1]],
+                               "R": [[2, 0, 0], [0, 2, 0], [0, 0, 2]], "t": [0, 0, 1],
+                               "width": 8, "height": 8}))
+    return dst
+
+
+def _keypoints(d: Path, dst: Path) -> Path:
+    from relight_cli.hand.model import builtin_hand
+    joints = builtin_hand("right", pose=None).rest_joints
+    dst.write_text(json.dumps({"format": "relight/keypoints", "version": 99,
+                               "keypoints": [joints.tolist()]}))
+    return dst
+
+
+# format -> (make the bad file from the data folder and the written folder, its name,
+#            {reader (the command and option the table names): argv given data, bad, out}).
+
+
+def _capture_with(d: Path, hand: Path, out: Path) -> Path:
+    """A copy of the data's capture (beside ``out``) whose hand.npz is ``hand``."""
+    capture = out.parent / "cap-with-hand"
+    shutil.copytree(d / "cap", capture)
+    shutil.copy(hand, capture / "hand.npz")
+    return capture
+
+
+def _train(d: Path) -> list:
+    return ["--config", d / "small.json", "--iters", "1"]
+
+READERS = {
+    "relight/envmap": (lambda d, w: d / "sky.exr", "env.exr", {
+        "envmap": lambda d, b, o: ["envmap", b, "-o", o / "x.exr"],
+        "sh-probe": lambda d, b, o: ["sh-probe", b, "-o", o / "x.json"],
+        "bake-features": lambda d, b, o: ["bake-features", d / "hand.npz", b, "-o", o / "x.exr"],
+        "relight": lambda d, b, o: ["relight", d / "hand.npz", b, "-o", o / "x.exr"],
+        "synth-capture --eval-envs": lambda d, b, o: [
+            "synth-capture", d / "hand.npz", "-o", o / "cap", "--cameras", "1",
+            "--eval-cameras", "1", "--eval-envs", b],
+        "distill --envs": lambda d, b, o: ["distill", d / "teacher.pt", d / "cap", "--envs", b,
+                                           "-o", o / "x.pt"]}),
+    "relight/camera": (None, "camera.json", {
+        "bake-features --camera": lambda d, b, o: [
+            "bake-features", d / "hand.npz", d / "sky.exr", "--camera", b, "-o", o / "x.exr"],
+        "relight --camera": lambda d, b, o: ["relight", d / "hand.npz", d / "sky.exr",
+                                             "--camera", b, "-o", o / "x.exr"],
+        "relight --render": lambda d, b, o: ["relight", d / "ball.ply", "--probe",
+                                             d / "probe.json", "--render", b, "-o", o / "x.exr"],
+        "metrics shadow --camera": lambda d, b, o: [
+            "metrics", "shadow", d / "img.exr", d / "img2.exr", "--roi-avatar", d / "ball.ply",
+            "--camera", b, "-o", o / "x.json"]}),
+    "relight/hand": (lambda d, w: d / "hand.npz", "hand.npz", {
+        "bake-features": lambda d, b, o: ["bake-features", b, d / "sky.exr", "-o", o / "x.exr"],
+        "relight": lambda d, b, o: ["relight", b, d / "sky.exr", "-o", o / "x.exr"],
+        "synth-capture": lambda d, b, o: ["synth-capture", b, "-o", o / "cap"],
+        "fit-geometry --template": lambda d, b, o: ["fit-geometry", "--template", b,
+                                                    "-o", o / "x.npz"],
+        "dgsm-build": lambda d, b, o: ["dgsm-build", b, "--receivers", d / "room.ply",
+                                       "--lights", d / "lights.json", "-o", o / "x.exr"],
+        "train-teacher": lambda d, b, o: ["train-teacher", _capture_with(d, b, o), *_train(d),
+                                          "-o", o / "x.pt"],
+        "distill": lambda d, b, o: ["distill", d / "teacher.pt", _capture_with(d, b, o),
+                                    "--envs", "builtin:sky", "-o", o / "x.pt"]}),
+    "relight/keypoints": (None, "kp.json", {
+        "fit-geometry --keypoints": lambda d, b, o: ["fit-geometry", "--keypoints", b,
+                                                     "-o", o / "x.npz"]}),
+    "relight/features": (lambda d, w: w / "feats.exr", "feats.exr", {}),
+    "relight/gaussians": (lambda d, w: d / "ball.ply", "ball.ply", {
+        "dgsm-build": lambda d, b, o: ["dgsm-build", b, "--receivers", d / "room.ply",
+                                       "--lights", d / "lights.json", "-o", o / "x.exr"],
+        "sh-probe": lambda d, b, o: ["sh-probe", b, "--at", "0,0.5,0", "-o", o / "x.json"],
+        "relight": lambda d, b, o: ["relight", b, "--probe", d / "probe.json", "-o", o / "x.ply"],
+        "metrics lighting": lambda d, b, o: ["metrics", "lighting", "--scene", b, "--avatar",
+                                             d / "ball.ply", "-o", o / "x.json"]}),
+    "relight/lights": (lambda d, w: d / "lights.json", "lights.json", {
+        "dgsm-build --lights": lambda d, b, o: ["dgsm-build", d / "ball.ply", "--receivers",
+                                                d / "room.ply", "--lights", b, "-o", o / "x.exr"],
+        "relight --lights": lambda d, b, o: ["relight", d / "hand.npz", "--lights", b,
+                                             "-o", o / "x.exr"]}),
+    "relight/dgsm": (lambda d, w: w / "shadows.exr", "shadows.exr", {
+        "relight --dgsm": lambda d, b, o: ["relight", d / "ball.ply", "--probe", d / "probe.json",
+                                           "--receivers", d / "room.ply", "--dgsm", b,
+                                           "-o", o / "x.ply"]}),
+    "relight/sh-probe": (lambda d, w: d / "probe.json", "probe.json", {
+        "relight --probe": lambda d, b, o: ["relight", d / "ball.ply", "--probe", b,
+                                            "-o", o / "x.ply"]}),
+    "relight/capture": (lambda d, w: d / "cap", "cap", {
+        "train-teacher": lambda d, b, o: ["train-teacher", b, *_train(d), "-o", o / "x.pt"],
+        "distill": lambda d, b, o: ["distill", d / "teacher.pt", b, "--envs", "builtin:sky",
+                                    "-o", o / "x.pt"]}),
+    "relight/capture-image": (lambda d, w: w / "cap", "cap", {
+        "train-teacher": lambda d, b, o: ["train-teacher", b, *_train(d), "-o", o / "x.pt"],
+        "distill": lambda d, b, o: ["distill", d / "teacher.pt", b, "--envs", "builtin:sky",
+                                    "--iters", "1", "-o", o / "x.pt"]}),
+    "relight/vertex-features": (lambda d, w: w / "feats.npz", "feats.npz", {}),
+    "relight/metrics": (lambda d, w: d / "m.json", "m.json", {
+        "metrics compare": lambda d, b, o: ["metrics", "compare", b, d / "m.json"]}),
+    "relight/checkpoint": (lambda d, w: d / "teacher.pt", "teacher.pt", {
+        "relight --checkpoint": lambda d, b, o: [
+            "relight", d / "hand.npz", d / "sky.exr", "--model", "teacher", "--checkpoint", b,
+            "-o", o / "x.exr"],
+        "distill": lambda d, b, o: ["distill", b, d / "cap", "--envs", "builtin:sky",
+                                    "-o", o / "x.pt"],
+        "train-teacher --resume": lambda d, b, o: ["train-teacher", d / "cap", *_train(d),
+                                                   "--resume", b, "-o", o / "x.pt"],
+        "distill --resume": lambda d, b, o: ["distill", d / "teacher.pt", d / "cap", "--envs",
+                                             "builtin:sky", "--resume", b, "-o", o / "x.pt"]}),
+}
+
+
+def _bad_file(fmt: str, data: Path, written_folder: Path, folder: Path) -> Path:
+    make, name, _ = READERS[fmt]
+    if fmt == "relight/camera":
+        return _bad_camera(data, folder / name)
+    if fmt == "relight/keypoints":
+        return _keypoints(data, folder / name)
+    if fmt == "relight/capture-image":
+        return _newer_images(make(data, written_folder), folder / name)
+    return _newer(make(data, written_folder), folder / name)
+
+
+def test_table_read_by_names_the_readers_tested():
+    """"read by" names exactly the commands test_table_readers_read_the_format runs."""
+    for fmt, row in _table().items():
+        if fmt == "relight/render":
+            tested = {"metrics"}   # test_render_files_are_read_as_images
+        else:
+            tested = {label.split()[0] for label in READERS[fmt][2]}
+        assert _commands_in(row["read by"]) == tested, fmt
+
+
+@pytest.mark.parametrize("fmt,reader", [(f, r) for f in READERS for r in READERS[f][2]])
+def test_table_readers_read_the_format(data, written, tmp_path, fmt, reader):
+    """Each reader the table names refuses a file of a newer major version (cameras,
+    which carry no version: a broken one), one line naming the file, exit 1."""
+    bad = _bad_file(fmt, data, written[0], tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    r = _run_inproc_fail([*READERS[fmt][2][reader](data, bad, out), "-q"], 1)
+    assert "version 99" in r.stderr or "rotation" in r.stderr, r.stderr
+    assert os.path.basename(bad) in r.stderr, r.stderr
+    assert os.listdir(out) == []
+
+
+def test_render_files_are_read_as_images(written):
+    """relight/render has no reader of its own: `metrics image` reads it as any image."""
+    folder, _ = written
+    r = _inproc("metrics", "image", folder / "render.exr", folder / "render.exr", "-o", "-", "-q")
+    assert r.exit_code == 0 and json.loads(r.stdout)["metrics"]["mse"] == 0.0, r.output
+
+
+def test_python_readers_refuse_a_newer_version(written, tmp_path):
+    """The formats no command reads (features, vertex-features) refuse newer versions too."""
+    from relight_cli.formats.features_exr import read_features, read_vertex_features
+    folder, _ = written
+    for read, name in ((read_features, "feats.exr"), (read_vertex_features, "feats.npz")):
+        bad = _newer(folder / name, tmp_path / name)
+        with pytest.raises(DataError, match="version") as caught:
+            read(str(bad))
+        assert caught.value.path == str(bad)
+
+
+# ----------------------------------------------------------------------------- provenance
+
+SHA256 = re.compile(r"[0-9a-f]{64}|builtin:[0-9a-f]{16}")
+
+
+def test_every_output_records_its_format_and_provenance(written):
+    """Every data file names its format and version, and records how it was made:
+    {format, version, tool, command, inputs: {role: {path, sha256}}[, settings]},
+    the record's format and version being the file's own."""
+    from relight_cli import __version__
+    files = _data_files(written)
+    assert len(files) >= 20
+    for path, command in files.items():
+        fmt, version, record = _tag(path)
+        assert fmt.startswith("relight/") and isinstance(version, int) and version >= 1, path
+        assert set(record) <= {"format", "version", "tool", "command", "inputs", "settings"}
+        assert (record["format"], record["version"]) == (fmt, version), path
+        assert record["tool"] == f"relight {__version__}", path
+        assert record["command"].startswith(f"relight {command} "), path
+        for role, item in record["inputs"].items():
+            assert set(item) == {"path", "sha256"} and SHA256.fullmatch(item["sha256"]), (path, role)
+            if not item["path"].startswith("builtin:"):
+                assert item["sha256"] == hashlib.sha256(
+                    Path(item["path"]).read_bytes()).hexdigest(), (path, role)
+        assert isinstance(record.get("settings", {}), dict), path
+
+
+def test_exr_provenance_is_three_header_attributes(written):
+    """EXR: relight.format (string), relight.version (int), relight.provenance (JSON string)."""
+    import OpenEXR
+    exrs = [p for p in _data_files(written) if p.suffix == ".exr"]
+    assert exrs
+    for path in exrs:
+        header = OpenEXR.File(str(path)).header()
+        assert type(header["relight.format"]) is str, path
+        assert type(header["relight.version"]) is int, path
+        assert isinstance(json.loads(header["relight.provenance"]), dict), path
+
+
+def test_json_provenance_is_top_level_fields(written):
+    jsons = [p for p in _data_files(written) if p.suffix == ".json"]
+    assert jsons
+    for path in jsons:
+        obj = json.loads(path.read_text())
+        assert isinstance(obj["format"], str) and type(obj["version"]) is int, path
+        assert isinstance(obj["provenance"], dict), path
+
+
+def test_npz_provenance_is_three_keys(written):
+    """npz: 0-d `format` (string), `version` (integer) and `provenance` (JSON string)."""
+    npzs = [p for p in _data_files(written) if p.suffix == ".npz"]
+    assert npzs
+    for path in npzs:
+        with np.load(path, allow_pickle=False) as z:
+            assert z["format"].shape == () and z["format"].dtype.kind == "U", path
+            assert z["version"].shape == () and z["version"].dtype.kind == "i", path
+            assert isinstance(json.loads(str(z["provenance"])), dict), path
+
+
+def test_ply_provenance_is_obj_info_lines(written):
+    """PLY: `obj_info relight.format NAME VERSION` and `obj_info relight.provenance JSON`."""
+    plys = [p for p in _data_files(written) if p.suffix == ".ply"]
+    assert plys
+    for path in plys:
+        lines = _ply_obj_info(path)
+        assert re.fullmatch(r"relight\.format relight/gaussians \d+", lines[0]), path
+        assert lines[1].startswith("relight.provenance {"), path
+
+
+def test_checkpoint_provenance_is_plain_entries(written):
+    """Checkpoints: `format` (str), `version` (int), `provenance` (JSON str) entries,
+    loadable with torch.load(weights_only=True)."""
+    import torch
+    pts = [p for p in _data_files(written) if p.suffix == ".pt"]
+    assert pts
+    for path in pts:
+        obj = torch.load(path, weights_only=True)
+        assert type(obj["format"]) is str and type(obj["version"]) is int, path
+        assert isinstance(json.loads(obj["provenance"]), dict), path
+
+
+def test_npz_members_have_fixed_zip_dates(written):
+    """Zip members are dated 1980-01-01 00:00:00, whenever the file was written."""
+    npzs = [p for p in _data_files(written) if p.suffix == ".npz"]
+    for path in npzs:
+        with zipfile.ZipFile(path) as z:
+            assert {info.date_time for info in z.infolist()} == {(1980, 1, 1, 0, 0, 0)}, path
+
+
+def test_command_line_leaves_out_presentation_flags(data, tmp_path):
+    """-q, --quiet, --debug and --no-clobber change what is shown, not the stored command."""
+    plain = ["sh-probe", str(data / "sky.exr"), "--degree", "1", "-o", "-"]
+    shown = ["--debug", "sh-probe", str(data / "sky.exr"), "-q", "--degree", "1", "--quiet",
+             "--no-clobber", "-o", "-"]
+    commands = []
+    for args in (plain, shown):
+        r = CliRunner().invoke(cli, args)
+        assert r.exit_code == 0, r.output
+        commands.append(json.loads(r.stdout)["provenance"]["command"])
+    assert commands[0] == commands[1] == "relight " + " ".join(plain)
+
+
+def test_builtin_inputs_are_hashed_by_name(tmp_path):
+    """builtin:NAME is recorded with a hash of its name, whatever size it is rendered at."""
+    records = []
+    for size in ("8x4", "16x8"):
+        r = _inproc("envmap", "builtin:sky", "--size", size, "-o", tmp_path / f"{size}.exr", "-q")
+        assert r.exit_code == 0, r.output
+        records.append(_tag(tmp_path / f"{size}.exr")[2]["inputs"]["input"])
+    name_hash = "builtin:" + hashlib.sha256(b"builtin:sky").hexdigest()[:16]
+    assert records == [{"path": "builtin:sky", "sha256": name_hash}] * 2
