@@ -568,3 +568,200 @@ def test_builtin_inputs_are_hashed_by_name(tmp_path):
         records.append(_tag(tmp_path / f"{size}.exr")[2]["inputs"]["input"])
     name_hash = "builtin:" + hashlib.sha256(b"builtin:sky").hexdigest()[:16]
     assert records == [{"path": "builtin:sky", "sha256": name_hash}] * 2
+
+
+# ----------------------------------------------------------------------------- atomic writes
+
+
+def test_temporary_file_is_named_and_placed_as_documented(tmp_path):
+    """`.NAME.relight-tmp-PID-XXXXXXXX.EXT` in the target's folder (a symlink's: the
+    folder of the file it names)."""
+    from relight_cli.provenance import atomic_path
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link.exr").symlink_to(Path("real") / "out.exr")
+    for target, folder in ((tmp_path / "out.exr", tmp_path),
+                           (tmp_path / "link.exr", tmp_path / "real")):
+        with atomic_path(target) as tmp:
+            assert os.path.dirname(tmp) == str(folder)
+            assert re.fullmatch(rf"\.out\.exr\.relight-tmp-{os.getpid()}-[a-z0-9_]{{8}}\.exr",
+                                os.path.basename(tmp)), tmp
+            Path(tmp).write_bytes(b"data")
+    assert (tmp_path / "out.exr").read_bytes() == (tmp_path / "real" / "out.exr").read_bytes()
+
+
+def test_finished_output_is_fsynced_before_the_rename(tmp_path, monkeypatch):
+    from relight_cli.provenance import atomic_path
+    synced, fsync = [], os.fsync
+
+    def spy(fd):
+        synced.append((os.readlink(f"/proc/self/fd/{fd}"), (tmp_path / "x.json").exists()))
+        fsync(fd)
+    monkeypatch.setattr(os, "fsync", spy)
+    with atomic_path(tmp_path / "x.json") as tmp:
+        Path(tmp).write_text("{}")
+    assert synced == [(tmp, False)]
+
+
+def test_empty_output_is_refused(tmp_path):
+    """A writer that left nothing: one-line OutputError, no file (Make would trust it)."""
+    from relight_cli.provenance import atomic_path
+    with pytest.raises(OutputError, match="nothing was written"):
+        with atomic_path(tmp_path / "x.exr"):
+            pass
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("kind", ["exr", "png"])
+def test_full_disk_reads_exr_and_png_back(tmp_path, monkeypatch, kind):
+    """When the file system reports no free block, an EXR or PNG (whose C++ writers can
+    drop the error of their last buffer) is read back; one cut short is refused.  The
+    full disk is simulated (os.statvfs says 0 free blocks) and the writer's loss by
+    truncating the file before the read-back; the real thing is
+    test_outputs_and_bad_inputs.py::test_full_file_system_never_leaves_an_empty_output."""
+    from relight_cli.formats import exr as exr_module
+    from relight_cli.formats import image as image_module
+    real = os.statvfs(tmp_path)
+    full = os.statvfs_result((real.f_bsize, real.f_frsize, real.f_blocks, 0, 0, *real[5:]))
+    monkeypatch.setattr(os, "statvfs", lambda path: full)
+    module, reader = (exr_module, "read_exr") if kind == "exr" else (image_module, "read_image")
+    read_back, original = [], getattr(module, reader)
+
+    def cut_short(path):
+        read_back.append(path)
+        size = os.path.getsize(path)
+        os.truncate(path, size // 2)
+        return original(path)
+    monkeypatch.setattr(module, reader, cut_short)
+    pixels = np.random.default_rng(0).random((16, 16, 3)).astype(np.float32)
+    target = tmp_path / f"x.{kind}"
+    with pytest.raises(OutputError, match="no space left"):
+        if kind == "exr":
+            exr_module.write_exr(str(target), {c: pixels[..., i] for i, c in enumerate("RGB")})
+        else:
+            image_module.write_png(str(target), pixels)
+    assert len(read_back) == 1 and os.listdir(tmp_path) == []
+
+
+def test_output_is_renamed_into_place(data, tmp_path):
+    """The old file is replaced by rename, never rewritten: its other names keep it."""
+    out, other_name = tmp_path / "e.exr", tmp_path / "old.exr"
+    out.write_bytes(b"old")
+    os.link(out, other_name)
+    r = _inproc("envmap", data / "sky.exr", "-o", out, "-q")
+    assert r.exit_code == 0, r.output
+    assert other_name.read_bytes() == b"old" and out.stat().st_ino != other_name.stat().st_ino
+
+
+def test_failed_second_output_leaves_the_first_unwritten(data, tmp_path, monkeypatch):
+    """envmap stages its EXR, then its preview fails: no new EXR, the old one untouched."""
+    from relight_cli.formats import image as image_module
+
+    def fail(path, *args, **kwargs):
+        raise OutputError("cannot write: simulated", path)
+    monkeypatch.setattr(image_module, "write_preview", fail)
+    (tmp_path / "e.exr").write_bytes(b"old")
+    _run_inproc_fail(["envmap", data / "sky.exr", "-o", tmp_path / "e.exr", "--preview",
+                      tmp_path / "e.png"], 1, "simulated")
+    assert os.listdir(tmp_path) == ["e.exr"] and (tmp_path / "e.exr").read_bytes() == b"old"
+
+
+@pytest.mark.parametrize("how,code,last_line", [
+    (signal.SIGINT, 130, "interrupted"),
+    (signal.SIGHUP, 128 + signal.SIGHUP, "terminated by signal SIGHUP")])
+def test_interrupted_run_leaves_nothing(tmp_path, how, code, last_line):
+    """Ctrl-C (SIGINT) and SIGHUP, like SIGTERM, remove the run's temporary files."""
+    args = ["fit-geometry", "--pose", "fist", "-o", tmp_path / "h.npz", "--preview",
+            tmp_path / "h.png", "--preview-size", "160x160", "-q"]
+    proc = subprocess.Popen([relight_executable(), *map(str, args)], stderr=subprocess.PIPE,
+                            text=True)
+    if not _wait_for_temp(tmp_path, proc):
+        proc.wait()
+        pytest.skip("the run finished before a temporary file could be seen")
+    proc.send_signal(how)
+    stderr = proc.communicate(timeout=60)[1]
+    assert proc.returncode == code, stderr
+    assert stderr.strip().splitlines()[-1].endswith(last_line), stderr
+    assert "Traceback" not in stderr and os.listdir(tmp_path) == []
+
+
+# ----------------------------------------------------------------------------- what an output may be
+
+
+def test_socket_output_is_refused(data, tmp_path):
+    """(Needs no root, unlike its block-device twin in test_outputs_and_bad_inputs.py.)"""
+    import socket
+    server = socket.socket(socket.AF_UNIX)
+    server.bind(str(tmp_path / "sock"))
+    try:
+        _run_inproc_fail(["envmap", data / "sky.exr", "-o", tmp_path / "sock"], 2, "socket")
+        assert stat.S_ISSOCK(os.lstat(tmp_path / "sock").st_mode)
+        assert os.listdir(tmp_path) == ["sock"]
+    finally:
+        server.close()
+
+
+# Where each command computes (the work a refused output must not wait for); each
+# raises here, so a refusal that came after work is an "internal error", exit 1.
+_WORK = [("relight_cli.envmap", "resample"), ("relight_cli.gaussians.probe", "env_samples"),
+         ("relight_cli.gaussians.probe", "scene_samples"), ("relight_cli.features", "discretize_env"),
+         ("relight_cli.gaussians.dgsm", "build_dgsm"), ("relight_cli.gaussians.dgsm",
+                                                         "build_dgsm_groups"),
+         ("relight_cli.gaussians.transfer", "relight_gaussians"),
+         ("relight_cli.gaussians.splat", "render"), ("relight_cli.render.shading", "HandRenderer"),
+         ("relight_cli.render.gbuffer", "render_gbuffer"),
+         ("relight_cli.neural.geometry", "PoseTexels"), ("relight_cli.neural.train", "fit"),
+         ("relight_cli.hand.fitting", "fit"), ("relight_cli.metrics.image", "image_metrics"),
+         ("relight_cli.metrics.lighting", "lighting_metrics")]
+
+
+def _refusal_cases():
+    from test_outputs_and_bad_inputs import COMMANDS, DUPLICATES, FIRST_INPUT
+    cases = {f"input:{n}": (lambda d, t, n=n: COMMANDS[n][0](d, d / FIRST_INPUT[n]), "also an input")
+             for n in sorted(COMMANDS) if FIRST_INPUT[n]}
+    cases.update({f"two:{n}": (DUPLICATES[n], "two outputs") for n in sorted(DUPLICATES)})
+    cases["input:metrics-image-folder"] = (
+        lambda d, t: ["metrics", "image", t / "pred", t / "gt", "-o", t / "pred" / "z.exr"],
+        "also an input")
+    return cases
+
+
+@pytest.mark.parametrize("case", sorted(_refusal_cases()))
+def test_output_that_is_an_input_is_refused_before_any_work(data, tmp_path, monkeypatch, case):
+    """An output that is an input, or two outputs on one file: refused (exit 2) before
+    anything is computed, nothing written (inputs may have been read)."""
+    import importlib
+    for module, name in _WORK:
+        def work(*args, _name=name, **kwargs):
+            raise AssertionError(f"{_name} ran before the output was refused")
+        monkeypatch.setattr(importlib.import_module(module), name, work)
+    for folder in ("pred", "gt"):   # a batch of pairs: the last prediction is the output
+        (tmp_path / folder).mkdir()
+        for name in ("a.exr", "z.exr"):
+            shutil.copy(data / "img.exr", tmp_path / folder / name)
+    build, word = _refusal_cases()[case]
+    before = _snapshot(data, tmp_path)
+    _run_inproc_fail([*build(data, tmp_path), "-q"], 2, word)
+    assert _snapshot(data, tmp_path) == before
+
+
+def _user_namespace_mounts() -> str | None:
+    from test_outputs_and_bad_inputs import _full_filesystem_available
+    return _full_filesystem_available()
+
+
+def test_read_only_file_system_is_one_line(data, tmp_path):
+    """A read-only mount (a tmpfs mounted ro in a user namespace): one line, exit 1."""
+    reason = _user_namespace_mounts()
+    if reason:
+        pytest.skip(reason)
+    from test_outputs_and_bad_inputs import _quote
+    mount = tmp_path / "ro"
+    mount.mkdir()
+    cmd = " ".join(map(_quote, [relight_executable(), "envmap", data / "sky.exr", "-o",
+                                mount / "x.exr", "-q"]))
+    script = (f"exec 3>&1 1>&2; mount -t tmpfs -o ro tmpfs {mount} || exit 99; "
+              f"{cmd}; rc=$?; ls -a {mount} >&3; exit $rc")
+    p = subprocess.run(["unshare", "-rm", "bash", "-c", script], capture_output=True, text=True,
+                       timeout=120, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    _assert_one_error(p.returncode, p.stderr, 1, "read-only file system", "x.exr")
+    assert sorted(p.stdout.split()) == [".", ".."]
