@@ -24,6 +24,7 @@ import errno
 import hashlib
 import os
 import shlex
+import signal
 import stat
 import sys
 import tempfile
@@ -229,13 +230,32 @@ def _probe_folder(folder: str, name: str, target: str) -> None:
         limit = 255
     if len(os.fsencode(name)) > limit:
         raise OutputError(f"file name too long (more than {limit} bytes)", target)
+    with _stop_signals_held():   # created and removed before a Ctrl-C can interrupt
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), dir=folder)
+        except OSError as exc:
+            raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}",
+                              target) from None
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+
+
+@contextlib.contextmanager
+def _stop_signals_held() -> Iterator[None]:
+    """Hold Ctrl-C, SIGTERM and SIGHUP while a temporary file is created and its name
+    stored: one arriving in between would leave the file with no one to remove it.
+    A held signal is raised when the block ends, where the caller's clean-up sees
+    the name."""
+    held = {getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)}
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), dir=folder)
-    except OSError as exc:
-        raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}", target) from None
-    os.close(fd)
-    with contextlib.suppress(OSError):
-        os.unlink(tmp)
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -282,22 +302,19 @@ def output_transaction() -> Iterator[None]:
         yield
         return
     _PENDING, _RUN = [], _Run()
+    staged = None
     try:
         yield
         staged, _PENDING = _PENDING, None
-        for i, (tmp, final, mode) in enumerate(staged):
-            try:
-                _commit(tmp, final, mode)
-            except BaseException:
-                for later, _, _ in staged[i + 1:]:
-                    with contextlib.suppress(OSError):
-                        os.unlink(later)
-                raise
+        for tmp, final, mode in staged:
+            _commit(tmp, final, mode)
     except BaseException:
-        staged, _PENDING = _PENDING or [], None
-        for tmp, _, _ in staged:
+        # Whatever was not committed (a committed file's temporary name is gone), also
+        # when a signal came between taking the list and committing it.
+        for tmp, _, _ in (staged if staged is not None else _PENDING or []):
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+        _PENDING = None
         raise
     finally:
         _RUN = None
@@ -413,12 +430,16 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
     folder = (os.path.dirname(final) or ".") if mode == "replace" else tempfile.gettempdir()
     name = os.path.basename(final)
     remove_stale_temps(folder, name)
+    tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), suffix=suffix, dir=folder)
-    except OSError as exc:
-        raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}", target) from None
-    os.close(fd)
-    try:
+        try:
+            with _stop_signals_held():
+                fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), suffix=suffix,
+                                           dir=folder)
+                os.close(fd)
+        except OSError as exc:
+            raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}",
+                              target) from None
         try:
             yield tmp
         except OSError as exc:
@@ -438,8 +459,9 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
         else:
             _commit(tmp, final, mode)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
         raise
 
 

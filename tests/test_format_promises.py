@@ -661,7 +661,7 @@ def test_failed_second_output_leaves_the_first_unwritten(data, tmp_path, monkeyp
     monkeypatch.setattr(image_module, "write_preview", fail)
     (tmp_path / "e.exr").write_bytes(b"old")
     _run_inproc_fail(["envmap", data / "sky.exr", "-o", tmp_path / "e.exr", "--preview",
-                      tmp_path / "e.png"], 1, "simulated")
+                      tmp_path / "e.png", "-q"], 1, "simulated")
     assert os.listdir(tmp_path) == ["e.exr"] and (tmp_path / "e.exr").read_bytes() == b"old"
 
 
