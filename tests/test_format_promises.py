@@ -765,3 +765,152 @@ def test_read_only_file_system_is_one_line(data, tmp_path):
                        timeout=120, env=dict(os.environ, PYTHONWARNINGS="ignore"))
     _assert_one_error(p.returncode, p.stderr, 1, "read-only file system", "x.exr")
     assert sorted(p.stdout.split()) == [".", ".."]
+
+
+# ----------------------------------------------------------------------------- reading JSON
+
+
+def _json_readers():
+    """name -> a function reading one JSON file the way relight's commands do."""
+    from relight_cli.formats import camera, capture, keypoints, lights_json, metrics_json
+    from relight_cli.formats import sh_probe_json
+    from relight_cli.neural.config import resolve_config
+    return {"camera": camera.read_cameras, "lights": lights_json.read_lights,
+            "sh-probe": sh_probe_json.read_probe, "capture": capture.read_capture,
+            "keypoints": keypoints.read_keypoints, "metrics": metrics_json.read_metrics,
+            "config": lambda path: resolve_config("tiny", path)}
+
+
+NOT_JSON = {"NaN": '{"a": NaN}', "Infinity": '{"a": Infinity}', "-Infinity": '{"a": -Infinity}',
+            "1e400": '{"a": 1e400}', "depth-65": "[" * 65 + "]" * 65,
+            "long-int": '{"a": ' + "9" * 5000 + "}"}
+METRICS_READ_AS_NAN = {"NaN", "Infinity", "-Infinity", "1e400"}
+
+
+@pytest.mark.parametrize("reader,case", [(r, c) for r in sorted(_json_readers()) for c in NOT_JSON
+                                         if not (r == "metrics" and c in METRICS_READ_AS_NAN)])
+def test_every_json_reader_refuses_what_json_cannot_hold(tmp_path, reader, case):
+    """One parser everywhere: each reader refuses these before looking at the content
+    (metrics files read NaN/Infinity/1e400 as NaN so that the gate fails on them)."""
+    path = tmp_path / "x.json"
+    path.write_text(NOT_JSON[case])
+    with pytest.raises(DataError, match="invalid JSON") as caught:
+        _json_readers()[reader](str(path))
+    assert caught.value.path == str(path)
+
+
+def test_json_nesting_limit_is_64_levels():
+    from relight_cli.formats._common import parse_json
+    assert parse_json("[" * 64 + "]" * 64, "x.json") is not None
+    with pytest.raises(DataError, match="64 levels"):
+        parse_json("[" * 65 + "]" * 65, "x.json")
+
+
+BOOLEANS = {   # reader -> a file that is valid but for one boolean where a number belongs
+    "camera": {"K": [[8, 0, 4], [0, 8, 4], [0, 0, 1]], "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+               "t": [0, 0, 1], "width": True, "height": 8},
+    "lights": {"format": "relight/lights", "version": 1, "lights": [{"position": [True, 1, 0]}]},
+    "sh-probe": {"format": "relight/sh-probe", "version": 1, "degree": 0,
+                 "coefficients": [[1, 1, False]]},
+    "keypoints": {"format": "relight/keypoints", "version": 1,
+                  "keypoints": [[[0, 0, 0]] * 24 + [[0, 0, True]]]},
+    "metrics": {"format": "relight/metrics", "version": True, "kind": "image", "metrics": {}},
+    "capture": {"format": "relight/capture", "version": True},
+}
+
+
+@pytest.mark.parametrize("reader", sorted(BOOLEANS))
+def test_json_booleans_are_not_numbers(tmp_path, reader):
+    path = tmp_path / "x.json"
+    path.write_text(json.dumps(BOOLEANS[reader]))
+    with pytest.raises(DataError) as caught:
+        _json_readers()[reader](str(path))
+    assert caught.value.path == str(path)
+
+
+@pytest.mark.parametrize("case", sorted(NOT_JSON))
+def test_json_refusals_are_one_line_exit_1(data, tmp_path, case):
+    bad = tmp_path / "probe.json"
+    bad.write_text(NOT_JSON[case])
+    r = _run_inproc_fail(["relight", data / "ball.ply", "--probe", bad, "-o", tmp_path / "x.ply"],
+                         1, "invalid JSON")
+    assert str(bad) in r.stderr
+    assert os.listdir(tmp_path) == ["probe.json"]
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def _exr_channels(path: Path) -> dict:
+    import OpenEXR
+    return OpenEXR.File(str(path), separate_channels=True).channels()
+
+
+def test_exr_outputs_are_half_or_float(written):
+    """Pixels are 16-bit half or 32-bit float (--half, capture images: half)."""
+    folder, _ = written
+    kinds = {}
+    for path in (p for p in _data_files(written) if p.suffix == ".exr"):
+        kinds[path.relative_to(folder)] = {c.pixels.dtype for c in _exr_channels(path).values()}
+    assert all(k <= {np.dtype(np.float16), np.dtype(np.float32)} for k in kinds.values()), kinds
+    assert kinds[Path("half.exr")] == {np.dtype(np.float16)}
+    assert kinds[Path("env.exr")] == {np.dtype(np.float32)}
+
+
+def test_exr_channels_are_named_by_layer(written):
+    """Plain images are R, G, B (+ A); colour layers are layer.R, layer.G, layer.B; every
+    other channel is layer.NAME."""
+    plain = {"relight/envmap", "relight/render", "relight/capture-image"}
+    for path in (p for p in _data_files(written) if p.suffix == ".exr"):
+        names = set(_exr_channels(path))
+        bare = {n for n in names if "." not in n}
+        if _tag(path)[0] in plain:
+            assert bare in ({"R", "G", "B"}, {"R", "G", "B", "A"}), (path, names)
+        else:
+            assert not bare, (path, names)
+        layers = {n.rsplit(".", 1)[0] for n in names if n.endswith((".R", ".G", ".B"))}
+        assert all({f"{layer}.{c}" for c in "RGB"} <= names for layer in layers), (path, names)
+    features = set(_exr_channels(written[0] / "feats.exr"))
+    assert {"diffuse.R", "diffuse.G", "diffuse.B"} <= features
+    assert {"normal.X", "normal.Y", "normal.Z"} <= set(_exr_channels(written[0] / "render.exr"))
+
+
+def _srgb(x):
+    """IEC 61966-2-1 encoding, written out here independently of relight_cli.tonemap."""
+    x = np.clip(x, 0, 1)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+
+def test_png_preview_is_reinhard_then_srgb(tmp_path):
+    """Reinhard et al. 2002, Eq. 1-3 (key 0.18 over the log-average luminance, then
+    L / (1 + L) applied to the colour's luminance), then sRGB, 8 bits.  One level of
+    tolerance: rounding of the 8-bit quantisation."""
+    from relight_cli.formats.image import read_image, write_preview
+    rng = np.random.default_rng(4)
+    radiance = np.exp(rng.normal(0, 2, (12, 10, 3))).astype(np.float32)  # positive, HDR
+    write_preview(str(tmp_path / "p.png"), radiance)
+    shown, _ = read_image(str(tmp_path / "p.png"))
+    rgb = radiance.astype(np.float64)
+    lum = rgb @ [0.2126, 0.7152, 0.0722]
+    scaled = 0.18 / np.exp(np.mean(np.log(lum))) * lum
+    expected = _srgb(rgb * (scaled / (1 + scaled) / lum)[..., None])
+    assert np.abs(shown - expected).max() <= 1 / 255 + 1e-6
+
+
+# ----------------------------------------------------------------------------- conventions
+
+
+def test_world_is_right_handed_y_up_in_metres():
+    """An upright OpenCV camera on +Z looking at the origin has R = diag(1, −1, −1) (a
+    rotation, so the world is right-handed like the camera frame); lat-long env maps
+    put +Y at the top row; the built-in hand is hand-sized in metres."""
+    from relight_cli.envmap import latlong_directions
+    from relight_cli.formats.camera import Camera
+    from relight_cli.hand.model import builtin_hand
+    cam = Camera.look_at([0, 0, 1], [0, 0, 0])
+    np.testing.assert_allclose(cam.R, np.diag([1.0, -1.0, -1.0]), atol=1e-12)
+    assert np.linalg.det(cam.R) == pytest.approx(1.0)
+    top = latlong_directions(8, 16)[0]
+    assert (top[:, 1] > 0.9).all()
+    extent = np.ptp(builtin_hand("right", pose=None).fine.vertices, axis=0)
+    assert 0.1 < extent.max() < 0.3
