@@ -3,26 +3,30 @@
 Each sentence of that page is a promise to users.  The ones no other test
 checked are checked here, one test each, named after the promise; the others
 are checked where they were already (the map below names the file).  Inputs
-are tiny (the data folder of test_outputs_and_bad_inputs.py), so the module
-runs in about a minute of CPU.
+are tiny (the data folder of test_outputs_and_bad_inputs.py, and one run of
+every command writing every kind of output), so the module takes about a
+minute of CPU.  Each test here was seen to fail with the code it guards broken.
 
 Promise (formats/README.md) → test
 ==================================
-
-The table
-  format names, versions and specs ........ test_table_versions_and_specs_match_the_code
-  "written by" ............................ test_table_writers_write_the_format
-  "read by" ............................... test_table_readers_read_the_format
-  readers reject newer versions ........... test_table_readers_read_the_format (a version-99
-                                            file through every reader),
+Header and table
+  data files name format and version ...... test_every_output_records_its_format_and_provenance
+  newer versions refused, naming the file . test_table_readers_read_the_format (a version-99 file
+                                            through every reader the table names),
                                             test_python_readers_refuse_a_newer_version
+  untagged files of other tools read ...... test_untagged_files_of_other_tools_are_read
+  a module and a spec per format; versions  test_table_versions_and_specs_match_the_code
+  "written by" ............................ test_table_writers_write_the_format
+  "read by" ............................... test_table_read_by_names_the_readers_tested,
+                                            test_table_readers_read_the_format,
+                                            test_render_files_are_read_as_images
 Provenance
-  the record and its fields ............... test_every_output_records_its_format_and_provenance
-  EXR header attributes ................... test_exr_provenance_is_three_header_attributes
-  JSON top-level fields ................... test_json_provenance_is_top_level_fields
-  npz keys ................................ test_npz_provenance_is_three_keys
-  PLY obj_info lines ...................... test_ply_provenance_is_obj_info_lines
-  checkpoint entries ...................... test_checkpoint_provenance_is_plain_entries
+  the record, its fields, its format ...... test_every_output_records_its_format_and_provenance
+  EXR / JSON / npz / PLY / checkpoint ..... test_exr_provenance_is_three_header_attributes,
+                                            test_json_provenance_is_top_level_fields,
+                                            test_npz_provenance_is_three_keys,
+                                            test_ply_provenance_is_obj_info_lines,
+                                            test_checkpoint_provenance_is_plain_entries
   no timestamps / timings, identical bytes  test_outputs_and_bad_inputs.py::
                                             test_identical_inputs_give_identical_bytes
   fixed zip member dates .................. test_npz_members_have_fixed_zip_dates
@@ -30,47 +34,49 @@ Provenance
   builtin inputs hashed by name ........... test_builtin_inputs_are_hashed_by_name
 Atomic writes
   temp file name and folder ............... test_temporary_file_is_named_and_placed_as_documented
-  fsync ................................... test_finished_output_is_fsynced_before_the_rename
-  not empty ............................... test_empty_output_is_refused
-  read back on a full disk ................ test_full_disk_reads_exr_and_png_back (statvfs
-                                            reports 0 free blocks; a damaged file is refused),
-                                            test_outputs_and_bad_inputs.py::
+  fsync, not empty ........................ test_finished_output_is_fsynced_before_the_rename,
+                                            test_empty_output_is_refused
+  EXR/PNG read back on a full disk ........ test_full_disk_reads_exr_and_png_back (os.statvfs
+                                            reports 0 free blocks, the file is cut short before
+                                            the read-back); the real thing (an 8 KiB tmpfs in a
+                                            user namespace): test_outputs_and_bad_inputs.py::
                                             test_full_file_system_never_leaves_an_empty_output
-                                            (a real 8 KiB tmpfs in a user namespace)
   renamed into place ...................... test_output_is_renamed_into_place
   several outputs: all or nothing ......... test_failed_second_output_leaves_the_first_unwritten,
                                             test_foundation.py::test_output_transaction_is_all_or_nothing
-  Ctrl-C, SIGTERM, SIGHUP clean up ........ test_interrupted_run_leaves_nothing (SIGINT, SIGHUP),
+  Ctrl-C, SIGTERM, SIGHUP leave nothing ... test_interrupted_run_leaves_nothing (SIGINT, SIGHUP),
                                             test_outputs_and_bad_inputs.py::
                                             test_killed_run_leaves_no_temp_files_after_the_next_run
                                             (SIGTERM)
   SIGKILL's temp removed by the next run .. test_outputs_and_bad_inputs.py::
                                             test_killed_run_leaves_no_temp_files_after_the_next_run
                                             (SIGKILL), test_stale_temp_files_of_live_processes_are_kept
-What an output may be (test_outputs_and_bad_inputs.py unless named here)
-  symlink written through ................. test_symlink_output_is_written_through
-  character device in place, /dev/null .... test_character_device_is_written_in_place (a node of
-                                            /dev/null's device, so a bug cannot replace /dev/null)
+What an output may be (in test_outputs_and_bad_inputs.py unless written here)
+  symlink written through ................. test_symlink_output_is_written_through,
+                                            test_temporary_file_is_named_and_placed_as_documented
+  character device in place, /dev/null .... test_character_device_is_written_in_place (root: a
+                                            node of /dev/null's device, so a bug cannot replace
+                                            /dev/null), test_full_device_is_a_write_error
   FIFO in place / without a reader ........ test_fifo_with_reader_gets_the_bytes,
                                             test_fifo_without_reader_is_refused_and_kept
   folder, block device, socket refused .... test_bad_output_target[*-directory],
-                                            test_block_device_and_socket_are_refused,
-                                            test_socket_output_is_refused (needs no root)
+                                            test_block_device_and_socket_are_refused (root),
+                                            test_socket_output_is_refused
   output = input, two outputs on one file . test_bad_output_target[*-input],
                                             test_two_outputs_on_one_file_are_refused
-  ... before any work ..................... test_output_that_is_an_input_is_refused_before_any_work
+  ... before anything is computed ......... test_output_that_is_an_input_is_refused_before_any_work
   hard links and ./ aliases ............... test_hard_link_to_an_input_is_refused,
                                             test_two_outputs_on_one_file_are_refused[envmap-alias]
-  permissions ............................. test_read_only_folder (root without its override)
+  permissions ............................. test_read_only_folder (root, without its override)
   /proc, name too long .................... test_bad_output_target[*-proc], [*-name-too-long]
   read-only file system ................... test_read_only_file_system_is_one_line
   full disk ............................... see "read back on a full disk" above
 Reading JSON
-  one parser: NaN/Infinity, 1e400, depth,
-  long integers ........................... test_every_json_reader_refuses_what_json_cannot_hold,
+  NaN/Infinity, 1e400, depth, long ints ... test_every_json_reader_refuses_what_json_cannot_hold,
                                             test_json_nesting_limit_is_64_levels
-  metrics files read NaN as NaN ........... test_outputs_and_bad_inputs.py::
-                                            test_metrics_compare_fails_on_nan_and_inf
+  ... metrics files read them as NaN ...... test_metrics_files_read_non_finite_numbers_as_nan,
+                                            test_outputs_and_bad_inputs.py::
+                                            test_metrics_compare_fails_on_nan_and_inf (exit 3)
   true/false are not numbers .............. test_json_booleans_are_not_numbers
   one line naming the file, exit 1 ........ test_json_refusals_are_one_line_exit_1,
                                             test_outputs_and_bad_inputs.py::test_bad_input[*json*]
@@ -91,9 +97,9 @@ Conventions
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -111,9 +117,8 @@ from conftest import ROOT, relight_executable
 from relight_cli.cli import COMMANDS as REGISTRY
 from relight_cli.cli import cli
 from relight_cli.errors import DataError, OutputError
-from test_outputs_and_bad_inputs import (TEMP_MARK, _assert_one_error, _inproc,
-                                         _run_inproc_fail, _snapshot, _subprocess,
-                                         _wait_for_temp, data)
+from test_outputs_and_bad_inputs import (_assert_one_error, _inproc, _run_inproc_fail,
+                                         _snapshot, _wait_for_temp, data)
 
 __all__ = ["data"]   # the sweep's tiny inputs, a fixture of this module too
 
@@ -914,3 +919,39 @@ def test_world_is_right_handed_y_up_in_metres():
     assert (top[:, 1] > 0.9).all()
     extent = np.ptp(builtin_hand("right", pose=None).fine.vertices, axis=0)
     assert 0.1 < extent.max() < 0.3
+
+
+def test_untagged_files_of_other_tools_are_read(tmp_path):
+    """Env maps, keypoints, cameras and a converted capture's images need no relight tag."""
+    from relight_cli.formats.camera import read_camera
+    from relight_cli.formats.capture import read_image
+    from relight_cli.formats.envmap import read_envmap
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.formats.keypoints import read_keypoints
+    ones = np.ones((4, 8), np.float32)
+    write_exr(str(tmp_path / "env.exr"), {c: ones for c in "RGB"})
+    write_exr(str(tmp_path / "image.exr"), {c: ones for c in "RGBA"})
+    assert read_envmap(str(tmp_path / "env.exr")).radiance.shape == (4, 8, 3)
+    assert read_image(str(tmp_path / "image.exr"))[1].shape == (4, 8)
+    (tmp_path / "kp.json").write_text(json.dumps([[[0.0, 0.0, 0.0]] * 25]))
+    assert read_keypoints(str(tmp_path / "kp.json")).positions.shape == (1, 25, 3)
+    (tmp_path / "cam.json").write_text(json.dumps(BOOLEANS["camera"] | {"width": 8}))
+    assert read_camera(str(tmp_path / "cam.json")).width == 8
+
+
+@pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity", "1e400"])
+def test_metrics_files_read_non_finite_numbers_as_nan(data, tmp_path, literal):
+    from relight_cli.formats.metrics_json import read_metrics
+    text = (data / "m.json").read_text()
+    bad = tmp_path / "m.json"
+    bad.write_text(re.sub(r'"psnr": [^,}]+', f'"psnr": {literal}', text, count=1))
+    assert math.isnan(read_metrics(str(bad))["metrics"]["psnr"])
+
+
+def test_the_promise_map_names_existing_tests():
+    """The map in this docstring points at tests that exist (here or in the named files)."""
+    doc = __doc__.split("==\n", 1)[1]
+    named = set(re.findall(r"\b(test_\w+)\b(?!\.py)", doc))
+    defined = set(re.findall(r"^def (test_\w+)\(", "".join(
+        p.read_text() for p in (ROOT / "tests").glob("test_*.py")), re.M))
+    assert len(named) > 40 and named <= defined, sorted(named - defined)
