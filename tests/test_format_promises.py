@@ -44,13 +44,11 @@ Atomic writes
   renamed into place ...................... test_output_is_renamed_into_place
   several outputs: all or nothing ......... test_failed_second_output_leaves_the_first_unwritten,
                                             test_foundation.py::test_output_transaction_is_all_or_nothing
-  Ctrl-C, SIGTERM, SIGHUP leave nothing ... test_interrupted_run_leaves_nothing (SIGINT, SIGHUP),
-                                            test_outputs_and_bad_inputs.py::
-                                            test_killed_run_leaves_no_temp_files_after_the_next_run
-                                            (SIGTERM)
+  Ctrl-C, SIGTERM, SIGHUP leave nothing;
   SIGKILL's temp removed by the next run .. test_outputs_and_bad_inputs.py::
                                             test_killed_run_leaves_no_temp_files_after_the_next_run
-                                            (SIGKILL), test_stale_temp_files_of_live_processes_are_kept
+                                            (SIGINT, SIGTERM, SIGHUP, SIGKILL),
+                                            test_stale_temp_files_of_live_processes_are_kept
 What an output may be (in test_outputs_and_bad_inputs.py unless written here)
   symlink written through ................. test_symlink_output_is_written_through,
                                             test_temporary_file_is_named_and_placed_as_documented
@@ -103,7 +101,6 @@ import math
 import os
 import re
 import shutil
-import signal
 import stat
 import subprocess
 import zipfile
@@ -118,7 +115,7 @@ from relight_cli.cli import COMMANDS as REGISTRY
 from relight_cli.cli import cli
 from relight_cli.errors import DataError, OutputError
 from test_outputs_and_bad_inputs import (_assert_one_error, _inproc, _run_inproc_fail,
-                                         _snapshot, _wait_for_temp, data)
+                                         _snapshot, data)
 
 __all__ = ["data"]   # the sweep's tiny inputs, a fixture of this module too
 
@@ -668,25 +665,6 @@ def test_failed_second_output_leaves_the_first_unwritten(data, tmp_path, monkeyp
     _run_inproc_fail(["envmap", data / "sky.exr", "-o", tmp_path / "e.exr", "--preview",
                       tmp_path / "e.png", "-q"], 1, "simulated")
     assert os.listdir(tmp_path) == ["e.exr"] and (tmp_path / "e.exr").read_bytes() == b"old"
-
-
-@pytest.mark.parametrize("how,code,last_line", [
-    (signal.SIGINT, 130, "interrupted"),
-    (signal.SIGHUP, 128 + signal.SIGHUP, "terminated by signal SIGHUP")])
-def test_interrupted_run_leaves_nothing(tmp_path, how, code, last_line):
-    """Ctrl-C (SIGINT) and SIGHUP, like SIGTERM, remove the run's temporary files."""
-    args = ["fit-geometry", "--pose", "fist", "-o", tmp_path / "h.npz", "--preview",
-            tmp_path / "h.png", "--preview-size", "160x160", "-q"]
-    proc = subprocess.Popen([relight_executable(), *map(str, args)], stderr=subprocess.PIPE,
-                            text=True)
-    if not _wait_for_temp(tmp_path, proc):
-        proc.wait()
-        pytest.skip("the run finished before a temporary file could be seen")
-    proc.send_signal(how)
-    stderr = proc.communicate(timeout=60)[1]
-    assert proc.returncode == code, stderr
-    assert stderr.strip().splitlines()[-1].endswith(last_line), stderr
-    assert "Traceback" not in stderr and os.listdir(tmp_path) == []
 
 
 # ----------------------------------------------------------------------------- what an output may be
