@@ -8,7 +8,7 @@ PY     := $(VENV)/bin/python
 RELIGHT := $(VENV)/bin/relight
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install demo test test-fast man benchmarks clean
+.PHONY: install demo example test test-fast man benchmarks clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -38,6 +38,17 @@ demo: install
 	# the default hand (built-in model, fist pose) and a preview
 	$(RELIGHT) fit-geometry --pose fist -o demo/hand.npz --preview demo/hand.png
 	$(RELIGHT) fit-geometry --pose relaxed --two-hands -o demo/hands2.npz --preview demo/hands2.png
+	# real hand motion (if ../shared/data is here): a Leap Motion pinch, every 10th frame fitted, the
+	# frames between filled by slerp; rendered open (frame 0), closing (100) and pinched (180), palm side
+	if [ -f $(SHARED)/hands/leap/pinch.json ]; then \
+	  $(RELIGHT) fit-geometry --keypoints $(SHARED)/hands/leap/pinch.json --frame-range 0:300:10 \
+	    --interpolate -o demo/leap_hand.npz --report demo/leap_fit.json && \
+	  $(RELIGHT) camera --eye -0.2,0.0,-0.2 --target 0.03,0.16,0.03 --fov 35 --size 256x256 -o demo/leap_cam.json && \
+	  for k in 0 100 180; do \
+	    $(RELIGHT) relight demo/leap_hand.npz builtin:studio --model physical --camera demo/leap_cam.json \
+	      --frame $$k -o demo/leap_hand_$$k.exr --preview demo/leap_hand_$$k.png || exit 1; \
+	  done; \
+	fi
 	# texel-aligned, visibility-aware shading features under two environments (visibility traced once)
 	$(RELIGHT) bake-features demo/hand.npz builtin:sky builtin:studio -o 'demo/feats_{env}.exr' \
 		--per-vertex 'demo/feats_{env}.npz' --preview 'demo/feats_{env}.png' --specular both
@@ -45,8 +56,15 @@ demo: install
 	# the physically based render of the default hand (the URHand physical baseline), with AOVs
 	$(RELIGHT) relight demo/hand.npz builtin:studio --model physical -o demo/hand_physical.exr \
 		--preview demo/hand_physical.png --aov normal,uv,depth
+	# cameras: a ring of 8 around the hand, one of them picked to render the hand (the EXR header
+	# records it: worldToCamera, worldToNDC), and that camera read back from the render
+	$(RELIGHT) camera --orbit 8 --radius 0.4 --elevation 25 --target 0,0.03,0.02 --fov 30 --size 192x192 -o demo/hand_orbit.json
+	$(RELIGHT) camera --from demo/hand_orbit.json --select cam001 -o demo/hand_cam001.json
+	$(RELIGHT) relight demo/hand.npz builtin:studio --model physical --camera demo/hand_cam001.json \
+		-o demo/hand_cam001.exr --preview demo/hand_cam001.png
+	$(RELIGHT) camera --from demo/hand_cam001.exr -o demo/hand_cam001_from_exr.json
 	# a small synthetic light-stage capture (fully lit + grouped-light frames, held-out env renders)
-	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --lights 32 --frames 6 --res 96 --eval-poses 1 --eval-cameras 2
+	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --leds 32 --frames 6 --size 96 --eval-poses 1 --eval-cameras 2
 	# RelightableHands' OLAT teacher learned from that capture (tiny preset, ~1 min), with its
 	# validation scores; rendered under an env map (a sum over 16x32 directions) and one near point light
 	$(RELIGHT) train-teacher demo/capture -o demo/teacher.pt --preset tiny --metrics-out demo/teacher_val.json
@@ -73,24 +91,24 @@ demo: install
 	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json
 	# Gaussian avatar in a Gaussian room: a deep Gaussian shadow map, then relighting with shadows
 	printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [0.35, 1.3, 0.45], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}\n' > demo/lights.json
-	$(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/room_cam.json', [Camera.look_at([0.45,0.55,0.6],[0,0.15,0],width=320,height=240,fov_y_deg=45)])"
+	$(RELIGHT) camera --eye 0.45,0.55,0.6 --target 0,0.15,0 --fov 45 --size 320x240 -o demo/room_cam.json
 	$(RELIGHT) dgsm-build builtin:hand --translate 0,0.25,0 --receivers builtin:room --lights demo/lights.json \
 		--size 512 -o demo/shadows.exr --occluders-out demo/hand_gaussians.ply --receivers-out demo/room.ply
 	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/sky_probe.json --receivers demo/room.ply \
-		--render demo/room_cam.json -o demo/room_before.exr --preview demo/room_before.png
+		--camera demo/room_cam.json -o demo/room_before.exr --preview demo/room_before.png
 	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/sky_probe.json --dgsm demo/shadows.exr \
-		--receivers demo/room.ply --render demo/room_cam.json -o demo/room_after.exr --preview demo/room_after.png
+		--receivers demo/room.ply --camera demo/room_cam.json -o demo/room_after.exr --preview demo/room_after.png
 	# the real donut (if ../shared/data is here) inserted beside the hand: fitted to 15 cm, laid flat
 	# on the floor; one deep Gaussian shadow map per object, relit by the sky probe without/with shadows
 	if [ -f $(SHARED)/gaussians/donut-fused.ply ]; then \
 	  printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [-0.45, 1.2, -0.25], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}\n' > demo/scene_lights.json && \
-	  $(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/scene_cam.json', [Camera.look_at([0.6,0.5,0.65],[0.08,0.15,0.05],width=400,height=300,fov_y_deg=50)])" && \
+	  $(RELIGHT) camera --eye 0.6,0.5,0.65 --target 0.08,0.15,0.05 --fov 50 --size 400x300 -o demo/scene_cam.json && \
 	  $(RELIGHT) dgsm-build 'builtin:hand:translate=0,0.25,0' '$(DONUT)' \
 	    --receivers builtin:room --lights demo/scene_lights.json --size 512 -o demo/scene_shadows.exr && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/sky_probe.json \
-	    --receivers demo/room.ply --render demo/scene_cam.json -o demo/scene_before.exr --preview demo/scene_before.png && \
+	    --receivers demo/room.ply --camera demo/scene_cam.json -o demo/scene_before.exr --preview demo/scene_before.png && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/sky_probe.json \
-	    --dgsm demo/scene_shadows.exr --receivers demo/room.ply --render demo/scene_cam.json \
+	    --dgsm demo/scene_shadows.exr --receivers demo/room.ply --camera demo/scene_cam.json \
 	    -o demo/scene_after.exr --preview demo/scene_after.png; \
 	fi
 	# the real robot (if ../shared/data is here) beside the hand in the room, with a lamp added (a
@@ -99,7 +117,7 @@ demo: install
 	# before/after renders and the lighting metrics (Sec. 4.1); "before" is the robot relit by a
 	# uniform probe of radiance 1, i.e. its captured colours
 	if [ -f $(SHARED)/gaussians/playbot-lod3.ply ]; then \
-	  $(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/robot_cam.json', [Camera.look_at([0.45,0.45,0.7],[-0.1,0.13,0.05],width=400,height=300,fov_y_deg=50)])" && \
+	  $(RELIGHT) camera --eye 0.45,0.45,0.7 --target -0.1,0.13,0.05 --fov 50 --size 400x300 -o demo/robot_cam.json && \
 	  $(PY) -c "import numpy as np; from relight_cli.gaussians.from_mesh import load_gaussians; from relight_cli.formats.gaussians_ply import Gaussians, concatenate, rgb_to_sh_dc, write_gaussians; n = 40; lamp = Gaussians(np.array([0.35, 1.3, 0.45]) + np.random.default_rng(0).normal(0, 0.015, (n, 3)), np.full((n, 3), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.95), rgb_to_sh_dc(np.tile([6.0, 5.6, 5.0], (n, 1)))[:, None, :], 0); write_gaussians('demo/room_lamp.ply', concatenate([load_gaussians('builtin:room'), lamp]))" && \
 	  $(RELIGHT) dgsm-build 'builtin:hand:translate=0,0.25,0' '$(ROBOT)' --receivers demo/room_lamp.ply \
 	    --lights auto:1 --lights-out demo/robot_lights.json --size 256 -o demo/robot_shadows.exr && \
@@ -108,9 +126,9 @@ demo: install
 	  $(RELIGHT) relight '$(ROBOT)' --probe demo/uniform_probe.json -o demo/robot_before.ply && \
 	  $(RELIGHT) relight '$(ROBOT)' --probe demo/robot_probe.json -o demo/robot_relit.ply && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(ROBOT)' --probe demo/uniform_probe.json \
-	    --receivers demo/room_lamp.ply --render demo/robot_cam.json -o demo/robot_before.exr --preview demo/robot_before.png && \
+	    --receivers demo/room_lamp.ply --camera demo/robot_cam.json -o demo/robot_before.exr --preview demo/robot_before.png && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(ROBOT)' --probe demo/robot_probe.json \
-	    --dgsm demo/robot_shadows.exr --receivers demo/room_lamp.ply --render demo/robot_cam.json \
+	    --dgsm demo/robot_shadows.exr --receivers demo/room_lamp.ply --camera demo/robot_cam.json \
 	    -o demo/robot_after.exr --preview demo/robot_after.png && \
 	  $(RELIGHT) metrics lighting --scene demo/room_lamp.ply --avatar demo/robot_before.ply \
 	    --relit demo/robot_relit.ply --radius 1.5 -o demo/robot_lighting.json; \
@@ -122,12 +140,17 @@ demo: install
 	$(RELIGHT) metrics image demo/sky_back.exr demo/sky_direct.exr --space srgb -o demo/metrics_envmap.json
 	# the real donut (if ../shared/data is here) relit by two probes
 	if [ -f $(SHARED)/gaussians/donut-fused.ply ]; then \
-	  $(PY) -c "from relight_cli.formats.camera import Camera, write_cameras; write_cameras('demo/donut_cam.json', [Camera.look_at([0,0.25,0.3],[0,0,0.03],width=256,height=192,fov_y_deg=45)])" && \
+	  $(RELIGHT) camera --eye 0,0.25,0.3 --target 0,0,0.03 --fov 45 --size 256x192 -o demo/donut_cam.json && \
 	  $(RELIGHT) sh-probe builtin:uniform --degree 0 -o demo/uniform_probe.json && \
-	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/uniform_probe.json --render demo/donut_cam.json -o demo/donut_before.exr --preview demo/donut_before.png && \
-	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/studio_probe.json --intensity 2 --render demo/donut_cam.json -o demo/donut_after.exr --preview demo/donut_after.png; \
+	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/uniform_probe.json --camera demo/donut_cam.json -o demo/donut_before.exr --preview demo/donut_before.png && \
+	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/studio_probe.json --intensity 2 --camera demo/donut_cam.json -o demo/donut_after.exr --preview demo/donut_after.png; \
 	fi
 	@echo "demo outputs are in demo/"
+
+# The README's example pipeline, exactly as written there (tools/readme_example.py extracts
+# it); outputs in example/.  Needs ../shared/data (a Poly Haven HDRI and the 3DGS donut).
+example: install
+	$(PY) tools/readme_example.py
 
 test: install
 	$(PY) -m pytest
@@ -140,4 +163,4 @@ benchmarks: install
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf demo build *.egg-info .pytest_cache
+	rm -rf demo example build *.egg-info .pytest_cache

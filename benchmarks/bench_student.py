@@ -180,8 +180,8 @@ def quality(iters: int, work: Path) -> dict:
         assert r.exit_code == 0, r.output
 
     cap = work / "cap"
-    run("synth-capture", "-o", cap, "--cameras", "4", "--lights", "32", "--group", "4",
-        "--frames", "16", "--res", "64", "--tex-res", "128", "--aa", "1", "--eval-poses", "2",
+    run("synth-capture", "-o", cap, "--cameras", "4", "--leds", "32", "--group", "4",
+        "--frames", "16", "--size", "64", "--tex-res", "128", "--aa", "1", "--eval-poses", "2",
         "--eval-cameras", "2", "--eval-envs", "builtin:sky,builtin:studio", "-q")
     run("train-teacher", cap, "-o", work / "teacher.pt", "--iters", str(2 * iters), "-q",
         "--metrics-out", work / "t.json")

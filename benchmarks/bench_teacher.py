@@ -72,7 +72,7 @@ def make_capture(folder: Path, two_hands: bool, frames: int, quick: bool) -> Pat
 
     from relight_cli.cli import cli
     args = ["synth-capture", "-o", str(folder), "--cameras", "4" if quick else "6",
-            "--lights", "32", "--group", "4", "--res", "48" if quick else "64",
+            "--leds", "32", "--group", "4", "--size", "48" if quick else "64",
             "--tex-res", "128", "--aa", "1", "--eval-poses", "2", "--eval-cameras", "2",
             "--eval-envs", "builtin:sky,builtin:studio", "-q"]
     if two_hands:

@@ -35,14 +35,8 @@ def training_options(validation: str):
 def check_outputs(output: str, metrics_out: str | None, no_clobber: bool) -> None:
     """-o is a .pt checkpoint, --metrics-out a .json (or -); registered before any work."""
     from relight_cli.clitools import check_output
-    from relight_cli.errors import UsageProblem
-    check_output(output, no_clobber)
-    if not output.lower().endswith((".pt", ".pth")):
-        raise UsageProblem("-o is a checkpoint (name it .pt)", output)
-    if metrics_out is not None:
-        check_output(metrics_out, no_clobber, text=True)
-        if not metrics_out.lower().endswith(".json") and metrics_out != "-":
-            raise UsageProblem("--metrics-out is a JSON file (name it .json)", metrics_out)
+    check_output(output, no_clobber, kind="pt")
+    check_output(metrics_out, no_clobber, kind="json", what="--metrics-out")
 
 
 def write_validation(metrics_out: str | None, result, inputs: dict, config, record) -> None:

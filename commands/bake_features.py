@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import check_output, log, no_clobber_option, quiet_option
+from relight_cli.clitools import check_output, log, no_clobber_option, quiet_option, renamed_option
 
 
 @click.command("bake-features",
@@ -13,14 +13,16 @@ from relight_cli.clitools import check_output, log, no_clobber_option, quiet_opt
 @click.argument("envs", metavar="ENV...", nargs=-1, required=True)
 @click.option("-o", "--output", required=True,
               help="Output EXR. May hold {frame} (e.g. {frame:04d}) and {env} (the env map's "
-                   "name); required with --frames all / several env maps.")
+                   "name); required with --all-frames / several env maps.")
 @click.option("--frame", type=int, default=None, help="Frame to bake [default: 0].")
-@click.option("--frames", "frames_all", type=click.Choice(["all"]), default=None,
-              help="Bake every frame (the output needs {frame}).")
+@click.option("--all-frames", "frames_all", is_flag=True,
+              help="Bake every frame (the output needs {frame}; formerly --frames all).")
+@renamed_option("--frames", "--all-frames", why="--frames is a count in other commands")
 @click.option("--mesh", type=click.Choice(["coarse", "fine"]), default="coarse", show_default=True,
               help="Receivers and occluders: the coarse proxy, or the fine mesh (ablations).")
-@click.option("--env-res", default="16x32", show_default=True,
-              help="Lat-long grid HxW the env map is integrated over (M = H·W directions).")
+@click.option("--env-res", default="32x16", show_default=True,
+              help="Lat-long grid WxH (width first) the env map is integrated over (M = W·H "
+                   "directions).")
 @click.option("--res", "texture_res", default="128", show_default=True,
               help="Feature map size N (N×N) or WxH.")
 @click.option("--shininess", default="16,32,64", show_default=True,
@@ -55,7 +57,7 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     Examples:
       relight bake-features hand.npz stage.exr -o feats.exr
       relight bake-features hand.npz a.exr b.exr -o 'feats_{env}.exr'
-      relight bake-features hand.npz builtin:sky --frames all -o 'f_{frame:04d}.exr'
+      relight bake-features hand.npz builtin:sky --all-frames -o 'f_{frame:04d}.exr'
     """
     import time
 
@@ -72,10 +74,10 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     from ._inputs import load_envmap
 
     # ---- options (usage errors, before any work)
-    env_h, env_w = _parse_hw(env_res, "--env-res")
-    if env_h < 2 or env_w < 2:
-        raise UsageProblem("--env-res needs at least 2x2 directions")
-    tex_w, tex_h = _parse_texture_res(texture_res)
+    from relight_cli.clitools import parse_env_res
+    env_w, env_h = parse_env_res(env_res)
+    from relight_cli.clitools import parse_size
+    tex_w, tex_h = parse_size(texture_res, "--res", maximum=8192)
     try:
         alphas = tuple(float(a) for a in shininess.split(",") if a.strip()) if shininess else ()
         settings = F.FeatureSettings(shininess=alphas, specular=specular,
@@ -87,7 +89,7 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     if eye is not None and camera is not None:
         raise UsageProblem("give --eye or --camera, not both")
     if frame is not None and frames_all:
-        raise UsageProblem("give --frame N or --frames all, not both")
+        raise UsageProblem("give --frame N or --all-frames, not both")
     if frame is not None and frame < 0:
         raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
     rough_value = None
@@ -120,14 +122,15 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                                f"frame(s)")
     for pattern in filter(None, (output, per_vertex, preview)):
         if len(frames) > 1 and "{frame" not in pattern:
-            raise UsageProblem(f"--frames all needs {{frame}} in every output name: {pattern}")
+            raise UsageProblem(f"--all-frames needs {{frame}} in every output name: {pattern}")
     targets = []  # (frame, env index, exr, npz, png)
     for fr in frames:
         for k, name in enumerate(env_names):
             paths = [None if p is None else p.format(frame=fr, env=name)
                      for p in (output, per_vertex, preview)]
-            for p in paths:
-                check_output(p, no_clobber)
+            for p, kind, what in zip(paths, ("exr", "npz", "png"),
+                                     ("-o", "--per-vertex", "--preview")):
+                check_output(p, no_clobber, kind=kind, what=what)
             targets.append((fr, k, *paths))
     if per_vertex is not None and output.format(frame=0, env="x") == per_vertex.format(
             frame=0, env="x"):
@@ -135,7 +138,7 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     cam = None
     if camera is not None:
         from relight_cli.formats.camera import read_camera
-        check_input(camera)
+        check_input(camera, stdin="--camera")
         cam = read_camera(camera)
     env_maps = []
     for spec in envs:
@@ -218,26 +221,6 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                 log(f"wrote {png_path}", quiet)
         log(f"frame {fr}: {baker.stats.rays_traced} rays, "
             + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()), quiet)
-
-
-def _parse_hw(text: str, what: str) -> tuple[int, int]:
-    from relight_cli.errors import UsageProblem
-    try:
-        h, w = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise UsageProblem(f"{what} must look like HxW (e.g. 16x32), got {text!r}") from None
-    if h <= 0 or w <= 0 or h > 4096 or w > 8192:
-        raise UsageProblem(f"{what} out of range, got {text!r}")
-    return h, w
-
-
-def _parse_texture_res(text: str) -> tuple[int, int]:
-    from relight_cli.clitools import parse_size
-    from relight_cli.errors import UsageProblem
-    w, h = parse_size(text, "--res")
-    if w > 8192 or h > 8192:
-        raise UsageProblem(f"--res must be at most 8192, got {text!r}")
-    return w, h
 
 
 def _check_pattern(pattern: str) -> None:

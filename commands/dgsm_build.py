@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  progress, quiet_option, seed_option)
+                                  parse_size, progress, quiet_option, seed_option)
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
@@ -20,18 +20,19 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--receivers-out", default=None, metavar="FILE.ply",
               help="Also write the receiver Gaussians used.")
 @click.option("--lights", "lights_spec", required=True, metavar="LIGHTS.json|auto:K",
-              help="Point lights (relight/lights JSON), or auto:K to estimate K lights "
-                   "from the receivers' scene.")
+              help="Point lights (relight/lights JSON, '-': stdin), or auto:K to estimate "
+                   "K lights from the receivers' scene.")
 @click.option("--estimator", type=click.Choice(["paper", "v1"]), default="paper",
               show_default=True,
               help="Light estimator of --lights auto:K (paper Sec. 3.1: ROI and viewpoints at "
                    "the occluders' centroid, soft-clipped cues, mean-neighbourhood peakness, "
                    "colour toward the character, intensity = base score; v1: the earlier variant).")
 @click.option("--lights-out", default=None, metavar="FILE.json",
-              help="Also write the lights used (e.g. the auto:K estimate).")
+              help="Also write the lights used (e.g. the auto:K estimate; '-': stdout).")
 @click.option("-o", "--output", required=True, help="Output EXR (relight/dgsm).")
 @click.option("--size", default="128", show_default=True,
-              help="Octahedral atlas HxW or N (a cube atlas gets faces with as many texels).")
+              help="Octahedral atlas WxH (width first) or N for NxN (a cube atlas gets faces "
+                   "with as many texels).")
 @click.option("--bins", type=click.IntRange(1, 999), default=64, show_default=True,
               help="Radial bins K per texel.")
 @click.option("--atlas", type=click.Choice(["octahedral", "cube"]), default="octahedral",
@@ -129,21 +130,12 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     from relight_cli.provenance import provenance
 
     start = time.perf_counter()
-    check_output(output, no_clobber)
-    if output == "-":
-        raise UsageProblem("the EXR output cannot go to stdout; give a file name")
-    if lights_out is not None:
-        check_output(lights_out, no_clobber, text=True)
-    for extra_out in (occluders_out, receivers_out):
-        if extra_out is not None:
-            check_output(extra_out, no_clobber)
-            if extra_out == "-":
-                raise UsageProblem("PLY outputs cannot go to stdout; give a file name")
+    check_output(output, no_clobber, kind="exr")
+    check_output(lights_out, no_clobber, kind="json", what="--lights-out")
+    check_output(occluders_out, no_clobber, kind="ply", what="--occluders-out")
+    check_output(receivers_out, no_clobber, kind="ply", what="--receivers-out")
     offset = None if translate is None else np.array(parse_vector(translate, 3, "--translate"))
-    try:
-        h, w = _parse_hw(size)
-    except ValueError:
-        raise UsageProblem(f"--size must look like HxW or N (2..4096), got {size!r}") from None
+    w, h = parse_size(size, "--size", minimum=2, maximum=4096)
     if receivers is None and t_max is None:
         raise UsageProblem("give --receivers SCENE.ply (or --t-max for a receiver-free build)")
     auto_k = _parse_auto(lights_spec)
@@ -164,7 +156,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         scene = load_gaussians(receivers)
 
     if auto_k is None:
-        check_input(lights_spec)
+        check_input(lights_spec, stdin="--lights")
         lights = read_lights(lights_spec)
     else:
         lights = _estimate_lights(scene, auto_k, lights_spec, occ, estimator)
@@ -250,19 +242,6 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                                         lights.names, lights.extra),
                      provenance(LFORMAT, LVERSION, inputs, settings))
         log(f"wrote {lights_out}", quiet)
-
-
-def _parse_hw(text: str) -> tuple[int, int]:
-    parts = text.lower().split("x")
-    if len(parts) == 1:
-        h = w = int(parts[0])
-    elif len(parts) == 2:
-        h, w = int(parts[0]), int(parts[1])
-    else:
-        raise ValueError(text)
-    if not (2 <= h <= 4096 and 2 <= w <= 4096):
-        raise ValueError(text)
-    return h, w
 
 
 def _parse_auto(spec: str):

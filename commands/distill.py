@@ -27,7 +27,8 @@ from ._learned import training_options
 @click.option("--preset", type=click.Choice(["tiny", "paper"]), default="tiny", show_default=True,
               help="tiny: minutes on a CPU (tests, demo); paper: RelightableHands' sizes.")
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
-              help="JSON object of config fields overriding the preset (formats/checkpoint.md).")
+              help="JSON object of config fields overriding the preset (formats/checkpoint.md; "
+                   "'-': stdin).")
 @click.option("--iters", type=int, default=None, help="Adam iterations (overrides the preset).")
 @click.option("--no-specular", is_flag=True, help="Ablation (Table 2): diffuse features only.")
 @click.option("--no-visibility", is_flag=True,
@@ -44,7 +45,7 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     """Distill RelightableHands' student from TEACHER.pt (train-teacher) on CAPTURE's
     poses and cameras under the --envs maps, and write the checkpoint -o.
 
-    The teacher's per-direction textures (16x32 directions, each with its own
+    The teacher's per-direction textures (32x16 directions, each with its own
     visibility) are computed once per pose and camera, so every env map's target
     is their weighted sum (linearity of light transport).  The student sees
     bake-features' texel maps of the pose under the env map (diffuse + Phong
@@ -75,9 +76,9 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     if os.path.isfile(os.path.join(capture, "capture.json")):
         check_input(os.path.join(capture, "capture.json"))
     check_input(teacher)
-    for path in (config_file, vgg_weights, resume):
+    for path, role in ((config_file, "--config"), (vgg_weights, None), (resume, None)):
         if path is not None:
-            check_input(path)
+            check_input(path, stdin=role)
     train_specs = _expand_envs(env_specs)
     held_specs = _expand_envs(eval_specs)
     specs = train_specs + held_specs

@@ -10,18 +10,21 @@ from relight_cli.clitools import (FiniteFloat, check_output, dumps_json, log, no
 
 @click.command("envmap", short_help="Convert, resample, rotate and inspect environment maps.")
 @click.argument("input", metavar="IN")
-@click.option("-o", "--output", help="Output EXR (lat-long or cube, OpenEXR's envmap convention).")
+@click.option("-o", "--output",
+              help="Output EXR (lat-long or cube, OpenEXR's envmap convention); with --info "
+                   "and no EXR wanted, the JSON statistics (FILE.json, or '-' for stdout).")
 @click.option("--to", "layout", type=click.Choice(["latlong", "cube"]), default=None,
               help="Output layout (default: the input's).")
 @click.option("--size", default=None,
-              help="Lat-long WxH (e.g. 32x16), or cube face size N. Default: input size "
-                   "(cube→lat-long: 4N×2N; lat-long→cube: H/2).")
+              help="Lat-long WxH (width first, e.g. 32x16), or cube face size N. Default: "
+                   "input size (cube→lat-long: 4N×2N; lat-long→cube: H/2).")
 @click.option("--rotate-y", "rotate_y", type=FiniteFloat(), default=0.0, show_default=True,
               help="Rotate the environment by DEG about +Y (content at +Z moves towards +X).")
 @click.option("--preview", type=str, default=None, help="Also write a tone-mapped PNG preview.")
 @click.option("--info", "show_info", is_flag=True,
               help="Print JSON statistics (size, layout, min/max/mean, power ∫L dω, "
-                   "dominant direction) to stdout, or to -o FILE.json when no EXR output.")
+                   "dominant direction) to stdout, or to -o FILE.json (or -o -) instead of "
+                   "an EXR.")
 @click.option("--nonfinite", type=click.Choice(["error", "zero", "clamp"]), default="error",
               show_default=True, help="What to do with NaN/Inf pixels in the input.")
 @click.option("--half", is_flag=True, help="Store 16-bit half floats (default float32).")
@@ -41,6 +44,7 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
       relight envmap builtin:sky --to latlong --size 32x16 -o sky16.exr
       relight envmap StageEnvCube.exr --to latlong -o stage.exr --preview stage.png
       relight envmap stage.exr --info
+      relight envmap stage.exr --info -o - | jq .power
     """
     import math
 
@@ -53,14 +57,16 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
 
     if output is None and preview is None and not show_info:
         raise UsageProblem("nothing to do: give -o OUT, --preview PNG or --info")
-    info_to_file = show_info and output is not None and output.endswith(".json")
+    info_to_file = show_info and output is not None and (output == "-"
+                                                         or output.lower().endswith(".json"))
     exr_out = None if (output is None or info_to_file) else output
-    check_output(exr_out, no_clobber)
-    check_output(preview, no_clobber)
-    if info_to_file:
-        check_output(output, no_clobber, text=True)
     if exr_out == "-":
-        raise UsageProblem("EXR output cannot go to stdout; give a file name")
+        raise UsageProblem("EXR output cannot go to stdout; give a file name (or --info -o - "
+                           "for the JSON statistics)")
+    check_output(exr_out, no_clobber, kind="exr")
+    check_output(preview, no_clobber, kind="png", what="--preview")
+    if info_to_file:
+        check_output(output, no_clobber, kind="json")
 
     # Validate every option before reading anything (usage errors exit 2 fast).
     requested = None
@@ -72,7 +78,8 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
             requested = (w, 6 * w)
         else:
             if "x" not in size.lower():
-                w, h = 2 * w, w  # a single number for lat-long means its height
+                raise UsageProblem(f"--size for a lat-long map is WxH (width first, e.g. "
+                                   f"{2 * w}x{w}), got {size!r}")
             if w < 2 or h < 2:
                 raise UsageProblem("lat-long maps need at least 2x2 texels")
             requested = (w, h)

@@ -20,6 +20,17 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_
 @click.option("--keypoints", default=None,
               help="3D keypoints to fit: JSON or .npy, (N, 25, 3) or (N, 25, 4) with confidence "
                    "(0 = missing), metres, template joint order (formats/keypoints.md).")
+@click.option("--keypoints-format", type=click.Choice(["auto", "keypoints", "leap"]),
+              default="auto", show_default=True,
+              help="Reader of --keypoints: relight/keypoints, a Leap Motion recording (LeapJS "
+                   "JSON, formats/leap.md), or auto (Leap when the JSON holds Leap frames).")
+@click.option("--hand", "hand_choice", default=None, metavar="left|right|ID",
+              help="Leap: the hand to fit, by type or Leap hand id (default: the type present "
+                   "in most frames). Frames without it are missing, not filled unless "
+                   "--interpolate.")
+@click.option("--frame-range", default=None, metavar="START:STOP[:STEP]",
+              help="Fit only the keypoint frames numbered START, START+STEP, … below STOP "
+                   "(Python slice; e.g. 0:300:10).")
 @click.option("--scans", default=None,
               help="Scan meshes to fit (PLY/OBJ/STL), one per frame in sorted order; a glob "
                    "pattern like 'scan_*.ply' (quote it).")
@@ -39,13 +50,14 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_
               help="Write a JSON report of per-frame residuals (MPJPE, scan distance in mm); "
                    "'-' for stdout.")
 @click.option("--preview", default=None, help="Also write a tone-mapped PNG of frame 0.")
-@click.option("--preview-size", default="320x320", show_default=True, help="Preview WxH.")
+@click.option("--preview-size", default="320x320", show_default=True,
+              help="Preview size WxH (or N for NxN).")
 @seed_option
 @no_clobber_option
 @quiet_option
-def command(output, template, pose, frames, keypoints, scans, interpolate, iterations,
-            no_bone_scales, offsets, smooth, two_hands, report, preview, preview_size, seed,
-            no_clobber, quiet):
+def command(output, template, pose, frames, keypoints, keypoints_format, hand_choice,
+            frame_range, scans, interpolate, iterations, no_bone_scales, offsets, smooth,
+            two_hands, report, preview, preview_size, seed, no_clobber, quiet):
     """Write the articulated hand as hand.npz: posed (--pose) or fitted to 3D
     keypoints and/or scan meshes (--keypoints, --scans).
 
@@ -59,18 +71,19 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
       relight fit-geometry --pose random --frames 10 --seed 3 -o poses.npz
       relight fit-geometry --template hand.glb --keypoints kp.npy -o fit.npz --report fit.json
       relight fit-geometry --keypoints kp.json --scans 'scan_*.ply' --offsets -o fit.npz
+      relight fit-geometry --keypoints pinch.json --hand right --frame-range 0:300:10 \
+          --interpolate -o pinch.npz --report pinch_fit.json   # a Leap Motion recording
     """
     import glob as globmod
 
     from relight_cli.errors import UsageProblem
 
-    check_output(output, no_clobber)
     if output == "-":
         raise UsageProblem("hand.npz is binary and cannot go to stdout; give a file name")
-    if report is not None:
-        check_output(report, no_clobber, text=True)
+    check_output(output, no_clobber, kind="npz")
+    check_output(report, no_clobber, kind="json", what="--report")
     if preview is not None:
-        check_output(preview, no_clobber)
+        check_output(preview, no_clobber, kind="png", what="--preview")
         size = parse_size(preview_size, "--preview-size")
     fitting = keypoints is not None or scans is not None
     if fitting and pose is not None:
@@ -86,6 +99,20 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
         raise UsageProblem("--offsets needs --scans (keypoints alone cannot see the surface)")
     if interpolate and keypoints is None:
         raise UsageProblem("--interpolate needs --keypoints with frame numbers")
+    if keypoints is None and (hand_choice is not None or frame_range is not None
+                              or keypoints_format != "auto"):
+        raise UsageProblem("--hand, --frame-range and --keypoints-format need --keypoints")
+    if frame_range is not None and scans is not None:
+        raise UsageProblem("--frame-range selects keypoint frames; it cannot be combined "
+                           "with --scans (one scan per keypoint frame)")
+    if keypoints_format == "keypoints" and hand_choice is not None:
+        raise UsageProblem("--hand applies to Leap recordings only")
+    from relight_cli.formats.leap import parse_hand_choice
+    try:
+        hand_choice = parse_hand_choice(hand_choice)
+    except ValueError as exc:
+        raise UsageProblem(str(exc)) from None
+    frame_slice = None if frame_range is None else _parse_frame_range(frame_range)
     scan_paths = None
     if scans is not None:
         scan_paths = sorted(globmod.glob(scans)) if any(c in scans for c in "*?[") else [scans]
@@ -114,10 +141,13 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
         if pose is not None and pose.endswith(".json"):
             inputs["pose"] = pose
     else:
-        hand, report_obj = _fit(hand, keypoints, scan_paths, interpolate, iterations,
+        reader = dict(reader=keypoints_format, hand=hand_choice, frames=frame_slice)
+        hand, report_obj = _fit(hand, keypoints, reader, scan_paths, interpolate, iterations,
                                 not no_bone_scales, offsets, smooth, seed, quiet, template_line)
         if keypoints is not None:
             inputs["keypoints"] = keypoints
+            settings.update(keypoints_format=keypoints_format, frame_range=frame_range,
+                            hand=None if hand_choice is None else str(hand_choice))
         for i, p in enumerate(scan_paths or []):
             inputs[f"scan{i}"] = p
         settings.update(iterations=iterations, bone_scales=not no_bone_scales,
@@ -131,6 +161,8 @@ def command(output, template, pose, frames, keypoints, scans, interpolate, itera
         from relight_cli.provenance import write_text_atomic
         if report_obj is None:
             report_obj = {"frames": hand.n_frames, "fitted": False}
+        report_obj = {"format": "relight/fit-report", "version": 1, **report_obj,
+                      "provenance": provenance("relight/fit-report", 1, inputs, settings)}
         write_text_atomic(report, dumps_json(report_obj))
     if preview is not None:
         from relight_cli.formats.image import write_preview
@@ -247,20 +279,65 @@ def _read_scan(path: str, rng):
     return pts
 
 
-def _fit(hand, keypoints, scan_paths, interpolate, iterations, bone_scales, offsets, smooth,
-         seed, quiet, template_line):
+def _parse_frame_range(text: str) -> slice:
+    from relight_cli.errors import UsageProblem
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        start, stop, step = (int(p) if p.strip() else None for p in parts + [""] * (3 - len(parts)))
+    except ValueError:
+        raise UsageProblem(f"--frame-range must be START:STOP[:STEP] with integers, got "
+                           f"{text!r}") from None
+    if (start or 0) < 0 or (stop is not None and stop < 0) or (step is not None and step < 1):
+        raise UsageProblem(f"--frame-range takes frame numbers ≥ 0 and STEP ≥ 1, got {text!r}")
+    return slice(start, stop, step)
+
+
+def _read_targets(path: str, n_joints: int, side: str, reader: dict):
+    """Keypoints of ``path`` (relight/keypoints or Leap), checked against the template's
+    handedness and cut to --frame-range."""
+    import numpy as np
+
+    from relight_cli.errors import DataError
+    from relight_cli.formats.keypoints import read_keypoints
+
+    kp = read_keypoints(path, n_joints, reader["reader"], reader["hand"])
+    if reader["hand"] is not None and kp.source is None:
+        from relight_cli.errors import UsageProblem
+        raise UsageProblem("--hand applies to Leap recordings only")
+    if kp.side is not None and kp.side != side:
+        raise DataError(f"the tracked hand is a {kp.side} hand but the template is a {side} "
+                        f"hand; use --template builtin:{kp.side} (or --hand)", path)
+    cut = reader["frames"]
+    if cut is not None:
+        f = kp.frames
+        start, step = cut.start or 0, cut.step or 1
+        keep = (f >= start) & ((f - start) % step == 0)
+        if cut.stop is not None:
+            keep &= f < cut.stop
+        if not keep.any():
+            raise DataError(f"no keypoint frames in --frame-range {start}:"
+                            f"{'' if cut.stop is None else cut.stop}:{step} (the file has "
+                            f"frames {f[0]}…{f[-1]})", path)
+        kp.positions, kp.confidence, kp.frames = \
+            kp.positions[keep], kp.confidence[keep], kp.frames[keep]
+    return kp
+
+
+def _fit(hand, keypoints, reader, scan_paths, interpolate, iterations, bone_scales, offsets,
+         smooth, seed, quiet, template_line):
     import numpy as np
 
     from relight_cli.clitools import progress
     from relight_cli.errors import DataError
-    from relight_cli.formats.keypoints import read_keypoints
-    from relight_cli.hand.fitting import FitOptions, fit, personalize_mesh
+    from relight_cli.hand.fitting import FitOptions, fit, fit_quality, personalize_mesh
     from relight_cli.hand.poses import interpolate_poses
 
     rng = np.random.default_rng(seed)
     kp = None
     if keypoints is not None:
-        kp = read_keypoints(keypoints, hand.n_joints)
+        kp = _read_targets(keypoints, hand.n_joints, hand.side, reader)
     scans = None
     if scan_paths is not None:
         scans = [_read_scan(p, rng) for p in scan_paths]
@@ -270,6 +347,12 @@ def _fit(hand, keypoints, scan_paths, interpolate, iterations, bone_scales, offs
     n = len(kp.positions) if kp is not None else len(scans)
     from relight_cli.clitools import log
     log(template_line, quiet)
+    if kp is not None and kp.source is not None:
+        src = kp.source
+        log(f"Leap recording: {src['hand']} hand (id {', '.join(map(str, src['hand_ids']))}) in "
+            f"{src['recorded_frames'] - src['frames_without_hand']} of {src['recorded_frames']} "
+            f"frames; missing joints (never measured): "
+            f"{', '.join(src['never_observed_joints']) or 'none'}", quiet)
     log(f"fitting {n} frame(s)" + (f" to {keypoints}" if keypoints else "")
         + (f" and {len(scans)} scan(s)" if scans else ""), quiet)
     bar = progress(total=n, desc="fit frames", quiet=quiet)
@@ -326,6 +409,10 @@ def _fit(hand, keypoints, scan_paths, interpolate, iterations, bone_scales, offs
     }
     if kp is not None:
         report["mpjpe_mm"] = _num(np.nanmean(result.joint_error_mm))
+        if kp.source is not None:
+            report["keypoints"] = kp.source
+        report.update(fit_quality(result, kp.positions, kp.confidence, hand.parents,
+                                  hand.joint_names))
     if result.scan_mm is not None:
         report["scan_mm"] = _num(np.mean(result.scan_mm))
     return hand, report

@@ -101,9 +101,9 @@ def _read_mask(path: str, shape):
 
 def _check_outputs(output, jsonl, no_clobber):
     from relight_cli.errors import UsageProblem
-    check_output(output, no_clobber, text=True)
+    check_output(output, no_clobber, kind="json")
     if jsonl is not None:
-        check_output(jsonl, no_clobber, text=True)
+        check_output(jsonl, no_clobber, kind="jsonl", what="--jsonl")
         if jsonl == "-" and output == "-":
             raise UsageProblem("--jsonl - and -o - would both write to stdout; give one a file name")
 
@@ -306,7 +306,7 @@ def _avatar_roi(roi, avatar_spec, camera_path, radius, quiet):
         raise UsageProblem(f"--roi-radius must be positive, got {radius}")
     source, placement = parse_occluder(avatar_spec, "--roi-avatar")
     check_input(source)
-    check_input(camera_path)
+    check_input(camera_path, stdin="--camera")
     avatar = load_placed(source, placement, avatar_spec)
     box = avatar_roi(avatar, read_camera(camera_path), radius)
     if box is None:
@@ -325,7 +325,7 @@ def _avatar_roi(roi, avatar_spec, camera_path, radius, quiet):
                    "centroid, floor to top, seen by --camera.  A PLY, mesh or builtin:, with a "
                    "placement SOURCE:KEY=VALUE;... as in dgsm-build.")
 @click.option("--camera", "roi_camera", default=None, metavar="CAMERA.json",
-              help="The camera of the mattes (for --roi-avatar).")
+              help="The camera of the mattes (for --roi-avatar; '-': stdin).")
 @click.option("--roi-radius", type=FiniteFloat(0, 1e6, min_open=True), default=1.0, show_default=True,
               help="Half-size R (metres) of the avatar-centric region.")
 @click.option("--threshold", type=FiniteFloat(0, 1, max_open=True), default=0.1, show_default=True,
@@ -441,7 +441,7 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     from relight_cli.metrics.lighting import lighting_metrics
     from relight_cli.provenance import provenance
 
-    check_output(output, no_clobber, text=True)
+    check_output(output, no_clobber, kind="json")
     if relits and len(relits) != len(avatars):
         raise UsageProblem(f"{len(relits)} --relit file(s) for {len(avatars)} --avatar frame(s)")
     if neighbours < 4:
@@ -525,35 +525,51 @@ def _direction(text):
               help="Which direction is better (defaults: psnr/ssim/iou/F higher; errors lower; "
                    "unknown metrics: either, so any move beyond tolerance fails).")
 @click.option("--only-changed", is_flag=True, help="List only metrics that moved beyond tolerance.")
+@click.option("-o", "--output", default=None, metavar="FILE.json|-",
+              help="Also write the comparison as JSON (relight/metrics-comparison, "
+                   "formats/metrics_json.md), written even when something regressed; with '-' "
+                   "it goes to stdout and the table to stderr.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Write the comparison JSON to stdout (the same as -o -).")
+@no_clobber_option
 @quiet_option
 @click.pass_context
-def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, quiet):
+def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, output, as_json,
+                    no_clobber, quiet):
     """Compare metrics record NEW.json with BASELINE.json and print what moved.
 
     Each metric regresses when it moved in its bad direction by more than
     atol + rtol·|baseline|; improvements never fail.  A metric missing from
-    NEW.json is a regression.
+    NEW.json is a regression.  Either file may be '-' (stdin), not both.
 
     \b
     Exit codes: 0 nothing regressed, 3 something regressed, 1 unreadable or
     mismatched files, 2 usage error.
 
     \b
-    Example:
+    Examples:
       relight metrics compare new.json baseline.json --rtol 0.01 --rtol psnr=0.002 \\
           --better my_score=higher
+      relight metrics image a.exr b.exr -o - | relight metrics compare - base.json -o cmp.json
     """
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.metrics_json import decode_value, flatten, read_metrics
     from relight_cli.metrics.compare import compare_metrics, format_table
 
+    if as_json:
+        if output not in (None, "-"):
+            raise UsageProblem("--json writes the comparison to stdout; it cannot go with -o FILE")
+        output = "-"
+    check_output(output, no_clobber, kind="json")
     rtols = _parse_keyed(rtol, "--rtol", _tolerance)
     atols = _parse_keyed(atol, "--atol", _tolerance)
     directions = _parse_keyed(better, "--better", _direction)
     if None in directions:
         raise UsageProblem("--better needs METRIC=higher|lower|either")
-    new_record = read_metrics(check_input(new))
-    base_record = read_metrics(check_input(baseline))
+    check_input(new, stdin="NEW.json")
+    check_input(baseline, stdin="BASELINE.json")
+    new_record = read_metrics(new)
+    base_record = read_metrics(baseline)
     if new_record.get("kind") != base_record.get("kind"):
         raise DataError(f"kind {new_record.get('kind')!r} differs from the baseline's "
                         f"{base_record.get('kind')!r}", new)
@@ -567,9 +583,31 @@ def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, quiet)
             raise UsageProblem(f"{flag} names no metric of these records: {', '.join(unknown)}",
                                baseline)
     rows = compare_metrics(new_leaves, base_leaves, rtols, atols, directions)
-    if not quiet or any(r.regressed for r in rows):
-        click.echo(format_table(rows, only_changed=only_changed), nl=False)
-    if any(r.regressed for r in rows):
+    regressed = any(r.regressed for r in rows)
+    if output is not None:
+        _write_comparison(output, new_record.get("kind"), rows, regressed, new, baseline,
+                          {"rtol": list(rtol), "atol": list(atol), "better": list(better)})
+    if not quiet or regressed:
+        click.echo(format_table(rows, only_changed=only_changed), nl=False, err=output == "-")
+    if regressed:
         click.echo(f"relight metrics compare: regression against {baseline} "
                    f"(exit {EXIT_REGRESSION})", err=True)
         ctx.exit(EXIT_REGRESSION)
+
+
+def _write_comparison(output, kind, rows, regressed, new, baseline, given):
+    """The relight/metrics-comparison record, landing at once: a regression (exit 3)
+    must not discard it as a failed command's outputs are."""
+    from relight_cli.clitools import dumps_json
+    from relight_cli.formats.metrics_json import (COMPARISON_FORMAT, COMPARISON_VERSION,
+                                                  make_comparison)
+    from relight_cli.metrics.compare import DEFAULT_ATOL, DEFAULT_RTOL
+    from relight_cli.provenance import outside_transaction, provenance, write_text_atomic
+    settings = dict(given, default_rtol=DEFAULT_RTOL, default_atol=DEFAULT_ATOL)
+    record = provenance(COMPARISON_FORMAT, COMPARISON_VERSION,
+                        {"new": new, "baseline": baseline}, settings)
+    comparison = make_comparison(kind, [r.to_json() for r in rows],
+                                 EXIT_REGRESSION if regressed else 0, record["inputs"], settings,
+                                 record)
+    with outside_transaction():
+        write_text_atomic(output, dumps_json(comparison))

@@ -13,21 +13,23 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  parse_vector, quiet_option, seed_option)
+from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_output, log,
+                                  no_clobber_option, parse_vector, quiet_option, renamed_option,
+                                  seed_option)
 
 
 @click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows), or a hand.")
 @click.argument("input", metavar="IN")
 @click.argument("env", metavar="[ENV]", required=False, default=None)
 @click.option("-o", "--output", required=True,
-              help="Relit Gaussians PLY, or with --render an EXR image; for a hand the EXR image.")
+              help="Relit Gaussians PLY, or with --camera an EXR image; for a hand the EXR image.")
 @click.option("--probe", default=None, metavar="PROBE.json",
-              help="[Gaussians] SH light probe (relight sh-probe) lighting the avatar.")
+              help="[Gaussians] SH light probe (relight sh-probe) lighting the avatar ('-': "
+                   "stdin).")
 @click.option("--dgsm", default=None, metavar="SHADOWS.exr",
               help="[Gaussians] Deep Gaussian Shadow Map (relight dgsm-build) darkening --receivers.")
 @click.option("--receivers", default=None, metavar="SCENE.ply",
-              help="[Gaussians] Scene Gaussians: shadowed by --dgsm, and rendered with --render.")
+              help="[Gaussians] Scene Gaussians: shadowed by --dgsm, and rendered with --camera.")
 @click.option("--object", "objects", multiple=True, metavar="SPEC",
               help="[Gaussians] Another object inserted beside IN (repeatable): a PLY, mesh or "
                    "builtin:, with a placement SOURCE:KEY=VALUE;... as in dgsm-build. Relit "
@@ -52,7 +54,7 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
                    "intensity × colour (from the DGSM), also × |n·ω|/r² at each receiver "
                    "(irradiance), or equal (the plain mean T of older versions).")
 @click.option("--shadow-matte", type=click.Choice(["dgsm", "mesh"]), default=None,
-              help="[Gaussians] With --render: the receivers-only shadow matte of the paper's "
+              help="[Gaussians] With --camera: the receivers-only shadow matte of the paper's "
                    "protocol (Sec. 4.2): receivers coloured by shadow strength 1 − Σw_l V_l/Σw_l, "
                    "nothing else drawn; dgsm: V = the DGSM's transmittance; mesh: V = embree "
                    "shadow rays against IN (and --object) as triangle meshes, the pseudo ground "
@@ -61,16 +63,23 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="[Gaussians] Cosine lobe exponent q of the transfer (1 = Lambertian).")
 @click.option("--intensity", type=FiniteFloat(0, 1e6), default=1.0, show_default=True,
               help="[Gaussians] Global intensity γ.")
-@click.option("--t-max", "t_max", type=FiniteFloat(0, min_open=True), default=None,
-              help="[Gaussians] Clip of the shading factor (default: no clip).")
+@click.option("--shading-clip", "t_max", type=FiniteFloat(0, min_open=True), default=None,
+              help="[Gaussians] Clip t_max of the shading factor (default: no clip; formerly "
+                   "--t-max).")
+@renamed_option("--t-max", "--shading-clip",
+                why="--t-max is dgsm-build's radial extent in metres")
 @click.option("--normals", type=click.Choice(["auto", "axis", "pca", "stored"]), default="auto",
               show_default=True,
               help="[Gaussians] Normals: shortest ellipsoid axis, local PCA of neighbours, the "
                    "file's nx ny nz; auto = stored if present, else axis. Oriented outward.")
-@click.option("--render", "render_camera", default=None, metavar="CAMERA.json",
-              help="Render a view (receivers + relit avatar) to -o as an EXR (R, G, B, A).")
+@click.option("--camera", "camera", default=None, metavar="CAMERA.json",
+              help="The OpenCV camera of the view (relight camera; formats/camera.md; '-': "
+                   "stdin). Gaussians: render receivers + relit objects to -o as an EXR (R, G, "
+                   "B, A) instead of writing a PLY (formerly --render). Hand: default a camera "
+                   "framing the hands from the front.")
+@renamed_option("--render", "--camera", why="one camera option for hands and Gaussians")
 @click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
-              help="Background radiance of --render.")
+              help="Background radiance of the rendered image.")
 @click.option("--model", default=None, metavar="NAME",
               help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS), "
                    "'teacher' (a train-teacher checkpoint, --checkpoint) or 'linear' (URHand's "
@@ -79,20 +88,19 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="[hand] The learned model of --model teacher or linear (relight/checkpoint).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None,
               help="[hand] Where a learned model runs [default: auto].")
-@click.option("--camera", "hand_camera", default=None, metavar="CAMERA.json",
-              help="[hand] OpenCV camera of the view (default: framing the hands from the front).")
 @click.option("--size", "hand_size", default=None, metavar="WxH",
-              help="[hand] Image size of the default camera [default: 256x256].")
+              help="[hand] Image size WxH (or N) of the default camera [default: 256x256].")
 @click.option("--lights", "hand_lights", default=None, metavar="LIGHTS.json",
-              help="[hand] Point lights (relight/lights JSON): radiance falls as 1/r².")
+              help="[hand] Point lights (relight/lights JSON, '-': stdin): radiance falls as "
+                   "1/r².")
 @click.option("--frame", "hand_frame", type=int, default=None,
               help="[hand] Frame of HAND to render [default: 0].")
 @click.option("--mesh", "hand_mesh", type=click.Choice(["fine", "coarse"]), default=None,
               help="[hand] Mesh rendered (and shadowing) [default: fine].")
-@click.option("--env-res", "env_res", default=None, metavar="HxW",
-              help="[hand] Lat-long grid the env map is integrated over, exactly as "
-                   "bake-features --env-res [default: 16x32].")
-@click.option("--tex-res", "tex_res", type=int, default=None,
+@click.option("--env-res", "env_res", default=None, metavar="WxH",
+              help="[hand] Lat-long grid WxH (width first) the env map is integrated over, "
+                   "exactly as bake-features --env-res [default: 32x16].")
+@click.option("--tex-res", "tex_res", type=SquareSize(), default=None,
               help="[hand] Texture-space lighting/SSS map size N (N×N) [default: 256].")
 @click.option("--aa", type=int, default=None,
               help="[hand] Stratified sub-pixel samples per axis (aa² per pixel) [default: 2].")
@@ -109,13 +117,13 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--aov", default=None, metavar="LIST",
               help="[hand] Extra EXR layers: comma-separated from normal, uv, depth.")
 @click.option("--preview", default=None, metavar="PNG",
-              help="With --render (or for a hand): a tone-mapped PNG too.")
+              help="With --camera (or for a hand): a tone-mapped PNG too.")
 @seed_option
 @no_clobber_option
 @quiet_option
 def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
             shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals,
-            render_camera, background, model, checkpoint, device, hand_camera, hand_size,
+            camera, background, model, checkpoint, device, hand_size,
             hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
             preview, seed, no_clobber, quiet):
@@ -125,7 +133,8 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     IN = AVATAR.ply (3DGS Gaussians; also a mesh or builtin:hand|room|sphere,
     optionally placed as SOURCE:KEY=VALUE;... like dgsm-build's OCCLUDERs):
     per-Gaussian SH radiance transfer from --probe (paper Eq. 9-10): colour =
-    γ · albedo · clip(S(n), 0, t_max), S the cosine-lobe (exponent q) weighted
+    γ · albedo · clip(S(n), 0, t_max), t_max = --shading-clip, S the cosine-lobe
+    (exponent q) weighted
     mean probe radiance around the normal n (normals per object).  --object
     inserts more objects, relit the same way.  With --dgsm and --receivers, each
     light's transmittance attenuates that light's share of a receiver's direct
@@ -134,7 +143,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     stored in the DGSM (--light-weights); with a
     DGSM of several OCCLUDERs, each object is also multiplied by the
     transmittance through the OTHER objects (never its own).  Writes the relit
-    objects as one PLY, or with --render an EXR view of receivers + objects.
+    objects as one PLY, or with --camera an EXR view of receivers + objects.
     A HAND.npz given with --probe, --dgsm, --receivers, --object or
     --shadow-matte is its posed hand as Gaussians (fine mesh, the hand's
     albedo; frame=K in its placement picks the pose), as in dgsm-build.
@@ -162,9 +171,9 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     Examples:
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
       relight relight avatar.ply --probe probe.json --dgsm shadows.exr \\
-          --receivers room.ply --render cam.json -o view.exr --preview view.png
+          --receivers room.ply --camera cam.json -o view.exr --preview view.png
       relight relight 'builtin:hand:translate=0,0.25,0' --object 'donut.ply:fit=0.15;on-floor' \\
-          --probe probe.json --dgsm shadows.exr --receivers room.ply --render cam.json -o view.exr
+          --probe probe.json --dgsm shadows.exr --receivers room.ply --camera cam.json -o view.exr
       relight relight hand.npz builtin:sky --model physical --camera cam.json -o img.exr
       relight relight hand.npz builtin:sky --model teacher --checkpoint teacher.pt -o img.exr
       relight relight hand.npz builtin:sky --model linear --checkpoint linear.pt -o img.exr
@@ -186,7 +195,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
                            "builtin:hand|room|sphere); it does not apply to a hand .npz", input)
     if gaussian_in:
         hand_only = {"ENV": env, "--model": model, "--checkpoint": checkpoint,
-                     "--device": device, "--camera": hand_camera, "--size": hand_size,
+                     "--device": device, "--size": hand_size,
                      "--lights": hand_lights, "--frame": hand_frame, "--mesh": hand_mesh,
                      "--env-res": env_res, "--tex-res": tex_res, "--aa": aa,
                      "--no-shadows": no_shadows or None, "--no-specular": no_specular or None,
@@ -205,7 +214,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
 
 def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers_out, footprint,
                        samples,
-                       shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals, render_camera, background,
+                       shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals, camera, background,
                        preview, seed, no_clobber, quiet, **_):
     import math
     import time
@@ -227,30 +236,34 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         raise UsageProblem("--dgsm shadows receivers: give --receivers SCENE.ply")
     if receivers_out is not None and receivers is None:
         raise UsageProblem("--receivers-out needs --receivers")
-    if preview is not None and render_camera is None:
-        raise UsageProblem("--preview needs --render")
-    if shadow_matte is not None and (render_camera is None or dgsm is None):
-        raise UsageProblem("--shadow-matte renders a matte: give --render CAMERA.json and --dgsm "
+    if preview is not None and camera is None:
+        raise UsageProblem("--preview needs --camera (a rendered view)")
+    if shadow_matte is not None and (camera is None or dgsm is None):
+        raise UsageProblem("--shadow-matte renders a matte: give --camera CAMERA.json and --dgsm "
                            "SHADOWS.exr (its lights)")
     bg = parse_vector(background, 3, "--background", minimum=0)
-    if render_camera is not None and not output.lower().endswith(".exr"):
-        raise UsageProblem("with --render, -o is an EXR image (name it .exr)", output)
-    if render_camera is None and not output.lower().endswith(".ply"):
-        raise UsageProblem("-o is the relit Gaussians PLY (name it .ply), or use --render CAM "
+    if camera is not None and not output.lower().endswith(".exr"):
+        raise UsageProblem("with --camera, -o is an EXR image (name it .exr)", output)
+    if camera is None and not output.lower().endswith(".ply"):
+        raise UsageProblem("-o is the relit Gaussians PLY (name it .ply), or use --camera CAM "
                            "-o IMAGE.exr", output)
-    for path in (output, receivers_out, preview):
-        check_output(path, no_clobber)
+    check_output(output, no_clobber)
+    check_output(receivers_out, no_clobber, kind="ply", what="--receivers-out")
+    check_output(preview, no_clobber, kind="png", what="--preview")
     from relight_cli.commands.dgsm_build import load_placed, parse_occluder
 
     specs = [input] + list(objects)
     parsed = [parse_occluder(spec, "IN/--object") for spec in specs]
-    for path in [source for source, _ in parsed] + [probe, dgsm, receivers, render_camera]:
+    for path in [source for source, _ in parsed] + [dgsm, receivers]:
         if path is not None:
             check_input(path)
+    for path, role in ((probe, "--probe"), (camera, "--camera")):
+        if path is not None:
+            check_input(path, stdin=role)
 
     start = time.perf_counter()
     if shadow_matte is not None:
-        return _shadow_matte(shadow_matte, specs, parsed, output, dgsm, receivers, render_camera,
+        return _shadow_matte(shadow_matte, specs, parsed, output, dgsm, receivers, camera,
                              footprint, samples, light_weights, background, preview, seed, quiet,
                              start)
     sh_probe = read_probe(probe)
@@ -324,7 +337,7 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         write_gaussians(receivers_out, scene, provenance(FORMAT, VERSION, inputs,
                                                          dict(settings, role="receivers")))
         log(f"wrote {receivers_out}", quiet)
-    if render_camera is None:
+    if camera is None:
         write_gaussians(output, relit, provenance(FORMAT, VERSION, inputs, settings))
         log(f"wrote {output} ({time.perf_counter() - start:.2f} s)", quiet)
         return
@@ -333,15 +346,16 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     from relight_cli.formats.exr import write_exr
     from relight_cli.gaussians.splat import render
 
-    camera = read_camera(render_camera)
-    inputs["camera"] = render_camera
+    inputs["camera"] = camera
+    view = read_camera(camera)
     everything = relit if scene is None else concatenate([scene, relit])
-    image = render(everything, camera, background=bg)
+    image = render(everything, view, background=bg)
     channels = {"R": image.image[..., 0], "G": image.image[..., 1], "B": image.image[..., 2],
                 "A": image.alpha}
-    write_exr(output, channels, provenance=provenance("relight/render", 1, inputs,
-                                                      dict(settings, background=list(bg))))
-    log(f"wrote {output} ({camera.width}x{camera.height}, {len(everything)} Gaussians, "
+    write_exr(output, channels, attributes={"relight.camera": view.to_json()},
+              provenance=provenance("relight/render", 1, inputs,
+                                    dict(settings, background=list(bg))), camera=view)
+    log(f"wrote {output} ({view.width}x{view.height}, {len(everything)} Gaussians, "
         f"{time.perf_counter() - start:.2f} s)", quiet)
     if preview is not None:
         from relight_cli.formats.image import write_preview
@@ -359,7 +373,7 @@ def _weights_mode(light_weights, shadow_map, quiet):
     return mode
 
 
-def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, render_camera, footprint, samples,
+def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, camera_path, footprint, samples,
                   light_weights, background, preview, seed, quiet, start):
     """The receivers-only shadow matte of the paper's Sec. 4.2 (``--shadow-matte``)."""
     import time
@@ -378,7 +392,7 @@ def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, render_camera, f
 
     shadow_map = _read_dgsm(dgsm)
     scene = load_gaussians(receivers)
-    camera = read_camera(render_camera)
+    camera = read_camera(camera_path)
     weights_used = _weights_mode(light_weights, shadow_map, quiet)
     weights = TF.dgsm_light_weights(weights_used, shadow_map, scene)
     if mode == "dgsm":
@@ -398,7 +412,7 @@ def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, render_camera, f
     strength = SM.shadow_strength(TF.shadow_factor(V, weights, 1.0))
     image = render(scene, camera, background=parse_vector(background, 3, "--background"),
                    colors=SM.matte_colors(strength))
-    inputs = {"input": parsed[0][0], "dgsm": dgsm, "receivers": receivers, "camera": render_camera}
+    inputs = {"input": parsed[0][0], "dgsm": dgsm, "receivers": receivers, "camera": camera_path}
     for j, (source, _) in enumerate(parsed[1:]):
         inputs[f"object{j}"] = source
     settings = {"shadow_matte": mode, "footprint": footprint, "samples": samples, "seed": seed,
@@ -406,8 +420,9 @@ def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, render_camera, f
                 "objects": specs}
     channels = {"R": image.image[..., 0], "G": image.image[..., 1], "B": image.image[..., 2],
                 "A": image.alpha}
-    write_exr(output, channels, attributes={"relight.matte": f"shadow strength ({mode})"},
-              provenance=provenance("relight/render", 1, inputs, settings))
+    write_exr(output, channels, attributes={"relight.matte": f"shadow strength ({mode})",
+                                            "relight.camera": camera.to_json()},
+              provenance=provenance("relight/render", 1, inputs, settings), camera=camera)
     log(f"wrote {output} (shadow matte, {mode}: {int((strength > 0.1).sum())} of {len(strength)} "
         f"receivers > 0.1, {time.perf_counter() - start:.2f} s)", quiet)
     if preview is not None:
@@ -416,7 +431,7 @@ def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, render_camera, f
 
 
 def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers, receivers_out,
-                  render_camera, model, hand_camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res,
+                  model, camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res,
                   tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map,
                   roughness_map, aov, background, preview, seed, no_clobber, quiet, **_):
     """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image."""
@@ -426,12 +441,10 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
 
     # ---- usage checks before any work
     gaussian_only = {"--probe": probe, "--dgsm": dgsm, "--receivers": receivers,
-                     "--receivers-out": receivers_out, "--render": render_camera,
-                     "--shadow-matte": _.get("shadow_matte")}
+                     "--receivers-out": receivers_out, "--shadow-matte": _.get("shadow_matte")}
     given = [k for k, v in gaussian_only.items() if v is not None]
     if given:
-        raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply); "
-                           f"a hand's view is --camera")
+        raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply)")
     model = model or "physical"
     if model not in ("physical", "teacher", "student", "linear"):
         raise UsageProblem(f"--model {model!r} is not available; use physical, teacher, student "
@@ -441,7 +454,7 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
                            "student, linear)")
     if model in ("teacher", "student", "linear"):
         return _relight_hand_learned(**locals())
-    width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, hand_camera,
+    width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, camera,
                                                             hand_size, hand_frame, env_res)
     tex = 256 if tex_res is None else tex_res
     if not 8 <= tex <= 4096:
@@ -466,11 +479,11 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
             if not 0 < rough_value <= 1:
                 raise UsageProblem(f"--roughness must be in (0, 1], got {roughness_map}")
     bg = parse_vector(background, 3, "--background", minimum=0)
-    for path in (output, preview):
-        check_output(path, no_clobber)
-    for path in (hand_camera, hand_lights, albedo_map):
+    check_output(output, no_clobber, kind="exr")
+    check_output(preview, no_clobber, kind="png", what="--preview")
+    for path, role in ((camera, "--camera"), (hand_lights, "--lights"), (albedo_map, None)):
         if path is not None:
-            check_input(path)
+            check_input(path, stdin=role)
 
     # ---- inputs (data errors)
     start = time.perf_counter()
@@ -504,11 +517,11 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     mesh_name = hand_mesh or "fine"
     from relight_cli.bake import pose_scene
     meshes = pose_scene(data, frame, mesh_name, input)
-    if hand_camera is not None:
+    if camera is not None:
         from relight_cli.formats.camera import read_camera
-        camera = read_camera(hand_camera)
+        view = read_camera(camera)
     else:
-        camera = preview_camera(meshes, width, height)
+        view = preview_camera(meshes, width, height)
     try:
         materials = A.hand_materials(data, mesh_name, max(tex, 256), seed, albedo, rough)
     except ValueError as exc:
@@ -523,7 +536,7 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
                               env_res=(env_h, env_w), bounce=bounce)
     renderer = HandRenderer(meshes, materials, settings)
     lighting = renderer.light(lights, envmap)
-    result = renderer.render(camera, lighting, background=bg)
+    result = renderer.render(view, lighting, background=bg)
     channels = {"R": result.image[..., 0], "G": result.image[..., 1], "B": result.image[..., 2],
                 "A": result.mask}
     if "normal" in aovs:
@@ -535,7 +548,7 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     inputs = {"hand": input}
     if env is not None:
         inputs["env"] = env
-    for role, path in (("camera", hand_camera), ("lights", hand_lights), ("albedo", albedo_map)):
+    for role, path in (("camera", camera), ("lights", hand_lights), ("albedo", albedo_map)):
         if path is not None:
             inputs[role] = path
     if roughness_map is not None and rough_value is None:
@@ -548,15 +561,15 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     seconds = {**renderer.stats, **lighting.stats, **result.stats}
     from relight_cli.formats.exr import write_exr
     write_exr(output, channels, attributes={
-        "relight.model": model, "relight.camera": camera.to_json()}, provenance=record)
+        "relight.model": model, "relight.camera": view.to_json()}, provenance=record, camera=view)
     if preview is not None:
         from relight_cli.formats.image import write_preview
         write_preview(preview, result.image)
-    log(f"wrote {output} ({camera.width}x{camera.height}, {time.perf_counter() - start:.2f} s: "
+    log(f"wrote {output} ({view.width}x{view.height}, {time.perf_counter() - start:.2f} s: "
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
 
 
-def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_camera, hand_size,
+def _relight_hand_learned(input, env, output, checkpoint, device, model, camera, hand_size,
                           hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa, no_shadows,
                           no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
                           background, preview, no_clobber, quiet, **_):
@@ -583,16 +596,16 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     if model == "student" and hand_lights is not None:
         raise UsageProblem("the student is an env-map model: it cannot take --lights (use "
                            "--model teacher for point lights)")
-    width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, hand_camera,
+    width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, camera,
                                                             hand_size, hand_frame, env_res)
     if aa is not None and not 1 <= aa <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
     bg = parse_vector(background, 3, "--background")
-    for path in (output, preview):
-        check_output(path, no_clobber)
-    for path in (checkpoint, hand_camera, hand_lights):
+    check_output(output, no_clobber, kind="exr")
+    check_output(preview, no_clobber, kind="png", what="--preview")
+    for path, role in ((checkpoint, None), (camera, "--camera"), (hand_lights, "--lights")):
         if path is not None:
-            check_input(path)
+            check_input(path, stdin=role)
 
     # ---- inputs (data errors)
     start = time.perf_counter()
@@ -636,11 +649,11 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
         lights = read_lights(hand_lights)
     from relight_cli.bake import pose_scene
     meshes = pose_scene(data, frame, "fine", input)
-    if hand_camera is not None:
+    if camera is not None:
         from relight_cli.formats.camera import read_camera
-        camera = read_camera(hand_camera)
+        view = read_camera(camera)
     else:
-        camera = preview_camera(meshes, width, height)
+        view = preview_camera(meshes, width, height)
     samples_axis = (config.aa if model == "teacher" else 2) if aa is None else aa
     if model == "student":
         return _write_student_render(**locals())
@@ -653,7 +666,7 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     timing = T.Timing()
     t0 = time.perf_counter()
     texels = PoseTexels(meshes, config.tex_res, shadows=config.visibility)
-    gbuffer = render_gbuffer(meshes, camera, samples_axis, scene=texels.renderer.scene)
+    gbuffer = render_gbuffer(meshes, view, samples_axis, scene=texels.renderer.scene)
     timing.add("geometry", time.perf_counter() - t0)
     passes = []
     if lights is not None:
@@ -684,14 +697,14 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, hand_ca
     rgb = image.cpu().numpy().astype(np.float32)
     mask = gbuffer.mask
     # passes are composited over black; the background fills the uncovered sample fraction
-    inputs = {"hand": input, "checkpoint": checkpoint, "env": env, "camera": hand_camera,
+    inputs = {"hand": input, "checkpoint": checkpoint, "env": env, "camera": camera,
               "lights": hand_lights}
-    _write_learned(output, preview, rgb, mask, bg, model, camera, inputs, {
+    _write_learned(output, preview, rgb, mask, bg, model, view, inputs, {
         "model": model, "teacher": config.model, "frame": frame, "mesh": "fine",
         "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
         "visibility": config.visibility, "falloff": config.falloff,
         "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
-    log(f"wrote {output} ({camera.width}x{camera.height}, {total} pass(es), "
+    log(f"wrote {output} ({view.width}x{view.height}, {total} pass(es), "
         f"{time.perf_counter() - start:.2f} s: "
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in timing.seconds.items()) + ")", quiet)
 
@@ -709,14 +722,14 @@ def _write_learned(output, preview, rgb, mask, bg, model, camera, inputs, settin
                         settings)
     write_exr(output, channels, attributes={"relight.model": model,
                                             "relight.camera": camera.to_json()},
-              provenance=record)
+              provenance=record, camera=camera)
     if preview is not None:
         from relight_cli.formats.image import write_preview
         write_preview(preview, rgb)
 
 
-def _write_student_render(net, config, ckpt, data, frame, meshes, camera, envmap, env_h, env_w,
-                          env_res, samples_axis, torch_device, bg, input, env, checkpoint, hand_camera,
+def _write_student_render(net, config, ckpt, data, frame, meshes, view, envmap, env_h, env_w,
+                          env_res, samples_axis, torch_device, bg, input, env, checkpoint, camera,
                           output, preview, quiet, start, model, **_):
     """The student: bake-features' texel maps of the pose (visibility traced once) under the
     env map, one forward pass, the textures rendered through the G-buffer."""
@@ -733,17 +746,17 @@ def _write_student_render(net, config, ckpt, data, frame, meshes, camera, envmap
         env_h, env_w = config.env_res            # the student's own grid
     if (env_h, env_w) != tuple(config.env_res):
         from relight_cli.errors import UsageProblem
-        raise UsageProblem(f"the student was trained on a {config.env_res[0]}x"
-                           f"{config.env_res[1]} env grid; --env-res must match")
+        raise UsageProblem(f"the student was trained on a {config.env_res[1]}x"
+                           f"{config.env_res[0]} (WxH) env grid; --env-res must match")
     seconds = {}
     t0 = time.perf_counter()
     features = D.StudentFeatures(config)
     pose = features.pose(data, frame, key=0)
-    gbuffer = render_gbuffer(meshes, camera, samples_axis)
+    gbuffer = render_gbuffer(meshes, view, samples_axis)
     seconds["geometry"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     denv = discretize_env(envmap, env_h, env_w)
-    maps = features.maps(pose, denv, camera.center)
+    maps = features.maps(pose, denv, view.center)
     seconds["features"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     import torch
@@ -756,45 +769,35 @@ def _write_student_render(net, config, ckpt, data, frame, meshes, camera, envmap
     seconds["composite"] = time.perf_counter() - t0
     rgb = image.cpu().numpy().astype(np.float32)
     mask = gbuffer.mask
-    _write_learned(output, preview, rgb, mask, bg, model, camera,
-                   {"hand": input, "checkpoint": checkpoint, "env": env, "camera": hand_camera}, {
+    _write_learned(output, preview, rgb, mask, bg, model, view,
+                   {"hand": input, "checkpoint": checkpoint, "env": env, "camera": camera}, {
                        "model": model, "student": config.student, "frame": frame, "mesh": "fine",
                        "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
                        "specular": config.specular, "visibility": config.visibility,
                        "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
-    log(f"wrote {output} ({camera.width}x{camera.height}, {time.perf_counter() - start:.2f} s: "
+    log(f"wrote {output} ({view.width}x{view.height}, {time.perf_counter() - start:.2f} s: "
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
 
 
-def _hand_view_options(env, hand_lights, output, hand_camera, hand_size, hand_frame, env_res):
+def _hand_view_options(env, hand_lights, output, camera, hand_size, hand_frame, env_res):
     """Hand mode's shared usage checks: (width, height, frame, env H, env W)."""
     from relight_cli.errors import UsageProblem
     if env is None and hand_lights is None:
         raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
-    if not output.lower().endswith(".exr"):
-        raise UsageProblem("-o is the rendered EXR image (name it .exr)", output)
-    if hand_camera is not None and hand_size is not None:
+    from relight_cli.clitools import check_extension
+    check_extension(output, "exr")
+    if camera is not None and hand_size is not None:
         raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
     width, height = 256, 256
     if hand_size is not None:
         from relight_cli.clitools import parse_size
-        width, height = parse_size(hand_size, "--size")
-        if width > 8192 or height > 8192:
-            raise UsageProblem(f"--size must be at most 8192, got {hand_size!r}")
+        width, height = parse_size(hand_size, "--size", maximum=8192)
     frame = 0 if hand_frame is None else hand_frame
     if frame < 0:
         raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
-    env_h, env_w = _parse_env_res(env_res or "16x32")
+    from relight_cli.clitools import parse_env_res
+    env_w, env_h = parse_env_res(env_res or "32x16")
     return width, height, frame, env_h, env_w
-
-
-def _parse_env_res(text: str) -> tuple[int, int]:
-    from relight_cli.commands.bake_features import _parse_hw
-    from relight_cli.errors import UsageProblem
-    h, w = _parse_hw(text, "--env-res")
-    if h < 2 or w < 2:
-        raise UsageProblem("--env-res needs at least 2x2 directions")
-    return h, w
 
 
 def _read_dgsm(path: str):

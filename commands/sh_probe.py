@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  parse_vector, quiet_option)
+from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_output, log,
+                                  no_clobber_option, parse_vector, quiet_option)
 
 
 @click.command("sh-probe", short_help="Fit an SH light probe to an env map or a Gaussian scene.")
@@ -23,8 +23,8 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
               help="For --degree auto: the high reference degree.")
 @click.option("--at", "at", default=None, metavar="X,Y,Z",
               help="Probe position (metres, world) for a Gaussian scene IN (.ply).")
-@click.option("--face-size", type=click.IntRange(4, 1024), default=64, show_default=True,
-              help="Cube-face resolution rendered for a scene probe.")
+@click.option("--face-size", type=SquareSize(4, 1024), default=64, show_default=True,
+              help="Cube-face size N (or NxN) rendered for a scene probe.")
 @click.option("--near", type=FiniteFloat(0, min_open=True), default=0.01, show_default=True,
               help="Near plane (metres) of the scene probe's cube cameras.")
 @click.option("--nonfinite", type=click.Choice(["error", "zero", "clamp"]), default="error",
@@ -46,6 +46,7 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
       relight sh-probe builtin:sky -o sky.json
       relight sh-probe stage.exr --degree 2 -o stage.json
       relight sh-probe room.ply --at 0,1.2,0 -o room-probe.json
+      relight sh-probe builtin:sky -o - | relight relight avatar.ply --probe - -o relit.ply
     """
     import time
 
@@ -54,7 +55,7 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     from relight_cli.gaussians import probe as P
     from relight_cli.provenance import provenance
 
-    check_output(output, no_clobber, text=True)
+    check_output(output, no_clobber, kind="json")
     if degree == "auto":
         fixed = None
     else:

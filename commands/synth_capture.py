@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import log, quiet_option, seed_option
+from relight_cli.clitools import (SquareSize, log, no_clobber_option, quiet_option,
+                                  renamed_option, seed_option)
 
 
 @click.command("synth-capture",
@@ -13,19 +14,24 @@ from relight_cli.clitools import log, quiet_option, seed_option
 @click.option("-o", "--output", required=True, metavar="FOLDER",
               help="Capture folder (created; an existing capture of the same settings is resumed).")
 @click.option("--cameras", type=int, default=20, show_default=True, help="Cameras on the dome.")
-@click.option("--lights", type=int, default=64, show_default=True, help="LED point lights on the dome.")
+@click.option("--leds", type=int, default=64, show_default=True,
+              help="Number of LED point lights on the dome (formerly --lights).")
+@renamed_option("--lights", "--leds N",
+                why="--lights is a lights JSON file in dgsm-build and relight")
 @click.option("--group", type=int, default=5, show_default=True,
               help="Lights on in a grouped (partially lit) frame.")
 @click.option("--frames", type=int, default=12, show_default=True, help="Frames of hand motion.")
 @click.option("--full-every", type=int, default=3, show_default=True,
               help="Every N-th frame is fully lit (1: all frames fully lit).")
-@click.option("--res", type=int, default=128, show_default=True, help="Image size R (R×R).")
+@click.option("--size", "res", type=SquareSize(), default=128, show_default=True,
+              help="Image size N or NxN (the stage's cameras are square; formerly --res).")
+@renamed_option("--res", "--size N", why="sizes are --size WxH or N everywhere")
 @click.option("--motion", type=click.Choice(["random", "file"]), default="random",
               show_default=True,
               help="random: slerp between random key poses; file: HAND's own frames.")
 @click.option("--keyframe-every", type=int, default=10, show_default=True,
               help="Frames between random key poses.")
-@click.option("--tex-res", type=int, default=256, show_default=True,
+@click.option("--tex-res", type=SquareSize(), default=256, show_default=True,
               help="Renderer's texture-space lighting map size.")
 @click.option("--aa", type=int, default=2, show_default=True,
               help="Stratified sub-pixel samples per axis.")
@@ -38,24 +44,26 @@ from relight_cli.clitools import log, quiet_option, seed_option
 @click.option("--eval-cameras", type=int, default=4, show_default=True,
               help="Cameras (the first N of the dome) of the evaluation renders.")
 @seed_option
+@no_clobber_option
 @quiet_option
-def command(hand, output, cameras, lights, group, frames, full_every, res, motion,
+def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
             keyframe_every, tex_res, aa, no_sss, bounce, eval_poses, eval_envs, eval_cameras,
-            seed, quiet):
+            seed, no_clobber, quiet):
     """Render a light-stage capture of HAND (a hand.npz, or builtin:right|left[:POSE];
     default builtin:right) into FOLDER in the relight/capture format
     (formats/capture.md): capture.json, the ground-truth hand.npz,
     images/{frame:06d}/{camera}.exr (R, G, B, A = mask) and held-out
     evaluation renders under env maps in eval/.
 
-    Frames are time-multiplexed: every --full-every-th frame has all lights on,
-    the others a group of --group neighbouring lights.  Rerunning the same
-    command resumes: frames whose images exist and are valid are skipped.
+    Frames are time-multiplexed: every --full-every-th frame has all --leds on,
+    the others a group of --group neighbouring LEDs.  Rerunning the same
+    command resumes: frames whose images exist and are valid are skipped
+    (--no-clobber refuses an existing FOLDER instead).
 
     \b
     Examples:
-      relight synth-capture -o capture/ --cameras 20 --lights 64 --frames 30
-      relight synth-capture hand.npz -o capture/ --motion file --res 256
+      relight synth-capture -o capture/ --cameras 20 --leds 64 --frames 30
+      relight synth-capture hand.npz -o capture/ --motion file --size 256
     """
     import os
     import time
@@ -73,9 +81,10 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
     from ._inputs import load_envmap
 
     # ---- usage checks before any work
-    for name, value, lo, hi in (("--cameras", cameras, 1, 1000), ("--lights", lights, 1, 10000),
+    lights = leds
+    for name, value, lo, hi in (("--cameras", cameras, 1, 1000), ("--leds", leds, 1, 10000),
                                 ("--group", group, 1, 10000), ("--frames", frames, 1, 100000),
-                                ("--full-every", full_every, 1, 100000), ("--res", res, 8, 4096),
+                                ("--full-every", full_every, 1, 100000), ("--size", res, 8, 4096),
                                 ("--keyframe-every", keyframe_every, 1, 100000),
                                 ("--tex-res", tex_res, 8, 4096), ("--aa", aa, 1, 8),
                                 ("--eval-poses", eval_poses, 0, 1000),
@@ -83,7 +92,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
         if not lo <= value <= hi:
             raise UsageProblem(f"{name} must be in [{lo}, {hi}], got {value}")
     if group > lights:
-        raise UsageProblem(f"--group {group} exceeds --lights {lights}")
+        raise UsageProblem(f"--group {group} exceeds --leds {leds}")
     if eval_cameras > cameras:
         raise UsageProblem(f"--eval-cameras {eval_cameras} exceeds --cameras {cameras}")
     if motion == "file" and hand.startswith("builtin:"):
@@ -95,6 +104,10 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                  .split(".", 1)[0] for e in env_specs]
     if len(set(env_names)) != len(env_names):
         raise UsageProblem("two --eval-envs maps have the same name")
+    if output in ("", "-"):
+        raise UsageProblem("-o is the capture FOLDER; give a folder name", repr(output))
+    if no_clobber and os.path.lexists(output):
+        raise UsageProblem("output exists and --no-clobber was given", output)
     if os.path.exists(output) and not os.path.isdir(output):
         raise UsageProblem("output exists and is not a folder", output)
     parent = os.path.dirname(os.path.abspath(output))
@@ -130,7 +143,7 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
         for mine, theirs in zip(eval_hand.hands, plan.motion.hands):
             mine.root = theirs.root.copy()
     log(f"{'resuming' if existing else 'writing'} {output}: {settings.cameras} cameras, "
-        f"{settings.lights} lights, {len(plan.frames)} frames ({res}x{res})", quiet)
+        f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})", quiet)
 
     # ---- write: every finished file lands at once (resumable), see C.immediate_writes
     inputs = {"hand": hand}
@@ -169,7 +182,8 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                   {"relight.frame": frame.index, "relight.camera": cam.name,
                                    "relight.lit": frame.lit},
                                   provenance("relight/capture-image", 1, inputs,
-                                             {"frame": frame.index, "camera": cam.name}))
+                                             {"frame": frame.index, "camera": cam.name}),
+                                  camera=cam)
                     rendered += 1
             frame.images = [c.name for c in plan.cameras]
         if evaluation is not None:
@@ -196,7 +210,8 @@ def command(hand, output, cameras, lights, group, frames, full_every, res, motio
                                       {"relight.pose": pose, "relight.env": name,
                                        "relight.camera": cam.name},
                                       provenance("relight/capture-image", 1, inputs,
-                                                 {"pose": pose, "env": name, "camera": cam.name}))
+                                                 {"pose": pose, "env": name, "camera": cam.name}),
+                                      camera=cam)
                         rendered += 1
         capture.complete = True
         C.write_capture(index_path, capture)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import log, no_clobber_option, quiet_option
+from relight_cli.clitools import SquareSize, log, no_clobber_option, quiet_option
 
 from ._learned import training_options
 
@@ -20,7 +20,8 @@ from ._learned import training_options
               help="tiny: seconds to minutes on a CPU (tests, demo); paper: RelightableHands' "
                    "sizes and 100k iterations (a GPU).")
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
-              help="JSON object of config fields overriding the preset (see formats/checkpoint.md).")
+              help="JSON object of config fields overriding the preset (see "
+                   "formats/checkpoint.md; '-': stdin).")
 @click.option("--model", type=click.Choice(["olat", "ggx", "linear"]), default=None,
               help="olat: the neural OLAT teacher (App. A.1); ggx: the physically based "
                    "baseline (App. B, Eq. 12); linear: URHand's linear lighting model with "
@@ -28,12 +29,13 @@ from ._learned import training_options
 @click.option("--iters", type=int, default=None, help="Adam iterations (overrides the preset).")
 @click.option("--batch", type=int, default=None, help="Samples (frame × camera) per step and rank.")
 @click.option("--lr", type=float, default=None, help="Adam learning rate.")
-@click.option("--tex-res", type=int, default=None, help="Texture size N of the U-Net (N×N).")
+@click.option("--tex-res", type=SquareSize(), default=None,
+              help="Texture size N (or NxN) of the U-Net.")
 @click.option("--no-visibility", is_flag=True,
               help="Ablation (RelightableHands Table 1): no ray-traced visibility input.")
 @click.option("--light-path", type=click.Choice(["linear", "nonlinear", "mlp"]), default=None,
               help="[linear] Ablations (URHand Table 2): nonlinear puts LeakyReLU on the light "
-                   "path; mlp is the holistic baseline (supp. 10.2: a 16x32 lighting map "
+                   "path; mlp is the holistic baseline (supp. 10.2: a 32x16 lighting map "
                    "through one bias-free linear layer) [default: linear].")
 @click.option("--linearity-loss", type=float, default=None, metavar="λ",
               help="[linear] Eq. 17's linearity consistency weight (with --light-path "
@@ -96,9 +98,9 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
             raise DataError("CAPTURE must be a capture folder (with capture.json)", capture)
     if os.path.isfile(os.path.join(capture, "capture.json")):
         check_input(os.path.join(capture, "capture.json"))
-    for path in (config_file, vgg_weights, resume):
+    for path, role in ((config_file, "--config"), (vgg_weights, None), (resume, None)):
         if path is not None:
-            check_input(path)
+            check_input(path, stdin=role)
     check_outputs(output, metrics_out, no_clobber)
 
     import torch  # noqa: F401  (after usage checks: --help and usage errors stay fast)

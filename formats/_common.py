@@ -31,18 +31,29 @@ MAX_JSON_DEPTH = 64
 
 
 def read_json(path: str):
-    """Parse a JSON file; a missing file, a folder, non-UTF-8 bytes or bad JSON
-    raise one-line DataErrors naming the file."""
+    """Parse a JSON file (``-``: stdin); a missing file, a folder, non-UTF-8 bytes or
+    bad JSON raise one-line DataErrors naming the file."""
+    return parse_json(read_text(path, "a JSON file"), path)
+
+
+def read_text(path: str, what: str = "a JSON file") -> str:
+    """A UTF-8 text file's content (``-``: stdin, read once per command, see
+    relight_cli.provenance.stdin_bytes); one-line DataErrors naming the file."""
+    if path == "-":
+        from relight_cli.provenance import stdin_bytes
+        try:
+            return stdin_bytes().decode("utf-8")
+        except UnicodeDecodeError:
+            raise DataError("not a text (UTF-8 JSON) stream", "-") from None
     if not os.path.exists(path):
         raise DataError("no such file", path)
     if os.path.isdir(path):
-        raise DataError("is a directory, expected a JSON file", path)
+        raise DataError(f"is a directory, expected {what}", path)
     try:
         with open(path, encoding="utf-8") as f:
-            text = f.read()
+            return f.read()
     except UnicodeDecodeError:
         raise DataError("not a text (UTF-8 JSON) file", path) from None
-    return parse_json(text, path)
 
 
 def _non_finite_literal(name: str):

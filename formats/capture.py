@@ -240,13 +240,15 @@ def immediate_writes():
 
 
 def write_image(path: str, rgb: np.ndarray, mask: np.ndarray, key: str,
-                attributes: dict | None = None, provenance: dict | None = None) -> None:
-    """Write one capture image: R, G, B (linear radiance, half floats) and A (mask)."""
+                attributes: dict | None = None, provenance: dict | None = None,
+                camera=None) -> None:
+    """Write one capture image: R, G, B (linear radiance, half floats) and A (mask);
+    with ``camera``, also OpenEXR's worldToCamera and worldToNDC (formats/exr.py)."""
     from relight_cli.formats.exr import write_exr
     channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
     attrs = {"relight.capture_key": key, **(attributes or {})}
     record = dict(provenance or {}, format=IMAGE_FORMAT, version=IMAGE_VERSION)
-    write_exr(path, channels, attributes=attrs, half=True, provenance=record)
+    write_exr(path, channels, attributes=attrs, half=True, provenance=record, camera=camera)
 
 
 def read_image(path: str, camera=None) -> tuple[np.ndarray, np.ndarray]:

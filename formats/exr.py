@@ -3,6 +3,8 @@
 Channels use OpenEXR's layer naming (``diffuse.R``); RGB images use ``R G B``.
 Header attributes ``relight.format`` (str), ``relight.version`` (int) and
 ``relight.provenance`` (JSON str) are written on every file this toolkit makes.
+Renders also carry OpenEXR's standard ``worldToCamera`` and ``worldToNDC``
+(M44f, see ``formats/camera.py:openexr_matrices``).
 Reading uses the OpenEXR Python bindings (level 0 of mip-mapped / tiled files);
 anything the library rejects becomes a one-line :class:`DataError`.
 """
@@ -170,7 +172,7 @@ def read_exr(path: str) -> ExrImage:
 
 def write_exr(path: str, channels: dict[str, np.ndarray], attributes: dict | None = None,
               half: bool = False, envmap: str | None = None,
-              provenance: dict | None = None) -> None:
+              provenance: dict | None = None, camera=None) -> None:
     """Write named [H, W] channels atomically.
 
     Args:
@@ -182,6 +184,8 @@ def write_exr(path: str, channels: dict[str, np.ndarray], attributes: dict | Non
         envmap: "latlong" or "cube" sets OpenEXR's ``envmap`` attribute.
         provenance: record from :func:`relight_cli.provenance.provenance`; its
             format and version also go to ``relight.format``/``relight.version``.
+        camera: the ``formats.camera.Camera`` that rendered the image: OpenEXR's
+            standard ``worldToCamera`` and ``worldToNDC`` attributes (M44f).
     """
     import OpenEXR
 
@@ -203,6 +207,11 @@ def write_exr(path: str, channels: dict[str, np.ndarray], attributes: dict | Non
                             else OpenEXR.Envmap.ENVMAP_LATLONG)
     for key, value in (attributes or {}).items():
         header[key] = _header_value(value)
+    if camera is not None:
+        from .camera import openexr_matrices
+        if (camera.height, camera.width) != next(iter(pixels.values())).shape:
+            raise ValueError("the camera's image size differs from the channels'")
+        header["worldToCamera"], header["worldToNDC"] = openexr_matrices(camera)
     if provenance is not None:
         header[FORMAT_KEY] = str(provenance["format"])
         header[VERSION_KEY] = int(provenance["version"])

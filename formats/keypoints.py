@@ -26,12 +26,16 @@ class Keypoints:
         confidence: [N, J] float64 in [0, 1]; 0 marks a missing joint.
         frames: [N] int64 frame numbers (strictly increasing; default 0..N−1).
         joint_names: J names if the file gave them, else None.
+        side: "left"/"right" when the file says which hand it tracks (Leap), else None.
+        source: what the reader found, for the fit report (e.g. the Leap hand), else None.
     """
 
     positions: np.ndarray
     confidence: np.ndarray
     frames: np.ndarray
     joint_names: list[str] | None = None
+    side: str | None = None
+    source: dict | None = None
 
 
 def keypoints_from_array(a, path: str, n_joints: int = 25, frames=None,
@@ -72,20 +76,44 @@ def keypoints_from_array(a, path: str, n_joints: int = 25, frames=None,
                      None if joint_names is None else [str(s) for s in joint_names])
 
 
-def read_keypoints(path: str, n_joints: int = 25) -> Keypoints:
-    """Read keypoints from ``.npy`` or ``.json``; DataError names the file and the problem."""
+READERS = ("auto", "keypoints", "leap")
+
+
+def read_keypoints(path: str, n_joints: int = 25, reader: str = "auto", hand=None) -> Keypoints:
+    """Read keypoints from ``.npy`` or ``.json``; DataError names the file and the problem.
+
+    Args:
+        reader: ``"keypoints"`` (this format), ``"leap"`` (a Leap Motion recording,
+            ``formats/leap.md``) or ``"auto"``: Leap when the JSON holds Leap frames.
+        hand: which Leap hand (None, ``"left"``, ``"right"`` or an int id); Leap only.
+    """
     if not os.path.exists(path):
         raise DataError("no such file", path)
     if os.path.isdir(path):
         raise DataError("is a directory, expected keypoints (.json or .npy)", path)
     if path.lower().endswith(".npy"):
+        if reader == "leap":
+            raise DataError("a .npy array is not a Leap Motion recording (LeapJS JSON)", path)
         try:
             a = np.load(path, allow_pickle=False)
         except (ValueError, OSError, EOFError) as exc:
             raise DataError(f"not a readable .npy array: {exc}", path) from None
         return keypoints_from_array(a, path, n_joints)
     from ._common import read_json
+    from .leap import leap_keypoints, looks_like_leap
     obj = read_json(path)
+    if reader != "keypoints" and looks_like_leap(obj):
+        if n_joints != 25:
+            raise DataError(f"Leap recordings map onto the 25 WebXR joints; the template has "
+                            f"{n_joints}", path)
+        return leap_keypoints(obj, path, hand)
+    if reader == "leap":
+        raise DataError("not a Leap Motion recording (expected LeapJS frames with 'hands' and "
+                        "'pointables')", path)
+    return _keypoints_from_json(obj, path, n_joints)
+
+
+def _keypoints_from_json(obj, path: str, n_joints: int) -> Keypoints:
     frames = names = None
     if isinstance(obj, dict):
         if "format" in obj and obj["format"] != FORMAT:
@@ -108,10 +136,19 @@ def read_keypoints(path: str, n_joints: int = 25) -> Keypoints:
 
 
 def write_keypoints(path: str, kp: Keypoints, provenance: dict | None = None) -> None:
-    """Write keypoints as JSON (N × J × 4 with confidences), atomically."""
+    """Write keypoints as JSON (N × J × 4 with confidences), atomically.
+
+    Missing joints (confidence 0) are written as 0, 0, 0 with confidence 0 —
+    the format's only missing marker (JSON has no NaN) — whatever their
+    coordinates were (a Leap reader leaves them NaN).
+    """
     from relight_cli.provenance import write_text_atomic
 
-    data = np.concatenate([kp.positions, kp.confidence[..., None]], -1)
+    missing = kp.confidence <= 0
+    positions = np.where(missing[..., None], 0.0, kp.positions)
+    if not np.isfinite(positions).all():
+        raise ValueError("observed keypoints (confidence > 0) must be finite")
+    data = np.concatenate([positions, kp.confidence[..., None]], -1)
     obj = {"format": FORMAT, "version": VERSION, "frames": [int(f) for f in kp.frames],
            "keypoints": data.tolist()}
     if kp.joint_names is not None:

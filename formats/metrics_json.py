@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 
 from relight_cli.errors import DataError
 
@@ -118,17 +117,10 @@ def _upgrade_v1_lighting(tree):
 
 
 def read_metrics(path: str) -> dict:
+    """Read and validate a metrics record (``-``: stdin)."""
+    from ._common import read_text
     path = str(path)
-    if not os.path.exists(path):
-        raise DataError("no such file", path)
-    if os.path.isdir(path):
-        raise DataError("is a directory, expected a metrics JSON file", path)
-    with open(path, encoding="utf-8") as f:
-        try:
-            text = f.read()
-        except UnicodeDecodeError:
-            raise DataError("not a text file", path) from None
-    return loads(text, path)
+    return loads(read_text(path, "a metrics JSON file"), path)
 
 
 def flatten(metrics: dict, prefix: str = "") -> list[tuple[str, object]]:
@@ -141,3 +133,41 @@ def flatten(metrics: dict, prefix: str = "") -> list[tuple[str, object]]:
         else:
             out.append((name, value))
     return out
+
+
+# ----------------------------------------------------------------------------- comparisons
+
+COMPARISON_FORMAT = "relight/metrics-comparison"
+COMPARISON_VERSION = 1
+COMPARISON_KEYS = ("format", "version", "kind", "regressed", "exit_code", "counts", "rows",
+                   "inputs", "settings", "provenance")
+
+
+def make_comparison(kind: str, rows: list[dict], exit_code: int, inputs: dict, settings: dict,
+                    provenance: dict) -> dict:
+    """The record of ``relight metrics compare -o`` (keys in :data:`COMPARISON_KEYS`).
+
+    ``rows``: one object per compared metric (``Row.to_json`` of
+    relight_cli.metrics.compare): metric, [baseline], [new], [change], slack, better,
+    status (ok | improved | REGRESSED | missing | new), regressed.
+    """
+    statuses = [r["status"] for r in rows]
+    counts = {"metrics": len(rows), "regressed": sum(bool(r["regressed"]) for r in rows),
+              "improved": statuses.count("improved"), "missing": statuses.count("missing"),
+              "new": statuses.count("new")}
+    return {"format": COMPARISON_FORMAT, "version": COMPARISON_VERSION, "kind": kind,
+            "regressed": counts["regressed"] > 0, "exit_code": int(exit_code), "counts": counts,
+            "rows": rows, "inputs": inputs, "settings": settings, "provenance": provenance}
+
+
+def loads_comparison(text: str, path: str = "<string>") -> dict:
+    """Parse and check a comparison record (DataError naming ``path``)."""
+    from ._common import parse_json
+    record = parse_json(text, path)
+    if not isinstance(record, dict):
+        raise DataError("a metrics comparison JSON holds an object", path)
+    check_format_version(record.get("format"), record.get("version"), COMPARISON_FORMAT,
+                         COMPARISON_VERSION, path)
+    if not isinstance(record.get("rows"), list) or not isinstance(record.get("regressed"), bool):
+        raise DataError("missing 'rows' list or 'regressed' flag", path)
+    return record

@@ -13,9 +13,48 @@ import sys
 import click
 
 
+def _quiet(ctx, param, value):
+    """-q after the subcommand, or before it (``relight -q CMD``): either silences."""
+    from .progress import set_command
+    names = []
+    while ctx.parent is not None:
+        names.append(ctx.info_name)
+        ctx = ctx.parent
+    set_command(" ".join(["relight", *reversed(names)]))
+    return bool(value or ctx.meta.get("relight.quiet"))
+
+
+def _debug(ctx, param, value):
+    """--debug after the subcommand, or before it (``relight --debug CMD``): either shows
+    tracebacks and library warnings; without it library warnings are silenced (they would
+    come before the one error line or mix with progress)."""
+    import warnings
+    if value:
+        ctx.meta["relight.debug"] = True
+    if not ctx.meta.get("relight.debug"):
+        warnings.simplefilter("ignore")
+
+
 def quiet_option(func):
-    return click.option("--quiet", "-q", is_flag=True,
-                        help="Silence progress bars and log messages on stderr.")(func)
+    """``-q/--quiet`` and ``--debug``, accepted after the subcommand as before it."""
+    func = click.option("--debug", is_flag=True, expose_value=False, callback=_debug,
+                        help="Show a traceback for errors and library warnings (also "
+                             "accepted before the subcommand: relight --debug CMD).")(func)
+    return click.option("--quiet", "-q", is_flag=True, callback=_quiet,
+                        help="Silence progress and log messages on stderr (also accepted "
+                             "before the subcommand: relight -q CMD).")(func)
+
+
+def renamed_option(old: str, new: str, takes_value: bool = True, why: str = ""):
+    """A hidden ``old`` option that refuses itself naming ``new`` (a one-line usage
+    error, exit 2): a renamed option keeps no silent alias, so a name means one thing."""
+    def refuse(ctx, param, value):
+        if value is None or value is False:
+            return None
+        raise click.UsageError(f"{old} was renamed {new}" + (f"; {why}" if why else ""), ctx)
+    return click.option(old, "renamed_" + old.lstrip("-").replace("-", "_"), hidden=True,
+                        is_flag=not takes_value, expose_value=False, callback=refuse,
+                        is_eager=True)
 
 
 SEED_MAX = 2**32 - 1  # numpy's SeedSequence and torch accept 0..2^32-1 everywhere
@@ -50,6 +89,33 @@ class FiniteFloat(click.FloatRange):
         return f"{lo}{'<' if self.min_open else '<='}x{'<' if self.max_open else '<='}{hi}"
 
 
+class SquareSize(click.ParamType):
+    """A square size option: ``N`` or ``NxN`` → N; a non-square ``WxH`` is a usage error
+    (the thing it sizes is square), so every size option takes the same syntax."""
+
+    name = "N"
+
+    def __init__(self, minimum: int | None = None, maximum: int | None = None):
+        self.minimum, self.maximum = minimum, maximum
+
+    def convert(self, value, param, ctx):
+        from .errors import UsageProblem
+        what = param.opts[0] if param is not None and param.opts else "size"
+        if isinstance(value, int):
+            w = h = value
+        else:
+            try:
+                w, h = parse_size(str(value), what, minimum=-(2**31), maximum=2**31)
+            except UsageProblem as exc:
+                self.fail(exc.message, param, ctx)
+        if w != h:
+            self.fail(f"{value!r} is not square: this size is N or NxN", param, ctx)
+        if ((self.minimum is not None and w < self.minimum)
+                or (self.maximum is not None and w > self.maximum)):
+            self.fail(f"{value!r} is not in the range {self.minimum}..{self.maximum}", param, ctx)
+        return w
+
+
 def seed_option(func):
     return click.option("--seed", type=click.IntRange(0, SEED_MAX), default=0, show_default=True,
                         help="Random seed; identical inputs and seed give identical outputs.")(func)
@@ -66,31 +132,79 @@ def no_clobber_option(func):
                         help="Refuse to overwrite an existing output (exit 2).")(func)
 
 
-def check_output(path: str | None, no_clobber: bool = False, text: bool = False) -> None:
+#: What an output holds -> (the extensions its name may end with, what to call it).
+OUTPUT_KINDS = {
+    "exr": ((".exr",), "an OpenEXR image"),
+    "png": ((".png",), "a PNG preview"),
+    "json": ((".json",), "a JSON file"),
+    "jsonl": ((".jsonl",), "a JSON Lines file"),
+    "npz": ((".npz",), "an npz archive"),
+    "ply": ((".ply",), "a Gaussians PLY"),
+    "pt": ((".pt", ".pth"), "a checkpoint"),
+}
+TEXT_KINDS = ("json", "jsonl")
+
+
+def check_output(path: str | None, no_clobber: bool = False, text: bool = False,
+                 kind: str | None = None, what: str = "-o") -> None:
     """Validate an output path before any work is done, and register it.
 
     Usage errors (exit 2): an empty name, a folder, a missing folder, a block
     device or socket, an output that is one of the command's inputs or outputs
-    (see relight_cli.provenance.declare_output); a folder where no file can be
-    created exits 1.
+    (see relight_cli.provenance.declare_output), a name whose extension is not
+    ``kind``'s (see OUTPUT_KINDS; character devices and FIFOs, which have no
+    extension, are exempt), ``-`` for anything but JSON; a folder where no file
+    can be created exits 1.
     """
     from .errors import UsageProblem
     from .provenance import declare_output
     if path is None:
         return
+    text = text or kind in TEXT_KINDS
     if path == "-":
         if not text:
-            raise UsageProblem("this output is binary and cannot go to stdout; give a file name")
+            raise UsageProblem(f"{what} is binary and cannot go to stdout ('-' is for JSON "
+                               f"outputs); give a file name")
         return
     if no_clobber and os.path.lexists(path):
         raise UsageProblem("output exists and --no-clobber was given", path)
     declare_output(path)
+    if kind is not None:
+        check_extension(path, kind, what)
 
 
-def check_input(path: str) -> str:
-    """Fail early and clearly for a missing input or a directory given as a file."""
-    from .errors import DataError
+def check_extension(path: str, kind: str, what: str = "-o") -> None:
+    """A usage error unless ``path`` ends with one of ``kind``'s extensions (any case);
+    an existing character device or FIFO (``/dev/null``, a named pipe) passes."""
+    import stat
+
+    from .errors import UsageProblem
+    extensions, noun = OUTPUT_KINDS[kind]
+    if path.lower().endswith(extensions):
+        return
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        mode = 0
+    if stat.S_ISCHR(mode) or stat.S_ISFIFO(mode):
+        return
+    raise UsageProblem(f"{what} is {noun} (name it {' or '.join(extensions)})", path)
+
+
+def check_input(path: str, stdin: str | None = None) -> str:
+    """Fail early and clearly for a missing input or a directory given as a file.
+
+    ``-`` reads stdin, for JSON inputs only: ``stdin`` names the input (e.g.
+    ``"--lights"``) so that two inputs both given as ``-`` are a usage error."""
+    from .errors import DataError, UsageProblem
     if path.startswith("builtin:"):
+        return path
+    if path == "-":
+        if stdin is None:
+            raise UsageProblem("this input cannot come from stdin ('-' reads JSON inputs "
+                               "only); give a file name")
+        from .provenance import claim_stdin
+        claim_stdin(stdin)
         return path
     if not os.path.exists(path):
         raise DataError("no such file", path)
@@ -109,11 +223,11 @@ def log(message: str, quiet: bool = False) -> None:
         click.echo(message, err=True)
 
 
-def progress(iterable=None, total=None, desc: str = "", quiet: bool = False):
-    """A tqdm progress bar on stderr, silent under --quiet."""
-    from tqdm import tqdm
-    return tqdm(iterable, total=total, desc=desc, disable=quiet, file=sys.stderr,
-                leave=False, dynamic_ncols=True)
+def progress(iterable=None, total=None, desc: str = "", quiet: bool = False, **kwargs):
+    """Progress on stderr: a tqdm bar on a terminal, else a plain line every few
+    seconds and a final one (relight_cli.progress); silent under --quiet."""
+    from .progress import progress as make
+    return make(iterable, total=total, desc=desc, quiet=quiet, **kwargs)
 
 
 def dumps_json(obj) -> str:
@@ -121,19 +235,40 @@ def dumps_json(obj) -> str:
     return json.dumps(obj, indent=2, sort_keys=False, allow_nan=False) + "\n"
 
 
-def parse_size(text: str, what: str = "--size") -> tuple[int, int]:
-    """Parse 'WxH' (or a single N meaning N) into (width, height)."""
+def parse_size(text: str, what: str = "--size", single: bool = True, minimum: int = 1,
+               maximum: int = 65536) -> tuple[int, int]:
+    """Parse ``WxH`` (width first, as OpenImageIO writes sizes), or a single ``N``
+    meaning N×N where ``single``, into (width, height); else a usage error naming
+    ``what``.  Every size option of every command goes through here."""
     from .errors import UsageProblem
+    form = "WxH or N" if single else "WxH"
+    parts = text.strip().lower().split("x")
     try:
-        if "x" in text.lower():
-            w, h = text.lower().split("x")
-            w, h = int(w), int(h)
+        if len(parts) == 2:
+            w, h = int(parts[0]), int(parts[1])
+        elif len(parts) == 1 and single:
+            w = h = int(parts[0])
         else:
-            w = h = int(text)
+            raise ValueError(text)
     except ValueError:
-        raise UsageProblem(f"{what} must look like WxH or N, got {text!r}") from None
-    if w <= 0 or h <= 0 or w > 65536 or h > 65536:
-        raise UsageProblem(f"{what} must be positive and at most 65536, got {text!r}")
+        raise UsageProblem(f"{what} must look like {form} (width x height, e.g. 32x16), "
+                           f"got {text!r}") from None
+    if not (minimum <= w <= maximum and minimum <= h <= maximum):
+        raise UsageProblem(f"{what} must be {minimum} to {maximum} on each side, got {text!r}")
+    return w, h
+
+
+def parse_env_res(text: str, what: str = "--env-res") -> tuple[int, int]:
+    """``WxH`` of a lat-long integration grid → (width, height), at least 2x2 and at
+    least as wide as tall: an old ``HxW`` spelling (``16x32``, from before sizes were
+    written width first everywhere) is a usage error that says the right one."""
+    from .errors import UsageProblem
+    w, h = parse_size(text, what, single=False, minimum=2, maximum=8192)
+    if w < h:
+        raise UsageProblem(f"{what} is WxH, width first (e.g. 32x16): a lat-long grid is at "
+                           f"least as wide as tall, got {text!r}; did you mean {h}x{w}?")
+    if h > 4096:
+        raise UsageProblem(f"{what} height must be at most 4096, got {text!r}")
     return w, h
 
 

@@ -57,6 +57,8 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     p = str(path)
     if p.startswith("builtin:"):
         return "builtin:" + hashlib.sha256(p.encode()).hexdigest()[:16]
+    if p == "-":
+        return hashlib.sha256(stdin_bytes()).hexdigest()
     h = hashlib.sha256()
     with open(p, "rb") as f:
         while True:
@@ -103,12 +105,18 @@ class _Run:
     def __init__(self):
         self.inputs: list[tuple[str, tuple]] = []
         self.outputs: list[tuple[str, tuple]] = []
+        self.stdin_role: str | None = None     # the one input given as '-'
+        self.stdin: bytes | None = None        # its bytes, read once
 
 
 # Outputs staged by the running command: all are committed together when it
 # succeeds, and all removed when it fails (see output_transaction).
 _PENDING: list[tuple[str, str, str]] | None = None
 _RUN: _Run | None = None
+# Temporary files that exist now and are not committed: the transaction removes them
+# when the command fails, even one whose writer never got to clean up (a signal in
+# contextlib's code between the writer's yield and its with-block).
+_LIVE_TEMPS: set[str] = set()
 
 
 _INPUT_IS_OUTPUT = "an output is also an input of this command; give the output another name"
@@ -128,6 +136,39 @@ def _same(a: tuple, b: tuple) -> bool:
     if a[2] or b[2]:  # a character device (/dev/null) may take any number of streams
         return False
     return a[0] == b[0] or (a[1] is not None and a[1] == b[1])
+
+
+def claim_stdin(role: str) -> None:
+    """Register that input ``role`` (e.g. ``"--lights"``) reads stdin (``-``): a second
+    input on stdin, or stdin left at a terminal, is a usage error before any work."""
+    from .errors import UsageProblem
+    if _RUN is not None:
+        if _RUN.stdin_role not in (None, role):
+            raise UsageProblem(f"only one input can come from stdin: {_RUN.stdin_role} and "
+                               f"{role} both say '-'")
+        _RUN.stdin_role = role
+    if _RUN is None or _RUN.stdin is None:
+        try:
+            interactive = sys.stdin is None or sys.stdin.isatty()
+        except (AttributeError, ValueError):
+            interactive = False
+        if interactive:
+            raise UsageProblem(f"{role} - reads JSON from stdin, but stdin is a terminal; "
+                               f"pipe the JSON in or give a file name")
+
+
+def stdin_bytes() -> bytes:
+    """The bytes of stdin, read once per command (the input given as ``-``); provenance
+    hashes the same bytes (file_sha256("-"))."""
+    if _RUN is not None and _RUN.stdin is not None:
+        return _RUN.stdin
+    stream = getattr(sys.stdin, "buffer", sys.stdin)
+    data = stream.read() if stream is not None else b""
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    if _RUN is not None:
+        _RUN.stdin = data
+    return data
 
 
 def declare_input(path: str) -> None:
@@ -241,21 +282,36 @@ def _probe_folder(folder: str, name: str, target: str) -> None:
             os.unlink(tmp)
 
 
+# Ctrl-C, SIGTERM and SIGHUP that arrived while a temporary file was being created
+# (see _stop_signals_held); the CLI's handlers ask defer_stop_signal first.
+_HOLDING = 0
+_HELD: list[int] = []
+
+
+def defer_stop_signal(signal_number: int) -> bool:
+    """True when a temporary file is being created and named: the signal is kept and
+    raised again right after, where the caller's clean-up knows the file."""
+    if _HOLDING:
+        _HELD.append(signal_number)
+        return True
+    return False
+
+
 @contextlib.contextmanager
 def _stop_signals_held() -> Iterator[None]:
-    """Hold Ctrl-C, SIGTERM and SIGHUP while a temporary file is created and its name
-    stored: one arriving in between would leave the file with no one to remove it.
-    A held signal is raised when the block ends, where the caller's clean-up sees
-    the name."""
-    held = {getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)}
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    """Hold Ctrl-C, SIGTERM and SIGHUP (as handled by the CLI) while a temporary file
+    is created and its name stored: one arriving in between would leave the file with
+    no one to remove it."""
+    global _HOLDING
+    _HOLDING += 1
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        _HOLDING -= 1
+        if not _HOLDING and _HELD:
+            signal_number = _HELD[0]
+            _HELD.clear()
+            signal.raise_signal(signal_number)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -311,9 +367,11 @@ def output_transaction() -> Iterator[None]:
     except BaseException:
         # Whatever was not committed (a committed file's temporary name is gone), also
         # when a signal came between taking the list and committing it.
-        for tmp, _, _ in (staged if staged is not None else _PENDING or []):
+        leftovers = {tmp for tmp, _, _ in (staged if staged is not None else _PENDING or [])}
+        for tmp in leftovers | _LIVE_TEMPS:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+        _LIVE_TEMPS.clear()
         _PENDING = None
         raise
     finally:
@@ -337,6 +395,7 @@ def _commit(tmp: str, final: str, mode: str) -> None:
     try:
         if mode == "replace":
             os.replace(tmp, final)
+            _LIVE_TEMPS.discard(tmp)
             return
         _copy_in_place(tmp, final)
     except OSError as exc:
@@ -345,6 +404,7 @@ def _commit(tmp: str, final: str, mode: str) -> None:
         if mode != "replace":
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+            _LIVE_TEMPS.discard(tmp)
 
 
 def _copy_in_place(tmp: str, target: str) -> None:
@@ -436,6 +496,7 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
             with _stop_signals_held():
                 fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), suffix=suffix,
                                            dir=folder)
+                _LIVE_TEMPS.add(tmp)
                 os.close(fd)
         except OSError as exc:
             raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}",
@@ -462,6 +523,7 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
         if tmp is not None:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+            _LIVE_TEMPS.discard(tmp)
         raise
 
 

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from relight_cli.cli import cli
 
-SMALL = ["--res", "32", "--env-res", "8x16"]
+SMALL = ["--res", "32", "--env-res", "16x8"]
 
 
 def invoke(*args):
@@ -92,7 +92,7 @@ def test_bake_reads_back_and_matches_engine(tmp_path, hand_file):
 
 def test_multi_env_pattern_frames_all(tmp_path, hand_file):
     pattern = str(tmp_path / "f_{env}_{frame:02d}.exr")
-    r = invoke("bake-features", hand_file, "builtin:sky", "builtin:uniform", "--frames", "all",
+    r = invoke("bake-features", hand_file, "builtin:sky", "builtin:uniform", "--all-frames",
                "-o", pattern, "-q", *SMALL)
     assert r.exit_code == 0, r.output
     from relight_cli.formats.features_exr import read_features
@@ -186,13 +186,21 @@ def test_nan_env(tmp_path):
 def test_usage_errors(tmp_path, hand_file):
     _bad(tmp_path, hand_file, "builtin:sky", "--frame", "5", code=2)
     _bad(tmp_path, hand_file, "builtin:sky", "builtin:studio", code=2)        # no {env}
-    _bad(tmp_path, hand_file, "builtin:sky", "--frames", "all", code=2)        # no {frame}
+    _bad(tmp_path, hand_file, "builtin:sky", "--all-frames", code=2)        # no {frame}
     _bad(tmp_path, hand_file, "builtin:sky", "--shininess", "16,x", code=2)
     _bad(tmp_path, hand_file, "builtin:sky", "--shininess", "16,0", code=2)
     _bad(tmp_path, hand_file, "builtin:sky", "--roughness", "0", code=2)
     _bad(tmp_path, hand_file, "builtin:sky", "--eye", "1,2", code=2)
     _bad(tmp_path, "builtin:middle", "builtin:sky", code=2)
     assert "--env-res" in _bad(tmp_path, hand_file, "builtin:sky", "--env-res", "banana", code=2)
+    # sizes are WxH (issue 16): the old HxW default 16x32 says what it should be
+    assert "did you mean 32x16" in _bad(tmp_path, hand_file, "builtin:sky", "--env-res", "16x32",
+                                        code=2)
+    # renamed (issue 16): --frames is a count elsewhere; every frame is --all-frames
+    assert "--frames was renamed --all-frames" in _bad(tmp_path, hand_file, "builtin:sky",
+                                                       "--frames", "all", code=2)
+    assert "name it .png" in _bad(tmp_path, hand_file, "builtin:sky", "--preview",
+                                  tmp_path / "sheet.jpg", code=2)
 
 
 def test_no_clobber(tmp_path):

@@ -59,3 +59,91 @@ def test_man_pages_are_current():
     import difflib
     diff = "".join(difflib.unified_diff(on_disk.get(stale[0], "").splitlines(True), pages[stale[0]].splitlines(True))) if stale else ""
     assert not stale and not extra, f"man/ is stale ({stale} {extra}); run `make man`\n{diff[:2000]}"
+
+
+# ----------------------------------------------------------------------------- progress
+
+
+class _Clock:
+    """A fake monotonic clock the test advances by hand."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_progress_off_a_terminal_is_a_plain_line_every_few_seconds():
+    import io
+
+    from relight_cli.progress import INTERVAL, progress, set_command
+    set_command("relight synth-capture")
+    clock, stream = _Clock(), io.StringIO()
+    bar = progress(total=40, desc="frames", stream=stream, clock=clock)
+    for k in range(40):
+        clock.now += 0.5                  # 2 frames a second: a line every 10 frames
+        bar.update(1)
+        if k == 11:
+            assert stream.getvalue() == "relight synth-capture: 10/40 frames (25%)\n"
+    bar.close()
+    bar.close()                           # closing twice writes one final line
+    lines = stream.getvalue().splitlines()
+    assert INTERVAL == 5.0 and lines == [f"relight synth-capture: {n}/40 frames ({n * 100 // 40}%)"
+                                         for n in (10, 20, 30, 40, 40)]
+
+
+def test_progress_iterable_postfix_unknown_total_and_errors():
+    import io
+
+    from relight_cli.progress import progress, set_command
+    set_command("relight train-teacher")
+    clock, stream = _Clock(), io.StringIO()
+    with progress(total=150, initial=40, unit="it", stream=stream, clock=clock) as bar:
+        clock.now += 6
+        bar.set_postfix({"loss": "0.01"}, refresh=False)
+        bar.update(1)
+    assert stream.getvalue().splitlines() == [
+        "relight train-teacher: 41/150 iterations (27%); loss=0.01"] * 2
+    stream = io.StringIO()
+    assert list(progress(iter("abc"), desc="items", stream=stream, clock=clock)) == list("abc")
+    assert stream.getvalue() == "relight train-teacher: 3 items\n"
+    stream = io.StringIO()                # an error: no final line after the error's line
+    with pytest.raises(ValueError):
+        with progress(total=3, desc="frames", stream=stream, clock=clock) as bar:
+            bar.update(1)
+            raise ValueError
+    assert stream.getvalue() == ""
+    quiet = progress(range(3), desc="x", quiet=True, stream=stream, clock=clock)
+    assert list(quiet) == [0, 1, 2] and stream.getvalue() == ""
+
+
+def test_progress_on_a_terminal_is_tqdm():
+    import io
+
+    from relight_cli.progress import progress
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+    bar = progress(total=3, desc="frames", stream=Terminal())
+    assert type(bar).__name__ == "tqdm"
+    bar.close()
+
+
+def test_progress_lines_of_a_real_command_name_it(run_cli, tmp_path):
+    """In a command (stderr is no terminal under CliRunner): the final line names it."""
+    r = run_cli("sh-probe", "builtin:sky", "--degree", "1", "-o", tmp_path / "p.json")
+    assert r.exit_code == 0 and "relight sh-probe:" not in r.stderr   # no loop in an env fit
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    from relight_cli.formats.gaussians_ply import write_gaussians
+    write_gaussians(str(tmp_path / "room.ply"), load_gaussians("builtin:room"))
+    r = run_cli("sh-probe", tmp_path / "room.ply", "--at", "0,0.5,0", "--face-size", "8",
+                "--degree", "1", "-o", tmp_path / "q.json")
+    assert r.exit_code == 0, r.output
+    assert "relight sh-probe: 6/6 cube faces (100%)" in r.stderr.splitlines()
+
+
+def test_group_options_quiet_and_debug_in_help(run_cli):
+    r = run_cli("--help")
+    assert "--quiet" in r.output and "--debug" in r.output and "WxH" in r.output

@@ -108,6 +108,28 @@ def test_installed_console_script(scene):
     assert "built in" in p.stderr
 
 
+def test_size_is_width_by_height(scene):
+    """--size WxH, width first as everywhere (issue 16): 8x4 is 8 texels wide, 4 tall."""
+    out = str(scene["dir"] / "wide.exr")
+    r = _run(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+              scene["lights"], "-o", out, "--size", "8x4", "--bins", "4", "-q"])
+    assert r.exit_code == 0, r.output
+    assert read_dgsm(out).transmittance.shape[-2:] == (4, 8)   # [L, K, H, W]
+    _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+            scene["lights"], "-o", out, "--size", "8x4x2"], 2, "WxH")
+
+
+def test_lights_from_stdin(scene):
+    out = scene["dir"] / "piped.exr"
+    text = Path(scene["lights"]).read_text()
+    r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", scene["floor"],
+                                 "--lights", "-", "-o", str(out), "--size", "8", "--bins", "4",
+                                 "-q"], input=text)
+    assert r.exit_code == 0, r.output
+    from relight_cli.formats.exr import read_exr
+    assert read_exr(str(out)).provenance()["inputs"]["lights"]["path"] == "-"
+
+
 def _fails(args, code, *words):
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == code, r.output
@@ -369,7 +391,7 @@ def test_shadow_protocol_from_the_command_line(tmp_path):
     for mode in ("dgsm", "mesh"):
         mattes[mode] = str(tmp_path / f"{mode}.exr")
         r = _run(["relight", sphere, "--shadow-matte", mode, "--dgsm", shadows, "--receivers",
-                  "builtin:room", "--render", str(tmp_path / "cam.json"), "--footprint", "centre",
+                  "builtin:room", "--camera", str(tmp_path / "cam.json"), "--footprint", "centre",
                   "-o", mattes[mode], "-q"])
         assert r.exit_code == 0, r.output
     from relight_cli.formats.exr import read_exr
@@ -387,13 +409,13 @@ def test_shadow_protocol_from_the_command_line(tmp_path):
     assert rec["metrics"]["sm_iou"] > 0.5 and rec["metrics"]["sae"] < 0.5
     # usage errors: a matte needs the DGSM (its lights) and a camera; the GT needs a mesh
     r = _run(["relight", sphere, "--shadow-matte", "dgsm", "--receivers", "builtin:room",
-              "--render", str(tmp_path / "cam.json"), "-o", str(tmp_path / "x.exr")])
+              "--camera", str(tmp_path / "cam.json"), "-o", str(tmp_path / "x.exr")])
     assert r.exit_code == 2 and "--dgsm" in r.output
     from relight_cli.formats.gaussians_ply import write_gaussians
     from relight_cli.gaussians.from_mesh import load_gaussians
     write_gaussians(str(tmp_path / "ball.ply"), load_gaussians("builtin:sphere"))
     r = _run(["relight", str(tmp_path / "ball.ply"), "--shadow-matte", "mesh", "--dgsm", shadows,
-              "--receivers", "builtin:room", "--render", str(tmp_path / "cam.json"),
+              "--receivers", "builtin:room", "--camera", str(tmp_path / "cam.json"),
               "-o", str(tmp_path / "x.exr")])
     assert r.exit_code == 1 and "mesh" in r.output
     r = _run(["metrics", "shadow", mattes["dgsm"], mattes["mesh"], "--roi-avatar", sphere])

@@ -88,10 +88,27 @@ def test_no_clobber(run_cli, tmp_path):
     (["--size", "abc"], "--size"),
     (["--to", "cube", "--size", "8x4"], "face size"),
     (["--size", "1x1"], "2x2"),
+    (["--size", "16"], "WxH (width first, e.g. 32x16)"),   # one syntax per kind (issue 16)
 ])
 def test_usage_errors_exit_2(run_cli, tmp_path, args, needle):
     r = run_cli("envmap", "builtin:sky", *args, "-o", tmp_path / "out.exr")
     _assert_clean_failure(r, 2, tmp_path, needle)
+
+
+@pytest.mark.parametrize("out, needle", [
+    ("out.png", "name it .exr"),           # it would write an EXR named .png
+    ("-", "stdout"),                       # an EXR on stdout
+])
+def test_output_name_must_say_exr(run_cli, tmp_path, out, needle):
+    r = run_cli("envmap", "builtin:sky", "--size", "8x4", "-o", out if out == "-" else tmp_path / out)
+    _assert_clean_failure(r, 2, tmp_path, needle)
+
+
+def test_info_to_stdout_with_dash(run_cli, tmp_path):
+    """--info -o - (refused before issue 16) prints the statistics, writes nothing else."""
+    r = run_cli("envmap", "builtin:sky", "--info", "-o", "-", "-q")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["layout"] == "latlong" and r.stderr == ""
 
 
 def test_unknown_builtin(run_cli, tmp_path):

@@ -17,6 +17,9 @@ Header and table
   untagged files of other tools read ...... test_untagged_files_of_other_tools_are_read
   a module and a spec per format; versions  test_table_versions_and_specs_match_the_code
   "written by" ............................ test_table_writers_write_the_format
+  camera imports (COLMAP, nerfstudio) ..... test_camera.py::test_colmap_round_trip_and_half_pixel_shift,
+                                            test_camera.py::test_nerfstudio_round_trip_and_projection
+  Leap Motion recordings .................. test_leap.py::test_mapping_units_axes_and_missing_joints
   "read by" ............................... test_table_read_by_names_the_readers_tested,
                                             test_table_readers_read_the_format,
                                             test_render_files_are_read_as_images
@@ -69,6 +72,28 @@ What an output may be (in test_outputs_and_bad_inputs.py unless written here)
   /proc, name too long .................... test_bad_output_target[*-proc], [*-name-too-long]
   read-only file system ................... test_read_only_file_system_is_one_line
   full disk ............................... see "read back on a full disk" above
+Names say what is written (test_outputs_and_bad_inputs.py unless written here)
+  extension matches the format, any case .. test_output_extension_must_say_what_is_written,
+                                            test_extensions_are_checked_in_any_case
+  devices and FIFOs exempt ................ test_character_device_is_written_in_place,
+                                            test_fifo_with_reader_gets_the_bytes
+Streams (test_outputs_and_bad_inputs.py unless written here)
+  `-` reads JSON from stdin, provenance `-` test_json_inputs_read_stdin
+  one input on stdin; not a terminal ...... test_only_one_input_reads_stdin,
+                                            test_stdin_left_at_a_terminal_is_a_usage_error
+  binary inputs never read stdin .......... test_binary_inputs_do_not_read_stdin
+  `-o -` JSON; binary outputs need a name . test_json_outputs_go_to_stdout,
+                                            test_binary_outputs_cannot_go_to_stdout
+  broken stdout pipe: 141, quiet .......... test_broken_stdout_pipe_exits_quietly,
+                                            test_broken_pipe_through_a_shell_pipeline
+Sizes
+  WxH, width first; N for N×N ............. test_dgsm_cli.py::test_size_is_width_by_height,
+                                            test_render_cli.py::test_default_camera_and_size
+  square-only sizes refuse WxH ............ test_synth_capture.py::test_size_is_square,
+                                            test_render_cli.py::test_bad_input[*not square*]
+  --env-res taller than wide refused ...... test_bake_features_cli.py::test_usage_errors
+  stored files keep [H, W] ................ test_bake_features_cli.py::
+                                            test_bake_reads_back_and_matches_engine
 Reading JSON
   NaN/Infinity, 1e400, depth, long ints ... test_every_json_reader_refuses_what_json_cannot_hold,
                                             test_json_nesting_limit_is_64_levels
@@ -84,8 +109,13 @@ Images
   PNG preview: Reinhard + sRGB ............ test_png_preview_is_reinhard_then_srgb
 Conventions
   world right-handed, +Y up, metres ....... test_world_is_right_handed_y_up_in_metres
-  cameras OpenCV, world→camera ............ test_foundation.py::
-                                            test_camera_look_at_projects_target_to_principal_point
+  cameras OpenCV, world→camera, pixel
+  centres at integer coordinates .......... test_foundation.py::
+                                            test_camera_look_at_projects_target_to_principal_point,
+                                            test_camera.py::test_look_at_projects_hand_computed_pixels
+  rendered EXRs carry worldToCamera/NDC ... test_camera.py::test_hand_render_header_is_its_camera,
+                                            test_camera.py::
+                                            test_splat_renderer_puts_a_gaussian_where_the_header_says
   UV v = 0 at the bottom row .............. test_uvraster.py::test_texel_centres_v_up,
                                             test_uvraster.py::test_bottom_triangle_lands_in_bottom_rows
   SH real, orthonormal, CS phase, index ... test_foundation.py::
@@ -132,20 +162,23 @@ def _written_runs(d: Path, w: Path) -> dict[str, list[list]]:
                     "--preview", w / "env.png"],
                    ["envmap", d / "sky.exr", "--half", "-o", w / "half.exr"]],
         "sh-probe": [["sh-probe", d / "sky.exr", "--degree", "1", "-o", w / "probe.json"]],
-        "fit-geometry": [["fit-geometry", "--pose", "fist", "-o", w / "hand.npz"]],
+        "fit-geometry": [["fit-geometry", "--pose", "fist", "-o", w / "hand.npz", "--report",
+                          w / "fit.json"]],
+        "camera": [["camera", "--eye", "0,0.1,0.5", "--size", "8x8", "-o", w / "camera.json"]],
         "bake-features": [["bake-features", d / "hand.npz", d / "sky.exr", "--res", "8",
-                           "--env-res", "4x8", "-o", w / "feats.exr", "--per-vertex",
+                           "--env-res", "8x4", "-o", w / "feats.exr", "--per-vertex",
                            w / "feats.npz"]],
         "relight": [["relight", d / "hand.npz", d / "sky.exr", "--size", "8x8", "--tex-res", "8",
-                     "--aa", "1", "--env-res", "4x8", "--aov", "normal", "-o", w / "render.exr"],
+                     "--aa", "1", "--env-res", "8x4", "--aov", "normal", "-o", w / "render.exr"],
                     ["relight", d / "ball.ply", "--probe", d / "probe.json", "-o",
                      w / "relit.ply"]],
         "dgsm-build": [["dgsm-build", d / "ball.ply", "--receivers", d / "room.ply", "--lights",
                         d / "lights.json", "--size", "4", "--bins", "2", "-o", w / "shadows.exr",
                         "--lights-out", w / "lights.json", "--occluders-out", w / "occ.ply"]],
-        "metrics": [["metrics", "image", d / "img.exr", d / "img2.exr", "-o", w / "m.json"]],
+        "metrics": [["metrics", "image", d / "img.exr", d / "img2.exr", "-o", w / "m.json"],
+                    ["metrics", "compare", d / "m.json", d / "m.json", "-o", w / "cmp.json"]],
         "synth-capture": [["synth-capture", d / "hand.npz", "-o", w / "cap", "--cameras", "1",
-                           "--lights", "3", "--group", "1", "--frames", "3", "--res", "8",
+                           "--leds", "3", "--group", "1", "--frames", "3", "--size", "8",
                            "--tex-res", "8", "--aa", "1", "--eval-poses", "1", "--eval-cameras",
                            "1", "--eval-envs", "builtin:sky"]],
         "train-teacher": [["train-teacher", d / "cap", "--config", d / "small.json", "--iters",
@@ -245,7 +278,7 @@ def test_table_versions_and_specs_match_the_code():
     assert sorted(declared) == sorted(rows)
     for fmt, row in rows.items():
         assert int(row["version"]) == declared[fmt], fmt
-        spec = re.fullmatch(r"\[([\w.]+)\]\(([\w.]+)\)", row["spec"])
+        spec = re.fullmatch(r"\[([\w.]+)\]\(([\w.]+)(#[\w-]+)?\)", row["spec"])
         assert spec and (README.parent / spec.group(2)).is_file(), (fmt, row["spec"])
 
 
@@ -296,14 +329,6 @@ def _newer_images(src: Path, dst: Path) -> Path:
     return dst
 
 
-def _bad_camera(src, dst: Path) -> Path:
-    """Cameras carry no version tag: a camera whose R is no rotation shows it was read."""
-    dst.write_text(json.dumps({"K": [[8, 0, 4], [0, 8, 4], [0, 0, 1]],
-                               "R": [[2, 0, 0], [0, 2, 0], [0, 0, 2]], "t": [0, 0, 1],
-                               "width": 8, "height": 8}))
-    return dst
-
-
 def _keypoints(d: Path, dst: Path) -> Path:
     from relight_cli.hand.model import builtin_hand
     joints = builtin_hand("right", pose=None).rest_joints
@@ -338,16 +363,18 @@ READERS = {
             "--eval-cameras", "1", "--eval-envs", b],
         "distill --envs": lambda d, b, o: ["distill", d / "teacher.pt", d / "cap", "--envs", b,
                                            "-o", o / "x.pt"]}),
-    "relight/camera": (None, "camera.json", {
+    "relight/camera": (lambda d, w: w / "camera.json", "camera.json", {
         "bake-features --camera": lambda d, b, o: [
             "bake-features", d / "hand.npz", d / "sky.exr", "--camera", b, "-o", o / "x.exr"],
         "relight --camera": lambda d, b, o: ["relight", d / "hand.npz", d / "sky.exr",
                                              "--camera", b, "-o", o / "x.exr"],
-        "relight --render": lambda d, b, o: ["relight", d / "ball.ply", "--probe",
-                                             d / "probe.json", "--render", b, "-o", o / "x.exr"],
+        "relight --camera (Gaussians)": lambda d, b, o: [
+            "relight", d / "ball.ply", "--probe", d / "probe.json", "--camera", b,
+            "-o", o / "x.exr"],
         "metrics shadow --camera": lambda d, b, o: [
             "metrics", "shadow", d / "img.exr", d / "img2.exr", "--roi-avatar", d / "ball.ply",
-            "--camera", b, "-o", o / "x.json"]}),
+            "--camera", b, "-o", o / "x.json"],
+        "camera --from": lambda d, b, o: ["camera", "--from", b, "-o", o / "x.json"]}),
     "relight/hand": (lambda d, w: d / "hand.npz", "hand.npz", {
         "bake-features": lambda d, b, o: ["bake-features", b, d / "sky.exr", "-o", o / "x.exr"],
         "relight": lambda d, b, o: ["relight", b, d / "sky.exr", "-o", o / "x.exr"],
@@ -363,6 +390,7 @@ READERS = {
     "relight/keypoints": (None, "kp.json", {
         "fit-geometry --keypoints": lambda d, b, o: ["fit-geometry", "--keypoints", b,
                                                      "-o", o / "x.npz"]}),
+    "relight/fit-report": (None, "fit.json", {}),
     "relight/features": (lambda d, w: w / "feats.exr", "feats.exr", {}),
     "relight/gaussians": (lambda d, w: d / "ball.ply", "ball.ply", {
         "dgsm-build": lambda d, b, o: ["dgsm-build", b, "--receivers", d / "room.ply",
@@ -386,7 +414,9 @@ READERS = {
     "relight/capture": (lambda d, w: d / "cap", "cap", {
         "train-teacher": lambda d, b, o: ["train-teacher", b, *_train(d), "-o", o / "x.pt"],
         "distill": lambda d, b, o: ["distill", d / "teacher.pt", b, "--envs", "builtin:sky",
-                                    "-o", o / "x.pt"]}),
+                                    "-o", o / "x.pt"],
+        "camera --from": lambda d, b, o: ["camera", "--from", b / "capture.json",
+                                          "-o", o / "x.json"]}),
     "relight/capture-image": (lambda d, w: w / "cap", "cap", {
         "train-teacher": lambda d, b, o: ["train-teacher", b, *_train(d), "-o", o / "x.pt"],
         "distill": lambda d, b, o: ["distill", d / "teacher.pt", b, "--envs", "builtin:sky",
@@ -394,6 +424,7 @@ READERS = {
     "relight/vertex-features": (lambda d, w: w / "feats.npz", "feats.npz", {}),
     "relight/metrics": (lambda d, w: d / "m.json", "m.json", {
         "metrics compare": lambda d, b, o: ["metrics", "compare", b, d / "m.json"]}),
+    "relight/metrics-comparison": (None, "cmp.json", {}),
     "relight/checkpoint": (lambda d, w: d / "teacher.pt", "teacher.pt", {
         "relight --checkpoint": lambda d, b, o: [
             "relight", d / "hand.npz", d / "sky.exr", "--model", "teacher", "--checkpoint", b,
@@ -409,8 +440,6 @@ READERS = {
 
 def _bad_file(fmt: str, data: Path, written_folder: Path, folder: Path) -> Path:
     make, name, _ = READERS[fmt]
-    if fmt == "relight/camera":
-        return _bad_camera(data, folder / name)
     if fmt == "relight/keypoints":
         return _keypoints(data, folder / name)
     if fmt == "relight/capture-image":
@@ -422,7 +451,7 @@ def test_table_read_by_names_the_readers_tested():
     """"read by" names exactly the commands test_table_readers_read_the_format runs."""
     for fmt, row in _table().items():
         if fmt == "relight/render":
-            tested = {"metrics"}   # test_render_files_are_read_as_images
+            tested = {"metrics", "camera"}   # test_render_files_are_read_as_images
         else:
             tested = {label.split()[0] for label in READERS[fmt][2]}
         assert _commands_in(row["read by"]) == tested, fmt
@@ -430,22 +459,26 @@ def test_table_read_by_names_the_readers_tested():
 
 @pytest.mark.parametrize("fmt,reader", [(f, r) for f in READERS for r in READERS[f][2]])
 def test_table_readers_read_the_format(data, written, tmp_path, fmt, reader):
-    """Each reader the table names refuses a file of a newer major version (cameras,
-    which carry no version: a broken one), one line naming the file, exit 1."""
+    """Each reader the table names refuses a file of a newer major version, one line
+    naming the file, exit 1."""
     bad = _bad_file(fmt, data, written[0], tmp_path)
     out = tmp_path / "out"
     out.mkdir()
     r = _run_inproc_fail([*READERS[fmt][2][reader](data, bad, out), "-q"], 1)
-    assert "version 99" in r.stderr or "rotation" in r.stderr, r.stderr
+    assert "version 99" in r.stderr, r.stderr
     assert os.path.basename(bad) in r.stderr, r.stderr
     assert os.listdir(out) == []
 
 
-def test_render_files_are_read_as_images(written):
-    """relight/render has no reader of its own: `metrics image` reads it as any image."""
+def test_render_files_are_read_as_images(written, tmp_path):
+    """relight/render has no reader of its own: `metrics image` reads it as any image,
+    `camera --from` its OpenEXR camera matrices."""
     folder, _ = written
     r = _inproc("metrics", "image", folder / "render.exr", folder / "render.exr", "-o", "-", "-q")
     assert r.exit_code == 0 and json.loads(r.stdout)["metrics"]["mse"] == 0.0, r.output
+    r = _inproc("camera", "--from", folder / "render.exr", "-o", tmp_path / "cam.json", "-q")
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "cam.json").read_text())["width"] == 8
 
 
 def test_python_readers_refuse_a_newer_version(written, tmp_path):
@@ -697,14 +730,21 @@ _WORK = [("relight_cli.envmap", "resample"), ("relight_cli.gaussians.probe", "en
          ("relight_cli.metrics.lighting", "lighting_metrics")]
 
 
+def _link(link: Path, target: Path) -> Path:
+    """``link`` → ``target``: an output name of the right extension that is an input."""
+    link.symlink_to(target)
+    return link
+
+
 def _refusal_cases():
     from test_outputs_and_bad_inputs import COMMANDS, DUPLICATES, FIRST_INPUT
-    cases = {f"input:{n}": (lambda d, t, n=n: COMMANDS[n][0](d, d / FIRST_INPUT[n]), "also an input")
-             for n in sorted(COMMANDS) if FIRST_INPUT[n]}
+    cases = {f"input:{n}": (lambda d, t, n=n: COMMANDS[n][0](
+        d, _link(t / f"out{COMMANDS[n][1]}", d / FIRST_INPUT[n])), "also an input")
+        for n in sorted(COMMANDS) if FIRST_INPUT[n]}
     cases.update({f"two:{n}": (DUPLICATES[n], "two outputs") for n in sorted(DUPLICATES)})
-    cases["input:metrics-image-folder"] = (
-        lambda d, t: ["metrics", "image", t / "pred", t / "gt", "-o", t / "pred" / "z.exr"],
-        "also an input")
+    cases["input:metrics-image-folder"] = (   # the last pair's prediction is the output
+        lambda d, t: ["metrics", "image", t / "pred", t / "gt",
+                      "-o", _link(t / "out.json", t / "pred" / "z.exr")], "also an input")
     return cases
 
 
@@ -722,8 +762,9 @@ def test_output_that_is_an_input_is_refused_before_any_work(data, tmp_path, monk
         for name in ("a.exr", "z.exr"):
             shutil.copy(data / "img.exr", tmp_path / folder / name)
     build, word = _refusal_cases()[case]
+    args = build(data, tmp_path)
     before = _snapshot(data, tmp_path)
-    _run_inproc_fail([*build(data, tmp_path), "-q"], 2, word)
+    _run_inproc_fail([*args, "-q"], 2, word)
     assert _snapshot(data, tmp_path) == before
 
 
@@ -933,3 +974,19 @@ def test_the_promise_map_names_existing_tests():
     defined = set(re.findall(r"^def (test_\w+)\(", "".join(
         p.read_text() for p in (ROOT / "tests").glob("test_*.py")), re.M))
     assert len(named) > 40 and named <= defined, sorted(named - defined)
+
+
+def test_stdin_left_at_a_terminal_is_a_usage_error(data, tmp_path):
+    """`--probe -` with stdin on a terminal (a pty here): exit 2 before any work, rather
+    than waiting for someone to type JSON."""
+    import pty
+    controller, terminal = pty.openpty()
+    try:
+        p = subprocess.run([relight_executable(), "relight", str(data / "ball.ply"), "--probe",
+                            "-", "-o", str(tmp_path / "x.ply")], stdin=terminal,
+                           capture_output=True, text=True, timeout=60)
+    finally:
+        os.close(terminal)
+        os.close(controller)
+    _assert_one_error(p.returncode, p.stderr, 2, "terminal")
+    assert os.listdir(tmp_path) == []

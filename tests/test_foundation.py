@@ -68,11 +68,11 @@ def test_camera_look_at_projects_target_to_principal_point():
     cam = Camera.look_at([0.3, 0.2, 1.0], [0, 0, 0], width=200, height=100)
     x = cam.R @ np.zeros(3) + cam.t
     u, v, w = cam.K @ x
-    assert w > 0 and abs(u / w - 100) < 1e-9 and abs(v / w - 50) < 1e-9
+    assert w > 0 and abs(u / w - 99.5) < 1e-9 and abs(v / w - 49.5) < 1e-9   # image centre
     np.testing.assert_allclose(cam.center, [0.3, 0.2, 1.0], atol=1e-12)
     # +Y (up) in the world appears above the target (smaller v: y points down).
     u2, v2, w2 = cam.K @ (cam.R @ np.array([0, 0.1, 0]) + cam.t)
-    assert v2 / w2 < 50
+    assert v2 / w2 < 49.5
 
 
 def test_camera_json_round_trip_and_errors(tmp_path):

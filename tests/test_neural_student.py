@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 
 from relight_cli.errors import DataError  # noqa: E402
 
-CAPTURE_ARGS = ["--cameras", "2", "--lights", "8", "--group", "2", "--frames", "6", "--res",
+CAPTURE_ARGS = ["--cameras", "2", "--leds", "8", "--group", "2", "--frames", "6", "--size",
                 "24", "--tex-res", "32", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
                 "--eval-envs", "builtin:sky", "-q"]
 TEACHER = {"tex_res": 16, "encoder": [4, 4, 4], "decoder": [8, 8, 8], "pose_channels": [4, 4],

@@ -21,7 +21,7 @@ from relight_cli.neural import geometry as G  # noqa: E402
 from relight_cli.neural.config import PAPER_UNIT, TeacherConfig, resolve_config  # noqa: E402
 
 # A capture small enough for seconds of training: 3 cameras, 12 LEDs, 8 frames (6 grouped).
-CAPTURE_ARGS = ["--cameras", "3", "--lights", "12", "--group", "3", "--frames", "8", "--res",
+CAPTURE_ARGS = ["--cameras", "3", "--leds", "12", "--group", "3", "--frames", "8", "--size",
                 "32", "--tex-res", "64", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
                 "--eval-envs", "builtin:sky", "-q"]
 # The smallest teacher: 16² texture, 4-wide U-Net (resume/DDP/CLI tests need seconds only).

@@ -65,14 +65,17 @@ def data():
                     gaussians_from_mesh(room.vertices - [0, 0.2, 0], room.faces))
     (folder / "lights.json").write_text(json.dumps(
         {"format": "relight/lights", "version": 1, "lights": [{"position": [0.0, 1.0, 0.0]}]}))
+    from relight_cli.formats.camera import Camera, write_cameras
+    write_cameras(str(folder / "cam.json"), [Camera.look_at([0, 0.1, 0.6], [0, 0.1, 0], width=8,
+                                                            height=8)])
     r = run("metrics", "image", folder / "img.exr", folder / "img2.exr", "-o", folder / "m.json")
     assert r.exit_code == 0, r.output
     # a tiny capture and teacher (train-teacher, relight --model teacher)
     (folder / "small.json").write_text(json.dumps(
         {"tex_res": 8, "encoder": [2, 2], "decoder": [2, 2], "pose_channels": [2, 2],
          "val_samples": 1, "aa": 1}))
-    for args in (["synth-capture", "-o", folder / "cap", "--cameras", "1", "--lights", "3",
-                  "--group", "1", "--frames", "3", "--res", "8", "--tex-res", "8", "--aa", "1",
+    for args in (["synth-capture", "-o", folder / "cap", "--cameras", "1", "--leds", "3",
+                  "--group", "1", "--frames", "3", "--size", "8", "--tex-res", "8", "--aa", "1",
                   "--eval-poses", "0", "--eval-cameras", "1"],
                  ["train-teacher", folder / "cap", "--config", folder / "small.json",
                   "--iters", "1", "-o", folder / "teacher.pt"]):
@@ -98,9 +101,9 @@ COMMANDS = {
     "sh-probe": (lambda d, o: ["sh-probe", d / "sky.exr", "--degree", "1", "-o", o], ".json"),
     "fit-geometry": (lambda d, o: ["fit-geometry", "--pose", "fist", "-o", o], ".npz"),
     "bake-features": (lambda d, o: ["bake-features", d / "hand.npz", d / "sky.exr", "--res", "8",
-                                    "--env-res", "4x8", "-o", o], ".exr"),
+                                    "--env-res", "8x4", "-o", o], ".exr"),
     "relight-hand": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--size", "8x8",
-                                   "--tex-res", "8", "--aa", "1", "--env-res", "4x8", "-o", o],
+                                   "--tex-res", "8", "--aa", "1", "--env-res", "8x4", "-o", o],
                      ".exr"),
     "relight-gaussians": (lambda d, o: ["relight", d / "ball.ply", "--probe", d / "probe.json",
                                         "-o", o], ".ply"),
@@ -116,14 +119,15 @@ COMMANDS = {
                                     "--iters", "1", "-o", o], ".pt"),
     "relight-teacher": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
-                                      "8x8", "--env-res", "4x8", "-o", o], ".exr"),
+                                      "8x8", "--env-res", "8x4", "-o", o], ".exr"),
+    "camera": (lambda d, o: ["camera", "--eye", "0,0.1,0.5", "--size", "8x8", "-o", o], ".json"),
 }
 # An input of each command that the "output is an input" case writes over.
 FIRST_INPUT = {"envmap": "sky.exr", "sh-probe": "sky.exr", "fit-geometry": None,
                "bake-features": "hand.npz", "relight-hand": "sky.exr",
                "relight-gaussians": "ball.ply", "dgsm-build": "ball.ply",
                "metrics-image": "img.exr", "metrics-lighting": "room.ply",
-               "train-teacher": "small.json", "relight-teacher": "sky.exr"}
+               "train-teacher": "small.json", "relight-teacher": "sky.exr", "camera": None}
 
 
 def _snapshot(*folders) -> dict:
@@ -152,8 +156,8 @@ def _assert_one_error(code, stderr, expected_code, *words):
     assert code == expected_code, stderr
     assert len(lines) == 1, stderr
     assert "traceback" not in stderr.lower() and "internal error" not in stderr, stderr
-    for w in words:
-        assert w in lines[0], lines[0]
+    for w in words:   # a tuple: any one of these
+        assert any(a in lines[0] for a in ((w,) if isinstance(w, str) else w)), lines[0]
 
 
 def _run_inproc_fail(args, expected_code, *words):
@@ -187,8 +191,10 @@ BAD_OUTPUTS = ["input", "directory", "missing-folder", "empty-name", "proc", "na
                                        if not (k == "input" and FIRST_INPUT[n] is None)])
 def test_bad_output_target(data, tmp_path, name, kind):
     build, ext = COMMANDS[name]
-    if kind == "input":
-        out, code, word = data / FIRST_INPUT[name], 2, "also an input"
+    if kind == "input":   # an input of another kind may be refused by its extension first
+        same_kind = FIRST_INPUT[name].endswith(ext)
+        out, code = data / FIRST_INPUT[name], 2
+        word = "also an input" if same_kind else ("also an input", "name it")
     elif kind == "directory":
         (tmp_path / ("d" + ext)).mkdir()
         out, code, word = tmp_path / ("d" + ext), 2, "directory"
@@ -296,8 +302,10 @@ def test_fifo_with_reader_gets_the_bytes(data, tmp_path):
 DUPLICATES = {
     "envmap": lambda d, t: ["envmap", d / "sky.exr", "-o", t / "x.exr", "--preview",
                             t / "x.exr"],
-    "envmap-alias": lambda d, t: ["envmap", d / "sky.exr", "-o", t / "x.png", "--preview",
-                                  f"{t}/./x.png"],
+    "dgsm-build-alias": lambda d, t: ["dgsm-build", d / "ball.ply", "--receivers", d / "room.ply",
+                                      "--lights", d / "lights.json", "-o", t / "s.exr",
+                                      "--occluders-out", t / "a.ply", "--receivers-out",
+                                      f"{t}/./a.ply"],
     "fit-geometry": lambda d, t: ["fit-geometry", "-o", t / "h.npz", "--report", t / "h.npz"],
     "relight-hand": lambda d, t: ["relight", d / "hand.npz", d / "sky.exr", "-o", t / "r.exr",
                                   "--preview", t / "r.exr"],
@@ -474,9 +482,9 @@ SLOTS = {
     "envmap:IN": lambda d, b, o: ["envmap", b, "-o", o],
     "sh-probe:IN": lambda d, b, o: ["sh-probe", b, "-o", o],
     "bake-features:ENV": lambda d, b, o: ["bake-features", d / "hand.npz", b, "--res", "8",
-                                          "--env-res", "4x8", "-o", o],
+                                          "--env-res", "8x4", "-o", o],
     "bake-features:HAND": lambda d, b, o: ["bake-features", b, d / "sky.exr", "--res", "8",
-                                           "--env-res", "4x8", "-o", o],
+                                           "--env-res", "8x4", "-o", o],
     "relight-hand:ENV": lambda d, b, o: ["relight", d / "hand.npz", b, "-o", o],
     "relight-hand:HAND": lambda d, b, o: ["relight", b, d / "sky.exr", "-o", o],
     "relight-hand:--camera": lambda d, b, o: ["relight", d / "hand.npz", d / "sky.exr",
@@ -487,6 +495,7 @@ SLOTS = {
     "relight-gaussians:--probe": lambda d, b, o: ["relight", d / "ball.ply", "--probe", b,
                                                   "-o", o],
     "metrics-compare:NEW": lambda d, b, o: ["metrics", "compare", b, d / "m.json"],
+    "camera:--from": lambda d, b, o: ["camera", "--from", b, "-o", o],
 }
 # which bad inputs each slot gets (the generic ones go everywhere)
 GENERIC = ["missing", "directory", "empty", "garbage"]
@@ -500,14 +509,15 @@ SPECIFIC = {
     "dgsm-build:--lights": ["json-deep", "json-long-int", "json-nan"],
     "relight-gaussians:--probe": ["json-deep", "json-long-int"],
     "metrics-compare:NEW": ["json-deep", "json-long-int"],
+    "camera:--from": ["camera-bool-width", "json-deep", "json-long-int", "json-nan"],
 }
 SLOT_EXT = {"bake-features:HAND": ".npz", "relight-hand:HAND": ".npz",
             "fit-geometry:--template": ".npz", "relight-hand:--camera": ".json",
             "dgsm-build:--lights": ".json", "relight-gaussians:--probe": ".json",
-            "metrics-compare:NEW": ".json"}
+            "metrics-compare:NEW": ".json", "camera:--from": ".json"}
 OUT_EXT = {"envmap": ".exr", "sh-probe": ".json", "bake-features": ".exr", "relight-hand": ".exr",
            "fit-geometry": ".npz", "dgsm-build": ".exr", "relight-gaussians": ".ply",
-           "metrics-compare": ".json"}
+           "metrics-compare": ".json", "camera": ".json"}
 CASES = [(slot, kind) for slot in sorted(SLOTS) for kind in GENERIC + SPECIFIC.get(slot, [])]
 
 
@@ -553,13 +563,16 @@ BAD_OPTIONS = {
                                                    d / "img2.exr", "--threshold", "nan", "-o", o],
     "metrics compare --rtol bogus=0.1": lambda d, o: ["metrics", "compare", d / "m.json",
                                                       d / "m.json", "--rtol", "bogus=0.1"],
+    "camera --fov 0": lambda d, o: ["camera", "--eye", "0,0,1", "--fov", "0", "-o", o],
+    "camera --eye inf,0,0": lambda d, o: ["camera", "--eye", "inf,0,0", "-o", o],
+    "camera --orbit 0": lambda d, o: ["camera", "--orbit", "0", "--radius", "1", "-o", o],
 }
 
 
 @pytest.mark.parametrize("case", sorted(BAD_OPTIONS))
 def test_impossible_option_is_a_usage_error(data, tmp_path, case):
     out = tmp_path / ("out.ply" if "shadow-strength" in case else "out.exr")
-    if case.startswith(("sh-probe", "metrics")):
+    if case.startswith(("sh-probe", "metrics", "camera")):
         out = tmp_path / "out.json"
     if case.startswith("fit-geometry"):
         out = tmp_path / "out.npz"
@@ -592,10 +605,11 @@ def test_library_warnings_do_not_reach_stderr(data, tmp_path, monkeypatch):
         raise DataError("damaged", path)
     monkeypatch.setattr(formats_envmap, "read_envmap", noisy)
     _run_inproc_fail(["envmap", data / "sky.exr", "-o", tmp_path / "x.exr"], 1, "damaged")
-    with pytest.warns((UserWarning, RuntimeWarning)) as shown:   # --debug lets them through
-        CliRunner().invoke(cli, ["--debug", "envmap", str(data / "sky.exr"), "-o",
-                                 str(tmp_path / "x.exr")])
-    assert any("complaint" in str(w.message) for w in shown)
+    for before, after in ((["--debug"], []), ([], ["--debug"])):   # --debug lets them through
+        with pytest.warns((UserWarning, RuntimeWarning)) as shown:
+            CliRunner().invoke(cli, before + ["envmap", str(data / "sky.exr"), "-o",
+                                              str(tmp_path / "x.exr")] + after)
+        assert any("complaint" in str(w.message) for w in shown)
 
 
 def test_fit_geometry_refuses_to_write_over_its_keypoints(data, tmp_path):
@@ -603,7 +617,8 @@ def test_fit_geometry_refuses_to_write_over_its_keypoints(data, tmp_path):
     kp = tmp_path / "kp.npy"
     np.save(kp, builtin_hand("right", pose=None).rest_joints[None])
     before = _snapshot(tmp_path)
-    _run_inproc_fail(["fit-geometry", "--keypoints", kp, "-o", kp], 2, "also an input")
+    _run_inproc_fail(["fit-geometry", "--keypoints", kp, "-o", kp], 2,
+                     ("also an input", "name it .npz"))
     assert _snapshot(tmp_path) == before
 
 
@@ -691,10 +706,10 @@ IDENTITY = {
     "fit-geometry": lambda d, t: (["fit-geometry", "--pose", "random", "--frames", "2", "--seed",
                                    "3", "-o", t / "h.npz"], ["h.npz"]),
     "bake-features": lambda d, t: (["bake-features", d / "hand.npz", d / "sky.exr", "--res", "8",
-                                    "--env-res", "4x8", "-o", t / "f.exr", "--per-vertex",
+                                    "--env-res", "8x4", "-o", t / "f.exr", "--per-vertex",
                                     t / "f.npz"], ["f.exr", "f.npz"]),
     "relight-hand": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--size", "8x8",
-                                   "--tex-res", "8", "--aa", "1", "--env-res", "4x8",
+                                   "--tex-res", "8", "--aa", "1", "--env-res", "8x4",
                                    "-o", t / "r.exr"], ["r.exr"]),
     "relight-gaussians": lambda d, t: (["relight", d / "ball.ply", "--probe", d / "probe.json",
                                         "-o", t / "g.ply"], ["g.ply"]),
@@ -711,17 +726,19 @@ IDENTITY = {
                                     t / "v.json"], ["t.pt", "v.json"]),
     "relight-teacher": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
-                                      "8x8", "--env-res", "4x8", "-o", t / "r.exr"], ["r.exr"]),
+                                      "8x8", "--env-res", "8x4", "-o", t / "r.exr"], ["r.exr"]),
+    "camera": lambda d, t: (["camera", "--orbit", "3", "--radius", "0.7", "--elevation", "20",
+                             "-o", t / "c.json"], ["c.json"]),
     "synth-capture": lambda d, t: (["synth-capture", d / "hand.npz", "-o", t / "cap",
-                                    "--cameras", "1", "--lights", "2", "--group", "1",
-                                    "--frames", "1", "--res", "8", "--tex-res", "8", "--aa", "1",
+                                    "--cameras", "1", "--leds", "2", "--group", "1",
+                                    "--frames", "1", "--size", "8", "--tex-res", "8", "--aa", "1",
                                     "--eval-poses", "0", "--eval-cameras", "1"],
                                    ["cap/capture.json", "cap/hand.npz",
                                     "cap/images/000000/cam000.exr"]),
 }
 
 
-NO_CLOBBER = {"synth-capture"}  # commands without --no-clobber
+NO_CLOBBER: set[str] = set()  # commands without --no-clobber (none since issue 16)
 
 
 def _identity_run(data, folder, name, second):
@@ -757,3 +774,340 @@ def test_identical_inputs_give_identical_bytes(data, first_runs, name):
     assert runs[name].keys() == second.keys()
     for f in second:
         assert runs[name][f] == second[f], f"{f} differs between identical runs"
+
+
+# ----------------------------------------------------------------------------- issue 16:
+# one syntax per kind (presentation flags in either place, extensions), and streams
+
+
+def _mattes(folder: Path) -> tuple[Path, Path]:
+    """Two 16×8 shadow mattes in [0, 1] (metrics shadow's inputs)."""
+    a, b = folder / "matte_a.exr", folder / "matte_b.exr"
+    ramp = np.tile(np.linspace(0, 1, 16, dtype=np.float32), (8, 1))
+    _exr(a, {"Y": ramp}, {})
+    _exr(b, {"Y": ramp ** 2}, {})
+    return a, b
+
+
+# Every command (and metrics subcommand) once more, for the presentation flags.
+EVERY_COMMAND = {
+    **{name: (lambda build, ext: lambda d, t: build(d, t / ("out" + ext)))(*COMMANDS[name])
+       for name in COMMANDS},
+    "synth-capture": lambda d, t: ["synth-capture", d / "hand.npz", "-o", t / "cap",
+                                   "--cameras", "1", "--leds", "2", "--group", "1", "--frames",
+                                   "1", "--size", "8", "--tex-res", "8", "--aa", "1",
+                                   "--eval-poses", "0", "--eval-cameras", "1"],
+    "metrics-compare": lambda d, t: ["metrics", "compare", d / "m.json", d / "m.json",
+                                     "-o", t / "c.json"],
+    "metrics-shadow": lambda d, t: ["metrics", "shadow", *_mattes(t.parent), "-o", t / "s.json"],
+    "distill": lambda d, t: ["distill", d / "teacher.pt", d / "cap", "--envs", "builtin:sky",
+                             "--envs", "builtin:uniform", "--eval-envs", "builtin:studio",
+                             "--config", d / "student.json", "-o", t / "s.pt"],
+}
+
+
+@pytest.fixture(scope="module")
+def student_config(data):
+    path = data / "student.json"
+    path.write_text(json.dumps({"tex_res": 8, "decoder": [2, 2, 2, 2, 2, 2, 2],
+                                "pose_channels": [2, 2], "dram_code": 4, "val_samples": 1,
+                                "env_res": [2, 4], "iters": 1}))
+    return path
+
+
+@pytest.mark.parametrize("name", sorted(EVERY_COMMAND))
+def test_quiet_before_or_after_the_subcommand(data, student_config, tmp_path, name):
+    """`relight -q CMD ...` and `relight CMD ... -q` are the same: nothing on stderr."""
+    outputs = []
+    for where in ("before", "after"):
+        folder = tmp_path / where
+        folder.mkdir()
+        args = [str(a) for a in EVERY_COMMAND[name](data, folder)]
+        r = CliRunner().invoke(cli, ["-q", *args] if where == "before" else [*args, "-q"])
+        assert r.exit_code == 0, r.output
+        assert r.stderr == "", (where, r.stderr)
+        outputs.append(sorted(p.name for p in folder.iterdir()))
+    assert outputs[0] == outputs[1]
+
+
+@pytest.mark.parametrize("name", sorted(EVERY_COMMAND))
+def test_debug_before_or_after_the_subcommand(data, tmp_path, name):
+    """--debug in either place shows the traceback of a refusal, then its one line."""
+    missing = tmp_path / "nope"
+    for where in ("before", "after"):
+        args = [str(a) for a in EVERY_COMMAND[name](data, missing)]
+        r = CliRunner().invoke(cli, ["--debug", *args] if where == "before" else [*args, "--debug"])
+        assert r.exit_code == 2, (where, r.output)
+        assert "Traceback" in r.stderr and "does not exist" in r.stderr.splitlines()[-1], r.stderr
+        plain = CliRunner().invoke(cli, args)
+        assert "Traceback" not in plain.stderr and len(plain.stderr.splitlines()) == 1
+
+
+# An output named with another kind's extension: a usage error naming the right one, before
+# any work.  (name -> argv given data, a wrong output name; the extension it wants)
+WRONG_EXTENSION = {
+    "envmap -o sky.png": (lambda d, t: ["envmap", d / "sky.exr", "-o", t / "sky.png"], ".exr"),
+    "envmap --preview .exr": (lambda d, t: ["envmap", d / "sky.exr", "-o", t / "a.exr",
+                                            "--preview", t / "b.exr"], ".png"),
+    "envmap --info -o .txt": (lambda d, t: ["envmap", d / "sky.exr", "--info", "-o",
+                                            t / "i.txt"], ".exr"),
+    "sh-probe -o .exr": (lambda d, t: ["sh-probe", d / "sky.exr", "-o", t / "p.exr"], ".json"),
+    "fit-geometry -o .json": (lambda d, t: ["fit-geometry", "-o", t / "h.json"], ".npz"),
+    "fit-geometry --report .npz": (lambda d, t: ["fit-geometry", "-o", t / "h.npz", "--report",
+                                                 t / "r.npz"], ".json"),
+    "fit-geometry --preview .jpg": (lambda d, t: ["fit-geometry", "-o", t / "h.npz",
+                                                  "--preview", t / "h.jpg"], ".png"),
+    "bake-features -o .png": (lambda d, t: ["bake-features", d / "hand.npz", d / "sky.exr",
+                                            "-o", t / "f.png"], ".exr"),
+    "bake-features --per-vertex .exr": (lambda d, t: ["bake-features", d / "hand.npz",
+                                                      d / "sky.exr", "-o", t / "f.exr",
+                                                      "--per-vertex", t / "v.exr"], ".npz"),
+    "relight hand -o .png": (lambda d, t: ["relight", d / "hand.npz", d / "sky.exr", "-o",
+                                           t / "r.png"], ".exr"),
+    "relight hand --preview .exr": (lambda d, t: ["relight", d / "hand.npz", d / "sky.exr",
+                                                  "-o", t / "r.exr", "--preview", t / "p.exr"],
+                                    ".png"),
+    "relight gaussians -o .exr": (lambda d, t: ["relight", d / "ball.ply", "--probe",
+                                                d / "probe.json", "-o", t / "g.exr"], ".ply"),
+    "dgsm-build -o .png": (lambda d, t: ["dgsm-build", d / "ball.ply", "--receivers",
+                                         d / "room.ply", "--lights", d / "lights.json",
+                                         "-o", t / "s.png"], ".exr"),
+    "dgsm-build --lights-out .txt": (lambda d, t: ["dgsm-build", d / "ball.ply", "--receivers",
+                                                   d / "room.ply", "--lights",
+                                                   d / "lights.json", "-o", t / "s.exr",
+                                                   "--lights-out", t / "l.txt"], ".json"),
+    "dgsm-build --occluders-out .exr": (lambda d, t: ["dgsm-build", d / "ball.ply",
+                                                      "--receivers", d / "room.ply", "--lights",
+                                                      d / "lights.json", "-o", t / "s.exr",
+                                                      "--occluders-out", t / "o.exr"], ".ply"),
+    "metrics image -o .txt": (lambda d, t: ["metrics", "image", d / "img.exr", d / "img2.exr",
+                                            "-o", t / "m.txt"], ".json"),
+    "metrics image --jsonl .json": (lambda d, t: ["metrics", "image", d / "img.exr",
+                                                  d / "img2.exr", "-o", t / "m.json",
+                                                  "--jsonl", t / "rows.json"], ".jsonl"),
+    "metrics compare -o .exr": (lambda d, t: ["metrics", "compare", d / "m.json", d / "m.json",
+                                              "-o", t / "c.exr"], ".json"),
+    "train-teacher -o .json": (lambda d, t: ["train-teacher", d / "cap", "-o", t / "t.json"],
+                               ".pt"),
+    "camera -o .txt": (lambda d, t: ["camera", "--eye", "0,0,1", "-o", t / "c.txt"], ".json"),
+    "train-teacher --metrics-out .txt": (lambda d, t: ["train-teacher", d / "cap", "-o",
+                                                       t / "t.pt", "--metrics-out", t / "v.txt"],
+                                         ".json"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(WRONG_EXTENSION))
+def test_output_extension_must_say_what_is_written(data, tmp_path, case):
+    build, wanted = WRONG_EXTENSION[case]
+    before = _snapshot(data, tmp_path)
+    _run_inproc_fail(build(data, tmp_path), 2, f"name it {wanted}")
+    assert _snapshot(data, tmp_path) == before
+
+
+def test_extensions_are_checked_in_any_case(data, tmp_path):
+    r = _inproc("envmap", data / "sky.exr", "-o", tmp_path / "SKY.EXR", "-q")
+    assert r.exit_code == 0 and (tmp_path / "SKY.EXR").exists()
+
+
+# Binary outputs cannot go to stdout.
+BINARY_TO_STDOUT = {
+    "envmap": lambda d: ["envmap", d / "sky.exr", "-o", "-"],
+    "envmap --preview -": lambda d: ["envmap", d / "sky.exr", "--info", "--preview", "-"],
+    "fit-geometry": lambda d: ["fit-geometry", "-o", "-"],
+    "bake-features": lambda d: ["bake-features", d / "hand.npz", d / "sky.exr", "-o", "-"],
+    "relight-gaussians": lambda d: ["relight", d / "ball.ply", "--probe", d / "probe.json",
+                                    "-o", "-"],
+    "dgsm-build": lambda d: ["dgsm-build", d / "ball.ply", "--receivers", d / "room.ply",
+                             "--lights", d / "lights.json", "-o", "-"],
+    "train-teacher": lambda d: ["train-teacher", d / "cap", "-o", "-"],
+    "synth-capture": lambda d: ["synth-capture", "-o", "-"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(BINARY_TO_STDOUT))
+def test_binary_outputs_cannot_go_to_stdout(data, case):
+    r = _run_inproc_fail(BINARY_TO_STDOUT[case](data), 2)
+    assert r.stdout == ""
+
+
+# JSON outputs go to stdout with -o -: (argv, the format stdout holds)
+JSON_TO_STDOUT = {
+    "envmap --info": (lambda d: ["envmap", d / "sky.exr", "--info", "-o", "-"], None),
+    "sh-probe": (lambda d: ["sh-probe", d / "sky.exr", "--degree", "1", "-o", "-"],
+                 "relight/sh-probe"),
+    "metrics image": (lambda d: ["metrics", "image", d / "img.exr", d / "img2.exr", "-o", "-"],
+                      "relight/metrics"),
+    "metrics compare": (lambda d: ["metrics", "compare", d / "m.json", d / "m.json", "-o", "-"],
+                        "relight/metrics-comparison"),
+    "metrics compare --json": (lambda d: ["metrics", "compare", d / "m.json", d / "m.json",
+                                          "--json"], "relight/metrics-comparison"),
+    "dgsm-build --lights-out": (lambda d: ["dgsm-build", d / "ball.ply", "--receivers",
+                                           d / "room.ply", "--lights", d / "lights.json",
+                                           "--size", "4", "--bins", "2", "-o", "{t}/s.exr",
+                                           "--lights-out", "-"], "relight/lights"),
+    "fit-geometry --report": (lambda d: ["fit-geometry", "-o", "{t}/h.npz", "--report", "-"],
+                              None),
+}
+
+
+@pytest.mark.parametrize("case", sorted(JSON_TO_STDOUT))
+def test_json_outputs_go_to_stdout(data, tmp_path, case):
+    build, fmt = JSON_TO_STDOUT[case]
+    args = [str(a).replace("{t}", str(tmp_path)) for a in build(data)]
+    r = CliRunner().invoke(cli, args + ["-q"])
+    assert r.exit_code == 0, r.output
+    record = json.loads(r.stdout)
+    if fmt is not None:
+        assert record["format"] == fmt
+
+
+def test_metrics_compare_json_is_written_even_on_a_regression(data, tmp_path):
+    worse = json.loads((data / "m.json").read_text())
+    worse["metrics"]["ssim"] = worse["metrics"]["ssim"] - 0.5
+    (tmp_path / "worse.json").write_text(json.dumps(worse))
+    out = tmp_path / "cmp.json"
+    r = CliRunner().invoke(cli, ["metrics", "compare", str(tmp_path / "worse.json"),
+                                 str(data / "m.json"), "-o", str(out)])
+    assert r.exit_code == 3, r.output
+    from relight_cli.formats.metrics_json import loads_comparison
+    record = loads_comparison(out.read_text(), str(out))
+    assert record["regressed"] and record["exit_code"] == 3 and record["kind"] == "image"
+    rows = {row["metric"]: row for row in record["rows"]}
+    assert rows["ssim"]["status"] == "REGRESSED" and rows["ssim"]["change"] == pytest.approx(-0.5)
+    assert rows["mse"]["status"] == "ok" and not rows["mse"]["regressed"]
+    assert record["counts"]["regressed"] == 1 == sum(r["regressed"] for r in record["rows"])
+    assert record["inputs"]["baseline"]["sha256"] == hashlib.sha256(
+        (data / "m.json").read_bytes()).hexdigest()
+    # -o -: the JSON alone on stdout, the table on stderr
+    r = CliRunner().invoke(cli, ["metrics", "compare", str(tmp_path / "worse.json"),
+                                 str(data / "m.json"), "-o", "-"])
+    assert r.exit_code == 3 and json.loads(r.stdout)["regressed"]
+    assert "REGRESSED" in r.stderr
+    # --no-clobber: refused before any work, the file untouched
+    before = out.read_bytes()
+    _run_inproc_fail(["metrics", "compare", data / "m.json", data / "m.json", "-o", out,
+                      "--no-clobber"], 2, "--no-clobber")
+    assert out.read_bytes() == before
+
+
+# One JSON input of each kind read from stdin ('-'): (argv given data, output; the input
+# piped in; where provenance records it, as a path into the output's JSON or None for EXR/PLY)
+STDIN_INPUTS = {
+    "relight --probe -": (lambda d, o: ["relight", d / "ball.ply", "--probe", "-", "-o",
+                                        o / "g.ply"], "probe.json"),
+    "dgsm-build --lights -": (lambda d, o: ["dgsm-build", d / "ball.ply", "--receivers",
+                                            d / "room.ply", "--lights", "-", "--size", "4",
+                                            "--bins", "2", "-o", o / "s.exr", "--lights-out",
+                                            o / "l.json"], "lights.json"),
+    "relight --lights -": (lambda d, o: ["relight", d / "hand.npz", "--lights", "-", "--size",
+                                         "8x8", "--tex-res", "8", "--aa", "1", "-o",
+                                         o / "r.exr"], "lights.json"),
+    "relight --camera -": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--camera",
+                                         "-", "--tex-res", "8", "--aa", "1", "--env-res", "8x4",
+                                         "-o", o / "r.exr"], "cam.json"),
+    "camera --from -": (lambda d, o: ["camera", "--from", "-", "-o", o / "c.json"], "cam.json"),
+    "bake-features --camera -": (lambda d, o: ["bake-features", d / "hand.npz", d / "sky.exr",
+                                               "--camera", "-", "--res", "8", "--env-res", "8x4",
+                                               "-o", o / "f.exr"], "cam.json"),
+    "metrics compare NEW -": (lambda d, o: ["metrics", "compare", "-", d / "m.json", "-o",
+                                            o / "c.json"], "m.json"),
+    "metrics compare BASELINE -": (lambda d, o: ["metrics", "compare", d / "m.json", "-", "-o",
+                                                 o / "c.json"], "m.json"),
+    "train-teacher --config -": (lambda d, o: ["train-teacher", d / "cap", "--config", "-",
+                                               "--iters", "1", "-o", o / "t.pt",
+                                               "--metrics-out", o / "v.json"], "small.json"),
+}
+
+
+def _provenance_inputs(path: Path) -> dict:
+    if path.suffix == ".json":
+        record = json.loads(path.read_text())
+        return (record.get("provenance") or record)["inputs"]
+    if path.suffix == ".pt":
+        import torch
+        record = torch.load(path, weights_only=True)["provenance"]
+        return (json.loads(record) if isinstance(record, str) else record)["inputs"]
+    from relight_cli.formats.exr import read_exr
+    if path.suffix == ".exr":
+        return json.loads(read_exr(str(path)).attributes["relight.provenance"])["inputs"]
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    return read_gaussians(str(path)).provenance["inputs"]
+
+
+@pytest.mark.parametrize("case", sorted(STDIN_INPUTS))
+def test_json_inputs_read_stdin(data, tmp_path, case):
+    """`-` reads the JSON input from stdin; provenance records it as `-` with the SHA-256
+    of the bytes read, and the output equals the one made from the file."""
+    build, source = STDIN_INPUTS[case]
+    piped, named = tmp_path / "piped", tmp_path / "named"
+    piped.mkdir()
+    named.mkdir()
+    text = (data / source).read_bytes()
+    r = CliRunner().invoke(cli, [str(a) for a in build(data, piped)] + ["-q"], input=text)
+    assert r.exit_code == 0, r.output
+    args = [str(data / source) if a == "-" else str(a) for a in build(data, named)]
+    assert CliRunner().invoke(cli, args + ["-q"]).exit_code == 0
+    first = sorted(p for p in piped.iterdir() if p.suffix != ".pt" or "train" in case)[0]
+    inputs = _provenance_inputs(first)
+    stdin = [v for v in inputs.values() if v["path"] == "-"]
+    assert stdin and stdin[0]["sha256"] == hashlib.sha256(text).hexdigest(), inputs
+
+
+STDIN_TWICE = {
+    "metrics compare - -": lambda d, o: ["metrics", "compare", "-", "-"],
+    "relight --camera - --lights -": lambda d, o: ["relight", d / "hand.npz", "--camera", "-",
+                                                   "--lights", "-", "-o", o],
+    "relight --probe - --camera -": lambda d, o: ["relight", d / "ball.ply", "--probe", "-",
+                                                  "--camera", "-", "-o", o],
+}
+
+
+@pytest.mark.parametrize("case", sorted(STDIN_TWICE))
+def test_only_one_input_reads_stdin(data, tmp_path, case):
+    out = tmp_path / "x.exr"
+    before = _snapshot(data, tmp_path)
+    r = CliRunner().invoke(cli, [str(a) for a in STDIN_TWICE[case](data, out)], input="{}")
+    _assert_one_error(r.exit_code, r.stderr, 2, "only one input can come from stdin")
+    assert _snapshot(data, tmp_path) == before
+
+
+@pytest.mark.parametrize("args", [
+    lambda d: ["envmap", "-", "-o", "{t}/x.exr"],
+    lambda d: ["relight", "-", "--probe", d / "probe.json", "-o", "{t}/x.ply"],
+    lambda d: ["dgsm-build", "-", "--lights", d / "lights.json", "--t-max", "1", "-o", "{t}/x.exr"],
+    lambda d: ["metrics", "image", "-", d / "img.exr"],
+], ids=["envmap", "relight", "dgsm-build", "metrics-image"])
+def test_binary_inputs_do_not_read_stdin(data, tmp_path, args):
+    argv = [str(a).replace("{t}", str(tmp_path)) for a in args(data)]
+    r = CliRunner().invoke(cli, argv, input=b"\x00" * 8)
+    assert r.exit_code in (1, 2), r.output
+    assert "Traceback" not in r.output and len(r.stderr.splitlines()) == 1, r.stderr
+    assert os.listdir(tmp_path) == []
+
+
+def test_broken_stdout_pipe_exits_quietly(data, tmp_path):
+    """`relight metrics image a b -o - | head -c 10`: the reader is gone before relight
+    writes; exit 141 (128 + SIGPIPE, as git), nothing on stderr, no file committed."""
+    rows = tmp_path / "rows.jsonl"
+    proc = subprocess.Popen([relight_executable(), "metrics", "image", str(data / "img.exr"),
+                             str(data / "img2.exr"), "-o", "-", "--jsonl", str(rows)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    proc.stdout.close()              # the reader goes away at once (head has had enough)
+    stderr = proc.stderr.read().decode()
+    proc.wait(timeout=120)
+    proc.stderr.close()
+    assert proc.returncode == 141, stderr
+    assert stderr == "", stderr
+    assert os.listdir(tmp_path) == []   # neither rows.jsonl nor a temporary file
+    assert _temps_of(proc.pid) == []
+
+
+def test_broken_pipe_through_a_shell_pipeline(data, tmp_path):
+    """The same through `| head -c 10`, as a user types it: no error, 10 bytes."""
+    cmd = (f"{_quote(relight_executable())} metrics image {_quote(data / 'img.exr')} "
+           f"{_quote(data / 'img2.exr')} -o - -q | head -c 10")
+    p = subprocess.run(["bash", "-o", "pipefail", "-c", cmd], capture_output=True,
+                       timeout=120, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    assert p.returncode in (0, 141), p.stderr
+    assert p.stderr == b"" and len(p.stdout) == 10

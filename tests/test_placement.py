@@ -289,7 +289,7 @@ def test_cli_two_placed_occluders_shadow_room_and_each_other(run_cli, files):
     assert floor_out.colors()[:, 0].min() < 0.3                   # both cast onto the floor
     # a render of everything, and a mismatch between objects and groups
     r = run_cli("relight", upper, "--object", lower, "--probe", files / "p.json", "--dgsm",
-                files / "s.exr", "--receivers", files / "floor.ply", "--render",
+                files / "s.exr", "--receivers", files / "floor.ply", "--camera",
                 files / "cam.json", "-o", files / "v.exr", "--preview", files / "v.png", "-q")
     assert r.exit_code == 0, r.output
     assert (files / "v.png").exists()

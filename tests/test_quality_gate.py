@@ -76,7 +76,7 @@ def dgsm_shadow_resolution(work: Path) -> Path:
                         "--receivers-out", work / "room.ply", "-q"))
         renders[size] = work / f"render{size}.exr"
         _ok(run_relight("relight", work / "hand.ply", "--probe", work / "probe.json", "--dgsm", shadows,
-                        "--receivers", work / "room.ply", "--render", work / "cam.json",
+                        "--receivers", work / "room.ply", "--camera", work / "cam.json",
                         "-o", renders[size], "-q"))
     out = work / "dgsm_shadow_resolution.json"
     _ok(run_relight("metrics", "image", renders[128], renders[512], "--space", "srgb", "-o", out, "-q"))
@@ -88,16 +88,16 @@ def hand_render_env_resolution(work: Path) -> Path:
     the default 16×32 env discretization against a 32×64 reference, foreground only."""
     _ok(run_relight("fit-geometry", "--pose", "fist", "-o", work / "hand.npz", "-q"))
     renders = {}
-    for res in ("16x32", "32x64"):
+    for res in ("32x16", "64x32"):
         renders[res] = work / f"render_{res}.exr"
         _ok(run_relight("relight", work / "hand.npz", "builtin:studio", "--model", "physical",
                         "--size", "96x96", "--env-res", res, "-o", renders[res], "-q"))
     from relight_cli.formats.exr import read_exr
     from relight_cli.formats.image import write_png
-    mask = read_exr(str(renders["32x64"])).channels["A"]
+    mask = read_exr(str(renders["64x32"])).channels["A"]
     write_png(str(work / "mask.png"), mask[..., None])
     out = work / "hand_render_env_resolution.json"
-    _ok(run_relight("metrics", "image", renders["16x32"], renders["32x64"], "--mask", work / "mask.png",
+    _ok(run_relight("metrics", "image", renders["32x16"], renders["64x32"], "--mask", work / "mask.png",
                     "-o", out, "-q"))
     return out
 

@@ -238,7 +238,7 @@ def test_cli_render(run_cli, files):
     from relight_cli.formats.exr import read_exr
     out = files / "view.exr"
     r = run_cli("relight", files / "avatar.ply", "--probe", files / "probe.json", "--receivers",
-                files / "scene.ply", "--render", files / "cam.json", "-o", out, "--preview",
+                files / "scene.ply", "--camera", files / "cam.json", "-o", out, "--preview",
                 files / "view.png", "-q")
     assert r.exit_code == 0, r.output
     img = read_exr(str(out))
@@ -273,7 +273,7 @@ def test_cli_hand_npz_as_gaussians(run_cli, files):
     mattes = {}
     for mode in ("dgsm", "mesh"):
         r = run_cli("relight", spec, "--shadow-matte", mode, "--dgsm", files / "sh.exr",
-                    "--receivers", files / "floor.ply", "--render", files / "hcam.json",
+                    "--receivers", files / "floor.ply", "--camera", files / "hcam.json",
                     "-o", files / f"{mode}.exr", "-q")
         assert r.exit_code == 0, r.output
         mattes[mode] = read_exr(str(files / f"{mode}.exr")).channels["R"]
@@ -285,7 +285,7 @@ def test_cli_hand_npz_as_gaussians(run_cli, files):
 
 def test_cli_subprocess(files):
     r = run_relight("relight", files / "avatar.ply", "--probe", files / "probe.json", "-o",
-                    files / "relit2.ply", "--normals", "pca", "--lobe", "3", "--t-max", "2")
+                    files / "relit2.ply", "--normals", "pca", "--lobe", "3", "--shading-clip", "2")
     assert r.returncode == 0, r.stderr
     assert len(read_gaussians(str(files / "relit2.ply"))) == 300
 
@@ -301,11 +301,16 @@ def test_cli_subprocess(files):
     (["avatar.ply"], 2, "needs --probe"),
     (["avatar.ply", "--probe", "probe.json", "--dgsm", "x.exr"], 2, "give --receivers"),
     (["avatar.ply", "--probe", "probe.json", "--lobe", "0"], 2, "--lobe"),
-    (["avatar.ply", "--probe", "probe.json", "--render", "cam.json"], 2, "-o is an EXR"),
+    (["avatar.ply", "--probe", "probe.json", "--camera", "cam.json"], 2, "-o is an EXR"),
     (["avatar.ply", "--probe", "missing.json"], 1, "no such file"),
     (["avatar.ply", "--probe", "bad_probe.json"], 1, "version 9 is newer"),
     (["avatar.ply", "--probe", "probe.json", "--normals", "stored"], 1, "no stored normals"),
     (["nan.ply", "--probe", "probe.json"], 1, "non-finite"),
+    # renamed (issue 16): dgsm-build's --t-max is metres; relight's clip is --shading-clip
+    (["avatar.ply", "--probe", "probe.json", "--t-max", "2"], 2, "--t-max was renamed "
+                                                                 "--shading-clip"),
+    (["avatar.ply", "--probe", "probe.json", "--preview", "view.exr", "--camera", "cam.json"],
+     2, "name it .png"),
 ])
 def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     monkeypatch.chdir(files)
@@ -316,7 +321,7 @@ def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     ply = plyfile.PlyData.read("nan.ply", mmap=False)
     ply["vertex"].data["x"][2] = np.nan
     ply.write("nan.ply")
-    target = "out.exr" if "--render" in args and "-o is an EXR" not in message else "out.ply"
+    target = "out.exr" if "--camera" in args and "-o is an EXR" not in message else "out.ply"
     r = run_cli("relight", *args, "-o", target)
     assert r.exit_code == code, r.output
     assert message in r.output, r.output

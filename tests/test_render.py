@@ -364,9 +364,10 @@ def test_gbuffer_plane_depth_uv_and_coverage():
     hit = gb.hit
     np.testing.assert_allclose(gb.depth[hit], 0.5, rtol=1e-6)        # float32 embree hits
     np.testing.assert_allclose(gb.uv[hit], (gb.position[hit, :2] + 0.1) / 0.2, atol=1e-6)
-    # Projecting the hit points gives back each sample's own pixel.
+    # Projecting the hit points gives back each sample's own pixel (camera.md: pixel
+    # centres at integers, so the pixel of u is the nearest integer).
     p = (cam.K @ (cam.R @ gb.position[hit].T + cam.t[:, None])).T
-    pix = np.floor(p[:, :2] / p[:, 2:3]).astype(int)
+    pix = np.floor(p[:, :2] / p[:, 2:3] + 0.5).astype(int)
     idx = np.nonzero(hit)[0] // gb.spp
     np.testing.assert_array_equal(pix[:, 1] * 16 + pix[:, 0], idx)
     assert set(np.unique(gb.mask)) <= {0.0, 0.25, 0.5, 0.75, 1.0}

@@ -99,6 +99,10 @@ def test_subprocess(files):
     (["builtin:right", "builtin:sky", "--roughness", "0", "-o", "o.exr"], 2, "--roughness"),
     (["builtin:right", "builtin:sky", "--tex-res", "2", "-o", "o.exr"], 2, "--tex-res"),
     (["builtin:right", "builtin:sky", "--env-res", "1x4", "-o", "o.exr"], 2, "--env-res"),
+    (["builtin:right", "builtin:sky", "--env-res", "16x32", "-o", "o.exr"], 2,
+     "did you mean 32x16"),                               # sizes are WxH (issue 16)
+    (["builtin:right", "builtin:sky", "--tex-res", "16x8", "-o", "o.exr"], 2, "not square"),
+    (["builtin:right", "builtin:sky", "--preview", "p.jpg", "-o", "o.exr"], 2, "name it .png"),
     (["builtin:nobody", "builtin:sky", "-o", "o.exr"], 2, "unknown built-in hand"),
     (["avatar.ply", "builtin:sky", "-o", "o.ply"], 2, "only apply to a hand"),
     (["builtin:right", "missing.exr", "-o", "o.exr"], 1, "no such file"),

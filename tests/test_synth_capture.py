@@ -15,7 +15,7 @@ from relight_cli.formats import capture as C
 from relight_cli.formats.hand_npz import read_hand
 from relight_cli.render import capture as S
 
-TINY = ["--cameras", "2", "--lights", "6", "--group", "2", "--frames", "3", "--res", "12",
+TINY = ["--cameras", "2", "--leds", "6", "--group", "2", "--frames", "3", "--size", "12",
         "--tex-res", "32", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
         "--eval-envs", "builtin:uniform", "-q"]
 
@@ -149,7 +149,7 @@ def test_subprocess(tmp_path):
 
 
 @pytest.mark.parametrize("args, code, message", [
-    (["--group", "9", "--lights", "6"], 2, "exceeds --lights"),
+    (["--group", "9", "--leds", "6"], 2, "exceeds --leds"),
     (["--cameras", "0"], 2, "--cameras must be"),
     (["--eval-cameras", "5", "--cameras", "2"], 2, "exceeds --cameras"),
     (["--motion", "file"], 2, "needs a HAND.npz"),
@@ -160,10 +160,38 @@ def test_subprocess(tmp_path):
 ])
 def test_bad_input(run_cli, tmp_path, monkeypatch, args, code, message):
     monkeypatch.chdir(tmp_path)
-    r = run_cli("synth-capture", *args, "-o", "cap", "--frames", "2", "--res", "8")
+    r = run_cli("synth-capture", *args, "-o", "cap", "--frames", "2", "--size", "8")
     assert r.exit_code == code, r.output
     assert message in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert not (tmp_path / "cap").exists()
+
+
+@pytest.mark.parametrize("old, value, hint", [("--lights", "6", "--leds"), ("--res", "8", "--size")])
+def test_renamed_options_are_refused_with_their_new_name(run_cli, tmp_path, old, value, hint):
+    """--lights (a count here, a JSON file elsewhere) is --leds; --res R is --size N."""
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", old, value)
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    assert f"{old} was renamed {hint}" in r.output
+    assert not (tmp_path / "cap").exists()
+
+
+def test_size_is_square(run_cli, tmp_path):
+    """The stage's cameras are square: --size N or NxN, a non-square WxH is refused."""
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", "--size", "16x8")
+    assert r.exit_code == 2 and "not square" in r.output, r.output
+    assert not (tmp_path / "cap").exists()
+    r = run_cli("synth-capture", "-o", tmp_path / "cap", *TINY[:-1], "--size", "12x12",
+                "--eval-poses", "0", "-q")
+    assert r.exit_code == 0, r.output
+    assert C.read_capture(str(tmp_path / "cap")).cameras[0].width == 12
+
+
+def test_no_clobber_refuses_an_existing_capture(run_cli, tmp_path):
+    out = tmp_path / "cap"
+    out.mkdir()
+    r = run_cli("synth-capture", "-o", out, *TINY, "--no-clobber")
+    assert r.exit_code == 2 and "--no-clobber" in r.output, r.output
+    assert os.listdir(out) == []
 
 
 def test_bad_output_folders(run_cli, tmp_path):

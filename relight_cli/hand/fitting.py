@@ -63,6 +63,8 @@ class FitResult:
         joint_median_mm: [N] median of the same.
         scan_mm: [N] mean |point-to-plane| distance scan → fitted coarse mesh (mm), or None.
         energy: final energy per frame [N].
+        joint_errors_mm: [N, J] distance fitted joint ↔ keypoint (mm), NaN where the
+            keypoint is missing (confidence 0); None without keypoints.
     """
 
     poses: np.ndarray
@@ -75,6 +77,7 @@ class FitResult:
     scan_mm: np.ndarray | None
     energy: np.ndarray
     history: list = field(default_factory=list)
+    joint_errors_mm: np.ndarray | None = None
 
 
 # ----------------------------------------------------------------------------- personalization
@@ -249,7 +252,8 @@ def fit(template, keypoints=None, confidence=None, scans=None, options: FitOptio
 
     Args:
         template: HandData (its first frame's pose is ignored; the rest pose is used).
-        keypoints: [N, J, 3] metres, or None.
+        keypoints: [N, J, 3] metres, or None; the coordinates of missing joints are
+            ignored (they may be NaN, as Leap recordings leave them).
         confidence: [N, J] in [0, 1] (0 = missing), or None (all 1).
         scans: list of N point arrays [P_n, 3] (sampled from scan meshes), or None.
         options: FitOptions.
@@ -260,6 +264,14 @@ def fit(template, keypoints=None, confidence=None, scans=None, options: FitOptio
 
     # Tensors here are tiny ([N, 25, 3]); thread hand-offs cost more than they
     # save (10× slower with 2 threads on a busy 2-core machine).
+    if keypoints is not None:
+        keypoints = np.asarray(keypoints, np.float64)
+        confidence = (np.ones(keypoints.shape[:2]) if confidence is None
+                      else np.asarray(confidence, np.float64))
+        observed = confidence > 0
+        if not np.isfinite(keypoints[observed]).all():
+            raise ValueError("observed keypoints (confidence > 0) must be finite")
+        keypoints = np.where(observed[..., None], keypoints, 0.0)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -480,11 +492,14 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
     new_rest = scaled_joints(rest, parents, scales)
     from .skinning import posed_joints
     pj = posed_joints(poses, trans, new_rest, parents)
+    joint_errors = None
     if keypoints is not None:
-        err = np.linalg.norm(pj - keypoints, axis=-1) * 1000
         obs = confidence > 0
-        mean_mm = np.array([err[n][obs[n]].mean() if obs[n].any() else np.nan for n in range(N)])
-        med_mm = np.array([np.median(err[n][obs[n]]) if obs[n].any() else np.nan for n in range(N)])
+        joint_errors = np.where(obs, np.linalg.norm(pj - keypoints, axis=-1) * 1000, np.nan)
+        mean_mm = np.array([joint_errors[n][obs[n]].mean() if obs[n].any() else np.nan
+                            for n in range(N)])
+        med_mm = np.array([np.median(joint_errors[n][obs[n]]) if obs[n].any() else np.nan
+                           for n in range(N)])
     else:
         mean_mm = med_mm = np.full(N, np.nan)
     offsets = None if off2 is None else off2.numpy()
@@ -500,7 +515,74 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
             _, idx = cKDTree(pv).query(scans[n])
             scan_mm[n] = np.abs(np.einsum("ij,ij->i", scans[n] - pv[idx], nrm[idx])).mean() * 1000
     return FitResult(poses, trans, scales, offsets, new_rest, mean_mm, med_mm, scan_mm,
-                     e2.numpy(), hist1 + hist2)
+                     e2.numpy(), hist1 + hist2, joint_errors)
+
+
+# ----------------------------------------------------------------------------- fit quality
+
+def _spread(values) -> dict:
+    """Mean, std and max |value − mean| of a 1-D sample (mm), rounded for JSON."""
+    v = np.asarray(values, np.float64)
+    mean = v.mean()
+    return {"frames": int(len(v)), "mean": _mm(mean), "std": _mm(v.std()),
+            "max_deviation": _mm(np.abs(v - mean).max())}
+
+
+def _mm(x) -> float:
+    return round(float(x), 4)
+
+
+def bone_lengths(joints, observed, parents) -> np.ndarray:
+    """[N, J] length of the bone parent(j) → j in each frame (mm), NaN where an end is
+    missing and for the root.  joints: [N, J, 3] metres; observed: [N, J] bool."""
+    parents = np.asarray(parents)
+    out = np.full(observed.shape, np.nan)
+    for j in range(1, len(parents)):
+        both = observed[:, j] & observed[:, parents[j]]
+        d = np.linalg.norm(joints[:, j] - joints[:, parents[j]], axis=-1) * 1000
+        out[both, j] = d[both]
+    return out
+
+
+def fit_quality(result: FitResult, keypoints, confidence, parents, joint_names) -> dict:
+    """Per-joint residuals and bone-length stability over time, as JSON-ready numbers (mm).
+
+    Residuals are the distances fitted joint ↔ observed keypoint (missing joints:
+    null).  Per bone parent(j) → j (named by j): the keypoints' length over the
+    frames where both ends are observed, and the fitted hand's over all frames —
+    mean, std and the largest deviation from the mean.  The fitted hand has one
+    skeleton for the whole sequence (shared bone scales, rigid bones under
+    skinning), so its std is 0 up to rounding; the keypoint side shows how much
+    the tracker's bones stretch, and the difference of means the length bias.
+    """
+    from .skinning import posed_joints
+
+    observed = np.asarray(confidence) > 0
+    errors = result.joint_errors_mm
+    per_joint = {}
+    for j, name in enumerate(joint_names):
+        e = errors[observed[:, j], j]
+        per_joint[name] = None if len(e) == 0 else {
+            "frames": int(len(e)), "mean": _mm(e.mean()), "median": _mm(np.median(e)),
+            "p95": _mm(np.percentile(e, 95)), "max": _mm(e.max())}
+    everything = errors[observed]
+    overall = {"observations": int(len(everything)), "mean": _mm(everything.mean()),
+               "median": _mm(np.median(everything)), "p95": _mm(np.percentile(everything, 95)),
+               "max": _mm(everything.max())} if len(everything) else None
+    fitted = posed_joints(result.poses, result.translations, result.rest_joints, parents)
+    kp_len = bone_lengths(np.asarray(keypoints, np.float64), observed, parents)
+    fit_len = bone_lengths(fitted, np.ones(observed.shape, bool), parents)
+    bones = {}
+    for j in range(1, len(joint_names)):
+        seen = ~np.isnan(kp_len[:, j])
+        entry = {"from": joint_names[int(parents[j])],
+                 "keypoints": _spread(kp_len[seen, j]) if seen.any() else None,
+                 "fitted": _spread(fit_len[:, j])}
+        if seen.any():
+            entry["fitted_minus_keypoints"] = _mm(fit_len[:, j].mean() - kp_len[seen, j].mean())
+        bones[joint_names[j]] = entry
+    return {"joint_residuals_mm": {"all": overall, "per_joint": per_joint},
+            "bone_lengths_mm": bones}
 
 
 class _Adam:

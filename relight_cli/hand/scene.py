@@ -128,7 +128,7 @@ def render_preview(meshes: list[PosedMesh], camera, albedo=(0.80, 0.55, 0.45),
 
     H, W = camera.height, camera.width
     ys, xs = np.mgrid[0:H, 0:W]
-    pix = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5, np.ones(H * W)], 1)
+    pix = np.stack([xs.ravel(), ys.ravel(), np.ones(H * W)], 1)   # pixel centres (camera.md)
     d_cam = pix @ np.linalg.inv(camera.K).T
     d_world = d_cam @ camera.R                                  # Rᵀ·d for each row
     d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)

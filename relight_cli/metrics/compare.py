@@ -54,6 +54,22 @@ class Row:
     def regressed(self) -> bool:
         return self.status in ("REGRESSED", "missing")
 
+    def to_json(self) -> dict:
+        """The row of ``relight metrics compare -o`` (formats/metrics_json.md): +∞ is
+        ``null`` as in metrics records, NaN the string ``"nan"``, an absent side left out,
+        ``change`` only when both sides are finite."""
+        out = {"metric": self.key}
+        for name, value in (("baseline", self.baseline), ("new", self.new)):
+            if value is not None:
+                out[name] = "nan" if math.isnan(value) else (None if math.isinf(value)
+                                                             else value)
+        if (self.baseline is not None and self.new is not None
+                and math.isfinite(self.baseline) and math.isfinite(self.new)):
+            out["change"] = self.new - self.baseline
+        out.update(slack=self.slack, better=self.better, status=self.status,
+                   regressed=self.regressed)
+        return out
+
 
 def lookup(options: dict[str | None, object], key: str, default):
     """The option value for ``key`` (see the module docstring for precedence)."""

@@ -356,13 +356,16 @@ class CaptureData:
                     K = np.asarray(camera.K)
                     px = K[0, 0] * cam[:, 0] / z + K[0, 1] * cam[:, 1] / z + K[0, 2]
                     py = K[1, 1] * cam[:, 1] / z + K[1, 2]
-                    inside = (px >= 0) & (px < camera.width) & (py >= 0) & (py < camera.height)
+                    # pixel centres at integers (camera.md): pixel i covers [i − ½, i + ½)
+                    inside = ((px >= -0.5) & (px < camera.width - 0.5) & (py >= -0.5)
+                              & (py < camera.height - 0.5))
                     ok = seen & inside & (cam[:, 2] > 0)
                     if not ok.any():
                         continue
-                    # bilinear() samples a map at UV; a pixel position maps to (u, v) =
-                    # (px / W, 1 − py / H) in that convention.
-                    uv = np.stack([px[ok] / camera.width, 1 - py[ok] / camera.height], 1)
+                    # bilinear() samples a map at UV (texel centres at (i + ½)/W); a pixel
+                    # position maps to (u, v) = ((px + ½) / W, 1 − (py + ½) / H).
+                    uv = np.stack([(px[ok] + 0.5) / camera.width,
+                                   1 - (py[ok] + 0.5) / camera.height], 1)
                     colour = bilinear(image.astype(np.float64), uv)
                     rows, cols = np.nonzero(surf.inside)
                     rr, cc = rows[ok], cols[ok]

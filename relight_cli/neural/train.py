@@ -279,7 +279,7 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         resume: a checkpoint dict (``formats.checkpoint.read_checkpoint``) to continue.
         provenance: stored in the checkpoint.
         save: callable(checkpoint dict) for periodic saves (rank 0; ``save_every``).
-        show_progress: a tqdm bar on stderr (rank 0).
+        show_progress: progress on stderr (rank 0): a tqdm bar on a terminal, else plain lines.
         log: callable(str) for log lines.
 
     Returns:
@@ -312,11 +312,8 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
                                       else None)
     bar = None
     if show_progress and rank == 0:
-        import sys
-
-        from tqdm import tqdm
-        bar = tqdm(total=config.iters, initial=start, desc=task.desc, file=sys.stderr,
-                   leave=False, dynamic_ncols=True, unit="it")
+        from relight_cli.progress import progress
+        bar = progress(total=config.iters, initial=start, desc=task.desc, unit="it")
     history = []
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)

@@ -8,8 +8,8 @@ and camera depth.  Shading works per sample; :meth:`GBuffer.resolve` averages
 the samples of a pixel (box filter), which is the antialiasing.
 
 Camera convention (formats/camera.md): x_cam = R·x_world + t, pixel = K·x_cam/z,
-x right, y down, z forward; pixel (col, row) covers [col, col+1) × [row, row+1),
-so its centre is (col + ½, row + ½).
+x right, y down, z forward; as in OpenCV the centre of pixel (col, row) is at
+(col, row), so the pixel covers [col − ½, col + ½) × [row − ½, row + ½).
 """
 
 from __future__ import annotations
@@ -108,8 +108,8 @@ def camera_rays(camera, aa: int = 2, jitter: bool = False, seed: int = 0):
     H, W = camera.height, camera.width
     offsets = sample_offsets(aa, jitter, seed, H * W)                      # [HW, S, 2]
     ys, xs = np.mgrid[0:H, 0:W]
-    px = xs.reshape(-1, 1) + offsets[..., 0]                               # [HW, S]
-    py = ys.reshape(-1, 1) + offsets[..., 1]
+    px = xs.reshape(-1, 1) + (offsets[..., 0] - 0.5)    # [HW, S]; pixel centres at integers
+    py = ys.reshape(-1, 1) + (offsets[..., 1] - 0.5)
     K = np.asarray(camera.K, np.float64)
     R = np.asarray(camera.R, np.float64)
     # Camera-space direction (x, y, 1) = K⁻¹·(px, py, 1), then world = Rᵀ·d.  Written as
