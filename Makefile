@@ -64,7 +64,8 @@ demo: install
 		-o demo/hand_cam001.exr --preview demo/hand_cam001.png
 	$(RELIGHT) camera --from demo/hand_cam001.exr -o demo/hand_cam001_from_exr.json
 	# a small synthetic light-stage capture (fully lit + grouped-light frames, held-out env renders)
-	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --leds 32 --frames 6 --size 96 --eval-poses 1 --eval-cameras 2
+	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --leds 32 --frames 6 --size 96 --eval-poses 1 --eval-cameras 2 \
+		--preview demo/capture.png
 	# RelightableHands' OLAT teacher learned from that capture (tiny preset, ~1 min), with its
 	# validation scores; rendered under an env map (a sum over 16x32 directions) and one near point light
 	$(RELIGHT) train-teacher demo/capture -o demo/teacher.pt --preset tiny --metrics-out demo/teacher_val.json
@@ -87,13 +88,14 @@ demo: install
 	$(RELIGHT) relight builtin:two:fist builtin:sky --model student --checkpoint demo/student.pt \
 		-o demo/hands2_student_env.exr --preview demo/hands2_student_env.png
 	# spherical-harmonic light probes
-	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json
-	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json
+	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json --preview demo/studio_probe.png
+	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json --preview demo/sky_probe.png
 	# Gaussian avatar in a Gaussian room: a deep Gaussian shadow map, then relighting with shadows
 	printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [0.35, 1.3, 0.45], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}\n' > demo/lights.json
 	$(RELIGHT) camera --eye 0.45,0.55,0.6 --target 0,0.15,0 --fov 45 --size 320x240 -o demo/room_cam.json
 	$(RELIGHT) dgsm-build builtin:hand --translate 0,0.25,0 --receivers builtin:room --lights demo/lights.json \
-		--size 512 -o demo/shadows.exr --occluders-out demo/hand_gaussians.ply --receivers-out demo/room.ply
+		--size 512 -o demo/shadows.exr --occluders-out demo/hand_gaussians.ply --receivers-out demo/room.ply \
+		--preview demo/shadows.png
 	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/sky_probe.json --receivers demo/room.ply \
 		--camera demo/room_cam.json -o demo/room_before.exr --preview demo/room_before.png
 	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/sky_probe.json --dgsm demo/shadows.exr \
@@ -104,7 +106,8 @@ demo: install
 	  printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [-0.45, 1.2, -0.25], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}\n' > demo/scene_lights.json && \
 	  $(RELIGHT) camera --eye 0.6,0.5,0.65 --target 0.08,0.15,0.05 --fov 50 --size 400x300 -o demo/scene_cam.json && \
 	  $(RELIGHT) dgsm-build 'builtin:hand:translate=0,0.25,0' '$(DONUT)' \
-	    --receivers builtin:room --lights demo/scene_lights.json --size 512 -o demo/scene_shadows.exr && \
+	    --receivers builtin:room --lights demo/scene_lights.json --size 512 -o demo/scene_shadows.exr \
+	    --preview demo/scene_shadows.png --preview-camera demo/scene_cam.json && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/sky_probe.json \
 	    --receivers demo/room.ply --camera demo/scene_cam.json -o demo/scene_before.exr --preview demo/scene_before.png && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/sky_probe.json \
@@ -120,8 +123,10 @@ demo: install
 	  $(RELIGHT) camera --eye 0.45,0.45,0.7 --target -0.1,0.13,0.05 --fov 50 --size 400x300 -o demo/robot_cam.json && \
 	  $(PY) -c "import numpy as np; from relight_cli.gaussians.from_mesh import load_gaussians; from relight_cli.formats.gaussians_ply import Gaussians, concatenate, rgb_to_sh_dc, write_gaussians; n = 40; lamp = Gaussians(np.array([0.35, 1.3, 0.45]) + np.random.default_rng(0).normal(0, 0.015, (n, 3)), np.full((n, 3), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.95), rgb_to_sh_dc(np.tile([6.0, 5.6, 5.0], (n, 1)))[:, None, :], 0); write_gaussians('demo/room_lamp.ply', concatenate([load_gaussians('builtin:room'), lamp]))" && \
 	  $(RELIGHT) dgsm-build 'builtin:hand:translate=0,0.25,0' '$(ROBOT)' --receivers demo/room_lamp.ply \
-	    --lights auto:1 --lights-out demo/robot_lights.json --size 256 -o demo/robot_shadows.exr && \
-	  $(RELIGHT) sh-probe demo/room_lamp.ply --at -0.25,0.12,0.1 --degree 2 -o demo/robot_probe.json && \
+	    --lights auto:1 --lights-out demo/robot_lights.json --size 256 -o demo/robot_shadows.exr \
+	    --preview demo/robot_shadows.png && \
+	  $(RELIGHT) sh-probe demo/room_lamp.ply --at -0.25,0.12,0.1 --degree 2 -o demo/robot_probe.json \
+	    --preview demo/robot_probe.png && \
 	  $(RELIGHT) sh-probe builtin:uniform --degree 0 -o demo/uniform_probe.json && \
 	  $(RELIGHT) relight '$(ROBOT)' --probe demo/uniform_probe.json -o demo/robot_before.ply && \
 	  $(RELIGHT) relight '$(ROBOT)' --probe demo/robot_probe.json -o demo/robot_relit.ply && \
@@ -159,8 +164,18 @@ man: install
 	$(PY) -m relight_cli.manpage man
 	mkdir -p $(VENV)/share/man/man1 && cp man/*.1 $(VENV)/share/man/man1/
 
-benchmarks: install
-	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+# Every benchmark writes its table, data and plot under $(BENCH_OUT); QUICK=1 runs the
+# smoke versions (a few minutes in all, see benchmarks/README.md).  matplotlib comes
+# with the optional extra [bench].
+BENCH_OUT ?= benchmarks/out
+BENCH_STAMP := $(VENV)/.bench-stamp
+$(BENCH_STAMP): $(STAMP)
+	$(PY) -m pip install -q -e '.[bench]'
+	touch $(BENCH_STAMP)
+
+benchmarks: $(BENCH_STAMP)
+	@for b in benchmarks/bench_*.py; do echo "== $$b"; \
+	  $(PY) $$b --out $(BENCH_OUT) $(if $(QUICK),--quick) || exit 1; done
 
 clean:
 	rm -rf demo example build *.egg-info .pytest_cache

@@ -24,14 +24,19 @@ Part 3 — beside the paper: Tables 3–5 and the Sec. 4.4 D timings (0.13 s,
 29.1 s, 17.1 s on an A100) next to ours, with one line per claim saying
 whether its best setting / ordering is reproduced, tied, or not.
 
+Writes dgsm.{md,json,png} under --out (default benchmarks/out/): the printed tables,
+the results, and a plot of build seconds against the max |ΔT| at the receivers vs the
+float64 build (part 1, one curve per scene) and against SAE (part 2, one curve per
+ablation).  Machine limits in the same run: fp32 GEMM, memory bandwidth and scipy's
+erf throughput (the closed form's inner function).
+
 Usage:
   .venv/bin/python benchmarks/bench_dgsm.py [--quick] [--full-reference]
-         [--occluder hand|sphere] [--json out.json]
+         [--occluder hand|sphere] [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -39,7 +44,8 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common as B  # noqa: E402
 
 from relight_cli.gaussians import dgsm as D                     # noqa: E402
 from relight_cli.gaussians import transmittance as TR           # noqa: E402
@@ -141,10 +147,11 @@ def part_speed(quick: bool, full_reference: bool):
     means, scales, rot, _ = floor_receivers(3.0, 200)
     pts, _ = D.footprint_samples(means, scales, rot, "stencil")
     pts = pts.reshape(-1, 3)
-    scenes = [("volumetric avatar (trained-3DGS-like)", volumetric_avatar()),
-              ("mesh avatar (flat Gaussian per face)", gaussians_from_mesh(*avatar_mesh()))]
+    scenes = [("volumetric avatar (trained-3DGS-like)", volumetric_avatar())]
+    if not quick:
+        scenes.append(("mesh avatar (flat Gaussian per face)", gaussians_from_mesh(*avatar_mesh())))
     results = []
-    repeats = 3 if quick else 5
+    repeats = 2 if quick else 5
     for scene_name, g in scenes:
         mix = TR.from_gaussians(g)       # default mapping: avg (paper Eq. 5)
         print(f"\n## Part 1: build time — {scene_name}: {len(g)} Gaussians, 128×128×64, one light, "
@@ -403,25 +410,58 @@ def beside_the_paper(protocol: dict, speed: list | None):
     return claims
 
 
+def write_plot(path, out: dict, machine: dict) -> None:
+    """Part 1: build seconds vs max |ΔT| at receivers; part 2: build seconds vs SAE."""
+    panels = [k for k in ("speed", "protocol") if k in out]
+    if not panels:
+        return
+    fig, axes = B.figure(len(panels))
+    for ax, key in zip(axes, panels):
+        if key == "speed":
+            curves = {}
+            for scene in out["speed"]:
+                curves[scene["scene"]] = [(r["seconds"], r["max_dT_receivers"],
+                                           r["config"].split(",")[0] + r["config"].split(",")[-1])
+                                          for r in scene["rows"] if "max_dT_receivers" in r]
+            B.plot(ax, curves, "build seconds (one light, 128x128x64)",
+                   "max |ΔT| at receivers vs float64 build", "part 1: build time")
+        else:
+            curves = {}
+            for r in out["protocol"]["rows"]:
+                group = r["run"].split(":")[0]
+                name = {"A": "A footprint", "B": "B opacity mapping", "C": "C atlas"}.get(
+                    group, r["run"].split(",")[0])
+                label = r["run"].split(": ")[-1].split(",")[0].replace("footprint ", "") \
+                    .replace("mapping ", "").replace("atlas ", "")
+                curves.setdefault(name, []).append((r["seconds"], r["sae"], label))
+            B.plot(ax, curves, "seconds (build; direct: closed form)", "SAE (lower is better)",
+                   f"part 2: shadow protocol, {out['protocol']['occluder']}", logy=False)
+    B.save(fig, path, machine)
+
+
 def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="fewer configurations, smaller images")
+    ap = B.parser(__doc__, "one scene, fewer configurations, smaller images")
     ap.add_argument("--full-reference", action="store_true",
                     help="also run the build with neither ROI nor culling (minutes)")
     ap.add_argument("--occluder", choices=["hand", "sphere"], default="hand")
     ap.add_argument("--skip-speed", action="store_true")
     ap.add_argument("--skip-protocol", action="store_true")
-    ap.add_argument("--json", default=None, help="write the results here")
     args = ap.parse_args()
-    out = {}
-    if not args.skip_speed:
-        out["speed"] = part_speed(args.quick, args.full_reference)
-    if not args.skip_protocol:
-        out["protocol"] = part_protocol(args.occluder, args.quick)
-        out["claims"] = beside_the_paper(out["protocol"], out.get("speed"))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=2)
+    out_dir = B.start(args, "bench_dgsm.py")
+    machine = B.machine_limits(erf=True)
+    out = {"machine": machine}
+    with B.recorded() as rec:
+        print("# Deep Gaussian Shadow Maps: build time and shadow accuracy\n")
+        print(B.machine_line(machine))
+        if not args.skip_speed:
+            out["speed"] = part_speed(args.quick, args.full_reference)
+        if not args.skip_protocol:
+            out["protocol"] = part_protocol(args.occluder, args.quick)
+            out["claims"] = beside_the_paper(out["protocol"], out.get("speed"))
+        print("\nPlot: dgsm.png.")
+    (out_dir / "dgsm.md").write_text(rec.text)
+    (out_dir / "dgsm.json").write_text(json.dumps(out, indent=2, default=float) + "\n")
+    write_plot(out_dir / "dgsm.png", out, machine)
 
 
 if __name__ == "__main__":

@@ -10,8 +10,11 @@
    the amortized time per extra env map with the pose's visibility and transport
    cached; medians of interleaved rounds, with the load average printed.
 
-Writes ``features_time_vs_error.{md,csv,svg}`` under ``--out`` (default
-benchmarks/out/) and prints the tables.
+Writes ``features_time_vs_error.{md,csv,png}`` under ``--out`` (default
+benchmarks/out/) and prints the tables; the plot: seconds per pose against the
+relative RMS error of every feature, one curve per mesh and feature.  Machine limits
+in the same run (fp32 GEMM, memory bandwidth, raw embree rays/s on a sphere, beside
+the raw embree throughput on the bake's own rays).
 
     .venv/bin/python benchmarks/bench_features.py [--pose relaxed] [--texels 256] [--quick]
     .venv/bin/python benchmarks/bench_features.py --speed-only [--rounds 15]
@@ -19,13 +22,16 @@ benchmarks/out/) and prints the tables.
 
 from __future__ import annotations
 
-import argparse
 import csv
-import math
+import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common as B  # noqa: E402
 
 from relight_cli import features as F
 from relight_cli.hand.model import builtin_hand
@@ -101,56 +107,18 @@ def rel_rms(x, ref):
     return float(np.sqrt(np.mean((x - ref) ** 2)) / max(np.sqrt(np.mean(ref ** 2)), 1e-30))
 
 
-def write_svg(path: Path, rows: list[dict]):
-    """A log-log plot of seconds vs diffuse error, one polyline per mesh (no matplotlib)."""
-    w, h, pad = 560, 380, 60
-    pts = [(r["seconds"], r["err_diffuse"], r["mesh"], r["env_res"]) for r in rows]
-    xs = [math.log10(p[0]) for p in pts]
-    ys = [math.log10(max(p[1], 1e-6)) for p in pts]
-    x0, x1 = min(xs) - 0.1, max(xs) + 0.1
-    y0, y1 = min(ys) - 0.1, max(ys) + 0.1
-
-    def X(v):
-        return pad + (v - x0) / (x1 - x0) * (w - 2 * pad)
-
-    def Y(v):
-        return h - pad - (v - y0) / (y1 - y0) * (h - 2 * pad)
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" '
-             f'font-family="sans-serif" font-size="11">',
-             f'<rect width="{w}" height="{h}" fill="white"/>',
-             f'<line x1="{pad}" y1="{h - pad}" x2="{w - pad}" y2="{h - pad}" stroke="black"/>',
-             f'<line x1="{pad}" y1="{pad}" x2="{pad}" y2="{h - pad}" stroke="black"/>',
-             f'<text x="{w / 2}" y="{h - 15}" text-anchor="middle">seconds per pose (log)</text>',
-             f'<text x="15" y="{h / 2}" transform="rotate(-90 15 {h / 2})" text-anchor="middle">'
-             f'relative RMS error of diffuse (log)</text>']
-    for e in range(math.floor(x0), math.ceil(x1) + 1):
-        if x0 <= e <= x1:
-            parts.append(f'<text x="{X(e)}" y="{h - pad + 15}" text-anchor="middle">1e{e}</text>')
-    for e in range(math.floor(y0), math.ceil(y1) + 1):
-        if y0 <= e <= y1:
-            parts.append(f'<text x="{pad - 5}" y="{Y(e)}" text-anchor="end">1e{e}</text>')
-    colours = {"coarse": "#1f77b4", "fine": "#d62728"}
-    for mesh, colour in colours.items():
-        sel = [(X(math.log10(p[0])), Y(math.log10(max(p[1], 1e-6))), p[3]) for p in pts
-               if p[2] == mesh]
-        if not sel:
-            continue
-        parts.append('<polyline fill="none" stroke="%s" points="%s"/>'
-                     % (colour, " ".join(f"{a:.1f},{b:.1f}" for a, b, _ in sel)))
-        for a, b, label in sel:
-            parts.append(f'<circle cx="{a:.1f}" cy="{b:.1f}" r="3" fill="{colour}"/>')
-            parts.append(f'<text x="{a + 5:.1f}" y="{b - 5:.1f}" fill="{colour}">{label}</text>')
-        parts.append(f'<text x="{w - pad - 60}" y="{pad + (20 if mesh == "fine" else 5)}" '
-                     f'fill="{colour}">{mesh} mesh</text>')
-    parts.append("</svg>")
-    path.write_text("\n".join(parts) + "\n")
+def write_plot(path: Path, rows: list[dict], machine: dict):
+    """Seconds per pose against each feature's relative RMS error, per mesh (log-log)."""
+    fig, axes = B.figure(2)
+    for ax, mesh in zip(axes, ("coarse", "fine")):
+        B.plot(ax, {name: [(r["seconds"], r["err_" + name], r["env_res"]) for r in rows
+                           if r["mesh"] == mesh] for name in NAMES},
+               "seconds per pose", "relative RMS error vs the reference",
+               f"{mesh} mesh, env grid H x W")
+    B.save(fig, path, machine)
 
 
-def load_average() -> str:
-    try:
-        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-    except OSError:
-        return "?"
+load_average = B.load_average
 
 
 def speed_study(env, coarse, eye, settings, rounds: int) -> dict:
@@ -259,22 +227,25 @@ def print_speed(sp: dict, env):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = B.parser(__doc__, "fewer configurations, 64 reference texels at 128x256, 3 rounds")
     ap.add_argument("--env", default=str(DATA / "envmaps" / "StageEnvLatLong.exr"),
                     help="env map (default: the shared StageEnvLatLong.exr, else builtin:sky)")
     ap.add_argument("--pose", default="relaxed")
-    ap.add_argument("--texels", type=int, default=256, help="reference texels (random subset)")
+    ap.add_argument("--texels", type=int, default=None,
+                    help="reference texels (random subset) [default: 256; quick 64]")
     ap.add_argument("--res", type=int, default=128)
-    ap.add_argument("--ref-env-res", default="256x512")
-    ap.add_argument("--quick", action="store_true", help="fewer configurations (smoke run)")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "out"))
-    ap.add_argument("--rounds", type=int, default=9,
-                    help="interleaved rounds of the speed study (medians are reported)")
+    ap.add_argument("--ref-env-res", default=None, help="[default: 256x512; quick 128x256]")
+    ap.add_argument("--rounds", type=int, default=None,
+                    help="interleaved rounds of the speed study (medians are reported) "
+                         "[default: 9; quick 3]")
     ap.add_argument("--speed-only", action="store_true",
                     help="only the speed study at default settings (no reference, no files)")
     args = ap.parse_args()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    args.texels = args.texels or (64 if args.quick else 256)
+    args.ref_env_res = args.ref_env_res or ("128x256" if args.quick else "256x512")
+    args.rounds = args.rounds or (3 if args.quick else 9)
+    out = B.start(args, "bench_features.py")
+    machine = B.machine_limits(embree=True)
     env_spec = args.env if Path(args.env).exists() or args.env.startswith("builtin:") \
         else "builtin:sky"
     env = load_env(env_spec)
@@ -330,6 +301,7 @@ def main():
         for r in results:
             wr.writerow(r)
     lines = [f"# bake-features: time vs error ({env_spec}, hand {args.pose})", "",
+             B.machine_line(machine), "",
              f"Reference: {len(points)} random covered texels at {args.res}², fine-mesh surface "
              f"and visibility, env {ref_res[0]}x{ref_res[1]} ({ref_seconds:.1f} s). "
              "Error: relative RMS over those texels.", "",
@@ -338,10 +310,10 @@ def main():
     for r in results:
         lines.append(f"| {r['mesh']} | {r['env_res']} | {r['seconds']:.3f} | {r['rays']} | "
                      + " | ".join(f"{r['err_' + n]:.4f}" for n in NAMES) + " |")
-    lines += [""] + speed_lines(speed, env)
+    lines += [""] + speed_lines(speed, env) + ["", "Plot: features_time_vs_error.png."]
     (out / "features_time_vs_error.md").write_text("\n".join(lines) + "\n")
-    write_svg(out / "features_time_vs_error.svg", results)
-    print(f"\nwrote {out / 'features_time_vs_error.md'}, .csv, .svg")
+    write_plot(out / "features_time_vs_error.png", results, machine)
+    print(f"\nwrote {out / 'features_time_vs_error.md'}, .csv, .png")
 
 
 if __name__ == "__main__":

@@ -16,16 +16,15 @@
    without its lighting prompt), the OLAT teacher, and the physical renderer with the
    stage's true materials (the upper bound only a synthetic stage has).
 
-Writes linear.{md,json} under --out (default benchmarks/out).  Run:
+Writes linear.{md,json,png} under --out (default benchmarks/out); the plot: held-out
+MSE against training seconds, one curve per model.  ``--quick``: a small capture, 8
+iterations, tiny widths, two of the variants (no teacher).  Run:
     .venv/bin/python benchmarks/bench_linear.py [--quick] [--iters N] [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
 import shutil
 import sys
 import tempfile
@@ -36,10 +35,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_teacher import (env_render_cost, gemm_gflops, make_capture,  # noqa: E402
-                           physical_upper_bound, train_variant)
+import _common as B  # noqa: E402
+from bench_teacher import (env_render_cost, make_capture,  # noqa: E402
+                           physical_upper_bound, train_variant, validation, write_plot)
 
-OUT = Path(__file__).resolve().parent / "out"
+QUICK_VARIANTS = ("linear (ours: residual start)", "non-linear light path")
 
 VARIANTS = {
     "linear (ours: residual start)": {},
@@ -65,14 +65,16 @@ def _linear_data(folder: Path, cfg):
 def train_linear(folder: Path, overrides: dict, iters: int) -> dict:
     from relight_cli.neural.linear import resolve_config
     from relight_cli.neural.linear_train import train
-    cfg = resolve_config("tiny", None, {"iters": iters, "val_samples": 6, "lambda_vgg": 0.0,
+    cfg = resolve_config("tiny", None, {"iters": iters, "lambda_vgg": 0.0, **validation(iters),
                                         "lr_drop": (2 * iters) // 3, **overrides})
     data = _linear_data(folder, cfg)
     t0 = time.perf_counter()
     result = train(data, cfg, torch.device("cpu"), show_progress=False)
+    per_step = result.seconds / max(1, result.steps_run)   # validation spread evenly
+    curve = [(h["step"] * per_step, h.get("heldout", {}).get("mse")) for h in result.history]
     return {"metrics": result.metrics, "seconds": time.perf_counter() - t0,
             "train_seconds": result.seconds, "its": result.steps_run / result.seconds,
-            "peak_rss_mb": result.peak_memory_mb}
+            "peak_rss_mb": result.peak_memory_mb, "curve": curve}
 
 
 def throughput(folder: Path, preset: str, tex: int, iters: int) -> dict:
@@ -132,30 +134,26 @@ def render_cost(folder: Path, preset: str, tex: int) -> list:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small capture, 60 iterations")
+    ap = B.parser(__doc__, "small capture, 8 iterations, tiny widths, 2 variants")
     ap.add_argument("--iters", type=int, default=None, help="training iterations per variant")
-    ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--variants", default=None, metavar="A,B",
                     help="only the quality variants whose names contain one of these words")
     args = ap.parse_args()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    iters = args.iters or (60 if args.quick else 150)
-    frames = 12 if args.quick else 24
+    out = B.start(args, "bench_linear.py")
+    iters = args.iters or (8 if args.quick else 150)
+    frames = 8 if args.quick else 24
     work = Path(tempfile.mkdtemp(prefix="bench_linear_"))
-    report = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
-                          "torch_threads": torch.get_num_threads(),
-                          "gemm_gflops": gemm_gflops()}, "iters": iters}
+    report = {"machine": B.machine_limits(), "iters": iters}
+    sizes = [("tiny", 32)] + ([] if args.quick else [("paper", 128)])
     try:
         t0 = time.perf_counter()
         folder = make_capture(work / "single", False, frames, args.quick)
         report["capture_seconds"] = time.perf_counter() - t0
-        report["throughput"] = [throughput(folder, "tiny", 32, 10),
-                                throughput(folder, "paper", 128, 2)]
-        report["render"] = render_cost(folder, "tiny", 32) + render_cost(folder, "paper", 128)
-        report["teacher_env"] = [env_render_cost(folder, "tiny", 32),
-                                 env_render_cost(folder, "paper", 128)]
+        report["throughput"] = [throughput(folder, p, t, 10 if p == "tiny" and not args.quick
+                                           else 2) for p, t in sizes]
+        report["render"] = [r for p, t in sizes for r in render_cost(folder, p, t)]
+        report["teacher_env"] = [] if args.quick else [env_render_cost(folder, p, t)
+                                                       for p, t in sizes]
         print(json.dumps({k: report[k] for k in ("throughput", "render", "teacher_env")},
                          default=float), flush=True)
         quality = {}
@@ -163,19 +161,19 @@ def main():
         for name, overrides in VARIANTS.items():
             if words and not any(w in name for w in words):
                 continue
+            if args.quick and not words and name not in QUICK_VARIANTS:
+                continue
             quality[name] = train_linear(folder, overrides, iters)
             print(name, {k: round(v.get("psnr", 0), 2) for k, v in
                          quality[name]["metrics"].items() if isinstance(v, dict)}, flush=True)
-        quality["OLAT teacher (tiny)"] = train_variant(folder, "teacher", iters)
+        if not args.quick:         # (bench_teacher.py --quick covers the teacher)
+            quality["OLAT teacher (tiny)"] = train_variant(folder, "teacher", iters)
         quality["physical (true materials)"] = {"metrics": {"heldout": physical_upper_bound(folder)}}
         report["quality"] = quality
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
-    m = report["machine"]
-    lines = ["# URHand linear model: speed and quality", "",
-             f"Machine: {m['platform']}, {m['cpus']} CPUs, torch {torch.__version__} on "
-             f"{m['torch_threads']} threads; float32 GEMM {m['gemm_gflops']:.1f} GFLOP/s.",
+    lines = ["# URHand linear model: speed and quality", "", B.machine_line(report["machine"]),
              f"Capture: {frames} frames, 32 LEDs (groups of 4); made in "
              f"{report['capture_seconds']:.1f} s.", "",
              "## Training throughput (CPU)", "",
@@ -213,8 +211,11 @@ def main():
     lines += ["", "No LPIPS: no local weights. URHand Table 2–3 (real stage, ten identities): "
               "the linear model beats the non-linear one most on novel illumination; Phong, "
               "w/o specular, w/o visibility and w/o refiner each lose."]
+    lines += ["", "Plot: linear.png (held-out MSE against training seconds)."]
     (out / "linear.md").write_text("\n".join(lines) + "\n")
     (out / "linear.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
+    write_plot(out / "linear.png", {name: r["curve"] for name, r in report["quality"].items()
+                                    if "curve" in r}, report["machine"], "URHand linear model")
     print("\n".join(lines))
 
 

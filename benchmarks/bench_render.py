@@ -6,20 +6,23 @@
 2. A synthetic capture (20 cameras at 128×128, 64 LEDs, groups of 5, every 3rd frame
    fully lit): measured on a few frames, extrapolated to 100 frames.
 
-Writes benchmarks/out/render_time_vs_error.{csv,md}.  Run:
-    .venv/bin/python benchmarks/bench_render.py [--quick]
+Writes render_time_vs_error.{csv,md,png} under --out (default benchmarks/out/); the
+plot: seconds against the relative RMS error, one curve per sub-pixel sample count.
+Machine limits in the same run (fp32 GEMM, memory bandwidth, raw embree rays/s: the
+renderer traces shadow rays).  Run:
+    .venv/bin/python benchmarks/bench_render.py [--quick] [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import platform
+import sys
 import time
 
 import numpy as np
 
-OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "out")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common as B  # noqa: E402
 
 
 def _scene():
@@ -58,8 +61,8 @@ def bench_view(quick: bool):
     reference, ref_t = _render(meshes, materials, camera, lights, tex_res=1024, aa=4)
     mask = reference.mask == 1
     rows = []
-    configs = [(256, 1), (256, 2)] if quick else [(128, 1), (128, 2), (256, 1), (256, 2),
-                                                  (512, 1), (512, 2)]
+    configs = [(128, 1), (256, 1), (256, 2)] if quick else [(128, 1), (128, 2), (256, 1),
+                                                            (256, 2), (512, 1), (512, 2)]
     for tex, aa in configs:
         best = None
         for _ in range(1 if quick else 3):                   # best of 3: a shared machine
@@ -104,19 +107,17 @@ def bench_capture(quick: bool):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer configurations and frames")
-    args = parser.parse_args()
-    os.makedirs(OUT, exist_ok=True)
+    args = B.parser(__doc__, "fewer configurations and frames").parse_args()
+    OUT = str(B.start(args, "bench_render.py"))
+    limits = B.machine_limits(embree=True)
     rows, ref_t = bench_view(args.quick)
     cap = bench_capture(args.quick)
-    machine = f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.python_implementation()} {platform.python_version()}"
     with open(os.path.join(OUT, "render_time_vs_error.csv"), "w") as f:
         f.write(",".join(rows[0]) + "\n")
         for r in rows:
             f.write(",".join(str(v) for v in r.values()) + "\n")
-    lines = ["# Physically based hand renderer: time vs error", "",
-             f"Machine: {machine}. Built-in hand (fine mesh, 12.7k vertices), 256×256 view, "
+    lines = ["# Physically based hand renderer: time vs error", "", B.machine_line(limits), "",
+             "Built-in hand (fine mesh, 12.7k vertices), 256×256 view, "
              "5 point lights, shadows, GGX, SSS on (defaults: direct=pixel). Reference: "
              f"tex 1024, aa 4 ({ref_t['total']:.2f} s). Error: relative RMS over fully covered "
              "pixels. Seconds: best of 3; setup = texel surfaces + embree scene + buried "
@@ -134,9 +135,18 @@ def main():
               f"{cap['setup_s']} s. Extrapolated to 100 frames ({cap['full_frames']} full + "
               f"{cap['group_frames']} grouped): **{cap['extrapolated_100_frames_s']} s** "
               "(rendering only; EXR writing adds ≈ 5 ms per image)."]
+    lines += ["", "Plot: render_time_vs_error.png."]
     with open(os.path.join(OUT, "render_time_vs_error.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     print("\n".join(lines))
+    fig, (ax,) = B.figure(1)
+    B.plot(ax, {f"aa {aa} ({aa * aa} samples/pixel)": [(r["total"], r["rel_rms_error"],
+                                                       f"tex {r['tex_res']}")
+                                                      for r in rows if r["aa"] == aa]
+                for aa in sorted({r["aa"] for r in rows})},
+           "seconds per view (setup + light + render)",
+           "relative RMS error vs tex 1024, aa 4", "one 256x256 view, 5 point lights, SSS")
+    B.save(fig, os.path.join(OUT, "render_time_vs_error.png"), limits)
 
 
 if __name__ == "__main__":

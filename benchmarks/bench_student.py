@@ -15,17 +15,19 @@
    tiny teacher; masked MSE ×10⁻³ / PSNR / SSIM on held-out poses × evaluation env maps
    against the teacher, and against the capture's ground-truth env renders.
 
-Writes student.{md,json} under --out (default benchmarks/out).  Run:
-    .venv/bin/python benchmarks/bench_student.py [--quality] [--iters N] [--out DIR]
+Writes student.{md,json,png} under --out (default benchmarks/out); the plot: per-frame
+stage times beside the paper's (left) and, with ``--quality``, distillation seconds
+against the MSE vs the teacher and vs the ground truth, every model (right).
+``--quick``: tiny widths only, no torch.compile.  Run:
+    .venv/bin/python benchmarks/bench_student.py [--quick] [--quality] [--iters N] [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -33,17 +35,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-OUT = Path(__file__).resolve().parent / "out"
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common as B  # noqa: E402
+
 PAPER_MS = {"joint features": 0.3, "visibility": 2.7, "uv sampling": 1.5, "decoder": 15.8}
-
-
-def gemm_gflops(n=2048, repeat=5):
-    a, b = torch.randn(n, n), torch.randn(n, n)
-    torch.mm(a, b)
-    t0 = time.perf_counter()
-    for _ in range(repeat):
-        torch.mm(a, b)
-    return 2 * n ** 3 * repeat / (time.perf_counter() - t0) / 1e9
+STAGES = ("joint features", "visibility", "feature transport", "uv sampling", "decoder",
+          "rendering")
 
 
 def best_of(fn, repeat=5):
@@ -74,7 +71,7 @@ def decoder_flops(net, feats, pose):
     return total
 
 
-def frame_stages(hand, preset: str, peak: float) -> dict:
+def frame_stages(hand, preset: str, peak: float, compile_decoder: bool = True) -> dict:
     from relight_cli.builtin_envs import builtin_envmap
     from relight_cli.features import discretize_env
     from relight_cli.hand.scene import posed_meshes, preview_camera
@@ -118,11 +115,14 @@ def frame_stages(hand, preset: str, peak: float) -> dict:
         cl = D.build_student(cfg, 12, pose_dim).eval().to(memory_format=torch.channels_last)
         inp_cl = inp.contiguous(memory_format=torch.channels_last)
         variants["channels_last"] = best_of(lambda: decode(cl, inp_cl))
-        try:
-            compiled = torch.compile(lambda h: decode(net, h))
-            variants["compile"] = best_of(lambda: compiled(inp))
-        except Exception as exc:  # no compiler toolchain: report, do not fail
-            variants["compile"] = f"unavailable ({type(exc).__name__})"
+        if not compile_decoder:
+            variants["compile"] = "skipped (--quick)"
+        else:
+            try:
+                compiled = torch.compile(lambda h: decode(net, h))
+                variants["compile"] = best_of(lambda: compiled(inp))
+            except Exception as exc:  # no compiler toolchain: report, do not fail
+                variants["compile"] = f"unavailable ({type(exc).__name__})"
     flops = decoder_flops(net, x, pose)
     gb = render_gbuffer(meshes, cam, 1)
     tex = [torch.rand(3, cfg.tex_res, cfg.tex_res) for _ in range(n_hands)]
@@ -209,22 +209,22 @@ def quality(iters: int, work: Path) -> dict:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = B.parser(__doc__, "tiny widths only, no torch.compile")
     ap.add_argument("--quality", action="store_true", help="also distill and score 4 models")
     ap.add_argument("--iters", type=int, default=150)
-    ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = B.start(args, "bench_student.py")
     from relight_cli.hand.model import builtin_hand
     from relight_cli.hand.scene import two_hands
 
-    peak = gemm_gflops()
+    report = {"machine": B.machine_limits(embree=True)}
+    peak = B.gemm_gflops(2048)
+    report["machine"]["gemm_gflops_2048"] = peak
     one = builtin_hand("right", "fist")
     two = two_hands(builtin_hand("right", "fist"))
-    report = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
-                          "torch_threads": torch.get_num_threads(), "gemm_gflops": peak}}
-    report["stages"] = [frame_stages(h, p, peak) for p in ("tiny", "paper") for h in (one, two)]
+    presets = ("tiny",) if args.quick else ("tiny", "paper")
+    report["stages"] = [frame_stages(h, p, peak, not args.quick) for p in presets
+                        for h in (one, two)]
     report["new_pose_features"] = new_pose_features(one)
     if args.quality:
         work = Path(tempfile.mkdtemp(prefix="bench_student_"))
@@ -232,10 +232,9 @@ def main():
             report["quality"] = quality(args.iters, work)
         finally:
             shutil.rmtree(work, ignore_errors=True)
-    lines = ["# Student: per-frame cost and quality", "",
-             f"Machine: {report['machine']['platform']}, {report['machine']['cpus']} CPUs, torch "
-             f"{torch.__version__} on {report['machine']['torch_threads']} threads; fp32 GEMM peak "
-             f"{peak:.1f} GFLOP/s (torch.mm 2048², this run).", "",
+    lines = ["# Student: per-frame cost and quality", "", B.machine_line(report["machine"]),
+             f"The decoder's FLOP floor below uses the fp32 GEMM peak at 2048²: {peak:.1f} "
+             f"GFLOP/s (this run).", "",
              "## Per-frame stages (ms; 256² view, features at the preset's size)", "",
              "| preset | hands | joint features | visibility | feature transport | uv sampling | "
              "decoder | rendering | total |", "|---|---|---|---|---|---|---|---|---|"]
@@ -274,9 +273,39 @@ def main():
                          f"| {g.get('ssim', float('nan')):.3f} | {r['seconds']:.0f} |")
         lines += ["", "RelightableHands Table 2: student < w/o visibility, w/o specular < DRAM "
                   "in MSE (against the teacher)."]
+    lines += ["", "Plot: student.png."]
     (out / "student.md").write_text("\n".join(lines) + "\n")
     (out / "student.json").write_text(json.dumps(report, indent=1, default=str) + "\n")
+    write_plot(out / "student.png", report)
     print("\n".join(lines))
+
+
+def write_plot(path: Path, report: dict) -> None:
+    """Stage times per frame beside the paper's; with --quality, seconds against MSE."""
+    quality = report.get("quality")
+    fig, axes = B.figure(2 if quality else 1)
+    ax = axes[0]
+    bars = [(f"{s['preset']}, {s['hands']} hand(s)", {k: 1e3 * s[k] for k in STAGES})
+            for s in report["stages"]] + [("paper (V100), 1 hand", PAPER_MS)]
+    left = np.zeros(len(bars))
+    for stage in STAGES:
+        widths = [b[1].get(stage, 0.0) for b in bars]
+        ax.barh([b[0] for b in bars], widths, left=left, label=stage)
+        left += widths
+    ax.set_xlabel("ms per frame (256x256 view)")
+    ax.set_title("student: per-frame stages", fontsize=10)
+    ax.grid(True, axis="x", alpha=0.5)
+    ax.legend(fontsize=7)
+    if quality:
+        curves = {"vs teacher": [], "vs ground truth": []}
+        for name, r in quality.items():
+            for key, label in (("vs_teacher", "vs teacher"), ("vs_ground_truth", "vs ground truth")):
+                m = r["metrics"].get(key, {})
+                if "mse" in m:
+                    curves[label].append((max(r["seconds"], 1e-3), m["mse"] * 1e3, name))
+        B.plot(axes[1], curves, "distillation seconds", "MSE x 1e-3 (held-out poses x envs)",
+               "quality against cost", logx=False)
+    B.save(fig, path, report["machine"])
 
 
 if __name__ == "__main__":

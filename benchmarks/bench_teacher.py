@@ -14,17 +14,18 @@
    on a single hand and on two interacting hands; with held-out MSE against training time
    as a plot.
 
-Writes teacher.{md,json,svg} under --out (default benchmarks/out).  Run:
+Writes teacher.{md,json,png} under --out (default benchmarks/out); the plot: held-out
+MSE against training seconds, one curve per scene and model.  ``--quick``: one scene
+(single hand), small capture, 8 iterations, tiny widths, teacher with and without visibility.  Run:
     .venv/bin/python benchmarks/bench_teacher.py [--quick] [--iters N] [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,16 +33,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-OUT = Path(__file__).resolve().parent / "out"
-
-
-def gemm_gflops(n: int = 1024, repeat: int = 10) -> float:
-    a, b = torch.randn(n, n), torch.randn(n, n)
-    a @ b
-    t0 = time.perf_counter()
-    for _ in range(repeat):
-        a @ b
-    return 2 * n ** 3 * repeat / (time.perf_counter() - t0) / 1e9
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common as B  # noqa: E402
 
 
 def conv_flops(config, pose_dim: int) -> float:
@@ -117,12 +110,20 @@ def physical_upper_bound(folder: Path) -> dict:
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
 
 
+def validation(iters: int) -> dict:
+    """Validation every sixth of the run on 6 samples; a quick run (< 60 iterations) gets a
+    few points on 2 samples, so that validation does not cost more than training."""
+    if iters >= 60:
+        return {"val_every": max(1, iters // 6), "val_samples": 6}
+    return {"val_every": max(2, iters // 3), "val_samples": 2}
+
+
 def train_variant(folder: Path, variant: str, iters: int) -> dict:
     from relight_cli.neural.config import resolve_config
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.train import train
 
-    overrides = {"iters": iters, "val_every": max(1, iters // 6), "val_samples": 6,
+    overrides = {"iters": iters, **validation(iters),
                  "lambda_vgg": 0.0, "neg_start": iters // 4}
     if variant == "no-visibility":
         overrides["visibility"] = False
@@ -185,70 +186,41 @@ def env_render_cost(folder: Path, widths: str, tex: int) -> dict:
             "total": float(sum(timing.seconds.values()))}
 
 
-def write_svg(path: Path, curves: dict):
-    w, h, pad = 640, 360, 50
-    pts = [(t, m) for c in curves.values() for t, m in c if m]
-    if not pts:
-        return
-    tmax = max(t for t, _ in pts) or 1
-    lo = np.log10(min(m for _, m in pts))
-    hi = np.log10(max(m for _, m in pts))
-    hi = hi if hi > lo else lo + 1
-    colours = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b"]
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" '
-             f'font-family="sans-serif" font-size="11">',
-             f'<rect width="{w}" height="{h}" fill="white"/>']
-    for i in range(6):
-        y = pad + (h - 2 * pad) * i / 5
-        x = pad + (w - 2 * pad) * i / 5
-        parts.append(f'<line x1="{pad}" y1="{y}" x2="{w - pad}" y2="{y}" stroke="#ddd"/>')
-        parts.append(f'<line x1="{x}" y1="{pad}" x2="{x}" y2="{h - pad}" stroke="#ddd"/>')
-        parts.append(f'<text x="{x}" y="{h - pad + 14}" text-anchor="middle">{tmax * i / 5:.0f}</text>')
-        val = 10 ** (hi - (hi - lo) * i / 5)
-        parts.append(f'<text x="{pad - 4}" y="{y + 4}" text-anchor="end">{val * 1e3:.2f}</text>')
-    parts.append(f'<text x="{w / 2}" y="{h - 12}" text-anchor="middle">training seconds (2 CPU cores)</text>')
-    parts.append(f'<text x="12" y="{h / 2}" transform="rotate(-90 12 {h / 2})" text-anchor="middle">'
-                 f'held-out MSE ×1e-3 (log)</text>')
-    for k, (name, curve) in enumerate(curves.items()):
-        c = colours[k % len(colours)]
-        xy = [(pad + (w - 2 * pad) * t / tmax,
-               pad + (h - 2 * pad) * (hi - np.log10(m)) / (hi - lo)) for t, m in curve if m]
-        parts.append('<polyline fill="none" stroke="{}" stroke-width="2" points="{}"/>'.format(
-            c, " ".join(f"{x:.1f},{y:.1f}" for x, y in xy)))
-        parts.append(f'<text x="{w - pad - 150}" y="{pad + 14 * k + 12}" fill="{c}">{name}</text>')
-    parts.append("</svg>")
-    path.write_text("\n".join(parts))
+def write_plot(path: Path, curves: dict, machine: dict, what: str = "teacher"):
+    """Held-out MSE (×1e-3) against training seconds, every curve."""
+    fig, (ax,) = B.figure(1, 7.2, 4.6)
+    B.plot(ax, {name: [(t, m * 1e3) for t, m in curve if m] for name, curve in curves.items()},
+           "training seconds", "held-out MSE x 1e-3 (log)", f"{what}: validation during training",
+           logx=False, labels=False)
+    B.save(fig, path, machine)
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small captures, 60 iterations")
+    ap = B.parser(__doc__, "one small capture (single hand), 8 iterations, tiny widths only")
     ap.add_argument("--iters", type=int, default=None, help="training iterations per variant")
-    ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    iters = args.iters or (60 if args.quick else 400)
-    frames = 12 if args.quick else 24
+    out = B.start(args, "bench_teacher.py")
+    iters = args.iters or (8 if args.quick else 400)
+    frames = 8 if args.quick else 24
     work = Path(tempfile.mkdtemp(prefix="bench_teacher_"))
-    report = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
-                          "torch_threads": torch.get_num_threads(),
-                          "gemm_gflops": gemm_gflops()}, "iters": iters}
+    report = {"machine": B.machine_limits(), "iters": iters}
     try:
         t0 = time.perf_counter()
-        captures = {"single": make_capture(work / "single", False, frames, args.quick),
-                    "two": make_capture(work / "two", True, frames, args.quick)}
-        report["capture_seconds"] = time.perf_counter() - t0
-        report["throughput"] = [throughput(captures["single"], "tiny", 32, 20),
-                                throughput(captures["single"], "paper", 128, 2)]
+        captures = {"single": make_capture(work / "single", False, frames, args.quick)}
         if not args.quick:
-            report["throughput"].append(throughput(captures["single"], "paper", 256, 1))
-        report["env_render"] = [env_render_cost(captures["single"], "tiny", 32),
-                                env_render_cost(captures["single"], "paper", 128)]
+            captures["two"] = make_capture(work / "two", True, frames, args.quick)
+        report["capture_seconds"] = time.perf_counter() - t0
+        report["throughput"] = [throughput(captures["single"], "tiny", 32, 5 if args.quick else 20)]
+        if not args.quick:
+            report["throughput"] += [throughput(captures["single"], "paper", 128, 2),
+                                     throughput(captures["single"], "paper", 256, 1)]
+        report["env_render"] = [env_render_cost(captures["single"], "tiny", 32)]
+        if not args.quick:
+            report["env_render"].append(env_render_cost(captures["single"], "paper", 128))
         quality = {}
         curves = {}
         for cname, folder in captures.items():
-            for variant in ("teacher", "no-visibility", "ggx"):
+            for variant in ("teacher", "no-visibility") if args.quick else ("teacher", "no-visibility", "ggx"):
                 r = train_variant(folder, variant, iters)
                 quality[f"{cname}/{variant}"] = r
                 curves[f"{cname} {variant}"] = r["curve"]
@@ -258,10 +230,7 @@ def main():
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
-    lines = ["# OLAT teacher: speed and quality", "",
-             f"Machine: {report['machine']['platform']}, {report['machine']['cpus']} CPUs, "
-             f"torch {torch.__version__} on {report['machine']['torch_threads']} threads; "
-             f"float32 GEMM {report['machine']['gemm_gflops']:.1f} GFLOP/s (measured in this run).",
+    lines = ["# OLAT teacher: speed and quality", "", B.machine_line(report["machine"]),
              f"Captures: {frames} frames, 32 LEDs (groups of 4), 64² or 48² images; "
              f"made in {report['capture_seconds']:.1f} s.", "",
              "## Training throughput", "",
@@ -271,12 +240,14 @@ def main():
         lines.append(f"| {t['preset']} | {t['tex_res']}² | {t['its']:.2f} | {t['sec_per_it']:.2f} | "
                      f"{t['gflop_per_it']:.1f} | {t['gflop_per_it'] / t['sec_per_it']:.1f} | "
                      f"{t['peak_rss_mb']:.0f} |")
-    big = [t for t in report["throughput"] if t["preset"] == "paper"][-1]
-    scale = (1024 / big["tex_res"]) ** 2
-    lines += ["", f"Paper preset at 1024² (extrapolated ×{scale:.0f} from {big['tex_res']}² by "
-              f"FLOPs): {big['sec_per_it'] * scale:.0f} s/iteration here, i.e. 100k iterations ≈ "
-              f"{big['sec_per_it'] * scale * 1e5 / 86400:.0f} days on this CPU — a GPU job.", "",
-              "## Env-map render per frame (16×32 directions, seconds)", "",
+    big = ([t for t in report["throughput"] if t["preset"] == "paper"] or [None])[-1]
+    if big is not None:
+        scale = (1024 / big["tex_res"]) ** 2
+        lines += ["", f"Paper preset at 1024² (extrapolated ×{scale:.0f} from {big['tex_res']}² "
+                  f"by FLOPs): {big['sec_per_it'] * scale:.0f} s/iteration here, i.e. 100k "
+                  f"iterations ≈ {big['sec_per_it'] * scale * 1e5 / 86400:.0f} days on this CPU "
+                  f"— a GPU job."]
+    lines += ["", "## Env-map render per frame (16×32 directions, seconds)", "",
               "| widths | texture | lit dirs | geometry | visibility | inputs | network | composite | total |",
               "|---|---|---|---|---|---|---|---|---|"]
     for e in report["env_render"]:
@@ -296,11 +267,11 @@ def main():
                      f"{m.get('env', {}).get('psnr', float('nan')):.2f} | "
                      f"{r.get('train_seconds', 0):.0f} |")
     lines += ["", "RelightableHands Table 1/3 (real light stage, their units): teacher with visibility "
-              "beats without, and beats the GGX baseline by a large margin. Plot: teacher.svg "
+              "beats without, and beats the GGX baseline by a large margin. Plot: teacher.png "
               "(held-out MSE against training seconds)."]
     (out / "teacher.md").write_text("\n".join(lines) + "\n")
     (out / "teacher.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
-    write_svg(out / "teacher.svg", curves)
+    write_plot(out / "teacher.png", curves, report["machine"])
     print("\n".join(lines))
 
 

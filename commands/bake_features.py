@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import check_output, log, no_clobber_option, quiet_option, renamed_option
+from relight_cli.clitools import (check_output, log, no_clobber_option, preview_option,
+                                  quiet_option, renamed_option)
 
 
 @click.command("bake-features",
@@ -38,8 +39,8 @@ from relight_cli.clitools import check_output, log, no_clobber_option, quiet_opt
 @click.option("--no-visibility", is_flag=True, help="Ablation: no shadows (h ≡ 1, no rays).")
 @click.option("--per-vertex", type=str, default=None,
               help="Also write per-vertex features (.npz; may hold {frame} and {env}).")
-@click.option("--preview", type=str, default=None,
-              help="Also write a PNG contact sheet of the feature layers (may hold {frame}, {env}).")
+@preview_option("Also write a labelled PNG contact sheet of the feature layers, one tile per "
+                "layer with its exposure (may hold {frame}, {env}).")
 @no_clobber_option
 @quiet_option
 def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, shininess, specular,
@@ -217,7 +218,12 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                 write_vertex_features(npz_path, arrays, vrecord)
                 log(f"wrote {npz_path}", quiet)
             if png_path is not None:
-                _write_contact_sheet(png_path, maps_per_env[k])
+                from relight_cli.formats.image import write_png
+                from relight_cli.preview import feature_sheet
+                write_png(png_path, feature_sheet(
+                    maps_per_env[k], f"bake-features {hand}, frame {fr}, env {envs[k]} "
+                                     f"({env_w}x{env_h} directions), view "
+                                     + ",".join(f"{float(x):.2f}" for x in viewer)))
                 log(f"wrote {png_path}", quiet)
         log(f"frame {fr}: {baker.stats.rays_traced} rays, "
             + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()), quiet)
@@ -304,19 +310,3 @@ def _sample_uv_map(image, pm):
     fx, fy = x - x0, y - y0
     return ((image[y0, x0] * (1 - fx) + image[y0, x1] * fx) * (1 - fy)
             + (image[y1, x0] * (1 - fx) + image[y1, x1] * fx) * fy)
-
-
-def _write_contact_sheet(path: str, layers: dict) -> None:
-    """One PNG: every layer tone-mapped on its own, side by side (mask/visibility as grey)."""
-    import numpy as np
-
-    from relight_cli.formats.image import write_png
-    from relight_cli.tonemap import tonemap
-    tiles = []
-    for name, value in layers.items():
-        if value.ndim == 2:
-            tile = np.repeat(np.clip(value, 0, 1)[..., None], 3, axis=-1)
-        else:
-            tile = tonemap(value)
-        tiles.append(np.pad(tile, ((2, 2), (2, 2), (0, 0))))
-    write_png(path, np.concatenate(tiles, axis=1))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  parse_size, progress, quiet_option, seed_option)
+                                  parse_size, preview_option, progress, quiet_option, seed_option)
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
@@ -65,13 +65,19 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, n
 @click.option("--allow-light-inside", is_flag=True,
               help="Build even if a light lies inside an occluder Gaussian (1σ).")
 @click.option("--half", is_flag=True, help="Store 16-bit half floats (default float32).")
+@preview_option("Also write a labelled PNG: the receivers shadowed (with the occluders) and "
+                "their shadow matte, seen from --preview-camera, and each light's atlas slice "
+                "(min T over the bins).")
+@click.option("--preview-camera", default=None, metavar="CAMERA.json",
+              help="OpenCV camera of --preview (default: one framing the occluders and their "
+                   "shadow, from the side and above).")
 @seed_option
 @no_clobber_option
 @quiet_option
 def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, estimator,
             lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
-            allow_light_inside, half, seed, no_clobber, quiet):
+            allow_light_inside, half, preview, preview_camera, seed, no_clobber, quiet):
     """Tabulate the transmittance from each light through the OCCLUDER Gaussians
     (closed-form erf optical depth, T = exp(−τ)) on K radial shells over an
     octahedral atlas of directions (Mir et al., Deep Gaussian Shadow Maps).
@@ -105,7 +111,8 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
       relight dgsm-build hand.ply --receivers floor.ply --lights lights.json \\
           --atlas cube --mapping mass -o shadows-cube.exr
       relight dgsm-build builtin:hand --translate 0,0.3,0 --receivers builtin:room \\
-          --lights lights.json -o shadows.exr --occluders-out hand.ply --receivers-out room.ply
+          --lights lights.json -o shadows.exr --occluders-out hand.ply --receivers-out room.ply \\
+          --preview shadows.png
       relight dgsm-build 'builtin:hand:translate=0,0.25,0' \\
           'donut.ply:fit=0.15;rotate-y=30;on-floor;translate=-0.1,0,-0.05' \\
           --receivers builtin:room --lights lights.json -o shadows.exr
@@ -134,6 +141,9 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     check_output(lights_out, no_clobber, kind="json", what="--lights-out")
     check_output(occluders_out, no_clobber, kind="ply", what="--occluders-out")
     check_output(receivers_out, no_clobber, kind="ply", what="--receivers-out")
+    check_output(preview, no_clobber, kind="png", what="--preview")
+    if preview_camera is not None and preview is None:
+        raise UsageProblem("--preview-camera needs --preview PNG")
     offset = None if translate is None else np.array(parse_vector(translate, 3, "--translate"))
     w, h = parse_size(size, "--size", minimum=2, maximum=4096)
     if receivers is None and t_max is None:
@@ -155,6 +165,10 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         check_input(receivers)
         scene = load_gaussians(receivers)
 
+    view = None
+    if preview_camera is not None:
+        from relight_cli.formats.camera import read_camera
+        view = read_camera(check_input(preview_camera))
     if auto_k is None:
         check_input(lights_spec, stdin="--lights")
         lights = read_lights(lights_spec)
@@ -242,6 +256,15 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                                         lights.names, lights.extra),
                      provenance(LFORMAT, LVERSION, inputs, settings))
         log(f"wrote {lights_out}", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        from relight_cli.preview import dgsm_sheet
+        title = (f"dgsm-build: {len(lights)} light(s), {atlas} atlas {w}x{h}, {bins} bins, "
+                 f"mapping {mapping}\noccluders: {' '.join(occluders)}"
+                 + (f"\nreceivers: {receivers}" if receivers else ""))
+        image, _ = dgsm_sheet(shadow_map, occ, scene, view, footprint, samples, seed, title)
+        write_png(preview, image)
+        log(f"wrote {preview}", quiet)
 
 
 def _parse_auto(spec: str):

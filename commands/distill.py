@@ -30,6 +30,10 @@ from ._learned import training_options
               help="JSON object of config fields overriding the preset (formats/checkpoint.md; "
                    "'-': stdin).")
 @click.option("--iters", type=int, default=None, help="Adam iterations (overrides the preset).")
+@click.option("--env-res", default=None, metavar="WxH",
+              help="Lat-long directions each env map is discretized into: the student's "
+                   "features and the teacher's pseudo ground truth (one teacher pass per "
+                   "direction) [preset: 32x16, the paper's 16×32 grid]. Fewer is faster.")
 @click.option("--no-specular", is_flag=True, help="Ablation (Table 2): diffuse features only.")
 @click.option("--no-visibility", is_flag=True,
               help="Ablation (Table 2): features baked without visibility.")
@@ -40,7 +44,7 @@ from ._learned import training_options
 @no_clobber_option
 @quiet_option
 def command(teacher, capture, env_specs, eval_specs, output, student, preset, config_file, iters,
-            no_specular, no_visibility, cache_dir, vgg_weights, resume, device, metrics_out, seed,
+            env_res, no_specular, no_visibility, cache_dir, vgg_weights, resume, device, metrics_out, seed,
             no_clobber, quiet):
     """Distill RelightableHands' student from TEACHER.pt (train-teacher) on CAPTURE's
     poses and cameras under the --envs maps, and write the checkpoint -o.
@@ -104,7 +108,11 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
 
     from ._inputs import load_envmap
 
-    overrides = {"student": student, "iters": iters, "seed": seed,
+    if env_res is not None:
+        from relight_cli.clitools import parse_env_res
+        env_w, env_h = parse_env_res(env_res)
+        env_res = (env_h, env_w)                     # the config stores (H, W)
+    overrides = {"student": student, "iters": iters, "seed": seed, "env_res": env_res,
                  "specular": False if no_specular else None,
                  "visibility": False if no_visibility else None}
     ckpt = None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from relight_cli.clitools import (FiniteFloat, check_output, dumps_json, log, no_clobber_option,
-                                  parse_size, quiet_option)
+                                  parse_size, preview_option, quiet_option)
 
 
 @click.command("envmap", short_help="Convert, resample, rotate and inspect environment maps.")
@@ -20,7 +20,7 @@ from relight_cli.clitools import (FiniteFloat, check_output, dumps_json, log, no
                    "input size (cube→lat-long: 4N×2N; lat-long→cube: H/2).")
 @click.option("--rotate-y", "rotate_y", type=FiniteFloat(), default=0.0, show_default=True,
               help="Rotate the environment by DEG about +Y (content at +Z moves towards +X).")
-@click.option("--preview", type=str, default=None, help="Also write a tone-mapped PNG preview.")
+@preview_option("Also write a tone-mapped PNG preview (a cube map as a labelled cross).")
 @click.option("--info", "show_info", is_flag=True,
               help="Print JSON statistics (size, layout, min/max/mean, power ∫L dω, "
                    "dominant direction) to stdout, or to -o FILE.json (or -o -) instead of "
@@ -117,8 +117,14 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
                      attributes={"relight.power": stats["power"]})
         log(f"wrote {exr_out}", quiet)
     if preview is not None:
-        from relight_cli.formats.image import write_preview
-        write_preview(preview, result.radiance)
+        if result.layout == "cube":   # six faces unfolded, named, continuous across edges
+            from relight_cli.formats.image import write_png
+            from relight_cli.preview import cross_sheet
+            write_png(preview, cross_sheet(result, f"envmap {input}" + (f" -> {exr_out}"
+                                                                        if exr_out else "")))
+        else:
+            from relight_cli.formats.image import write_preview
+            write_preview(preview, result.radiance)
         log(f"wrote {preview}", quiet)
     if show_info:
         from relight_cli.provenance import write_text_atomic

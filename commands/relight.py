@@ -84,8 +84,12 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
               help="[hand] Appearance model: 'physical' (Lambert + GGX, shadows, SSS), "
                    "'teacher' (a train-teacher checkpoint, --checkpoint) or 'linear' (URHand's "
                    "linear model, train-teacher --model linear) [default: physical].")
-@click.option("--checkpoint", default=None, metavar="CKPT.pt",
-              help="[hand] The learned model of --model teacher or linear (relight/checkpoint).")
+@click.option("--checkpoint", multiple=True, metavar="CKPT.pt",
+              help="[hand] The learned model of --model teacher, linear or student "
+                   "(relight/checkpoint).  Repeat it to give each hand its own model (teacher, "
+                   "linear): each hand of IN takes the checkpoint trained on its handedness, as "
+                   "RelightableHands trains one teacher per hand; one checkpoint renders every "
+                   "hand.")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None,
               help="[hand] Where a learned model runs [default: auto].")
 @click.option("--size", "hand_size", default=None, metavar="WxH",
@@ -118,6 +122,12 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
               help="[hand] Extra EXR layers: comma-separated from normal, uv, depth.")
 @click.option("--preview", default=None, metavar="PNG",
               help="With --camera (or for a hand): a tone-mapped PNG too.")
+@click.option("--splits", default=None, metavar="LIST",
+              help="[capture] Comma-separated splits scored: train, heldout, grouped (every "
+                   "grouped-light frame), fully_lit, env [default: heldout (grouped for a "
+                   "capture no checkpoint trained on), fully_lit, env].")
+@click.option("--eval-samples", type=int, default=None, metavar="N",
+              help="[capture] At most N evenly spaced samples per split [default: all].")
 @seed_option
 @no_clobber_option
 @quiet_option
@@ -126,7 +136,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
             camera, background, model, checkpoint, device, hand_size,
             hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
-            preview, seed, no_clobber, quiet):
+            preview, splits, eval_samples, seed, no_clobber, quiet):
     """Relight IN under new lighting.
 
     \b
@@ -167,6 +177,17 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     are summed and go through the model once: it is linear in them, so no
     distillation is needed.
 
+    Two hands, one model each (RelightableHands Sec. 5): --checkpoint right.pt
+    --checkpoint left.pt; each hand takes the checkpoint trained on its
+    handedness, its visibility traced against both hands.
+
+    \b
+    IN = CAPTURE/ (a relight/capture folder) with --model teacher|linear:
+    render the capture's frames and its eval/ env renders, each hand by its
+    own --checkpoint, and score them against the capture's images inside the
+    hand masks (MSE, PSNR, SSIM, MAE; per hand too for two hands): -o is a
+    relight/metrics JSON (kind validation) with one object per --splits split.
+
     \b
     Examples:
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
@@ -177,11 +198,19 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
       relight relight hand.npz builtin:sky --model physical --camera cam.json -o img.exr
       relight relight hand.npz builtin:sky --model teacher --checkpoint teacher.pt -o img.exr
       relight relight hand.npz builtin:sky --model linear --checkpoint linear.pt -o img.exr
+      relight relight both/ --model teacher --checkpoint right.pt --checkpoint left.pt \\
+          -o both_scores.json
     """
     from relight_cli.errors import UsageProblem
 
     from relight_cli.gaussians.placement import split_spec
 
+    capture_only = {"--splits": splits, "--eval-samples": eval_samples}
+    if _is_capture(input):
+        return _relight_capture(**locals())
+    given = [k for k, v in capture_only.items() if v is not None]
+    if given:
+        raise UsageProblem(f"{', '.join(given)} only apply to a capture (IN = CAPTURE/)")
     lower = split_spec(input)[0].lower()
     gaussian_in = (lower.endswith((".ply", ".obj", ".glb", ".gltf", ".stl", ".off"))
                    or lower in ("builtin:hand", "builtin:room", "builtin:sphere"))
@@ -194,7 +223,7 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
         raise UsageProblem("--object inserts Gaussian objects beside IN = AVATAR.ply (or a mesh, "
                            "builtin:hand|room|sphere); it does not apply to a hand .npz", input)
     if gaussian_in:
-        hand_only = {"ENV": env, "--model": model, "--checkpoint": checkpoint,
+        hand_only = {"ENV": env, "--model": model, "--checkpoint": checkpoint or None,
                      "--device": device, "--size": hand_size,
                      "--lights": hand_lights, "--frame": hand_frame, "--mesh": hand_mesh,
                      "--env-res": env_res, "--tex-res": tex_res, "--aa": aa,
@@ -449,7 +478,7 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     if model not in ("physical", "teacher", "student", "linear"):
         raise UsageProblem(f"--model {model!r} is not available; use physical, teacher, student "
                            f"or linear")
-    if model == "physical" and (checkpoint is not None or device is not None):
+    if model == "physical" and (checkpoint or device is not None):
         raise UsageProblem("--checkpoint and --device belong to a learned --model (teacher, "
                            "student, linear)")
     if model in ("teacher", "student", "linear"):
@@ -590,9 +619,12 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
     if given:
         raise UsageProblem(f"{', '.join(given)} only apply to --model physical (a learned "
                            f"model has its own texture, materials and shadows)")
-    if checkpoint is None:
+    if not checkpoint:
         raise UsageProblem(f"--model {model} needs --checkpoint CKPT.pt (from "
-                           f"{'train-teacher' if model == 'teacher' else 'distill'})")
+                           f"{'distill' if model == 'student' else 'train-teacher'})")
+    if model == "student" and len(checkpoint) > 1:
+        raise UsageProblem("--model student takes one --checkpoint (one student renders "
+                           "every hand)")
     if model == "student" and hand_lights is not None:
         raise UsageProblem("the student is an env-map model: it cannot take --lights (use "
                            "--model teacher for point lights)")
@@ -603,45 +635,55 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
     bg = parse_vector(background, 3, "--background")
     check_output(output, no_clobber, kind="exr")
     check_output(preview, no_clobber, kind="png", what="--preview")
-    for path, role in ((checkpoint, None), (camera, "--camera"), (hand_lights, "--lights")):
+    for path, role in ((camera, "--camera"), (hand_lights, "--lights")):
         if path is not None:
             check_input(path, stdin=role)
+    for path in checkpoint:
+        check_input(path)
 
     # ---- inputs (data errors)
     start = time.perf_counter()
     from relight_cli.commands.bake_features import _load_hand
-    from relight_cli.formats.checkpoint import read_checkpoint
     from relight_cli.hand.scene import preview_camera
     from relight_cli.neural import teacher as T
-    from relight_cli.neural.geometry import PoseTexels, uv_layout_digest
-    from relight_cli.neural.train import model_from_checkpoint, resolve_device
+    from relight_cli.neural.train import resolve_device
 
     from ._inputs import load_envmap
 
     torch_device = resolve_device(device or "auto")
-    ckpt = read_checkpoint(checkpoint, kind=model)
-    mean_texture = None
-    try:
-        if model == "teacher":
-            net, config, mean_texture = model_from_checkpoint(ckpt, torch_device)
-        elif model == "linear":
-            from relight_cli.neural.linear import model_from_checkpoint as load_linear
-            net, config, mean_texture = load_linear(ckpt, torch_device)
-        else:
-            from relight_cli.neural.distill import student_from_checkpoint
-            net, config = student_from_checkpoint(ckpt, torch_device)
-    except (ValueError, UsageProblem) as exc:
-        raise DataError(getattr(exc, "message", str(exc)), checkpoint) from None
     data = _load_hand(input)
     if frame >= data.n_frames:
         raise UsageProblem(f"--frame {frame} is out of range: {input} has {data.n_frames} frame(s)")
-    if (data.n_joints - 1) * 3 != int(ckpt["pose_dim"]):
-        raise DataError(f"the hand has {data.n_joints} joints; the checkpoint's model was trained "
-                        f"on {int(ckpt['pose_dim']) // 3 + 1}", input)
-    layout = ckpt.get("extra", {}).get("uv_layout")
-    if layout is not None and layout != uv_layout_digest(data.mesh("fine")):
-        raise DataError("the hand's UV layout differs from the one the model learned its "
-                        "texture on (another hand model?)", input)
+    if model == "student":
+        from relight_cli.formats.checkpoint import read_checkpoint
+        from relight_cli.neural.distill import student_from_checkpoint
+        from relight_cli.neural.geometry import uv_layout_digest
+        ckpt = read_checkpoint(checkpoint[0], kind=model)
+        try:
+            net, config = student_from_checkpoint(ckpt, torch_device)
+        except (ValueError, UsageProblem) as exc:
+            raise DataError(getattr(exc, "message", str(exc)), checkpoint[0]) from None
+        if (data.n_joints - 1) * 3 != int(ckpt["pose_dim"]):
+            raise DataError(f"the hand has {data.n_joints} joints; the checkpoint's model was "
+                            f"trained on {int(ckpt['pose_dim']) // 3 + 1}", input)
+        layout = ckpt.get("extra", {}).get("uv_layout")
+        if layout is not None and layout != uv_layout_digest(data.mesh("fine")):
+            raise DataError("the hand's UV layout differs from the one the model learned its "
+                            "texture on (another hand model?)", input)
+    else:
+        from relight_cli.hand.scene import handedness
+        from relight_cli.neural import evaluate as EV
+        models = _load_hand_models(checkpoint, model, torch_device)
+        try:
+            per_hand = EV.assign_models(models, handedness(data))
+        except ValueError as exc:
+            raise UsageProblem(str(exc)) from None
+        try:
+            EV.check_hands(per_hand, data)
+        except ValueError as exc:
+            raise DataError(str(exc), input) from None
+        config, ckpt = per_hand[0].config, None
+        _log_mirrored(per_hand, handedness(data), quiet)
     envmap = load_envmap(env) if env is not None else None
     lights = None
     if hand_lights is not None:
@@ -658,55 +700,183 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
     if model == "student":
         return _write_student_render(**locals())
 
-    # ---- render: one pass per light / direction, summed
+    # ---- render: one pass per light / direction and hand (teacher; linear: one per
+    # lighting and hand), hand k by its own model, visibility against every hand
     from relight_cli.clitools import progress
     from relight_cli.features import discretize_env
+    from relight_cli.neural.geometry import PoseTexels
     from relight_cli.render.gbuffer import render_gbuffer
 
     timing = T.Timing()
     t0 = time.perf_counter()
-    texels = PoseTexels(meshes, config.tex_res, shadows=config.visibility)
-    gbuffer = render_gbuffer(meshes, view, samples_axis, scene=texels.renderer.scene)
+    texels = EV.scene_texels(per_hand, lambda n, vis: PoseTexels(meshes, n, shadows=vis))
+    gbuffer = render_gbuffer(meshes, view, samples_axis, scene=texels[0].renderer.scene)
     timing.add("geometry", time.perf_counter() - t0)
-    passes = []
+    passes = []       # (per-hand LightInputs, per-hand [L, 3] weights)
+    t0 = time.perf_counter()
     if lights is not None:
-        intensity = lights.colors * lights.intensities[:, None]
-        passes.append((T.point_light_inputs(texels, lights.positions, config.visibility, timing),
-                       np.asarray(intensity, np.float64)))
-    denv = None
+        intensity = np.asarray(lights.colors * lights.intensities[:, None], np.float64)
+        passes.append(([EV.point_inputs(m, texels[k], k, lights.positions)
+                        for k, m in enumerate(per_hand)], [intensity] * len(per_hand)))
     if envmap is not None:
         denv = discretize_env(envmap, env_h, env_w)
-        passes.append(T.env_light_inputs(texels, denv, config.visibility, timing))
-    total = sum(len(w) for _, w in passes)
+        pairs = [EV.env_inputs(m, texels[k], k, denv) for k, m in enumerate(per_hand)]
+        passes.append(([li for li, _ in pairs], [w for _, w in pairs]))
+    timing.add("visibility", time.perf_counter() - t0)
+    total = sum(len(w) for _, weights in passes for w in weights)
     poses = np.stack([inst.poses[frame] for inst in data.hands])
     image = None
     with progress(total=total, desc=f"relight ({model} passes)", quiet=quiet) as bar:
         for light_inputs, weights in passes:
-            if model == "linear":
-                # one pass per lighting: the features are sums over its lights (Eq. 4)
-                from relight_cli.neural.linear_train import render_lights as linear_lights
-                part = linear_lights(net, texels, gbuffer, poses, light_inputs, weights,
-                                     mean_texture, timing)
-                bar.update(len(weights))
-                image = part if image is None else image + part
-                continue
-            part = T.render_lights(net, texels, gbuffer, poses, light_inputs, weights,
-                                   config.visibility, config.falloff, torch_device,
-                                   mean_texture=mean_texture, progress=bar.update, timing=timing)
+            part = EV.render_scene(per_hand, texels, gbuffer, poses, light_inputs, weights,
+                                   torch_device, progress=bar.update, timing=timing)
             image = part if image is None else image + part
     rgb = image.cpu().numpy().astype(np.float32)
     mask = gbuffer.mask
     # passes are composited over black; the background fills the uncovered sample fraction
-    inputs = {"hand": input, "checkpoint": checkpoint, "env": env, "camera": camera,
-              "lights": hand_lights}
+    inputs = {"hand": input, "env": env, "camera": camera, "lights": hand_lights}
+    inputs.update(_checkpoint_roles(checkpoint))
     _write_learned(output, preview, rgb, mask, bg, model, view, inputs, {
         "model": model, "teacher": config.model, "frame": frame, "mesh": "fine",
         "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
         "visibility": config.visibility, "falloff": config.falloff,
-        "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
+        "checkpoints": [{"hand": k, "checkpoint": m.name, "model": m.model_name,
+                         "sides": m.sides, "step": m.step} for k, m in enumerate(per_hand)],
+        "background": list(bg)})
     log(f"wrote {output} ({view.width}x{view.height}, {total} pass(es), "
         f"{time.perf_counter() - start:.2f} s: "
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in timing.seconds.items()) + ")", quiet)
+
+
+def _load_hand_models(paths, kind: str, device) -> list:
+    """One HandModel per checkpoint path (of ``kind``: teacher or linear); DataError
+    naming the file for one that does not load or build."""
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.evaluate import load_hand_model
+    models = []
+    for path in paths:
+        ckpt = read_checkpoint(path, kind=kind)
+        try:
+            models.append(load_hand_model(ckpt, device, name=path))
+        except (ValueError, UsageProblem) as exc:
+            raise DataError(getattr(exc, "message", str(exc)), path) from None
+    return models
+
+
+def _log_mirrored(per_hand, sides, quiet) -> None:
+    """Say so when one hand's model renders a hand of the other handedness (its mirror
+    image: allowed, the tangent frames mirror, but not what the model was trained on)."""
+    for k, (m, side) in enumerate(zip(per_hand, sides)):
+        if m.sides and side not in m.sides:
+            log(f"note: hand {k} ({side}) is rendered by {m.name}, trained on the "
+                f"{'/'.join(m.sides)} hand; give one --checkpoint per hand for its own model",
+                quiet)
+
+
+def _checkpoint_roles(paths) -> dict:
+    """Provenance roles of the checkpoints: ``checkpoint``, or ``checkpoint.0``, ``.1`` …"""
+    if len(paths) == 1:
+        return {"checkpoint": paths[0]}
+    return {f"checkpoint.{i}": p for i, p in enumerate(paths)}
+
+
+def _is_capture(spec: str) -> bool:
+    import os
+    return os.path.isdir(spec) or os.path.basename(spec) == "capture.json"
+
+
+def _relight_capture(input, env, output, checkpoint, device, model, aa, env_res, splits,
+                     eval_samples, no_clobber, quiet, **options):
+    """Capture mode: a capture's frames and env renders, each hand by its own learned
+    model, scored against the capture's images (relight/metrics JSON)."""
+    import os
+    import time
+
+    from relight_cli.errors import DataError, UsageProblem
+
+    # ---- usage checks before any work
+    hand_or_gaussian = {"ENV": env, **{flag: options.get(name)
+                                       for name, flag in _VIEW_OPTIONS.items()}}
+    given = [k for k, v in hand_or_gaussian.items() if v not in (None, False, ())]
+    if given:
+        raise UsageProblem(f"{', '.join(given)} do not apply to a capture (IN = CAPTURE/ renders "
+                           f"the capture's own cameras, lights and env maps)")
+    if model not in ("teacher", "linear"):
+        raise UsageProblem("a capture is scored with --model teacher or linear (and one "
+                           "--checkpoint per hand)")
+    if not checkpoint:
+        raise UsageProblem(f"--model {model} needs --checkpoint CKPT.pt (one per hand)")
+    from relight_cli.neural.evaluate import SPLITS
+    names = None
+    if splits is not None:
+        names = [n.strip() for n in splits.split(",") if n.strip()]
+        bad = [n for n in names if n not in SPLITS]
+        if not names or bad:
+            raise UsageProblem(f"--splits takes {', '.join(SPLITS)}"
+                               + (f"; unknown: {', '.join(bad)}" if bad else ""))
+    if eval_samples is not None and eval_samples < 1:
+        raise UsageProblem(f"--eval-samples must be ≥ 1, got {eval_samples}")
+    if aa is not None and not 1 <= aa <= 8:
+        raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
+    from relight_cli.clitools import parse_env_res
+    grid_w, grid_h = parse_env_res(env_res or "32x16")
+    grid = (grid_h, grid_w)
+    folder = input if os.path.isdir(input) else (os.path.dirname(input) or ".")
+    index = os.path.join(folder, "capture.json")
+    if not os.path.isfile(index):
+        raise DataError("not a capture folder (no capture.json)", folder)
+    for path in (index, *checkpoint):
+        check_input(path)
+    # after the inputs (never one of them): the scores are a relight/metrics JSON
+    check_output(output, no_clobber, kind="json")
+
+    # ---- inputs (data errors), then the scores
+    start = time.perf_counter()
+    from relight_cli.clitools import progress
+    from relight_cli.formats.metrics_json import make_record, write_metrics
+    from relight_cli.neural.evaluate import CaptureEvaluator
+    from relight_cli.neural.train import resolve_device
+    from relight_cli.provenance import provenance
+
+    torch_device = resolve_device(device or "auto")
+    models = _load_hand_models(checkpoint, model, torch_device)
+    try:
+        evaluator = CaptureEvaluator(folder, models, torch_device, aa, grid)
+    except ValueError as exc:
+        raise UsageProblem(str(exc)) from None
+    chosen = names or evaluator.default_splits()
+    available = evaluator.data.splits()
+    total = sum(len(available.get(n) or []) if eval_samples is None
+                else min(eval_samples, len(available.get(n) or [])) for n in chosen)
+    with progress(total=total, desc="relight (capture samples)", quiet=quiet) as bar:
+        scores = evaluator.evaluate(chosen, eval_samples, progress=bar.update)
+    if not scores:
+        raise DataError(f"the capture has no samples in {', '.join(chosen)}", index)
+    inputs = {"capture": index, **_checkpoint_roles(checkpoint)}
+    settings = {"model": model, "splits": chosen, "eval_samples": eval_samples,
+                "env_res": list(grid), "aa": evaluator.aa,
+                "hands": [{"hand": k, "name": evaluator.names[k], "checkpoint": m.name,
+                           "model": m.model_name, "sides": m.sides, "step": m.step}
+                          for k, m in enumerate(evaluator.models)]}
+    record = provenance("relight/metrics", 2, inputs, settings)
+    write_metrics(output, make_record("validation", scores, {r: {"path": p} for r, p in
+                                                              inputs.items()}, settings, record))
+    summary = "; ".join(f"{n}: MSE {m['mse'] * 1e3:.3f}e-3 SSIM {m['ssim']:.3f} ({m['samples']})"
+                        for n, m in scores.items())
+    log(f"wrote {output} ({time.perf_counter() - start:.1f} s): {summary}", quiet)
+
+
+# options of the hand and Gaussian modes (a capture brings its own views and lights)
+_VIEW_OPTIONS = {"probe": "--probe", "dgsm": "--dgsm", "receivers": "--receivers",
+                 "objects": "--object", "receivers_out": "--receivers-out",
+                 "shadow_matte": "--shadow-matte", "camera": "--camera",
+                 "hand_size": "--size", "hand_lights": "--lights",
+                 "hand_frame": "--frame", "hand_mesh": "--mesh", "tex_res": "--tex-res",
+                 "no_shadows": "--no-shadows", "no_specular": "--no-specular",
+                 "no_sss": "--no-sss", "sss_scale": "--sss-scale", "bounce": "--bounce",
+                 "albedo_map": "--albedo", "roughness_map": "--roughness", "aov": "--aov",
+                 "preview": "--preview"}
 
 
 def _write_learned(output, preview, rgb, mask, bg, model, camera, inputs, settings):
@@ -770,7 +940,8 @@ def _write_student_render(net, config, ckpt, data, frame, meshes, view, envmap, 
     rgb = image.cpu().numpy().astype(np.float32)
     mask = gbuffer.mask
     _write_learned(output, preview, rgb, mask, bg, model, view,
-                   {"hand": input, "checkpoint": checkpoint, "env": env, "camera": camera}, {
+                   {"hand": input, "checkpoint": checkpoint[0], "env": env,
+                    "camera": camera}, {
                        "model": model, "student": config.student, "frame": frame, "mesh": "fine",
                        "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
                        "specular": config.specular, "visibility": config.visibility,

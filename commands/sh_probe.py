@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_output, log,
-                                  no_clobber_option, parse_vector, quiet_option)
+                                  no_clobber_option, parse_vector, preview_option, quiet_option)
 
 
 @click.command("sh-probe", short_help="Fit an SH light probe to an env map or a Gaussian scene.")
@@ -29,10 +29,12 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
               help="Near plane (metres) of the scene probe's cube cameras.")
 @click.option("--nonfinite", type=click.Choice(["error", "zero", "clamp"]), default="error",
               show_default=True, help="What to do with NaN/Inf env-map pixels.")
+@preview_option("Also write the probe's radiance as a labelled lat-long PNG (beside the "
+                "env map it was fitted to, on one exposure).")
 @no_clobber_option
 @quiet_option
 def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, near, nonfinite,
-            no_clobber, quiet):
+            preview, no_clobber, quiet):
     """Fit radiance L(ω) ≈ Σ c_k Y_k(ω) by solid-angle-weighted ridge least squares.
 
     IN is an environment map (EXR lat-long or cube, .hdr, builtin:sky|studio|
@@ -44,7 +46,7 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     \b
     Examples:
       relight sh-probe builtin:sky -o sky.json
-      relight sh-probe stage.exr --degree 2 -o stage.json
+      relight sh-probe stage.exr --degree 2 -o stage.json --preview stage.png
       relight sh-probe room.ply --at 0,1.2,0 -o room-probe.json
       relight sh-probe builtin:sky -o - | relight relight avatar.ply --probe - -o relit.ply
     """
@@ -56,6 +58,7 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     from relight_cli.provenance import provenance
 
     check_output(output, no_clobber, kind="json")
+    check_output(preview, no_clobber, kind="png", what="--preview")
     if degree == "auto":
         fixed = None
     else:
@@ -74,6 +77,7 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     start = time.perf_counter()
     settings = {"degree": degree, "ridge": ridge}
     position = None
+    env = None
     if is_scene:
         from relight_cli.clitools import progress
         from relight_cli.formats.gaussians_ply import read_gaussians
@@ -112,3 +116,11 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
     if output != "-":
         log(f"wrote {output} (degree {chosen}, {len(coefficients)} coefficients, "
             f"{time.perf_counter() - start:.2f} s)", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        from relight_cli.preview import probe_sheet
+        if is_scene:   # what the probe was fitted to: the splatted cube faces
+            from relight_cli.preview import samples_latlong
+            env = samples_latlong(samples.directions, samples.radiance)
+        write_png(preview, probe_sheet(coefficients, chosen, input, env, position))
+        log(f"wrote {preview}", quiet)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (SquareSize, log, no_clobber_option, quiet_option,
-                                  renamed_option, seed_option)
+from relight_cli.clitools import (SquareSize, check_output, log, no_clobber_option,
+                                  preview_option, quiet_option, renamed_option, seed_option)
 
 
 @click.command("synth-capture",
@@ -43,27 +43,43 @@ from relight_cli.clitools import (SquareSize, log, no_clobber_option, quiet_opti
               help="Comma-separated env maps (files or builtin:NAME) of the evaluation renders.")
 @click.option("--eval-cameras", type=int, default=4, show_default=True,
               help="Cameras (the first N of the dome) of the evaluation renders.")
+@click.option("--eval-env-res", default="64x32", show_default=True, metavar="WxH",
+              help="Lat-long grid the ground-truth env renders integrate over; the env maps "
+                   "are stored in eval/envs/ resampled to it.")
+@click.option("--skin-seed", type=int, default=0, show_default=True,
+              help="Seed of the procedural skin: the subject (keep it across the right, left "
+                   "and two-hand captures of one study; --seed changes their motion).")
+@preview_option("Also write a labelled PNG contact sheet: a few cameras (rows) × fully lit, "
+                "grouped and held-out env-map frames (columns).")
 @seed_option
 @no_clobber_option
 @quiet_option
 def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
             keyframe_every, tex_res, aa, no_sss, bounce, eval_poses, eval_envs, eval_cameras,
-            seed, no_clobber, quiet):
-    """Render a light-stage capture of HAND (a hand.npz, or builtin:right|left[:POSE];
-    default builtin:right) into FOLDER in the relight/capture format
-    (formats/capture.md): capture.json, the ground-truth hand.npz,
-    images/{frame:06d}/{camera}.exr (R, G, B, A = mask) and held-out
-    evaluation renders under env maps in eval/.
+            eval_env_res, skin_seed, preview, seed, no_clobber, quiet):
+    """Render a light-stage capture of HAND (a hand.npz, or
+    builtin:right|left|two[:POSE]; default builtin:right) into FOLDER in the
+    relight/capture format (formats/capture.md): capture.json, the ground-truth
+    hand.npz, images/{frame:06d}/{camera}.exr (R, G, B, A = mask; with two hands
+    also hand0.A, hand1.A: each hand's coverage) and held-out evaluation renders
+    under env maps in eval/.
 
     Frames are time-multiplexed: every --full-every-th frame has all --leds on,
     the others a group of --group neighbouring LEDs.  Rerunning the same
     command resumes: frames whose images exist and are valid are skipped
     (--no-clobber refuses an existing FOLDER instead).
 
+    Two hands (builtin:two, or a hand.npz with two hands): both move through
+    their own random poses and interact: the second hand faces the first one's
+    palm and slides in until the hands are 6-25 mm apart, so they shadow,
+    occlude and light (--bounce) each other but never touch.
+
     \b
     Examples:
       relight synth-capture -o capture/ --cameras 20 --leds 64 --frames 30
+      relight synth-capture builtin:two -o both/ --seed 3
       relight synth-capture hand.npz -o capture/ --motion file --size 256
+      relight synth-capture -o capture/ --cameras 8 --frames 6 --preview capture.png
     """
     import os
     import time
@@ -75,7 +91,9 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
     from relight_cli.formats.hand_npz import write_hand
     from relight_cli.provenance import provenance
     from relight_cli.render.appearance import hand_materials
-    from relight_cli.render.capture import FrameRenderer, StageSettings, hand_motion, plan_capture
+    from relight_cli.render.capture import (FrameRenderer, StageSettings, hand_coverage,
+                                            hand_motion, plan_capture, stage_envmap,
+                                            two_hand_record)
 
     from .bake_features import _load_hand
     from ._inputs import load_envmap
@@ -93,7 +111,7 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
             raise UsageProblem(f"{name} must be in [{lo}, {hi}], got {value}")
     if group > lights:
         raise UsageProblem(f"--group {group} exceeds --leds {leds}")
-    if eval_cameras > cameras:
+    if eval_poses and eval_cameras > cameras:
         raise UsageProblem(f"--eval-cameras {eval_cameras} exceeds --cameras {cameras}")
     if motion == "file" and hand.startswith("builtin:"):
         raise UsageProblem("--motion file needs a HAND.npz with frames")
@@ -104,10 +122,14 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
                  .split(".", 1)[0] for e in env_specs]
     if len(set(env_names)) != len(env_names):
         raise UsageProblem("two --eval-envs maps have the same name")
+    from relight_cli.clitools import parse_env_res
+    env_w, env_h = parse_env_res(eval_env_res, "--eval-env-res")
+    env_res = (env_h, env_w)
     if output in ("", "-"):
         raise UsageProblem("-o is the capture FOLDER; give a folder name", repr(output))
     if no_clobber and os.path.lexists(output):
         raise UsageProblem("output exists and --no-clobber was given", output)
+    check_output(preview, no_clobber, kind="png", what="--preview")
     if os.path.exists(output) and not os.path.isdir(output):
         raise UsageProblem("output exists and is not a folder", output)
     parent = os.path.dirname(os.path.abspath(output))
@@ -123,25 +145,22 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
 
     # ---- inputs (data errors)
     data = _load_hand(hand)
-    envs = [load_envmap(spec) for spec in env_specs]
+    # each env map is resampled once (exactly, power preserving) to the stage's working
+    # grid: what eval/envs/ stores and the ground truth integrates
+    envs = [stage_envmap(load_envmap(spec), env_res) for spec in env_specs]
     settings = StageSettings(cameras=cameras, lights=lights, group=group,
                              frames=frames if motion == "random" else data.n_frames,
                              full_every=full_every, res=res, keyframe_every=keyframe_every,
-                             seed=seed, tex_res=tex_res, aa=aa, sss=not no_sss, bounce=bounce)
+                             seed=seed, tex_res=tex_res, aa=aa, sss=not no_sss, bounce=bounce,
+                             skin_seed=skin_seed, eval_env_res=tuple(env_res))
     plan = plan_capture(data, settings, motion=data if motion == "file" else None)
     if existing is not None and existing.key != plan.key:
         raise UsageProblem("output folder holds a different capture (other settings or hand); "
                            "give a new folder to start another", output)
-    materials = hand_materials(plan.motion, "fine", max(tex_res, 256), seed)
+    materials = hand_materials(plan.motion, "fine", max(tex_res, 256), skin_seed)
+    # held-out poses: a random motion of the scene's hands (both interacting, for two)
     eval_hand = (hand_motion(data, eval_poses, seed + 7919, keyframe_every=1)
                  if eval_poses else None)
-    if eval_hand is not None and len(plan.motion.hands) == 2:
-        # two hands: the held-out poses keep the scene's pair (the second mirrors the first,
-        # at the scene's own placement), so evaluation renders match the training scene
-        from relight_cli.hand.scene import two_hands
-        eval_hand = two_hands(eval_hand)
-        for mine, theirs in zip(eval_hand.hands, plan.motion.hands):
-            mine.root = theirs.root.copy()
     log(f"{'resuming' if existing else 'writing'} {output}: {settings.cameras} cameras, "
         f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})", quiet)
 
@@ -157,9 +176,13 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
                                    "image": f"eval/{p:03d}/{n}/{c.name}.exr"}
                                   for p in range(eval_poses) for n in env_names
                                   for c in plan.cameras[:eval_cameras]]}
+    n_hands = len(plan.motion.hands)
+    stage = asdict(settings)
+    if n_hands == 2:
+        stage["two_hands"] = two_hand_record(plan.motion, eval_hand, placed=motion == "random")
     capture = C.Capture(plan.cameras, plan.lights.positions, plan.lights.intensity,
                         plan.light_names, plan.frames, "hand.npz", settings.fps, evaluation,
-                        plan.key, False, asdict(settings), record)
+                        plan.key, False, stage, record)
     start = time.perf_counter()
     rendered = skipped = 0
     with C.immediate_writes():
@@ -183,7 +206,7 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
                                    "relight.lit": frame.lit},
                                   provenance("relight/capture-image", 1, inputs,
                                              {"frame": frame.index, "camera": cam.name}),
-                                  camera=cam)
+                                  camera=cam, hand_masks=hand_coverage(result, n_hands))
                     rendered += 1
             frame.images = [c.name for c in plan.cameras]
         if evaluation is not None:
@@ -211,9 +234,17 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
                                        "relight.camera": cam.name},
                                       provenance("relight/capture-image", 1, inputs,
                                                  {"pose": pose, "env": name, "camera": cam.name}),
-                                      camera=cam)
+                                      camera=cam, hand_masks=hand_coverage(result, n_hands))
                         rendered += 1
         capture.complete = True
         C.write_capture(index_path, capture)
     log(f"wrote {output}: {rendered} image(s) rendered, {skipped} already there "
         f"({time.perf_counter() - start:.1f} s)", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        from relight_cli.preview import capture_sheet
+        title = (f"synth-capture {hand} -> {output}: {settings.cameras} cameras, "
+                 f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})")
+        write_png(preview, capture_sheet(
+            capture, lambda rel: C.read_image(os.path.join(output, rel)), title))
+        log(f"wrote {preview}", quiet)

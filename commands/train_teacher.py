@@ -108,6 +108,7 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     from relight_cli.errors import DataError
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
     from relight_cli.neural.config import TeacherConfig, resolve_config, resume_config
+    from relight_cli.hand.scene import handedness
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.train import resolve_device, train
     from relight_cli.provenance import outside_transaction, provenance
@@ -151,7 +152,8 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     splits = data.splits()
     log(f"read {capture}: {len(splits['train'])} training, {len(splits['heldout'])} held-out, "
         f"{len(splits['fully_lit'])} fully lit, {len(splits.get('env', []))} env-map samples; "
-        f"{data.n_hands} hand(s); model {config.model}, {config.tex_res}² texture, "
+        f"{data.n_hands} hand(s) ({', '.join(handedness(data.hand))}, recorded in the "
+        f"checkpoint); model {config.model}, {config.tex_res}² texture, "
         f"{config.iters} iterations on {torch_device}"
         + ("" if vgg is not None else "; no VGG weights: λ_VGG = 0"), quiet)
     if vgg is None:

@@ -239,13 +239,21 @@ def immediate_writes():
     return outside_transaction()
 
 
+def hand_channel(hand: int) -> str:
+    """EXR channel of hand ``hand``'s coverage (hand.npz order) in a scene of two or more."""
+    return f"hand{int(hand)}.A"
+
+
 def write_image(path: str, rgb: np.ndarray, mask: np.ndarray, key: str,
                 attributes: dict | None = None, provenance: dict | None = None,
-                camera=None) -> None:
-    """Write one capture image: R, G, B (linear radiance, half floats) and A (mask);
-    with ``camera``, also OpenEXR's worldToCamera and worldToNDC (formats/exr.py)."""
+                camera=None, hand_masks=None) -> None:
+    """Write one capture image: R, G, B (linear radiance, half floats), A (mask) and, for a
+    scene of several hands, each hand's coverage (``hand_masks``: [H, W] per hand); with
+    ``camera``, also OpenEXR's worldToCamera and worldToNDC (formats/exr.py)."""
     from relight_cli.formats.exr import write_exr
     channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
+    for k, coverage in enumerate(hand_masks or []):
+        channels[hand_channel(k)] = coverage
     attrs = {"relight.capture_key": key, **(attributes or {})}
     record = dict(provenance or {}, format=IMAGE_FORMAT, version=IMAGE_VERSION)
     write_exr(path, channels, attributes=attrs, half=True, provenance=record, camera=camera)
@@ -257,6 +265,16 @@ def read_image(path: str, camera=None) -> tuple[np.ndarray, np.ndarray]:
     Raises DataError for a damaged file, a newer version of the format, missing
     channels, non-finite pixels, or a size different from ``camera``'s.  Images of
     other tools (a converted real capture) may carry no relight header.
+    """
+    return read_image_hands(path, camera, 0)[:2]
+
+
+def read_image_hands(path: str, camera=None, n_hands: int = 0):
+    """(radiance [H, W, 3], mask [H, W], per-hand coverage [n_hands, H, W] or None) of a
+    capture image, float32; the coverage is None when the image has no per-hand channels
+    (one-hand captures, converted real captures) or ``n_hands`` < 2.
+
+    Raises DataError as :func:`read_image`, and for a partial set of per-hand channels.
     """
     from relight_cli.formats.exr import FORMAT_KEY, VERSION_KEY, read_exr
 
@@ -275,7 +293,17 @@ def read_image(path: str, camera=None) -> tuple[np.ndarray, np.ndarray]:
                         f"{camera.width}x{camera.height}", path)
     if not (np.isfinite(rgb).all() and np.isfinite(mask).all()):
         raise DataError("capture image holds NaN/Inf pixels", path)
-    return rgb, mask
+    hands = None
+    names = [hand_channel(k) for k in range(n_hands)] if n_hands >= 2 else []
+    present = [n for n in names if n in image.channels]
+    if present:
+        if len(present) != len(names):
+            absent = next(n for n in names if n not in image.channels)
+            raise DataError(f"capture image has per-hand channels but lacks {absent}", path)
+        hands = np.stack([image.channels[n] for n in names]).astype(np.float32)
+        if not np.isfinite(hands).all():
+            raise DataError("capture image holds NaN/Inf per-hand coverage", path)
+    return rgb, mask, hands
 
 
 def image_is_valid(path: str, camera, key: str) -> bool:

@@ -173,6 +173,12 @@ def check_output(path: str | None, no_clobber: bool = False, text: bool = False,
         check_extension(path, kind, what)
 
 
+def preview_option(help: str):
+    """``--preview PNG``: a picture of the result (relight_cli.preview), never data;
+    commands check it with ``check_output(path, no_clobber, kind="png", what="--preview")``."""
+    return click.option("--preview", default=None, metavar="PNG", help=help)
+
+
 def check_extension(path: str, kind: str, what: str = "-o") -> None:
     """A usage error unless ``path`` ends with one of ``kind``'s extensions (any case);
     an existing character device or FIFO (``/dev/null``, a named pipe) passes."""

@@ -105,8 +105,12 @@ Reading JSON
                                             test_outputs_and_bad_inputs.py::test_bad_input[*json*]
 Images
   linear EXR, half or float ............... test_exr_outputs_are_half_or_float
-  channel names ........................... test_exr_channels_are_named_by_layer
-  PNG preview: Reinhard + sRGB ............ test_png_preview_is_reinhard_then_srgb
+  channel names ........................... test_exr_channels_are_named_by_layer,
+                                            test_capture_images_of_two_hands_name_each_hands_coverage
+  PNG previews: contact sheets ............ test_preview.py (formats/preview.md's promises), e.g.
+                                            test_preview_must_be_a_png,
+                                            test_png_is_byte_identical_and_has_no_time_stamp
+  rendered images: Reinhard + sRGB ....... test_png_preview_is_reinhard_then_srgb
 Conventions
   world right-handed, +Y up, metres ....... test_world_is_right_handed_y_up_in_metres
   cameras OpenCV, world→camera, pixel
@@ -171,7 +175,9 @@ def _written_runs(d: Path, w: Path) -> dict[str, list[list]]:
         "relight": [["relight", d / "hand.npz", d / "sky.exr", "--size", "8x8", "--tex-res", "8",
                      "--aa", "1", "--env-res", "8x4", "--aov", "normal", "-o", w / "render.exr"],
                     ["relight", d / "ball.ply", "--probe", d / "probe.json", "-o",
-                     w / "relit.ply"]],
+                     w / "relit.ply"],
+                    ["relight", d / "cap", "--model", "teacher", "--checkpoint",
+                     d / "teacher.pt", "-o", w / "scores.json"]],
         "dgsm-build": [["dgsm-build", d / "ball.ply", "--receivers", d / "room.ply", "--lights",
                         d / "lights.json", "--size", "4", "--bins", "2", "-o", w / "shadows.exr",
                         "--lights-out", w / "lights.json", "--occluders-out", w / "occ.ply"]],
@@ -416,11 +422,15 @@ READERS = {
         "distill": lambda d, b, o: ["distill", d / "teacher.pt", b, "--envs", "builtin:sky",
                                     "-o", o / "x.pt"],
         "camera --from": lambda d, b, o: ["camera", "--from", b / "capture.json",
-                                          "-o", o / "x.json"]}),
+                                          "-o", o / "x.json"],
+        "relight CAPTURE/": lambda d, b, o: ["relight", b, "--model", "teacher", "--checkpoint",
+                                             d / "teacher.pt", "-o", o / "x.json"]}),
     "relight/capture-image": (lambda d, w: w / "cap", "cap", {
         "train-teacher": lambda d, b, o: ["train-teacher", b, *_train(d), "-o", o / "x.pt"],
         "distill": lambda d, b, o: ["distill", d / "teacher.pt", b, "--envs", "builtin:sky",
-                                    "--iters", "1", "-o", o / "x.pt"]}),
+                                    "--iters", "1", "-o", o / "x.pt"],
+        "relight CAPTURE/": lambda d, b, o: ["relight", b, "--model", "teacher", "--checkpoint",
+                                             d / "teacher.pt", "-o", o / "x.json"]}),
     "relight/vertex-features": (lambda d, w: w / "feats.npz", "feats.npz", {}),
     "relight/metrics": (lambda d, w: d / "m.json", "m.json", {
         "metrics compare": lambda d, b, o: ["metrics", "compare", b, d / "m.json"]}),
@@ -899,6 +909,17 @@ def test_exr_channels_are_named_by_layer(written):
     assert {"normal.X", "normal.Y", "normal.Z"} <= set(_exr_channels(written[0] / "render.exr"))
 
 
+def test_capture_images_of_two_hands_name_each_hands_coverage(tmp_path):
+    """A capture image of two hands adds handK.A (hand.npz order) beside R G B A."""
+    from relight_cli.formats.capture import read_image_hands, write_image
+    ones = np.ones((4, 6), np.float32)
+    write_image(str(tmp_path / "x.exr"), np.ones((4, 6, 3), np.float32), ones, "k",
+                hand_masks=[ones * 0.25, ones * 0.75])
+    assert set(_exr_channels(tmp_path / "x.exr")) == {"R", "G", "B", "A", "hand0.A", "hand1.A"}
+    hands = read_image_hands(str(tmp_path / "x.exr"), None, 2)[2]
+    np.testing.assert_allclose(hands[:, 0, 0], [0.25, 0.75])
+
+
 def _srgb(x):
     """IEC 61966-2-1 encoding, written out here independently of relight_cli.tonemap."""
     x = np.clip(x, 0, 1)
@@ -906,19 +927,21 @@ def _srgb(x):
 
 
 def test_png_preview_is_reinhard_then_srgb(tmp_path):
-    """Reinhard et al. 2002, Eq. 1-3 (key 0.18 over the log-average luminance, then
-    L / (1 + L) applied to the colour's luminance), then sRGB, 8 bits.  One level of
-    tolerance: rounding of the 8-bit quantisation."""
+    """A rendered image's preview (relight; envmap's lat-long maps): Reinhard et al. 2002,
+    Eq. 1-3 (key 0.18 over the log-average luminance, then L / (1 + L) applied to the
+    colour's luminance), then sRGB, 8 bits; a fixed exposure (fit-geometry's) replaces
+    the key's scale.  One level of tolerance: the 8-bit quantisation."""
     from relight_cli.formats.image import read_image, write_preview
     rng = np.random.default_rng(4)
     radiance = np.exp(rng.normal(0, 2, (12, 10, 3))).astype(np.float32)  # positive, HDR
-    write_preview(str(tmp_path / "p.png"), radiance)
-    shown, _ = read_image(str(tmp_path / "p.png"))
     rgb = radiance.astype(np.float64)
     lum = rgb @ [0.2126, 0.7152, 0.0722]
-    scaled = 0.18 / np.exp(np.mean(np.log(lum))) * lum
-    expected = _srgb(rgb * (scaled / (1 + scaled) / lum)[..., None])
-    assert np.abs(shown - expected).max() <= 1 / 255 + 1e-6
+    for exposure, scale in ((None, 0.18 / np.exp(np.mean(np.log(lum)))), (2.0, 2.0)):
+        write_preview(str(tmp_path / "p.png"), radiance, exposure=exposure)
+        shown, _ = read_image(str(tmp_path / "p.png"))
+        scaled = scale * lum
+        expected = _srgb(rgb * (scaled / (1 + scaled) / lum)[..., None])
+        assert np.abs(shown - expected).max() <= 1 / 255 + 1e-6, exposure
 
 
 # ----------------------------------------------------------------------------- conventions

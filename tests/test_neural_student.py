@@ -262,7 +262,8 @@ def test_help(run_cli):
 
 @pytest.mark.parametrize("case", ["nan-env", "student-as-teacher", "no-training-envs",
                                   "missing-envs", "missing-eval-envs", "bad-output-name",
-                                  "cache-is-a-file", "output-is-the-teacher"])
+                                  "cache-is-a-file", "output-is-the-teacher",
+                                  "env-res-height-first"])
 def test_distill_bad_input(setup, tmp_path, case):
     args = ["distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
             setup / "student.json", "--iters", "2"]
@@ -286,6 +287,9 @@ def test_distill_bad_input(setup, tmp_path, case):
     elif case == "missing-eval-envs":
         args += ["--eval-envs", tmp_path / "nope.exr"]
     elif case == "bad-output-name":
+        code = 2
+    elif case == "env-res-height-first":
+        args += ["--env-res", "8x16"]                      # HxW: refused, WxH is 16x8
         code = 2
     elif case == "cache-is-a-file":
         (tmp_path / "cache").write_text("x")
@@ -340,7 +344,9 @@ def test_fixed_evaluation_envs(setup, tmp_path):
     out = tmp_path / "fixed.pt"
     r = _invoke("distill", setup / "teacher.pt", setup / "cap", "--envs", "builtin:sky",
                 "--envs", "builtin:uniform", "--eval-envs", "builtin:studio", "--config",
-                setup / "student.json", "--iters", "2", "-q", "-o", out)
+                setup / "student.json", "--iters", "2", "--env-res", "8x4", "-q", "-o", out)
     assert r.exit_code == 0, r.output
-    envs = json.loads(torch.load(out, weights_only=True)["extra"]["envs"])
+    ckpt = torch.load(out, weights_only=True)
+    envs = json.loads(ckpt["extra"]["envs"])
     assert envs == {"train": ["sky", "uniform"], "eval": ["studio"]}
+    assert json.loads(ckpt["config"])["env_res"] == [4, 8]        # --env-res is WxH, stored (H, W)

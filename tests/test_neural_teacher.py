@@ -23,7 +23,7 @@ from relight_cli.neural.config import PAPER_UNIT, TeacherConfig, resolve_config 
 # A capture small enough for seconds of training: 3 cameras, 12 LEDs, 8 frames (6 grouped).
 CAPTURE_ARGS = ["--cameras", "3", "--leds", "12", "--group", "3", "--frames", "8", "--size",
                 "32", "--tex-res", "64", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
-                "--eval-envs", "builtin:sky", "-q"]
+                "--eval-envs", "builtin:sky", "--eval-env-res", "32x16", "-q"]
 # The smallest teacher: 16² texture, 4-wide U-Net (resume/DDP/CLI tests need seconds only).
 SMALL = {"tex_res": 16, "encoder": [4, 4, 4], "decoder": [8, 8, 8], "pose_channels": [4, 4],
          "val_samples": 2}
@@ -646,4 +646,301 @@ def test_relight_teacher_bad_input(case, capture_dir, small_config, tmp_path, ru
     assert r.exit_code == code, r.output
     lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and "error:" in lines[0], r.output
+    assert list(out.parent.iterdir()) == []
+
+
+# ---------------------------------------------------------------- one teacher per hand, two hands
+
+# RelightableHands Sec. 5: each hand is captured and learned alone; two-hand sequences are
+# for evaluation only.  Tiny captures of the left hand and of both hands (other seeds than
+# the right hand's capture, so their poses are new to it).
+HAND_ARGS = ["--cameras", "3", "--leds", "8", "--group", "2", "--frames", "4", "--size", "24",
+             "--tex-res", "48", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "2",
+             "--eval-envs", "builtin:sky", "--eval-env-res", "16x8", "-q"]
+
+
+def _synth(tmp_path_factory, spec, seed):
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+    out = tmp_path_factory.mktemp(spec.split(":")[-1]) / "capture"
+    r = CliRunner().invoke(cli, ["synth-capture", spec, "-o", str(out), *HAND_ARGS,
+                                 "--seed", str(seed)], catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    return out
+
+
+@pytest.fixture(scope="session")
+def left_capture(tmp_path_factory):
+    return _synth(tmp_path_factory, "builtin:left", 11)
+
+
+@pytest.fixture(scope="session")
+def two_capture(tmp_path_factory):
+    return _synth(tmp_path_factory, "builtin:two", 12)
+
+
+@pytest.fixture(scope="session")
+def hand_teachers(capture_dir, left_capture, small_config, tmp_path_factory):
+    """(right.pt, left.pt): tiny teachers trained on the right and the left capture."""
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+    folder = tmp_path_factory.mktemp("hands")
+    out = []
+    for name, cap in (("right", capture_dir), ("left", left_capture)):
+        path = folder / f"{name}.pt"
+        r = CliRunner().invoke(cli, ["train-teacher", str(cap), "--config", str(small_config),
+                                     "--iters", "2", "-q", "-o", str(path)],
+                               catch_exceptions=False)
+        assert r.exit_code == 0, r.output
+        out.append(path)
+    return tuple(out)
+
+
+def _hand_model(sides, seed, pose_dim, model="olat", mean=None):
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.neural.evaluate import HandModel
+    from relight_cli.neural.geometry import hand_records
+    from relight_cli.neural.models import build_model
+    torch.manual_seed(seed)
+    cfg = TeacherConfig.from_dict({**SMALL, "model": model})
+    net = build_model(cfg, pose_dim).eval()
+    with torch.no_grad():                       # a model whose two instances clearly differ
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    chart = hand_records(builtin_hand())[0]["uv_chart"]
+    return HandModel("teacher", net, cfg, mean, list(sides), [chart] * len(sides), "", pose_dim,
+                     f"{'/'.join(sides) or 'any'}-{seed}")
+
+
+def test_left_teacher_records_its_hand(left_capture, hand_teachers):
+    """train-teacher on a left-hand capture: the checkpoint says it learned a left hand,
+    and it scores its own capture on the held-out grouped frames."""
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.evaluate import evaluate_capture, load_hand_model
+    right, left = (read_checkpoint(str(p), kind="teacher") for p in hand_teachers)
+    assert [h["side"] for h in left["extra"]["hands"]] == ["left"]
+    assert [h["side"] for h in right["extra"]["hands"]] == ["right"]
+    model = load_hand_model(left, name="left.pt")
+    scores = evaluate_capture(str(left_capture), [model], max_samples=2)
+    assert set(scores) == {"heldout", "fully_lit", "env"}        # trained here: held out
+    assert all(np.isfinite(m["mse"]) and m["samples"] >= 1 for m in scores.values())
+    assert "left" not in scores["env"]                             # one hand: no per-hand part
+
+
+def test_each_hand_takes_its_own_teacher(two_capture):
+    """Hand 0 (right) by the right teacher, hand 1 (left) by the left one: where a pixel sees
+    one hand only, the two-teacher render equals that teacher's own render of the scene."""
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.features import discretize_env
+    from relight_cli.neural import evaluate as EV
+    from relight_cli.neural.teacher import env_light_inputs, render_lights
+    from relight_cli.render.gbuffer import render_gbuffer
+
+    data = _data(two_capture, 16)
+    right = _hand_model(["right"], 1, data.pose_dim)
+    left = _hand_model(["left"], 2, data.pose_dim)
+    assert EV.assign_models([left, right], ["right", "left"]) == [right, left]
+    assert EV.assign_models([right], ["right", "left"]) == [right, right]
+    for bad, message in (([right, _hand_model(["right"], 3, data.pose_dim)], "2 checkpoints"),
+                         ([right, _hand_model([], 3, data.pose_dim)], "does not record"),
+                         ([left, left], "no checkpoint was trained on the right"),
+                         ([right, left, _hand_model(["left"], 4, data.pose_dim)],
+                          "2 checkpoints were trained on the left")):
+        with pytest.raises(ValueError, match=message):
+            EV.assign_models(bad, ["right", "left"])
+    texels = data.texels(1)
+    gb = render_gbuffer(texels.meshes, data.capture.cameras[0], 1, scene=texels.renderer.scene)
+    assert (gb.hand == 0).any() and (gb.hand == 1).any()
+    denv = discretize_env(builtin_envmap("builtin:sky"), 8, 16)
+    poses = data.poses(1)
+    pair = [EV.env_inputs(m, texels, k, denv) for k, m in enumerate((right, left))]
+    both = EV.render_scene([right, left], [texels, texels], gb, poses, [p[0] for p in pair],
+                           [p[1] for p in pair]).numpy()
+    lights, weights = env_light_inputs(texels, denv, True)
+    only = {k: render_lights(m.net, texels, gb, poses, lights, weights, True, "analytic").numpy()
+            for k, m in enumerate((right, left))}
+    assert np.abs(only[0] - only[1]).max() > 1e-3 * np.abs(only[0]).max()   # two models
+    for k in (0, 1):
+        alone = gb.coverage(k) == 1
+        assert alone.any()
+        np.testing.assert_allclose(both[alone], only[k][alone], rtol=1e-5,
+                                   atol=1e-6 * np.abs(only[k]).max())
+
+
+def test_two_hand_visibility_is_traced_against_both_hands(two_capture):
+    """A hand's teacher inputs see the other hand's shadows: visibility against the pair is
+    never more, and somewhere less, than against the hand alone; the render changes."""
+    from relight_cli.neural.evaluate import point_inputs, model_texture
+    from relight_cli.neural.geometry import PoseTexels
+    data = _data(two_capture, 16)
+    model = _hand_model(["right"], 1, data.pose_dim)
+    pose = data.frame(0).pose                                    # a fully lit frame
+    pair = data.texels(pose)
+    alone = PoseTexels(pair.meshes[:1], 16, data.rasters()[:1])
+    leds = data.capture.light_positions
+    vis_pair = point_inputs(model, pair, 0, leds).visibility
+    vis_alone = point_inputs(model, alone, 0, leds).visibility
+    assert (vis_pair <= vis_alone).all() and (vis_pair < vis_alone).any()
+    eye = data.capture.cameras[0].center
+    inten = data.capture.light_intensity
+    a = model_texture(model, pair, 0, data.poses(pose)[0], point_inputs(model, pair, 0, leds),
+                      inten, eye)
+    b = model_texture(model, alone, 0, data.poses(pose)[0], point_inputs(model, alone, 0, leds),
+                      inten, eye)
+    assert float((a - b).abs().max()) > 0
+    # the view of hand 0 alone (select) is the same hand: same texture from the same inputs
+    c = model_texture(model, pair.select(0), 0, data.poses(pose)[0],
+                      point_inputs(model, pair, 0, leds), inten, eye)
+    torch.testing.assert_close(a, c)
+
+
+def test_evaluate_two_hand_capture_per_hand_scores(two_capture):
+    """Every split of a capture no teacher trained on (all grouped frames, fully lit, env),
+    scored over both hands and per hand; GGX baselines and one teacher for both work too."""
+    from relight_cli.neural import evaluate as EV
+    data = _data(two_capture, 16)
+    right = _hand_model(["right"], 1, data.pose_dim)
+    left = _hand_model(["left"], 2, data.pose_dim)
+    scores = EV.evaluate_capture(str(two_capture), [right, left], max_samples=2)
+    assert list(scores) == ["grouped", "fully_lit", "env"]
+    for split in scores.values():
+        assert split["samples"] >= 1 and {"right", "left"} <= set(split)
+        for part in (split, split["right"], split["left"]):
+            assert all(np.isfinite(part[k]) for k in ("mse", "psnr", "ssim", "mae"))
+    swapped = EV.evaluate_capture(str(two_capture), [right], splits=["env"], max_samples=2)
+    assert swapped["env"]["left"]["mse"] != scores["env"]["left"]["mse"]
+    # the right hand's own pixels hardly change (mixed pixels along the hands' outlines do)
+    assert swapped["env"]["right"]["mse"] == pytest.approx(scores["env"]["right"]["mse"],
+                                                           rel=1e-2)
+    mean = torch.rand(1, 3, 16, 16) * 0.2
+    ggx = [_hand_model([s], 5 + i, data.pose_dim, "ggx", mean) for i, s in
+           enumerate(("right", "left"))]
+    g = EV.evaluate_capture(str(two_capture), ggx, splits=["fully_lit"], max_samples=1)
+    assert np.isfinite(g["fully_lit"]["left"]["mse"])
+
+
+def test_scores_inside_each_hands_mask():
+    """score(): per-hand numbers are the image metrics inside that hand's mask, with the
+    whole image's data range; per-pixel MSE splits exactly over a partition."""
+    from relight_cli.metrics.image import image_metrics
+    from relight_cli.neural.evaluate import score
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(0, 2, (20, 24, 3))
+    pred = gt + rng.normal(0, 0.1, gt.shape)
+    hands = np.zeros((2, 20, 24))
+    hands[0, 2:18, 2:12] = 1
+    hands[1, 2:18, 12:22] = 1
+    mask = hands.sum(0)
+    out = score(pred, gt, mask, hands, ["right", "left"])
+    n = hands.sum((1, 2))
+    np.testing.assert_allclose((n[0] * out["right"]["mse"] + n[1] * out["left"]["mse"]) / n.sum(),
+                               out["mse"], rtol=1e-12)
+    ref = image_metrics(pred, gt, hands[1] > 0.5, float(gt[mask > 0.5].max() - gt[mask > 0.5].min()))
+    assert out["left"]["ssim"] == pytest.approx(ref["metrics"]["ssim"], rel=1e-12)
+    assert score(pred, gt, np.zeros((20, 24))) == {}
+
+
+def test_linear_model_per_hand_equals_one_model_path(two_capture):
+    """URHand's linear model through the per-hand path (a view of each hand, visibility of
+    the pair) renders what its own all-hands pass renders."""
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.features import discretize_env
+    from relight_cli.neural import evaluate as EV
+    from relight_cli.neural import linear as LM
+    from relight_cli.neural.linear_train import render_lights
+    from relight_cli.render.gbuffer import render_gbuffer
+    from test_neural_linear import SMALL as LINEAR_SMALL
+
+    data = _data(two_capture, 16)
+    torch.manual_seed(0)
+    cfg = LM.LinearConfig.from_dict(LINEAR_SMALL)
+    net = LM.URHandModel(cfg, data.pose_dim).eval()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    mean = torch.rand(1, 3, 16, 16) * 0.3
+    model = EV.HandModel("linear", net, cfg, mean, ["right"], [], "", data.pose_dim, "lin")
+    texels = data.texels(1)
+    gb = render_gbuffer(texels.meshes, data.capture.cameras[1], 1, scene=texels.renderer.scene)
+    denv = discretize_env(builtin_envmap("builtin:studio"), 8, 16)
+    lights, weights = EV.env_inputs(model, texels, 0, denv)
+    pair = [EV.env_inputs(model, texels, k, denv) for k in range(2)]
+    ours = EV.render_scene([model, model], [texels, texels], gb, data.poses(1),
+                           [p[0] for p in pair], [p[1] for p in pair])
+    from relight_cli.neural.teacher import env_light_inputs
+    ref = render_lights(net, texels, gb, data.poses(1), *env_light_inputs(texels, denv, True),
+                        mean)
+    assert float(ref.abs().max()) > 0
+    torch.testing.assert_close(ours, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
+
+
+def test_relight_two_teachers_cli(two_capture, hand_teachers, tmp_path, run_cli):
+    """relight: a two-hand hand.npz with a teacher per hand → EXR; the two-hand capture
+    itself → its scores (relight/metrics), right and left apart."""
+    from relight_cli.formats.exr import read_exr
+    from relight_cli.formats.metrics_json import read_metrics
+    right, left = hand_teachers
+    img = tmp_path / "both.exr"
+    r = run_cli("relight", two_capture / "hand.npz", "builtin:sky", "--model", "teacher",
+                "--checkpoint", left, "--checkpoint", right, "--size", "24x24", "-q", "-o", img)
+    assert r.exit_code == 0, r.output
+    exr = read_exr(str(img))
+    prov = json.loads(exr.attributes["relight.provenance"])
+    assert {"checkpoint.0", "checkpoint.1"} <= set(prov["inputs"])
+    hands = prov["settings"]["checkpoints"]
+    assert [h["sides"] for h in hands] == [["right"], ["left"]]
+    scores = tmp_path / "scores.json"
+    r = run_cli("relight", two_capture, "--model", "teacher", "--checkpoint", right,
+                "--checkpoint", left, "--eval-samples", "1", "-q", "-o", scores)
+    assert r.exit_code == 0, r.output
+    record = read_metrics(str(scores))
+    assert record["kind"] == "validation" and set(record["metrics"]) == {"grouped", "fully_lit",
+                                                                         "env"}
+    assert record["metrics"]["env"]["left"]["samples"] == 1
+    again = tmp_path / "again.json"
+    from conftest import run_relight
+    p = run_relight("relight", two_capture, "--model", "teacher", "--checkpoint", right,
+                    "--checkpoint", left, "--eval-samples", "1", "--splits", "env", "-o", again)
+    assert p.returncode == 0 and p.stdout == "", p.stderr
+    assert json.loads(again.read_text())["metrics"]["env"] == record["metrics"]["env"]
+
+
+@pytest.mark.parametrize("case, code, message", [
+    ("two-right", 2, "2 checkpoints were trained on the right hand"),
+    ("left-extra", 2, "matches no hand"),
+    ("bad-split", 2, "--splits takes"),
+    ("capture-view-option", 2, "do not apply to a capture"),
+    ("capture-exr", 2, "-o is a JSON file"),
+    ("capture-physical", 2, "--model teacher or linear"),
+    ("split-on-hand", 2, "only apply to a capture"),
+    ("student-two", 2, "takes one --checkpoint"),
+])
+def test_relight_two_teachers_bad_input(case, code, message, two_capture, capture_dir,
+                                        hand_teachers, tmp_path, run_cli):
+    right, left = hand_teachers
+    out = tmp_path / "o" / "scores.json"
+    out.parent.mkdir()
+    hand = str(two_capture / "hand.npz")
+    args = {"two-right": [hand, "builtin:sky", "--model", "teacher", "--checkpoint", right,
+                          "--checkpoint", right],
+            "left-extra": [str(capture_dir / "hand.npz"), "builtin:sky", "--model", "teacher",
+                           "--checkpoint", right, "--checkpoint", left],
+            "bad-split": [two_capture, "--model", "teacher", "--checkpoint", right,
+                          "--splits", "env,nope"],
+            "capture-view-option": [two_capture, "--model", "teacher", "--checkpoint", right,
+                                    "--size", "8x8"],
+            "capture-exr": [two_capture, "--model", "teacher", "--checkpoint", right],
+            "capture-physical": [two_capture, "--checkpoint", right],
+            "split-on-hand": [hand, "builtin:sky", "--model", "teacher", "--checkpoint", right,
+                              "--splits", "env"],
+            "student-two": [hand, "builtin:sky", "--model", "student", "--checkpoint", right,
+                            "--checkpoint", left]}[case]
+    target = out.with_suffix(".exr") if case in ("capture-exr", "two-right", "left-extra",
+                                                 "split-on-hand", "student-two") else out
+    r = run_cli("relight", *args, "-q", "-o", target)
+    assert r.exit_code == code, r.output
+    lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and message in lines[0], r.output
     assert list(out.parent.iterdir()) == []

@@ -120,6 +120,9 @@ COMMANDS = {
     "relight-teacher": (lambda d, o: ["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
                                       "8x8", "--env-res", "8x4", "-o", o], ".exr"),
+    "relight-capture": (lambda d, o: ["relight", d / "cap", "--model", "teacher",
+                                      "--checkpoint", d / "teacher.pt", "--eval-samples", "1",
+                                      "-o", o], ".json"),
     "camera": (lambda d, o: ["camera", "--eye", "0,0.1,0.5", "--size", "8x8", "-o", o], ".json"),
 }
 # An input of each command that the "output is an input" case writes over.
@@ -127,7 +130,8 @@ FIRST_INPUT = {"envmap": "sky.exr", "sh-probe": "sky.exr", "fit-geometry": None,
                "bake-features": "hand.npz", "relight-hand": "sky.exr",
                "relight-gaussians": "ball.ply", "dgsm-build": "ball.ply",
                "metrics-image": "img.exr", "metrics-lighting": "room.ply",
-               "train-teacher": "small.json", "relight-teacher": "sky.exr", "camera": None}
+               "train-teacher": "small.json", "relight-teacher": "sky.exr", "camera": None,
+               "relight-capture": "teacher.pt"}
 
 
 def _snapshot(*folders) -> dict:
@@ -566,6 +570,20 @@ BAD_OPTIONS = {
     "camera --fov 0": lambda d, o: ["camera", "--eye", "0,0,1", "--fov", "0", "-o", o],
     "camera --eye inf,0,0": lambda d, o: ["camera", "--eye", "inf,0,0", "-o", o],
     "camera --orbit 0": lambda d, o: ["camera", "--orbit", "0", "--radius", "1", "-o", o],
+    "envmap --preview x.jpg": lambda d, o: ["envmap", d / "sky.exr", "-o", o, "--preview",
+                                            o.parent / "x.jpg"],
+    "bake-features --preview x.exr": lambda d, o: ["bake-features", d / "hand.npz", d / "sky.exr",
+                                                   "-o", o, "--preview", o.parent / "x.exr"],
+    "sh-probe --preview x.json": lambda d, o: ["sh-probe", d / "sky.exr", "-o", o, "--preview",
+                                               o.parent / "x.json"],
+    "dgsm-build --preview x.tif": lambda d, o: ["dgsm-build", d / "ball.ply", "--t-max", "1",
+                                                "--lights", d / "lights.json", "-o", o,
+                                                "--preview", o.parent / "x.tif"],
+    "dgsm-build --preview-camera alone": lambda d, o: [
+        "dgsm-build", d / "ball.ply", "--t-max", "1", "--lights", d / "lights.json", "-o", o,
+        "--preview-camera", d / "lights.json"],
+    "synth-capture --preview x.exr": lambda d, o: ["synth-capture", "-o", o.parent / "cap",
+                                                   "--preview", o.parent / "x.exr"],
 }
 
 
@@ -702,12 +720,16 @@ def test_stale_temp_files_of_live_processes_are_kept(tmp_path):
 IDENTITY = {
     "envmap": lambda d, t: (["envmap", d / "sky.exr", "--size", "16x8", "-o", t / "e.exr",
                              "--preview", t / "e.png"], ["e.exr", "e.png"]),
-    "sh-probe": lambda d, t: (["sh-probe", d / "sky.exr", "-o", t / "p.json"], ["p.json"]),
+    "sh-probe": lambda d, t: (["sh-probe", d / "sky.exr", "-o", t / "p.json", "--preview",
+                               t / "p.png"], ["p.json", "p.png"]),
+    "envmap-cube": lambda d, t: (["envmap", d / "sky.exr", "--to", "cube", "--size", "4",
+                                  "-o", t / "c.exr", "--preview", t / "c.png"], ["c.exr", "c.png"]),
     "fit-geometry": lambda d, t: (["fit-geometry", "--pose", "random", "--frames", "2", "--seed",
                                    "3", "-o", t / "h.npz"], ["h.npz"]),
     "bake-features": lambda d, t: (["bake-features", d / "hand.npz", d / "sky.exr", "--res", "8",
                                     "--env-res", "8x4", "-o", t / "f.exr", "--per-vertex",
-                                    t / "f.npz"], ["f.exr", "f.npz"]),
+                                    t / "f.npz", "--preview", t / "f.png"],
+                                   ["f.exr", "f.npz", "f.png"]),
     "relight-hand": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--size", "8x8",
                                    "--tex-res", "8", "--aa", "1", "--env-res", "8x4",
                                    "-o", t / "r.exr"], ["r.exr"]),
@@ -715,7 +737,7 @@ IDENTITY = {
                                         "-o", t / "g.ply"], ["g.ply"]),
     "dgsm-build": lambda d, t: (["dgsm-build", d / "ball.ply", "--receivers", d / "room.ply",
                                  "--lights", d / "lights.json", "--size", "4", "--bins", "2",
-                                 "-o", t / "s.exr"], ["s.exr"]),
+                                 "-o", t / "s.exr", "--preview", t / "s.png"], ["s.exr", "s.png"]),
     "metrics-image": lambda d, t: (["metrics", "image", d / "img.exr", d / "img2.exr",
                                     "-o", t / "m.json"], ["m.json"]),
     "metrics-lighting": lambda d, t: (["metrics", "lighting", "--scene", d / "room.ply",
@@ -727,13 +749,17 @@ IDENTITY = {
     "relight-teacher": lambda d, t: (["relight", d / "hand.npz", d / "sky.exr", "--model",
                                       "teacher", "--checkpoint", d / "teacher.pt", "--size",
                                       "8x8", "--env-res", "8x4", "-o", t / "r.exr"], ["r.exr"]),
+    "relight-capture": lambda d, t: (["relight", d / "cap", "--model", "teacher",
+                                      "--checkpoint", d / "teacher.pt", "--eval-samples", "1",
+                                      "-o", t / "s.json"], ["s.json"]),
     "camera": lambda d, t: (["camera", "--orbit", "3", "--radius", "0.7", "--elevation", "20",
                              "-o", t / "c.json"], ["c.json"]),
     "synth-capture": lambda d, t: (["synth-capture", d / "hand.npz", "-o", t / "cap",
                                     "--cameras", "1", "--leds", "2", "--group", "1",
                                     "--frames", "1", "--size", "8", "--tex-res", "8", "--aa", "1",
-                                    "--eval-poses", "0", "--eval-cameras", "1"],
-                                   ["cap/capture.json", "cap/hand.npz",
+                                    "--eval-poses", "0", "--eval-cameras", "1", "--preview",
+                                    t / "cap.png"],
+                                   ["cap/capture.json", "cap/hand.npz", "cap.png",
                                     "cap/images/000000/cam000.exr"]),
 }
 
@@ -750,7 +776,7 @@ def _identity_run(data, folder, name, second):
     r = CliRunner().invoke(cli, (["--debug"] if second else []) + [str(a) for a in args] + extra)
     assert r.exit_code == 0, r.output
     if name == "synth-capture":
-        files = files[:2] + sorted(str(p.relative_to(folder))
+        files = files[:3] + sorted(str(p.relative_to(folder))
                                    for p in (folder / "cap" / "images").rglob("*.exr"))
     return {f: (folder / f).read_bytes() for f in files}
 

@@ -17,7 +17,7 @@ from relight_cli.render import capture as S
 
 TINY = ["--cameras", "2", "--leds", "6", "--group", "2", "--frames", "3", "--size", "12",
         "--tex-res", "32", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
-        "--eval-envs", "builtin:uniform", "-q"]
+        "--eval-envs", "builtin:uniform", "--eval-env-res", "16x8", "-q"]
 
 
 def test_help(run_cli):
@@ -242,3 +242,296 @@ def test_format_round_trip_and_rejections(tmp_path):
         with pytest.raises(DataError) as info:
             C.read_capture(str(path))
         assert message in str(info.value) and str(path) in str(info.value)
+
+
+# ---------------------------------------------------------------- two interacting hands
+
+
+def _surface_distance(a, b) -> float:
+    """Exact smallest distance from a vertex of mesh ``a`` to the triangles of mesh ``b``
+    (slow twin of the stage's vertex–vertex distance): for each of a's vertices near b, the
+    closest point on every triangle of b that can hold it (a triangle whose corners lie
+    within the nearest-vertex distance + the largest triangle diameter)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(b.vertices)
+    d, _ = tree.query(a.vertices, k=1)
+    tri = b.vertices[b.faces]
+    diameter = np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2).max()
+    faces_of = [[] for _ in range(len(b.vertices))]
+    for f, corners in enumerate(b.faces):
+        for v in corners:
+            faces_of[v].append(f)
+    best = np.inf
+    for i in np.nonzero(d < d.min() + 0.003)[0]:
+        faces = np.unique(np.concatenate([faces_of[v] for v in
+                                          tree.query_ball_point(a.vertices[i], d[i] + diameter)]))
+        closest = trimesh.triangles.closest_point(tri[faces], np.repeat(a.vertices[i][None],
+                                                                        len(faces), 0))
+        best = min(best, float(np.linalg.norm(closest - a.vertices[i], axis=1).min()))
+    return best
+
+
+@pytest.fixture(scope="module")
+def two_motion():
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.hand.scene import two_hands
+    return S.hand_motion(two_hands(builtin_hand("right")), 12, seed=5, keyframe_every=4)
+
+
+def test_two_hands_move_close_but_apart(two_motion):
+    from relight_cli.hand.scene import handedness, posed_meshes
+    motion = two_motion
+    assert handedness(motion) == ["right", "left"] and len(motion.hands) == 2
+    # both hands move: their own finger poses (not mirrors of each other) change over time
+    for inst in motion.hands:
+        assert np.abs(np.diff(inst.poses[:, 1:], axis=0)).max() > 1e-3
+    from relight_cli.hand.skinning import mirror_pose
+    assert not np.allclose(mirror_pose(motion.hands[0].poses[:, 1:]), motion.hands[1].poses[:, 1:])
+    for f in range(0, 12, 3):
+        m0, m1 = posed_meshes(motion, f, "fine")
+        gap = min(_surface_distance(m0, m1), _surface_distance(m1, m0))
+        # never touching (the documented margin), but interacting: a few centimetres at most
+        assert S.TWO_HAND_MARGIN <= gap <= S.TWO_HAND_GAP[1] + 1e-3, (f, gap)
+        assert S.hand_distance(motion, f) >= S.TWO_HAND_GAP[0] - 1e-9
+    # held-out poses of a pair: every frame its own key pose, still apart
+    held = S.hand_motion(motion, 3, seed=9, keyframe_every=1)
+    assert all(S.hand_distance(held, f) >= S.TWO_HAND_GAP[0] - 1e-9 for f in range(3))
+    assert not np.allclose(held.hands[1].translations, held.hands[1].translations[0])
+
+
+def test_two_hands_shadow_occlude_and_light_each_other(two_motion):
+    """What makes a pair harder than two single hands: with the other hand present, some
+    texels lose LEDs (cast shadows), some camera samples see the other hand instead
+    (occlusion), and one bounce brings light from the other hand's skin."""
+    from relight_cli.hand.scene import posed_meshes
+    from relight_cli.render.appearance import hand_materials
+    from relight_cli.render.gbuffer import render_gbuffer
+    from relight_cli.render.shading import HandRenderer, RenderSettings
+
+    settings = S.StageSettings(cameras=8, lights=24, frames=12, res=24, tex_res=48)
+    plan = S.plan_capture(two_motion, settings, motion=two_motion)
+    meshes = posed_meshes(two_motion, 6, "fine")
+    materials = hand_materials(two_motion, "fine", 64)
+    rs = RenderSettings(tex_res=48, aa=1, sss=False, specular=False, direct="texel", bounce=True)
+    both = HandRenderer(meshes, materials, rs)
+    alone = HandRenderer(meshes[:1], materials[:1], rs)
+    vis_both = both.light_visibility(0, positions=plan.lights.positions)
+    vis_alone = alone.light_visibility(0, positions=plan.lights.positions)
+    assert not (vis_both & ~vis_alone).any()                  # the other hand only takes light
+    assert (vis_alone & ~vis_both).mean() > 0.002             # … and it does: cast shadows
+    occluded = 0
+    for cam in plan.cameras:
+        gb_both = render_gbuffer(meshes, cam, 1)
+        gb_alone = render_gbuffer(meshes[:1], cam, 1)
+        occluded += int(((gb_alone.hand == 0) & (gb_both.hand == 1)).sum())
+    assert occluded > 0
+    lights = plan.lights
+    bounce_both = both._bounce(both.light(lights).direct)[0]
+    bounce_alone = alone._bounce(alone.light(lights).direct)[0]
+    assert (bounce_both - bounce_alone).max() > 0.01 * bounce_alone.max()
+
+
+def test_two_hand_capture(run_cli, tmp_path):
+    """builtin:two: both hands in every image, per-hand coverage channels summing to the
+    mask, held-out env renders of the pair, the placement recorded in capture.json."""
+    from relight_cli.hand.scene import handedness
+    out = tmp_path / "two"
+    r = run_cli("synth-capture", "builtin:two", "-o", out, *TINY[:TINY.index("--size")],
+                "--size", "24", *TINY[TINY.index("--size") + 2:])
+    assert r.exit_code == 0, r.output
+    cap = C.read_capture(str(out))
+    hand = read_hand(str(out / "hand.npz"))
+    assert handedness(hand) == ["right", "left"]
+    assert handedness(read_hand(str(out / cap.evaluation["hand"]))) == ["right", "left"]
+    record = cap.settings["two_hands"]
+    assert record["closest_mm"] >= 1000 * S.TWO_HAND_GAP[0] - 1e-6
+    assert record["eval_closest_mm"] >= 1000 * S.TWO_HAND_GAP[0] - 1e-6
+    seen = np.zeros(2)
+    paths = [out / C.image_path(f.index, c) for f in cap.frames for c in f.images]
+    paths += [out / r["image"] for r in cap.evaluation["renders"]]
+    for path in paths:
+        rgb, mask, hands = C.read_image_hands(str(path), None, 2)
+        assert hands.shape == (2,) + mask.shape
+        np.testing.assert_allclose(hands.sum(0), mask, atol=1e-3)   # half floats
+        seen += hands.sum((1, 2))
+    assert (seen > 0).all()
+    # one-hand readers still read every image (extra channels are ignored)
+    C.read_image(str(paths[0]))
+    assert C.read_image_hands(str(paths[0]), None, 1)[2] is None
+
+
+def test_left_hand_skin_is_the_left_hand_of_the_pair():
+    """One subject: the left hand of a two-hand scene has exactly the skin of a left-hand
+    capture, the right that of a right-hand one (so per-hand teachers apply to the pair)."""
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.hand.scene import two_hands
+    from relight_cli.render.appearance import hand_materials
+    pair = hand_materials(two_hands(builtin_hand("right")), "fine", 64, seed=3)
+    right = hand_materials(builtin_hand("right"), "fine", 64, seed=3)[0]
+    left = hand_materials(builtin_hand("left"), "fine", 64, seed=3)[0]
+    np.testing.assert_array_equal(pair[0].albedo, right.albedo)
+    np.testing.assert_array_equal(pair[1].albedo, left.albedo)
+    np.testing.assert_array_equal(pair[1].roughness, left.roughness)
+    assert np.abs(left.albedo - right.albedo).max() > 0.01          # two different hands
+
+
+# ---------------------------------------------------------------- how hard the stage is
+
+
+def _capture_images(run_cli, out, *extra):
+    # 2.3 mm texels (--tex-res 128): the skin profile's widest Gaussians (σ 1.4 and 2.7 mm,
+    # red) span texels; narrower ones act below the texture's resolution (no blur)
+    args = [a for a in TINY if a not in ("--tex-res", "32")]
+    r = run_cli("synth-capture", "-o", out, *args[:args.index("--size")], "--size", "24",
+                *args[args.index("--size") + 2:], "--tex-res", "128", "--eval-poses", "0", *extra)
+    assert r.exit_code == 0, r.output
+    cap = C.read_capture(str(out))
+    return cap, {(f.index, c): C.read_image(str(out / C.image_path(f.index, c)))
+                 for f in cap.frames for c in f.images}
+
+
+def test_sss_and_bounce_reach_the_images(run_cli, tmp_path):
+    """--no-sss and --bounce change the capture's images the way they should, so neither
+    can be silently off: SSS moves light around (skin's red most) at nearly the same total,
+    the bounce only adds light."""
+    base_cap, base = _capture_images(run_cli, tmp_path / "base")
+    flat_cap, flat = _capture_images(run_cli, tmp_path / "flat", "--no-sss")
+    lit_cap, lit = _capture_images(run_cli, tmp_path / "lit", "--bounce")
+    assert base_cap.settings["sss"] and not flat_cap.settings["sss"]
+    assert lit_cap.settings["bounce"] and not base_cap.settings["bounce"]
+    diff_sss = []
+    for key, (rgb, mask) in base.items():
+        inside = mask > 0.99
+        d = np.abs(rgb - flat[key][0])[inside]
+        diff_sss.append(d.mean(0) / np.maximum(rgb[inside].mean(0), 1e-9))
+        # the bounce adds light (half floats: 1e-3 relative rounding), and somewhere visibly
+        assert (lit[key][0] >= rgb - 2e-3 * np.abs(rgb) - 1e-6).all()
+        np.testing.assert_array_equal(lit[key][1], mask)
+    diff_sss = np.mean(diff_sss, 0)
+    assert diff_sss[0] > 5e-3 and diff_sss[0] > 3 * diff_sss[2]      # red diffuses farthest
+    gain = [lit[k][0][base[k][1] > 0.99].sum() / rgb[mask > 0.99].sum()
+            for k, (rgb, mask) in base.items()]
+    assert max(gain) > 1.002
+    total = [flat[k][0][base[k][1] > 0.99].sum() / rgb[mask > 0.99].sum()
+             for k, (rgb, mask) in base.items()]
+    assert abs(np.mean(total) - 1) < 0.05                          # SSS conserves energy
+
+
+def test_nails_and_regions_are_in_the_images():
+    """The stage renders the procedural skin: pixels on nails are whiter (higher G/R) than
+    pixels on finger skin in a fully lit frame, so a capture without region materials
+    (a flat colour) would fail here."""
+    from relight_cli.hand.model import FINGER, NAIL, builtin_hand
+    from relight_cli.render.appearance import hand_materials
+    from relight_cli.uvraster import rasterize_uv
+    hand = builtin_hand(pose="relaxed")
+    settings = S.StageSettings(cameras=6, lights=32, frames=1, res=96, tex_res=128, aa=1)
+    plan = S.plan_capture(hand, settings, motion=hand)
+    renderer = S.FrameRenderer(plan, hand_materials(plan.motion, "fine", 256), settings)
+    fine = hand.fine
+    raster = rasterize_uv(fine.uv, fine.faces_uv, 256)
+    labels = raster.interpolate(np.eye(5)[fine.labels], fine.faces, fill=None)
+    from relight_cli.render.appearance import bilinear
+    ratio = {NAIL: [], FINGER: []}
+    for cam, result in renderer.frame(plan.frames[0]):
+        gb = result.gbuffer
+        hit = gb.hit
+        lab = np.argmax(bilinear(labels, gb.uv[hit]), 1)
+        rad = result.samples[hit]
+        for region in ratio:
+            sel = (lab == region) & (rad[:, 0] > 0.05)
+            ratio[region].extend(rad[sel, 1] / rad[sel, 0])
+    assert len(ratio[NAIL]) > 20
+    assert np.mean(ratio[NAIL]) > np.mean(ratio[FINGER]) + 0.05
+
+
+def test_skin_seed_not_seed_decides_the_skin(run_cli, tmp_path):
+    """--seed changes a capture's motion and light groups, never its subject: with the
+    motion from a file, the fully lit frame is the same for two --seeds and differs for
+    another --skin-seed."""
+    from relight_cli.formats.hand_npz import write_hand
+    from relight_cli.hand.model import builtin_hand
+    hand = builtin_hand(pose="relaxed")
+    path = tmp_path / "hand.npz"
+    write_hand(str(path), hand)
+
+    def full_frame(name, *extra):
+        out = tmp_path / name
+        r = run_cli("synth-capture", path, "-o", out, "--motion", "file", "--cameras", "1",
+                    "--leds", "8", "--size", "16", "--tex-res", "32", "--aa", "1",
+                    "--eval-poses", "0", "-q", *extra)
+        assert r.exit_code == 0, r.output
+        return C.read_image(str(out / C.image_path(0, "cam000")))[0]
+    a, b, c = full_frame("a"), full_frame("b", "--seed", "4"), full_frame("c", "--skin-seed", "4")
+    np.testing.assert_array_equal(a, b)
+    assert np.abs(a - c).max() > 1e-3
+
+
+# ---------------------------------------------------------------- held-out env maps
+
+
+def test_stage_env_render_matches_brute_force():
+    """An HDR through the stage: resampled once to the working grid (power kept; the
+    resampling's exactness is tests/test_envmap.py's), then the ground truth's texel
+    irradiance = Σ over the grid's directions of L·h·max(n·ω, 0)·Δω, with h from
+    brute-force ray–triangle tests (independent of embree and of features.py)."""
+    from relight_cli import envmap as E
+    from relight_cli.formats.envmap import EnvMap
+    from relight_cli.raytrace import occluded_reference
+    from relight_cli.render.appearance import constant_material
+    from relight_cli.render.shading import HandRenderer, RenderSettings
+    from render_scenes import uv_quad
+
+    rng = np.random.default_rng(3)
+    src = rng.exponential(0.5, (32, 64, 3)).astype(np.float32)
+    src[5, 40] = 2000.0                                         # a small sun
+    env = S.stage_envmap(EnvMap(src, "latlong", "hdr"), (8, 16))
+    assert (env.height, env.width) == (8, 16)
+    np.testing.assert_allclose(E.power(env), E.power(EnvMap(src, "latlong")), rtol=1e-6)
+    assert S.stage_envmap(env, (8, 16)) is env                  # already on the grid: kept
+
+    floor = uv_quad(0.2)
+    blocker = uv_quad(0.08, z=0.03)                              # shades part of the floor
+    blocker.vertices[:, 0] += 0.03
+    white = constant_material(albedo=(1.0, 1.0, 1.0))
+    renderer = HandRenderer([floor, blocker], [white, white],
+                            RenderSettings(tex_res=12, aa=1, specular=False, sss=False,
+                                           env_res=(8, 16), env_space="texels", direct="texel"))
+    ours = renderer.light(env=env).direct[0]                    # [K, 3] floor texels
+    surf = renderer.surfaces[0]
+    dirs = E.latlong_directions(8, 16).reshape(-1, 3)
+    dw = E.latlong_solid_angles(8, 16).reshape(-1)
+    rad = env.radiance.reshape(-1, 3).astype(np.float64)
+    verts = np.concatenate([floor.vertices, blocker.vertices])
+    faces = np.concatenate([floor.faces, blocker.faces + len(floor.vertices)])
+    cos = surf.normals @ dirs.T                                  # [K, M]
+    ii, mm = np.nonzero(cos > 0)
+    origins = surf.points[ii] + renderer.offsets[0] * surf.normals[ii]
+    blocked = occluded_reference(verts, faces, origins, dirs[mm])
+    expected = np.zeros_like(ours)
+    np.add.at(expected, ii, (~blocked * cos[ii, mm] * dw[mm])[:, None] * rad[mm])
+    assert blocked.any() and not blocked.all()
+    np.testing.assert_allclose(ours, expected, rtol=1e-9, atol=1e-12 * expected.max())
+
+
+def test_polyhaven_eval_env(run_cli, tmp_path, shared):
+    """A real 1k Poly Haven HDR as a held-out env map: stored in eval/envs/ at the working
+    grid with its power, and the evaluation renders lit by it."""
+    from relight_cli import envmap as E
+    from relight_cli.commands._inputs import load_envmap
+    from relight_cli.formats.envmap import read_envmap
+    hdr = shared("envmaps", "polyhaven", "lebombo_1k.hdr")
+    out = tmp_path / "cap"
+    args = list(TINY)
+    args[args.index("--eval-envs") + 1] = str(hdr)
+    r = run_cli("synth-capture", "-o", out, *args, "--eval-env-res", "32x16")
+    assert r.exit_code == 0, r.output
+    cap = C.read_capture(str(out))
+    stored = read_envmap(str(out / cap.evaluation["envs"]["lebombo_1k"]))
+    source = load_envmap(str(hdr))
+    assert (stored.height, stored.width) == (16, 32)
+    np.testing.assert_allclose(E.power(stored), E.power(source), rtol=1e-4)
+    rgb, mask = C.read_image(str(out / cap.evaluation["renders"][0]["image"]))
+    assert rgb[mask > 0.5].mean() > 0

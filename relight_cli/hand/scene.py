@@ -76,6 +76,16 @@ def posed_joints_world(hand, frame: int = 0) -> list[np.ndarray]:
     return out
 
 
+def handedness(hand, inst=None):
+    """"right" or "left": the handedness of one HandInstance of ``hand`` (the stored
+    model's side, the other one for a mirrored instance); without ``inst``, the list over
+    every hand of the scene."""
+    if inst is None:
+        return [handedness(hand, i) for i in hand.hands]
+    side = hand.side if hand.side in ("right", "left") else "right"
+    return side if not inst.mirror else ("left" if side == "right" else "right")
+
+
 def two_hands(hand, separation: float = 0.20):
     """A copy of a one-hand HandData with the mirrored hand added beside it.
 

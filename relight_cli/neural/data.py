@@ -12,6 +12,8 @@ Splits (:meth:`CaptureData.splits`):
     heldout    grouped-light frames of held-out poses: the last ``holdout`` fraction of
                the grouped frames in time (a held-out motion segment, as RelightableHands
                excludes segments);
+    grouped    every grouped-light frame (train + heldout): a capture no model trained on,
+               e.g. the two-hand sequences RelightableHands uses only for evaluation;
     fully_lit  fully lit frames: novel illumination (every LED at once, never trained on);
     env        the capture's ``eval/`` renders: held-out poses under env maps, ground truth
                the papers never had (only synthetic stages have it).
@@ -149,6 +151,7 @@ class CaptureData:
         self._gbuffers = LRU(4 * cache_poses)
         self._lights = LRU(4 * cache_poses)
         self._rasters = None
+        self._env_maps = {}
         self._cameras = {c.name: c for c in self.capture.cameras}
         frames = self.capture.frames
         for f in frames:
@@ -195,6 +198,8 @@ class CaptureData:
 
     def splits(self) -> dict[str, list]:
         out = {"train": self.items(self.train_frames), "heldout": self.items(self.heldout_frames),
+               "grouped": self.items(sorted(self.train_frames + self.heldout_frames,
+                                            key=lambda f: f.index)),
                "fully_lit": self.items(self.fully_lit_frames)}
         ev = self.capture.evaluation or {}
         if self.eval_hand is not None and ev.get("renders"):
@@ -292,9 +297,12 @@ class CaptureData:
         return int(render["pose"]), render["env"], camera, image, mask
 
     def env_map(self, name: str):
-        from relight_cli.formats.envmap import read_envmap
-        ev = self.capture.evaluation or {}
-        return read_envmap(os.path.join(self.folder, ev["envs"][name]))
+        """The ``eval/envs/`` map ``name`` (read once)."""
+        if name not in self._env_maps:
+            from relight_cli.formats.envmap import read_envmap
+            ev = self.capture.evaluation or {}
+            self._env_maps[name] = read_envmap(os.path.join(self.folder, ev["envs"][name]))
+        return self._env_maps[name]
 
     def check_alignment(self, sample: Sample, threshold: float = 0.5) -> None:
         """Refuse a hand that does not match the images: IoU of the G-buffer coverage and

@@ -31,14 +31,29 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def hand_records(hand) -> list:
+    """Per hand of ``hand`` (HandData): {"side": its handedness, "uv_chart": digest of the
+    fine mesh's UV chart with each face's corners sorted (the same for a hand and its
+    mirror image, whose faces only wind the other way)} — what a checkpoint records of the
+    hands it learned, so each hand of a scene can find its own model."""
+    from relight_cli.hand.scene import handedness
+    fine = hand.mesh("fine")
+    chart = _digest(fine.uv, np.sort(np.asarray(fine.faces_uv, np.int64), axis=1))
+    return [{"side": handedness(hand, inst), "uv_chart": chart} for inst in hand.hands]
+
+
+def _digest(uv, faces_uv) -> str:
+    import hashlib
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(np.asarray(uv, np.float64)).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(faces_uv, np.int64)).tobytes())
+    return h.hexdigest()[:16]
+
+
 def uv_layout_digest(mesh) -> str:
     """16-hex fingerprint of a mesh's UV layout (uv, faces_uv): a learned texture only
     means something on the layout it was learned on."""
-    import hashlib
-    h = hashlib.sha256()
-    h.update(np.ascontiguousarray(np.asarray(mesh.uv, np.float64)).tobytes())
-    h.update(np.ascontiguousarray(np.asarray(mesh.faces_uv, np.int64)).tobytes())
-    return h.hexdigest()[:16]
+    return _digest(mesh.uv, mesh.faces_uv)
 
 
 def uv_tangents(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
@@ -132,6 +147,7 @@ class PoseTexels:
         self.meshes = meshes
         self.tex_res = int(tex_res)
         self.shadows = shadows
+        self.scene_index = list(range(len(meshes)))   # hand k is the renderer's hand scene_index[k]
         settings = RenderSettings(tex_res=self.tex_res, aa=1, shadows=shadows, specular=False,
                                   sss=False, direct="texel")
         # The renderer owns texel surfaces, the embree scene, ray offsets and buried texels;
@@ -164,6 +180,15 @@ class PoseTexels:
     def n_hands(self) -> int:
         return len(self.meshes)
 
+    def select(self, k: int) -> "PoseTexels":
+        """A view of hand k alone (its hand 0), visibility still traced against the whole
+        scene: what a model of one hand is given when each hand has its own model."""
+        import copy
+        view = copy.copy(self)
+        for name in ("meshes", "surfaces", "frames", "uv_derivatives", "scene_index"):
+            setattr(view, name, [getattr(self, name)[k]])
+        return view
+
     def point_lights(self, k: int, positions: np.ndarray, visibility: bool = True) -> LightInputs:
         """Inputs of point lights at ``positions`` [L, 3] (metres, world) for hand k."""
         surf = self.surfaces[k]
@@ -171,7 +196,8 @@ class PoseTexels:
         d = positions[:, None, :] - surf.points[None]                          # [L, K, 3]
         r2 = np.sum(d * d, -1)
         l = d / np.sqrt(np.maximum(r2, 1e-300))[..., None]
-        vis = (self.renderer.light_visibility(k, positions=positions) if visibility
+        vis = (self.renderer.light_visibility(self.scene_index[k], positions=positions)
+               if visibility
                else np.einsum("lki,ki->lk", l, surf.normals) > 0)
         return LightInputs(to_local(self.frames[k], l).astype(np.float32),
                            vis.astype(np.float32), (1.0 / np.maximum(r2, 1e-300)).astype(np.float32))
@@ -183,7 +209,8 @@ class PoseTexels:
         directions = np.asarray(directions, np.float64).reshape(-1, 3)
         K = len(surf.points)
         l = np.broadcast_to(directions[:, None, :], (len(directions), K, 3))
-        vis = (self.renderer.light_visibility(k, directions=directions) if visibility
+        vis = (self.renderer.light_visibility(self.scene_index[k], directions=directions)
+               if visibility
                else (directions @ surf.normals.T) > 0)
         return LightInputs(to_local(self.frames[k], l).astype(np.float32),
                            vis.astype(np.float32), np.ones((len(directions), K), np.float32))

@@ -267,8 +267,9 @@ class LinearTask:
         return evaluate(model, self.data, self.config, device, self.mean_texture)
 
     def extra(self) -> dict:
-        from .geometry import uv_layout_digest
+        from .geometry import hand_records, uv_layout_digest
         out = {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine")),
+               "hands": hand_records(self.data.hand),
                "mean_texture": self.mean_texture.detach().cpu()}
         if self.disc is not None:
             out["discriminator"] = {k: v.detach().cpu() for k, v in self.disc.state_dict().items()}

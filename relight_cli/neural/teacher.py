@@ -98,7 +98,8 @@ def render_lights(model, texels, gbuffer, poses, light_inputs: list, intensity: 
         light_inputs: per hand LightInputs of the same L lights.
         intensity: [L, 3] RGB weights b_i.
         visibility, falloff: the model's input settings (its config).
-        chunk: lights per U-Net call.  progress: optional callable(n) per finished light.
+        chunk: lights per U-Net call.  progress: optional callable(n) per finished light
+            and hand.
         view_eye: the eye for view directions (default: the G-buffer's camera centre).
 
     Returns:
@@ -106,39 +107,51 @@ def render_lights(model, texels, gbuffer, poses, light_inputs: list, intensity: 
     """
     timing = timing or Timing()
     eye = gbuffer.eye if view_eye is None else view_eye
-    n_hands = texels.n_hands
-    views = [texels.local_view(k, eye) for k in range(n_hands)]
-    pose = pose_vector(poses).to(device)
-    mean = _mean(mean_texture, n_hands, device)
-    textures = None
+    textures = [hand_texture(model, texels, k, poses[k], light_inputs[k], intensity, visibility,
+                             falloff, eye, device, chunk, mean_texture, progress, timing)
+                for k in range(texels.n_hands)]
+    t0 = time.perf_counter()
+    image = composite(textures, gbuffer, background)
+    timing.add("composite", time.perf_counter() - t0)
+    return image
+
+
+@torch.no_grad()
+def hand_texture(model, texels, k: int, pose, light_inputs: LightInputs, intensity: np.ndarray,
+                 visibility: bool, falloff: str, eye, device="cpu", chunk: int = 32,
+                 mean_texture=None, progress=None, timing: Timing | None = None) -> torch.Tensor:
+    """Hand k's texture Σ_i b_i C_i [3, N, N] (Eq. 2) under L lights seen from ``eye``.
+
+    Args:
+        pose: [J, 3] hand k's axis-angle pose.  light_inputs: its LightInputs of the L
+            lights.  intensity: [L, 3] b_i.  mean_texture: T̄ of a GGX teacher, [1 or H,
+            3, N, N] (row k of several).  Other arguments as :func:`render_lights`.
+    """
+    timing = timing or Timing()
+    view = texels.local_view(k, eye)
+    pose_row = pose_vector(np.asarray(pose)[None]).to(device)
+    mean = None
+    if mean_texture is not None:
+        mean = _mean(mean_texture, 1, device)
+        mean = mean[k:k + 1] if mean.shape[0] > 1 else mean[:1]
+    texture = torch.zeros(3, texels.tex_res, texels.tex_res, device=device)
     n_lights = len(intensity)
     for start in range(0, n_lights, chunk):
         sl = slice(start, min(n_lights, start + chunk))
         t0 = time.perf_counter()
-        rows, ws, hands = [], [], []
-        for k in range(n_hands):
-            x, w = assemble_inputs(texels, k, _slice(light_inputs[k], sl), views[k],
-                                   intensity[sl], visibility, falloff)
-            rows.append(x)
-            ws.append(w)
-            hands.append(np.full(len(x), k, np.int64))
-        inputs = torch.from_numpy(np.concatenate(rows)).to(device)
-        weights = torch.from_numpy(np.concatenate(ws)).to(device)
-        hand_of = torch.from_numpy(np.concatenate(hands)).to(device)
+        x, w = assemble_inputs(texels, k, _slice(light_inputs, sl), view, intensity[sl],
+                               visibility, falloff)
+        inputs = torch.from_numpy(x).to(device)
+        weights = torch.from_numpy(w).to(device)
+        hand_of = torch.zeros(len(x), dtype=torch.int64, device=device)
         timing.add("inputs", time.perf_counter() - t0)
         t0 = time.perf_counter()
-        part = forward_textures(model, inputs, weights, hand_of, pose, n_hands, mean)
-        textures = part if textures is None else [a + b for a, b in zip(textures, part)]
+        texture = texture + forward_textures(model, inputs, weights, hand_of, pose_row, 1,
+                                             mean)[0]
         timing.add("network", time.perf_counter() - t0)
         if progress is not None:
             progress(sl.stop - sl.start)
-    t0 = time.perf_counter()
-    if textures is None:
-        n = texels.tex_res
-        textures = [torch.zeros(3, n, n, device=device) for _ in range(n_hands)]
-    image = composite(textures, gbuffer, background)
-    timing.add("composite", time.perf_counter() - t0)
-    return image
+    return texture
 
 
 def point_light_inputs(texels, positions, visibility: bool, timing: Timing | None = None):

@@ -134,12 +134,8 @@ def sample_loss(model, data: CaptureData, item, config: TeacherConfig, step: int
 
 
 def _metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
-    from relight_cli.metrics.image import image_metrics
-    region = mask > 0.5
-    if not region.any():
-        return {}
-    m = image_metrics(pred, gt, region, win_size=min(7, (min(gt.shape[:2]) // 2) * 2 - 1))
-    return m["metrics"]
+    from .evaluate import score
+    return score(pred, gt, mask)
 
 
 def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=None,
@@ -165,6 +161,7 @@ def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, p
     env)`` → the prediction of an ``eval/`` env render (held-out hand)."""
     from relight_cli.features import discretize_env
 
+    from .evaluate import mean_scores, spread
     model.eval()
     out = {}
     all_splits = data.splits()
@@ -174,8 +171,7 @@ def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, p
             items = all_splits.get(name) or []
             if not items:
                 continue
-            pick = np.unique(np.linspace(0, len(items) - 1, min(len(items), val_samples))
-                             .round().astype(int))
+            pick = spread(len(items), val_samples)
             rows = []
             for i in pick:
                 if name == "env":
@@ -190,8 +186,7 @@ def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, p
                 if m:
                     rows.append(m)
             if rows:
-                out[name] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-                out[name]["samples"] = len(rows)
+                out[name] = mean_scores(rows)
     model.train()
     return out
 
@@ -243,8 +238,9 @@ class TeacherTask:
         return evaluate(model, self.data, self.config, device, mean_texture=self.mean_texture)
 
     def extra(self) -> dict:
-        from .geometry import uv_layout_digest
-        out = {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine"))}
+        from .geometry import hand_records, uv_layout_digest
+        out = {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine")),
+               "hands": hand_records(self.data.hand)}
         if self.mean_texture is not None:
             out["mean_texture"] = self.mean_texture.detach().cpu()
         return out

@@ -219,13 +219,29 @@ def hand_materials(hand, mesh: str = "fine", resolution: int = 512, seed: int = 
 
     Image maps (``albedo`` [H, W, 3], ``roughness`` [H, W] or a number) win; without
     them a model with region labels gets :func:`procedural_material` and one without
-    labels the plain skin constants.  Mirrored instances share the model's UV layout,
-    hence its maps.
+    labels the plain skin constants.  The procedural skin is computed on each hand's own
+    rest surface (the mirrored model for a mirrored instance), so it depends only on the
+    hand's handedness and ``seed``: the left hand of a two-hand scene made from a right
+    model has exactly the skin of a left-hand model's capture (one subject, captured hand
+    by hand and with both hands), and a scene's two hands have different blotches.
     """
     model = hand.mesh(mesh)
     if albedo is not None or roughness is not None or model.labels is None:
         base = material_from_maps(albedo, roughness)
-    else:
-        base = procedural_material(model, hand.label_names, resolution, seed,
-                                   mirrored=hand.side == "left")
-    return [base for _ in hand.hands]
+        return [base for _ in hand.hands]
+    from relight_cli.hand.model import mirror_mesh
+    from relight_cli.hand.scene import handedness
+
+    from relight_cli.formats.hand_npz import HandMesh
+    cache = {}
+    out = []
+    for inst in hand.hands:
+        if inst.mirror not in cache:
+            surface = model
+            if inst.mirror:
+                v, f, fuv = mirror_mesh(model.vertices, model.faces, model.faces_uv)
+                surface = HandMesh(v, f, model.uv, fuv, model.weights, model.labels)
+            cache[inst.mirror] = procedural_material(surface, hand.label_names, resolution, seed,
+                                                     mirrored=handedness(hand, inst) == "left")
+        out.append(cache[inst.mirror])
+    return out

@@ -36,6 +36,10 @@ class StageSettings:
         seed: seeds poses, light groups (identical settings give identical captures).
         tex_res, aa: renderer texture-space map size and sub-pixel grid.
         sss: subsurface scattering on.  bounce: one-bounce interreflection.
+        skin_seed: seeds the procedural skin (the subject: keep it across the right, left
+            and two-hand captures of one study, while ``seed`` changes their motion).
+        eval_env_res: (H, W) lat-long grid over which the ground-truth env renders
+            integrate their env maps (the learned models use their own, 32×16 by default).
     """
 
     cameras: int = 20
@@ -53,6 +57,8 @@ class StageSettings:
     aa: int = 2
     sss: bool = True
     bounce: bool = False
+    skin_seed: int = 0
+    eval_env_res: tuple = (32, 64)
 
 
 def fibonacci_sphere(n: int, min_y: float = -1.0) -> np.ndarray:
@@ -105,33 +111,171 @@ def light_group(positions: np.ndarray, size: int, rng) -> list:
     return sorted(int(i) for i in np.argsort(dist, kind="stable")[:min(size, len(positions))])
 
 
-def hand_motion(hand, n_frames: int, seed: int = 0, keyframe_every: int = 10):
-    """A copy of ``hand`` (first hand only) moving through random poses.
+# Two interacting hands (RelightableHands evaluates right, left and both hands): the second
+# hand faces the first one's palm from a direction within TWO_HAND_CONE_DEG of its palm
+# normal (+Z of the model), turned by up to ±TWO_HAND_TILT_DEG about each axis from the
+# facing pose, and slides in along that direction until the closest pair of fine-mesh
+# vertices is TWO_HAND_GAP metres apart (a random gap per key pose, interpolated).  Sliding
+# in from outside never passes through the other hand, and the resulting surface distance
+# stays above TWO_HAND_MARGIN (tests/test_synth_capture.py measures it exactly).
+TWO_HAND_GAP = (0.006, 0.025)
+TWO_HAND_MARGIN = 0.005
+TWO_HAND_CONE_DEG = 50.0
+TWO_HAND_TILT_DEG = 35.0
+_GAP_TOLERANCE = 2e-4          # metres: sphere tracing stops this close to the target gap
 
-    Key poses every ``keyframe_every`` frames (random within joint limits, plus a
-    wrist rotation of up to ±35° about each axis) are interpolated by per-joint
-    slerp (:func:`relight_cli.hand.poses.interpolate_poses`).
 
-    Returns:
-        HandData with ``n_frames`` frames.
-    """
-    import copy
+def instance_rest(hand, inst) -> np.ndarray:
+    """[J, 3] rest joints of one hand instance (mirrored across x = 0 for a mirrored one)."""
+    rest = np.asarray(hand.rest_joints, np.float64)
+    return rest * [-1.0, 1.0, 1.0] if inst.mirror else rest
 
+
+def _random_track(hand, inst, n_frames: int, keyframe_every: int, seed, wrist_rng):
+    """(poses [N, J, 3], key frames, key wrist rotations) of one hand: random key poses
+    within joint limits plus a wrist rotation of up to ±35° about each axis, slerped."""
     from scipy.spatial.transform import Rotation
 
     from relight_cli.hand.poses import interpolate_poses, random_poses
+    from relight_cli.hand.scene import handedness
 
-    out = copy.deepcopy(hand)
-    out.hands = out.hands[:1]
     n_keys = max(2, int(math.ceil((n_frames - 1) / keyframe_every)) + 1)
-    rng = np.random.default_rng(seed)
-    keys = random_poses(n_keys, seed=seed, side=hand.side, rest_joints=hand.rest_joints)
-    wrist = Rotation.from_euler("xyz", rng.uniform(-35, 35, (n_keys, 3)), degrees=True)
+    keys = random_poses(n_keys, seed=seed, side=handedness(hand, inst),
+                        rest_joints=instance_rest(hand, inst))
+    wrist = Rotation.from_euler("xyz", wrist_rng.uniform(-35, 35, (n_keys, 3)), degrees=True)
     keys[:, 0] = wrist.as_rotvec()
     key_frames = np.arange(n_keys) * keyframe_every
-    poses, trans = interpolate_poses(key_frames, keys, np.zeros((n_keys, 3)), np.arange(n_frames))
-    out.hands[0].poses = poses
-    out.hands[0].translations = trans
+    poses, _ = interpolate_poses(key_frames, keys, np.zeros((n_keys, 3)), np.arange(n_frames))
+    return poses, key_frames
+
+
+def hand_motion(hand, n_frames: int, seed: int = 0, keyframe_every: int = 10):
+    """A copy of ``hand`` moving through random poses: its first hand alone, or, when the
+    scene has two hands, both hands interacting (:func:`place_second_hand`).
+
+    Key poses every ``keyframe_every`` frames (random within joint limits, plus a
+    wrist rotation of up to ±35° about each axis) are interpolated by per-joint
+    slerp (:func:`relight_cli.hand.poses.interpolate_poses`).  Each hand of a pair draws
+    its own poses from its own stream of ``seed``, which a one-hand motion of the same
+    seed does not share: a two-hand capture's poses are new to teachers trained on
+    one-hand captures.
+
+    Returns:
+        HandData with ``n_frames`` frames and one or two hands (two: roots identity, the
+        second hand's placement in its wrist rotation and translations).
+    """
+    import copy
+
+    out = copy.deepcopy(hand)
+    out.hands = out.hands[:2]
+    if len(out.hands) == 1:
+        inst = out.hands[0]
+        inst.poses, _ = _random_track(hand, inst, n_frames, keyframe_every, seed,
+                                      np.random.default_rng(seed))
+        inst.translations = np.zeros((n_frames, 3))
+        return out
+    key_frames = None
+    for k, inst in enumerate(out.hands):
+        inst.poses, key_frames = _random_track(hand, inst, n_frames, keyframe_every, [seed, k],
+                                               np.random.default_rng([seed, k, 1]))
+        inst.translations = np.zeros((n_frames, 3))
+        inst.root = np.eye(4)
+    place_second_hand(out, key_frames, np.random.default_rng([seed, 2]))
+    return out
+
+
+def place_second_hand(hand, key_frames, rng) -> np.ndarray:
+    """Place hand 1 of ``hand`` (in place) facing hand 0's palm, close but apart.
+
+    Per key frame: a direction d within :data:`TWO_HAND_CONE_DEG` of hand 0's palm normal,
+    an orientation turned 180° about +Y (facing hand 0) then by up to
+    ±:data:`TWO_HAND_TILT_DEG` about each axis, and a target gap g in
+    :data:`TWO_HAND_GAP`; all three are interpolated between key frames and expressed in
+    hand 0's wrist frame, so the pair moves with hand 0's wrist.  Per frame, hand 1 starts
+    far out along d and slides towards hand 0 by sphere tracing on the closest
+    vertex–vertex distance δ(s) (1-Lipschitz in the slide s, so each step s ← s − (δ − g)
+    keeps δ ≥ g): it stops at the first contact with the gap, never inside hand 0.
+    Hands are roots-identity instances; only hand 1's wrist rotation and translation are
+    written.
+
+    Returns:
+        [N] float64 closest vertex–vertex distance per frame (metres, ≥ g).
+    """
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from relight_cli.hand.scene import posed_meshes
+
+    first, second = hand.hands[0], hand.hands[1]
+    n_frames = first.poses.shape[0]
+    key_frames = np.asarray(key_frames, np.float64)
+    n_keys = len(key_frames)
+    cone = math.radians(TWO_HAND_CONE_DEG)
+    cos_t = rng.uniform(math.cos(cone), 1.0, n_keys)                 # uniform over the cap
+    phi = rng.uniform(0, 2 * math.pi, n_keys)
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    dirs = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], 1)
+    tilt = Rotation.from_euler("xyz", rng.uniform(-TWO_HAND_TILT_DEG, TWO_HAND_TILT_DEG,
+                                                  (n_keys, 3)), degrees=True)
+    relative = Rotation.from_euler("y", 180, degrees=True) * tilt
+    gaps = rng.uniform(*TWO_HAND_GAP, n_keys)
+    t = np.clip(np.arange(n_frames, dtype=np.float64), key_frames[0], key_frames[-1])
+    rel = Slerp(key_frames, relative)(t)
+    d = np.stack([np.interp(t, key_frames, dirs[:, c]) for c in range(3)], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    gap = np.interp(t, key_frames, gaps)
+    wrist0 = Rotation.from_rotvec(first.poses[:, 0])
+    second.poses[:, 0] = (wrist0 * rel).as_rotvec()
+    second.translations[:] = 0.0
+    closest = np.zeros(n_frames)
+    for f in range(n_frames):
+        m0, m1 = posed_meshes(hand, f, "fine")[:2]
+        c0, c1 = m0.vertices.mean(0), m1.vertices.mean(0)
+        w = wrist0[f].apply(d[f])
+        tree = cKDTree(m0.vertices)
+        s = (np.linalg.norm(m0.vertices - c0, axis=1).max()
+             + np.linalg.norm(m1.vertices - c1, axis=1).max() + gap[f] + 0.01)
+        bound = np.inf
+        for _ in range(500):
+            # the previous closest pair is at most ``bound`` apart now (Lipschitz), so
+            # the bounded query still finds the minimum, and far points cost nothing
+            near = tree.query(m1.vertices + (c0 + s * w - c1), k=1,
+                              distance_upper_bound=bound)[0]
+            delta = float(near.min())
+            step = delta - gap[f]
+            if step < _GAP_TOLERANCE:
+                break
+            s -= step
+            bound = delta + step + 1e-9
+        second.translations[f] = c0 + s * w - c1
+        closest[f] = delta
+    return closest
+
+
+def hand_distance(hand, frame: int) -> float:
+    """Closest distance (metres) between a vertex of hand 0's fine mesh and one of hand 1's
+    at ``frame`` (within ~0.2 mm of the surfaces' distance for the built-in hand)."""
+    from scipy.spatial import cKDTree
+
+    from relight_cli.hand.scene import posed_meshes
+    m0, m1 = posed_meshes(hand, frame, "fine")[:2]
+    return float(cKDTree(m0.vertices).query(m1.vertices, k=1)[0].min())
+
+
+def two_hand_record(motion, eval_hand=None, placed: bool = True) -> dict:
+    """What capture.json's ``settings.two_hands`` says about a two-hand scene: the
+    placement rule (``placed``: made by :func:`place_second_hand`) and the closest
+    vertex distance over the capture's frames and the held-out poses, millimetres."""
+    out = {}
+    if placed:
+        out.update({"gap_mm": [1000 * g for g in TWO_HAND_GAP],
+                    "margin_mm": 1000 * TWO_HAND_MARGIN, "cone_deg": TWO_HAND_CONE_DEG,
+                    "tilt_deg": TWO_HAND_TILT_DEG})
+    out["closest_mm"] = round(1000 * min(hand_distance(motion, f)
+                                         for f in range(motion.n_frames)), 3)
+    if eval_hand is not None:
+        out["eval_closest_mm"] = round(1000 * min(hand_distance(eval_hand, f)
+                                                  for f in range(eval_hand.n_frames)), 3)
     return out
 
 
@@ -142,11 +286,15 @@ def capture_key(settings: StageSettings, hand_digest: str) -> str:
 
 
 def hand_digest(hand) -> str:
-    """SHA-256 (16 hex) of a hand's model and poses."""
+    """SHA-256 (16 hex) of a hand's model and motion (poses, translations, roots, mirroring
+    of every hand)."""
     h = hashlib.sha256()
     for arr in (hand.coarse.vertices, hand.fine.vertices, hand.fine.faces, hand.fine.uv,
-                hand.rest_joints, *[i.poses for i in hand.hands]):
+                hand.rest_joints):
         h.update(np.ascontiguousarray(arr).tobytes())
+    for inst in hand.hands:
+        for arr in (inst.poses, inst.translations, inst.root, np.asarray([inst.mirror])):
+            h.update(np.ascontiguousarray(np.asarray(arr, np.float64)).tobytes())
     return h.hexdigest()[:16]
 
 
@@ -204,6 +352,27 @@ def plan_capture(hand, settings: StageSettings, motion=None) -> Plan:
                 capture_key(s, hand_digest(motion)))
 
 
+def stage_envmap(env, env_res):
+    """``env`` (an EnvMap, any layout and size) resampled once to the stage's working
+    lat-long grid ``env_res`` (H, W): exact and power preserving
+    (:func:`relight_cli.envmap.resample`), so a 1k HDR costs its resampling once and the
+    ground truth, the stored eval/envs/ map and the models' own discretization of that
+    map all hold the same light."""
+    from relight_cli import envmap as E
+    h, w = (int(v) for v in env_res)
+    if env.layout == "latlong" and (env.height, env.width) == (h, w):
+        return env
+    return E.resample(env, "latlong", h, w)
+
+
+def hand_coverage(result, n_hands: int) -> list | None:
+    """Per-hand [H, W] coverage of a render (:class:`~relight_cli.render.shading.RenderResult`),
+    or None for a one-hand scene."""
+    if n_hands < 2:
+        return None
+    return [result.gbuffer.coverage(k) for k in range(n_hands)]
+
+
 class FrameRenderer:
     """Renders capture frames: one lighting pass per frame, then every camera.
 
@@ -235,7 +404,8 @@ class FrameRenderer:
         meshes = posed_meshes(hand or self.plan.motion, pose, "fine")
         return HandRenderer(meshes, self.materials,
                             RenderSettings(tex_res=s.tex_res, aa=s.aa, sss=s.sss,
-                                           bounce=s.bounce, direct="texel"),
+                                           bounce=s.bounce, direct="texel",
+                                           env_res=tuple(s.eval_env_res)),
                             rasters=self.rasters)
 
     def frame(self, frame, cameras=None):

@@ -62,6 +62,12 @@ class GBuffer:
         """[H, W] float32 coverage: fraction of a pixel's samples that see a hand."""
         return self.hit.reshape(self.height, self.width, self.spp).mean(-1).astype(np.float32)
 
+    def coverage(self, hand: int) -> np.ndarray:
+        """[H, W] float32: fraction of a pixel's samples that see hand ``hand`` (the
+        per-hand masks sum to :attr:`mask`)."""
+        return ((self.hand == hand).reshape(self.height, self.width, self.spp).mean(-1)
+                .astype(np.float32))
+
     def resolve(self, values: np.ndarray, background=0.0) -> np.ndarray:
         """Box-filter per-sample values [P, C] (or [P]) to pixels [H, W, C] (or [H, W]).
 

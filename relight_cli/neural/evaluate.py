@@ -1,0 +1,452 @@
+"""Learned models on a capture: each hand rendered by its own model, scored against ground truth.
+
+RelightableHands captures the right and the left hand separately, trains one teacher per
+hand, and evaluates right, left and both hands (Sec. 5, Tables 1 and 3): two-hand
+sequences are used for evaluation only.  Here a scene of one or two hands is rendered
+with one model per hand (:func:`assign_models`: each hand takes the checkpoint trained on
+its handedness), every hand's visibility traced against *every* hand of the scene (one
+embree scene, :class:`~relight_cli.neural.geometry.PoseTexels`), and the per-hand
+textures composited through one camera G-buffer (which resolves the occlusions between
+the hands).  Models are teachers (``olat``, the ``ggx`` baseline) or URHand's linear
+model.
+
+:func:`evaluate_capture` scores a capture's frames (grouped-light, fully lit) and its
+``eval/`` renders under env maps: MSE, PSNR, SSIM and MAE inside the ground-truth hand
+mask, and per hand inside that hand's own mask (the capture's per-hand coverage channels,
+formats/capture.md, or the G-buffer's where a capture has none).  The study runner and
+``relight relight CAPTURE/ --model teacher --checkpoint right.pt --checkpoint left.pt``
+call it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from relight_cli.errors import DataError
+
+from .data import LRU
+from .teacher import Timing, composite, hand_texture
+
+SPLITS = ("train", "heldout", "grouped", "fully_lit", "env")
+
+
+@dataclass
+class HandModel:
+    """A loaded learned model of one or more hands.
+
+    Attributes:
+        kind: ``teacher`` (``olat`` / ``ggx``) or ``linear``.
+        net: the module (eval mode).  config: its TeacherConfig or LinearConfig.
+        mean_texture: T̄ [1, 3, N, N] (ggx, linear) or None.
+        sides: handedness of the hands it was trained on (empty: not recorded, a
+            checkpoint from before the record existed).
+        uv_layouts: the UV layout digest of each trained hand (as rendered).
+        capture_key: the training capture's key.  pose_dim: pose vector length.
+        name: a label for messages (e.g. the checkpoint path).  step: iterations trained.
+    """
+
+    kind: str
+    net: torch.nn.Module
+    config: object
+    mean_texture: torch.Tensor | None
+    sides: list = field(default_factory=list)
+    uv_layouts: list = field(default_factory=list)
+    capture_key: str = ""
+    pose_dim: int = 0
+    name: str = ""
+    step: int = 0
+
+    @property
+    def model_name(self) -> str:
+        return self.config.model
+
+    @property
+    def tex_res(self) -> int:
+        return int(self.config.tex_res)
+
+    @property
+    def visibility(self) -> bool:
+        return bool(self.config.visibility)
+
+
+def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel:
+    """A :class:`HandModel` from a read checkpoint (``formats.checkpoint.read_checkpoint``)
+    of kind ``teacher`` or ``linear``.  Raises ValueError for a checkpoint that does not
+    build (the caller names the file)."""
+    kind = checkpoint["kind"]
+    if kind == "teacher":
+        from .train import model_from_checkpoint
+        net, config, mean = model_from_checkpoint(checkpoint, device)
+    elif kind == "linear":
+        from .linear import model_from_checkpoint
+        net, config, mean = model_from_checkpoint(checkpoint, device)
+    else:
+        raise ValueError(f"a {kind!r} checkpoint is not a per-hand model (use a teacher or "
+                         f"linear checkpoint)")
+    extra = checkpoint.get("extra", {})
+    hands = extra.get("hands") or []
+    if isinstance(hands, str):
+        hands = json.loads(hands)
+    sides = [str(h["side"]) for h in hands]
+    layouts = [str(h.get("uv_chart", "")) for h in hands]
+    if not hands and extra.get("uv_layout"):
+        layouts = [str(extra["uv_layout"])]
+    return HandModel(kind, net, config, mean, sides, layouts, str(checkpoint["capture_key"]),
+                     int(checkpoint["pose_dim"]), name, int(checkpoint["step"]))
+
+
+def assign_models(models: list, sides: list) -> list:
+    """The model of each hand of a scene whose hands have handedness ``sides``.
+
+    One model renders every hand (as a teacher trained on one hand renders a scene of
+    two); with several, each hand takes the one model trained on its handedness.
+    Raises ValueError when a hand has no model, or two.
+    """
+    if not models:
+        raise ValueError("give at least one model")
+    if len(models) == 1:
+        return [models[0]] * len(sides)
+    for m in models:
+        if not m.sides:
+            raise ValueError(f"{m.name or 'a checkpoint'} does not record which hand it was "
+                             f"trained on (an older checkpoint): give it alone")
+    out = []
+    for k, side in enumerate(sides):
+        matches = [m for m in models if side in m.sides]
+        if not matches:
+            raise ValueError(f"no checkpoint was trained on the {side} hand (hand {k} of the "
+                             f"scene); the checkpoints know {', '.join(sorted({s for m in models for s in m.sides}))}")
+        if len(matches) > 1:
+            raise ValueError(f"{len(matches)} checkpoints were trained on the {side} hand: "
+                             f"{', '.join(m.name or '?' for m in matches)}; give one per hand")
+        out.append(matches[0])
+    unused = [m for m in models if all(m is not a for a in out)]
+    if unused:
+        raise ValueError(f"{unused[0].name or 'a checkpoint'} ({'/'.join(unused[0].sides)} "
+                         f"hand) matches no hand of the scene")
+    return out
+
+
+def check_hands(models: list, hand) -> None:
+    """Refuse a scene a hand's model cannot render: another joint count, or another UV
+    chart than the one its texture was learned on (ValueError naming the hand)."""
+    from .geometry import hand_records, uv_layout_digest
+    records = hand_records(hand)
+    for k, (model, record) in enumerate(zip(models, records)):
+        label = model.name or "the model"
+        if (hand.n_joints - 1) * 3 != model.pose_dim:
+            raise ValueError(f"the hand has {hand.n_joints} joints; {label} was trained on "
+                             f"{model.pose_dim // 3 + 1}")
+        if model.sides:
+            ok = record["uv_chart"] in model.uv_layouts
+        else:   # an older checkpoint: the digest of its training hand's model mesh
+            ok = not model.uv_layouts or uv_layout_digest(hand.mesh("fine")) in model.uv_layouts
+        if not ok:
+            raise ValueError(f"hand {k}'s UV layout differs from the one {label} learned its "
+                             f"texture on (another hand model?)")
+
+
+def scene_texels(models: list, make) -> list:
+    """Per hand, the texel G-buffer its model needs: ``make(tex_res, visibility)`` →
+    PoseTexels, called once per distinct (tex_res, visibility) among ``models``."""
+    cache = {}
+    out = []
+    for m in models:
+        key = (m.tex_res, m.visibility)
+        if key not in cache:
+            cache[key] = make(*key)
+        out.append(cache[key])
+    return out
+
+
+def point_inputs(model, texels, k: int, positions):
+    """Hand k's LightInputs of point lights at ``positions`` [L, 3] for ``model``."""
+    return texels.point_lights(k, positions, visibility=model.visibility)
+
+
+def env_inputs(model, texels, k: int, denv):
+    """(hand k's LightInputs, [M', 3] weights L Δω) of a discretized env map's lit
+    directions for ``model``."""
+    lit = np.nonzero(denv.lit)[0]
+    return (texels.directional_lights(k, denv.directions[lit], visibility=model.visibility),
+            denv.radiance[lit] * denv.solid_angle[lit, None])
+
+
+@torch.no_grad()
+def model_texture(model: HandModel, texels, k: int, pose, light_inputs, intensity, eye,
+                  device="cpu", progress=None, timing: Timing | None = None) -> torch.Tensor:
+    """Hand k's texture [3, N, N] under L lights (LightInputs of hand k, [L, 3] weights)
+    seen from ``eye``, by a teacher (per-light passes summed, Eq. 2) or the linear model
+    (one pass over the summed features)."""
+    intensity = np.asarray(intensity, np.float64)
+    if model.kind == "teacher":
+        cfg = model.config
+        return hand_texture(model.net, texels, k, pose, light_inputs, intensity, cfg.visibility,
+                            cfg.falloff, eye, device, mean_texture=model.mean_texture,
+                            progress=progress, timing=timing)
+    import time
+
+    from .linear import render_textures
+    t0 = time.perf_counter()
+    if len(intensity) == 0:
+        out = torch.zeros(3, texels.tex_res, texels.tex_res, device=device)
+    else:
+        one = texels.select(k)
+        out = render_textures(model.net, one, [one.local_view(0, eye)], [light_inputs],
+                              intensity, np.asarray(pose)[None], model.mean_texture,
+                              physical=False).neural[0]
+    if timing is not None:
+        timing.add("network", time.perf_counter() - t0)
+    if progress is not None:
+        progress(len(intensity))
+    return out
+
+
+@torch.no_grad()
+def render_scene(models: list, texels: list, gbuffer, poses, light_inputs: list, intensity,
+                 device="cpu", progress=None, timing: Timing | None = None,
+                 background=0.0) -> torch.Tensor:
+    """[H, W, 3] image of a posed scene, hand k by ``models[k]``.
+
+    Args:
+        models: per hand its :class:`HandModel`.  texels: per hand the PoseTexels of the
+            scene its model needs (:func:`scene_texels`).
+        gbuffer: the camera's G-buffer of every hand.  poses: [H, J, 3].
+        light_inputs: per hand its LightInputs of the same L lights (from its own texels).
+        intensity: [L, 3] b_i, or per hand [L_k, 3] (env maps: each model's lit directions).
+    """
+    textures = []
+    for k, model in enumerate(models):
+        weights = intensity[k] if isinstance(intensity, (list, tuple)) else intensity
+        textures.append(model_texture(model, texels[k], k, poses[k], light_inputs[k], weights,
+                                      gbuffer.eye, device, progress, timing))
+    return composite(textures, gbuffer, background)
+
+
+def spread(n_items: int, count: int | None) -> np.ndarray:
+    """Indices of at most ``count`` evenly spaced items of ``n_items`` (None: all)."""
+    count = n_items if count is None else min(n_items, count)
+    return np.unique(np.linspace(0, n_items - 1, count).round().astype(int))
+
+
+def _win(image) -> int:
+    return min(7, (min(image.shape[:2]) // 2) * 2 - 1)
+
+
+def score(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, hand_masks=None,
+          names=None) -> dict:
+    """{mse, psnr, ssim, mae} inside ``mask`` > 0.5 and, per hand, {name: {...}} inside
+    ``hand_masks[k]`` > 0.5 (the image's data range, so per-hand PSNR/SSIM compare with
+    the whole); {} when the mask is empty."""
+    from relight_cli.metrics.image import image_metrics
+    region = mask > 0.5
+    if not region.any():
+        return {}
+    values = gt[region]
+    data_range = float(values.max() - values.min()) or 1.0
+    out = dict(image_metrics(pred, gt, region, data_range, _win(gt))["metrics"])
+    for k, name in enumerate(names or []):
+        own = hand_masks[k] > 0.5
+        if own.any():
+            out[name] = image_metrics(pred, gt, own, data_range, _win(gt))["metrics"]
+    return out
+
+
+def hand_names(sides: list) -> list:
+    """Names of a scene's hands in scores: their handedness, or hand0, hand1 … when two
+    hands share one."""
+    return list(sides) if len(set(sides)) == len(sides) else [f"hand{k}" for k in
+                                                            range(len(sides))]
+
+
+def mean_scores(rows: list) -> dict:
+    """Means of per-sample score dicts (nested per-hand dicts averaged over the samples
+    where that hand is visible), with their sample counts."""
+    out = {}
+    flat = [r for r in rows if r]
+    if not flat:
+        return out
+    keys = [k for k in flat[0] if not isinstance(flat[0][k], dict)]
+    for key in keys:
+        out[key] = float(np.mean([r[key] for r in flat]))
+    out["samples"] = len(flat)
+    nested = dict.fromkeys(k for r in flat for k, v in r.items() if isinstance(v, dict))
+    for name in nested:
+        out[name] = mean_scores([r[name] for r in flat if name in r])
+    return out
+
+
+class CaptureEvaluator:
+    """Renders and scores a capture's samples with one model per hand.
+
+    Args:
+        capture: a capture folder (holding capture.json) or a ``CaptureData``.
+        models: :class:`HandModel` list (one for every hand, or one per handedness).
+        device: torch device.  aa: G-buffer samples per pixel axis (default: a given
+            CaptureData's, else the first model's).  env_res: (H, W) grid the models
+            integrate env maps over.
+        cache_poses: poses whose texel G-buffers stay cached.
+    """
+
+    def __init__(self, capture, models: list, device="cpu", aa: int | None = None,
+                 env_res=(16, 32), cache_poses: int = 8):
+        from relight_cli.hand.scene import handedness
+
+        from .data import CaptureData
+        if not models:
+            raise ValueError("give at least one model")
+        first = models[0]
+        given = capture if isinstance(capture, CaptureData) else None
+        self.device = device
+        self.env_res = tuple(env_res)
+        self.aa = int(aa if aa is not None else given.aa if given is not None else first.config.aa)
+        folder = given.folder if given is not None else capture
+        self._data = {}
+        self._make_data = lambda tex_res, vis: CaptureData(
+            folder, tex_res, self.aa, vis, holdout=getattr(first.config, "holdout", 0.25),
+            cache_poses=cache_poses)
+        base = given or self._make_data(first.tex_res, first.visibility)
+        self.data = base
+        self._data[(base.tex_res, base.visibility)] = base
+        sides = handedness(base.hand)
+        self.models = assign_models(models, sides)
+        try:
+            check_hands(self.models, base.hand)
+            if base.eval_hand is not None:
+                check_hands(self.models, base.eval_hand)
+        except ValueError as exc:
+            raise DataError(str(exc), base.hand_path) from None
+        self.names = hand_names(sides)
+        self._env_inputs = LRU(4)
+        self._envs = {}
+
+    # ---------------------------------------------------------------- pieces
+
+    def data_for(self, tex_res: int, visibility: bool):
+        key = (tex_res, visibility)
+        if key not in self._data:
+            self._data[key] = self._make_data(tex_res, visibility)
+        return self._data[key]
+
+    def texels(self, pose: int, held_out: bool) -> list:
+        return scene_texels(self.models, lambda n, v: self.data_for(n, v).texels(pose, held_out))
+
+    def default_splits(self) -> list:
+        """Held-out grouped frames of a capture a model trained on, every grouped frame of
+        another one; fully lit frames; env renders (the non-empty ones)."""
+        trained_here = any(m.capture_key == self.data.key for m in self.models)
+        names = ["heldout" if trained_here else "grouped", "fully_lit", "env"]
+        splits = self.data.splits()
+        return [n for n in names if splits.get(n)]
+
+    def env_map(self, name: str):
+        if name not in self._envs:
+            from relight_cli.features import discretize_env
+            self._envs[name] = discretize_env(self.data.env_map(name), *self.env_res)
+        return self._envs[name]
+
+    # ---------------------------------------------------------------- one sample
+
+    def predict(self, item, timing: Timing | None = None):
+        """(prediction [H, W, 3], ground truth, mask, per-hand masks [n, H, W] or None)
+        of one split item: a capture (frame, camera) or an ``("env", render record)``."""
+        from relight_cli.formats import capture as C
+        data = self.data
+        n = data.n_hands
+        if item[0] == "env":
+            render = item[1]
+            try:
+                camera = data.capture.camera(render["camera"])
+            except KeyError:
+                raise DataError(f"evaluation render names unknown camera "
+                                f"{render['camera']!r}", data.index_path) from None
+            gt, mask, hands = C.read_image_hands(os.path.join(data.folder, render["image"]),
+                                                 camera, n)
+            pose, held_out = int(render["pose"]), True
+            texels = self.texels(pose, True)
+            denv = self.env_map(render["env"])
+            inputs = self._env_inputs.get_or((pose, render["env"]), lambda: [
+                env_inputs(m, texels[k], k, denv) for k, m in enumerate(self.models)])
+            lights = [li for li, _ in inputs]
+            intensity = [w for _, w in inputs]
+        else:
+            frame = data.frame(item[0])
+            camera = data.capture.camera(item[1])
+            path = os.path.join(data.folder, C.image_path(frame.index, camera.name))
+            if not os.path.isfile(path):
+                raise DataError(f"frame {frame.index} lists camera {camera.name!r} but its "
+                                f"image is missing", path)
+            gt, mask, hands = C.read_image_hands(path, camera, n)
+            pose, held_out = frame.pose, False
+            texels = self.texels(pose, False)
+            lights = []
+            for k, m in enumerate(self.models):
+                per_hand = self.data_for(m.tex_res, m.visibility).light_inputs(
+                    pose, frame.lights_on)
+                lights.append(per_hand[k])
+            intensity = data.capture.light_intensity[np.asarray(frame.lights_on, np.int64)]
+        gbuffer = data.gbuffer(pose, camera, held_out)
+        pred = render_scene(self.models, texels, gbuffer, data.poses(pose, held_out), lights,
+                            intensity, self.device, timing=timing)
+        if hands is None and n > 1:
+            hands = np.stack([gbuffer.coverage(k) * (mask > 0.5) for k in range(n)])
+        return pred.cpu().numpy(), gt, mask, hands
+
+    def score(self, item) -> dict:
+        pred, gt, mask, hands = self.predict(item)
+        names = self.names if self.data.n_hands > 1 else []
+        return score(pred, gt, mask, hands, names)
+
+    # ---------------------------------------------------------------- splits
+
+    def evaluate(self, splits=None, max_samples: int | None = None, progress=None) -> dict:
+        """{split: {mse, psnr, ssim, mae, samples[, hand name: {...}]}}: means over the
+        split's samples (at most ``max_samples`` evenly spaced ones; None: all)."""
+        all_splits = self.data.splits()
+        names = list(splits) if splits else self.default_splits()
+        for name in names:
+            if name not in SPLITS:
+                raise ValueError(f"unknown split {name!r}; use {', '.join(SPLITS)}")
+        out = {}
+        for name in names:
+            items = all_splits.get(name) or []
+            if not items:
+                continue
+            rows = []
+            for i in spread(len(items), max_samples):
+                rows.append(self.score(items[i]))
+                if progress is not None:
+                    progress(1)
+            scores = mean_scores(rows)
+            if scores:
+                out[name] = scores
+        return out
+
+
+def evaluate_capture(capture, models: list, splits=None, max_samples: int | None = None,
+                     device="cpu", aa: int | None = None, env_res=(16, 32),
+                     progress=None) -> dict:
+    """Score learned models (one per hand, or one for all) on a capture.
+
+    Args:
+        capture: capture folder or CaptureData (e.g. a two-hand capture from
+            ``synth-capture builtin:two``).
+        models: :class:`HandModel` list (:func:`load_hand_model` of each checkpoint).
+        splits: among :data:`SPLITS` (``grouped``: every grouped-light frame, for a
+            capture no model trained on); default :meth:`CaptureEvaluator.default_splits`.
+        max_samples: per split, at most this many evenly spaced samples (None: all).
+        device, aa, env_res: see :class:`CaptureEvaluator`.
+        progress: optional callable(n) per scored sample.
+
+    Returns:
+        {split: {"mse", "psnr", "ssim", "mae", "samples", and for two hands "right",
+        "left" (or hand0, hand1): the same inside that hand's mask}}; MSE in the
+        capture's linear radiance units (RelightableHands' tables print MSE × 10³).
+    """
+    return CaptureEvaluator(capture, models, device, aa, env_res).evaluate(
+        splits, max_samples, progress)

@@ -1,0 +1,588 @@
+"""Pictures to look at instead of numbers to read: labelled contact sheets (PNG only).
+
+Data stays in EXR; everything here is display-referred.  A sheet is a grid of
+tiles, each with a band above it in which its label (what it shows: a layer,
+camera or light) and its exposure (how values became grey levels) are drawn,
+so a sheet read alone says what it is.  Exposure modes (:func:`expose`):
+
+* ``auto``: a linear scale making the 99th percentile of the tile's finite
+  luminance (inside its region) white, then the sRGB transfer function, like a
+  photograph exposed for its highlights; the note says ``white = V``.  Robust
+  to a few hot texels and to any dynamic range (a 1e30 outlier only clips).
+* ``unit``: values in [0, 1] shown linearly as grey levels (fractions:
+  visibility, masks, shadow mattes, transmittance); note ``0…1 linear``.
+* ``signed``: [−1, 1] mapped linearly onto [0, 1] per channel (normals,
+  directions); note ``−1…1 linear``.
+* ``reinhard``: :func:`relight_cli.tonemap.tonemap` (Reinhard's global operator,
+  key 0.18), for environment maps whose sun would clip under ``auto``.
+
+NaN/Inf values are drawn magenta and counted in the note; texels outside a
+display mask are slate grey.  Sheets are deterministic: the text is
+Pillow's built-in font (no system fonts, no time stamps) and PNGs are written
+by :func:`relight_cli.formats.image.write_png` (no time chunk).
+
+Shapes: images are [H, W, 3] float64 display values in [0, 1] (row 0 at the top).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+BACKGROUND = 0.10                   # display grey of the sheet
+OUTSIDE = (0.24, 0.25, 0.30)        # slate: texels outside a display mask (not data)
+NONFINITE = (1.0, 0.0, 1.0)         # magenta: NaN/Inf
+LUMA = np.array([0.2126, 0.7152, 0.0722])   # Rec. 709 luminance weights
+LABEL_SIZE = 13                     # pixels; legible at 100 % on any screen
+TITLE_SIZE = 14
+MIN_TILE = 160                      # tiles are upscaled (nearest) to at least this many pixels
+MAX_TILE = 1024
+PAD = 6
+MODES = ("auto", "unit", "signed", "reinhard")
+MAX_FACE = 192                      # a cube cross is at most 4 × 192 pixels wide
+
+
+@dataclass
+class Tile:
+    """One cell of a sheet: ``image`` [H, W, 3] display values in [0, 1], a label
+    (first line, e.g. the layer name) and a note (second line, e.g. the exposure)."""
+
+    image: np.ndarray
+    label: str
+    note: str = ""
+
+
+def expose(values, mode: str = "auto", mask=None, region=None, white: float | None = None,
+           percentile: float = 99.0) -> tuple[np.ndarray, str, float]:
+    """Linear data [H, W], [H, W, 1] or [H, W, 3] → (display [H, W, 3], note, white).
+
+    ``mask`` [H, W] (> 0.5 inside) greys out the texels outside it; ``region``
+    [H, W] (default: ``mask``) is where ``auto`` measures its percentile;
+    ``white`` fixes the value shown white instead (``auto`` only: several tiles
+    on one exposure).  ``white`` comes back as used (1 for other modes).
+    """
+    if mode not in MODES:
+        raise ValueError(f"exposure mode must be one of {MODES}, got {mode!r}")
+    v = np.asarray(values, np.float64)
+    if v.ndim == 2:
+        v = v[..., None]
+    if v.ndim != 3 or v.shape[-1] not in (1, 3):
+        raise ValueError(f"values must be [H, W], [H, W, 1] or [H, W, 3], got {v.shape}")
+    if v.shape[-1] == 1:
+        v = np.repeat(v, 3, axis=-1)
+    finite = np.isfinite(v).all(axis=-1)
+    clean = np.where(finite[..., None], v, 0.0)
+    inside = None if mask is None else np.asarray(mask) > 0.5
+    measure = finite if region is None and inside is None else (
+        finite & (inside if region is None else np.asarray(region) > 0.5))
+    notes = []
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        if mode == "auto":
+            if white is None:
+                white = _robust_white(clean @ LUMA, measure, percentile)
+            display = _srgb(clean / white)
+            notes.append(f"white = {white:.3g}")
+            negative = (clean < 0).any(axis=-1) & measure
+            if negative.any():
+                notes.append(f"{negative.sum() / max(measure.sum(), 1):.0%} < 0 (black)")
+        elif mode == "unit":
+            display, white = np.clip(clean, 0.0, 1.0), 1.0
+            notes.append("0…1 linear")
+        elif mode == "signed":
+            display, white = np.clip((clean + 1.0) / 2.0, 0.0, 1.0), 1.0
+            notes.append("−1…1 linear")
+        else:
+            from relight_cli.tonemap import tonemap
+            display, white = tonemap(clean), 1.0
+            notes.append("Reinhard, key 0.18")
+    if inside is not None:
+        display[~inside] = OUTSIDE
+    bad = int((~finite).sum())
+    if bad:
+        display[~finite] = NONFINITE
+        notes.append(f"{bad} NaN/Inf (magenta)")
+    return display, ", ".join(notes), float(white)
+
+
+def _robust_white(luminance: np.ndarray, region: np.ndarray, percentile: float) -> float:
+    sample = luminance[region]
+    if sample.size == 0:
+        return 1.0
+    white = float(np.percentile(sample, percentile))
+    if not white > 0:                   # mostly black (a shadow map, a dim corner): the maximum
+        white = float(sample.max())
+    return white if white > 0 and math.isfinite(white) else 1.0
+
+
+def _srgb(x: np.ndarray) -> np.ndarray:
+    from relight_cli.tonemap import srgb_oetf
+    return srgb_oetf(np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0))
+
+
+def tile(values, label: str, mode: str = "auto", mask=None, region=None,
+         white: float | None = None, note: str = "") -> Tile:
+    """A :class:`Tile` of linear data exposed by :func:`expose`; ``note`` goes first."""
+    display, exposure, _ = expose(values, mode, mask, region, white)
+    return Tile(display, label, ", ".join(filter(None, (note, exposure))))
+
+
+# ------------------------------------------------------------------ sheets
+
+
+@lru_cache(maxsize=4)
+def _font(size: int):
+    from PIL import ImageFont
+    return ImageFont.load_default(size=size)
+
+
+# Pillow's built-in font covers Latin-1 but few symbols: the ones our labels use, spelt out.
+_SPELLED = {"−": "-", "–": "-", "—": "-", "→": "->", "×": "x", "²": "^2", "³": "^3",
+            "≤": "<=", "≥": ">=", "Σ": "sum ", "α": "alpha", "σ": "sigma", "Δ": "d", "τ": "tau",
+            "κ": "kappa", "λ": "lambda", "ω": "w", "…": "..."}
+
+
+def _printable(text: str) -> str:
+    """``text`` with every character the font lacks spelt out (or '?')."""
+    return "".join(_SPELLED.get(ch, ch if _has_glyph(ch) else "?") for ch in text)
+
+
+@lru_cache(maxsize=512)
+def _has_glyph(ch: str) -> bool:
+    if ch.isascii():
+        return True
+    font = _font(LABEL_SIZE)
+    missing = np.asarray(font.getmask("\uffff"))
+    mask = np.asarray(font.getmask(ch))
+    return not (mask.shape == missing.shape and (mask == missing).all())
+
+
+def _fit(text: str, font, width: int) -> str:
+    """``text`` (printable), cut with an ellipsis to fit ``width`` pixels."""
+    text = _printable(text)
+    if font.getlength(text) <= width:
+        return text
+    while text and font.getlength(text + "...") > width:
+        text = text[:-1]
+    return text + "..."
+
+
+def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    if factor == 1:
+        return image
+    return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)
+
+
+def _to_bytes(display: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(np.asarray(display, np.float64) * 255.0), 0, 255).astype(np.uint8)
+
+
+def sheet(rows: list[list[Tile]], title: str = "", min_tile: int = MIN_TILE,
+          columns: int | None = None) -> np.ndarray:
+    """Tiles laid out row by row, each under its two-line label band; ``title``
+    (may hold newlines) in a band across the top.  → display [H, W, 3] in [0, 1].
+    A row longer than ``columns`` wraps onto the next lines.
+
+    Each tile is upscaled by an integer factor (nearest, so texels stay crisp)
+    until its short side reaches ``min_tile`` pixels (its long side at most
+    ``MAX_TILE``).  Cells are as large as the largest tile; labels too long for
+    their cell are cut with an ellipsis.
+    """
+    from PIL import Image, ImageDraw
+
+    rows = [list(r) for r in rows if r]
+    if columns:
+        rows = [r[k:k + columns] for r in rows for k in range(0, len(r), columns)]
+    tiles = [t for r in rows for t in r]
+    if not tiles:
+        raise ValueError("a sheet needs at least one tile")
+    def factor(t):
+        small, large = min(t.image.shape[:2]), max(t.image.shape[:2])
+        return max(1, min(math.ceil(min_tile / max(small, 1)), 8, MAX_TILE // max(large, 1)))
+
+    cell_w = max(t.image.shape[1] * factor(t) for t in tiles)
+    cell_h = max(t.image.shape[0] * factor(t) for t in tiles)
+    font, title_font = _font(LABEL_SIZE), _font(TITLE_SIZE)
+    line = LABEL_SIZE + 4
+    band = 2 * line + 4
+    columns = max(len(r) for r in rows)
+    width = PAD + columns * (cell_w + PAD)
+    title_lines = title.splitlines() if title else []
+    title_h = (len(title_lines) * (TITLE_SIZE + 5) + PAD) if title_lines else 0
+    height = PAD + title_h + len(rows) * (band + cell_h + PAD)
+    grey = int(round(BACKGROUND * 255))
+    canvas = Image.new("RGB", (width, height), (grey, grey, grey))
+    draw = ImageDraw.Draw(canvas)
+    for k, text in enumerate(title_lines):
+        draw.text((PAD, PAD + k * (TITLE_SIZE + 5)), _fit(text, title_font, width - 2 * PAD),
+                  fill=(255, 255, 255), font=title_font)
+    for r, row in enumerate(rows):
+        y0 = PAD + title_h + r * (band + cell_h + PAD)
+        for c, t in enumerate(row):
+            x0 = PAD + c * (cell_w + PAD)
+            draw.rectangle([x0, y0, x0 + cell_w - 1, y0 + band - 3], fill=(40, 40, 40))
+            draw.text((x0 + 4, y0 + 2), _fit(t.label, font, cell_w - 8), fill=(255, 255, 255),
+                      font=font)
+            if t.note:
+                draw.text((x0 + 4, y0 + 2 + line), _fit(t.note, font, cell_w - 8),
+                          fill=(190, 190, 190), font=font)
+            pixels = _to_bytes(_upscale(np.asarray(t.image), factor(t)))
+            h, w = pixels.shape[:2]
+            canvas.paste(Image.fromarray(np.ascontiguousarray(pixels), "RGB"),
+                         (x0 + (cell_w - w) // 2, y0 + band))
+    return np.asarray(canvas, np.float64) / 255.0
+
+
+def draw_labels(display: np.ndarray, labels: list[tuple[int, int, str]]) -> np.ndarray:
+    """``display`` [H, W, 3] with each (x, y, text) drawn at its top-left corner on a
+    dark box (face names on a cube cross, …)."""
+    from PIL import Image, ImageDraw
+    canvas = Image.fromarray(_to_bytes(display), "RGB")
+    draw = ImageDraw.Draw(canvas)
+    font = _font(LABEL_SIZE)
+    for x, y, text in labels:
+        text = _printable(text)
+        box = draw.textbbox((x + 3, y + 2), text, font=font)
+        draw.rectangle([box[0] - 3, box[1] - 2, box[2] + 3, box[3] + 2], fill=(20, 20, 20))
+        draw.text((x + 3, y + 2), text, fill=(255, 255, 255), font=font)
+    return np.asarray(canvas, np.float64) / 255.0
+
+
+def write_sheet(path: str, rows: list[list[Tile]], title: str = "") -> None:
+    """:func:`sheet` written as a PNG, atomically."""
+    from relight_cli.formats.image import write_png
+    write_png(path, sheet(rows, title))
+
+
+# ------------------------------------------------------------------ environment maps and probes
+
+# Horizontal cross (4 × 3 faces) and vertical cross (3 × 4): per face its cell
+# (column, row) and the world vectors (forward F, right R, down D) of the view
+# from the centre of the cube, d = F + a·R + b·D for a, b ∈ [−1, 1] left→right,
+# top→bottom.  Side faces are seen upright (+Y up) in lat-long order (+X, +Z,
+# −X, −Z: the lat-long image's own order), so every shared edge is continuous;
+# the vertical cross shows −Z upside down below −Y.
+_X, _Y, _Z = np.eye(3)
+CROSS = {
+    "horizontal": {"cells": (4, 3),
+                   "+Y": ((1, 0), _Y, -_X, _Z), "+X": ((0, 1), _X, _Z, -_Y),
+                   "+Z": ((1, 1), _Z, -_X, -_Y), "-X": ((2, 1), -_X, -_Z, -_Y),
+                   "-Z": ((3, 1), -_Z, _X, -_Y), "-Y": ((1, 2), -_Y, -_X, -_Z)},
+    "vertical": {"cells": (3, 4),
+                 "+Y": ((1, 0), _Y, -_X, _Z), "+X": ((0, 1), _X, _Z, -_Y),
+                 "+Z": ((1, 1), _Z, -_X, -_Y), "-X": ((2, 1), -_X, -_Z, -_Y),
+                 "-Y": ((1, 2), -_Y, -_X, -_Z), "-Z": ((1, 3), -_Z, -_X, _Y)},
+}
+
+
+def cube_cross(env, face: int | None = None, layout: str = "horizontal"):
+    """An environment map unfolded as a cube cross, as seen from inside.
+
+    ``env``: an EnvMap of either layout (looked up at the nearest texel, so a
+    cube map's texels come out exactly: face pixel centres span the face edge to
+    edge, as in OpenEXR).  ``face``: face size N (default: the cube's own, or
+    H/2 of a lat-long map).  Returns (radiance [3N, 4N, 3] (horizontal) or
+    [4N, 3N, 3] float64, inside [.., ..] bool, [(x, y, face name)] corners).
+    """
+    from relight_cli import envmap as E
+    spec = CROSS[layout]
+    n = int(face or (env.width if env.layout == "cube" else max(2, env.height // 2)))
+    n = min(n, MAX_FACE)
+    cols, rows = spec["cells"]
+    radiance = np.zeros((rows * n, cols * n, 3))
+    inside = np.zeros((rows * n, cols * n), bool)
+    corners = []
+    t = np.linspace(-1.0, 1.0, n) if n > 1 else np.zeros(1)
+    b, a = np.meshgrid(t, t, indexing="ij")
+    for name in E.FACES:
+        (c, r), forward, right, down = spec[name]
+        d = forward + a[..., None] * right + b[..., None] * down
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        values = E.lookup(env, d.reshape(-1, 3)).reshape(n, n, 3)
+        radiance[r * n:(r + 1) * n, c * n:(c + 1) * n] = values
+        inside[r * n:(r + 1) * n, c * n:(c + 1) * n] = True
+        corners.append((c * n, r * n, name))
+    return radiance, inside, corners
+
+
+def cross_sheet(env, title: str = "", layout: str = "horizontal") -> np.ndarray:
+    """A cube cross of ``env`` (Reinhard, face names drawn in the faces) as a sheet."""
+    radiance, inside, corners = cube_cross(env, layout=layout)
+    display, note, _ = expose(radiance, "reinhard", mask=inside)
+    n = radiance.shape[0] // CROSS[layout]["cells"][1]
+    factor = max(1, min(math.ceil(MIN_TILE / 2 / n), 8))   # a face ≥ 80 px: its name fits
+    display = draw_labels(_upscale(display, factor),
+                          [(x * factor, y * factor, name) for x, y, name in corners])
+    label = (f"cube map, {env.width} px faces" if env.layout == "cube" else
+             f"lat-long map {env.width}x{env.height}") + f", as a {layout} cross of {n} px faces"
+    return sheet([[Tile(display, label, note + "; seen from inside, +Y up")]], title)
+
+
+def probe_latlong(coefficients, height: int = 128) -> np.ndarray:
+    """The radiance of real SH ``coefficients`` [(d+1)², 3] on a lat-long image
+    [H, 2H, 3] float64 (OpenEXR's convention: +Y at the top, +Z in the middle)."""
+    from relight_cli import envmap as E
+    from relight_cli.sh import evaluate_sh
+    d = E.latlong_directions(height, 2 * height)
+    return evaluate_sh(coefficients, d.reshape(-1, 3)).reshape(height, 2 * height, 3)
+
+
+def samples_latlong(directions, radiance, height: int = 64):
+    """Radiance samples on the sphere (a scene probe's cube faces: directions [N, 3],
+    radiance [N, 3]) as a lat-long EnvMap [H, 2H] by nearest sample, for pictures only."""
+    from scipy.spatial import cKDTree
+
+    from relight_cli import envmap as E
+    from relight_cli.formats.envmap import EnvMap
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    _, nearest = cKDTree(d).query(E.latlong_directions(height, 2 * height).reshape(-1, 3))
+    values = np.asarray(radiance, np.float64).reshape(-1, 3)[nearest]
+    return EnvMap(values.reshape(height, 2 * height, 3).astype(np.float32), "latlong")
+
+
+def probe_sheet(coefficients, degree: int, source: str = "", source_env=None,
+                position=None, height: int = 128) -> np.ndarray:
+    """The probe on a lat-long map, labelled with its degree and source.
+
+    Top row: radiance L(ω) of the source env map (when given) and of the probe,
+    on the source's exposure, so ringing (negative lobes, drawn black) and the
+    detail a low degree drops are seen as they are.  Bottom row: the irradiance
+    E(n)/π both give a surface of normal n (what shading uses; equal to L for a
+    uniform env), on one exposure: a good probe matches here even where its
+    radiance rings.
+    """
+    from relight_cli import envmap as E
+    from relight_cli.gaussians.probe import irradiance_from_sh
+    normals = E.latlong_directions(height, 2 * height).reshape(-1, 3)
+    probe_l = probe_latlong(coefficients, height)
+    probe_e = irradiance_from_sh(coefficients, normals).reshape(height, 2 * height, 3) / math.pi
+    n = (degree + 1) ** 2
+    name = f"SH probe, degree {degree} ({n} coefficients)"
+    radiance, irradiance = [], []
+    white_l = white_e = None
+    if source_env is not None:
+        src_l = E.resample(source_env, "latlong", height, 2 * height).radiance
+        coarse = E.resample(source_env, "latlong", 32, 64)     # power-preserving: E is smooth
+        src_e = E.irradiance(coarse, normals).reshape(height, 2 * height, 3) / math.pi
+        display, note, white_l = expose(src_l)
+        radiance.append(Tile(display, f"source radiance: {source}", note))
+        display, note, white_e = expose(src_e)
+        irradiance.append(Tile(display, "source irradiance / pi", note))
+    shared = ", as the source" if source_env is not None else ""
+    display, note, _ = expose(probe_l, white=white_l)
+    radiance.append(Tile(display, name + ": radiance", note + shared))
+    display, note, _ = expose(probe_e, white=white_e)
+    irradiance.append(Tile(display, name + ": irradiance / pi", note + shared))
+    where = "" if position is None else " at (" + ", ".join(f"{float(x):.3g}" for x in position) + ")"
+    title = f"sh-probe of {source}{where}: lat-long maps, +Y at the top, +Z in the middle"
+    return sheet([radiance, irradiance], title)
+
+
+# ------------------------------------------------------------------ feature maps
+
+
+def _layer_order(name: str) -> tuple:
+    base = name.rsplit(".", 1)[-1]
+    rank = {"diffuse": 0, "ggx": 2, "visibility": 3, "mask": 4}.get(
+        base, 1 if base.startswith("phong") else 5)
+    return rank, name
+
+
+def feature_sheet(layers: dict, title: str = "") -> np.ndarray:
+    """bake-features' layers (``relight/features`` names) as a sheet: one row per
+    hand, one tile per layer.  Radiometric layers (diffuse, phong<α>, ggx) are
+    ``auto``-exposed inside the UV charts (each has its own scale: the env's
+    units times its lobe's normalization); visibility and mask are fractions,
+    ``unit``.  Texels outside the charts (dilation fill) are greyed out."""
+    hands: dict[str, list[str]] = {}
+    for name in layers:
+        prefix = name.rsplit(".", 1)[0] if "." in name else ""
+        hands.setdefault(prefix, []).append(name)
+    rows = []
+    for prefix, names in hands.items():
+        mask_name = f"{prefix}.mask" if prefix else "mask"
+        mask = layers.get(mask_name)
+        row = []
+        for name in sorted(names, key=_layer_order):
+            value = layers[name]
+            base = name.rsplit(".", 1)[-1]
+            fraction = base in ("visibility", "mask")
+            row.append(tile(value, name, "unit" if fraction else "auto",
+                            mask=None if base == "mask" else mask))
+        rows.append(row)
+    longest = max(len(r) for r in rows)
+    return sheet(rows, title, columns=math.ceil(longest / math.ceil(longest / 5)))
+
+
+# ------------------------------------------------------------------ light-stage captures
+
+
+def capture_views(capture, max_cameras: int = 4) -> tuple[list[str], list[tuple]]:
+    """What a capture's contact sheet shows: (camera names, columns).
+
+    Cameras: the evaluation cameras first (they have every column), then the
+    others spread over the dome, ``max_cameras`` in all.  Columns, each
+    (label, note, {camera: image path relative to the folder}): the first fully
+    lit frame, the first grouped frame, and the first held-out pose under each
+    evaluation env map.
+    """
+    import os
+
+    from relight_cli.formats.capture import image_path
+    names = [c.name for c in capture.cameras]
+    renders = (capture.evaluation or {}).get("renders", [])
+    evaluated = [n for n in names if any(r["camera"] == n for r in renders)]
+    picked = evaluated[:max_cameras]
+    rest = [n for n in names if n not in picked]
+    if rest and len(picked) < max_cameras:
+        k = min(max_cameras - len(picked), len(rest))
+        picked += [rest[int(round(i))] for i in np.linspace(0, len(rest) - 1, k)]
+    picked = [n for n in names if n in picked]       # dome order
+    columns = []
+    for lit, label in (("full", "fully lit"), ("group", "grouped")):
+        frame = next((f for f in capture.frames if f.lit == lit), None)
+        if frame is not None:
+            columns.append((f"{label}, frame {frame.index}", f"{len(frame.lights_on)} LEDs",
+                            {n: image_path(frame.index, n) for n in picked if n in frame.images}))
+    if renders:
+        pose = min(r["pose"] for r in renders)
+        for env in dict.fromkeys(r["env"] for r in renders):
+            paths = {r["camera"]: os.path.normpath(r["image"]) for r in renders
+                     if r["pose"] == pose and r["env"] == env and r["camera"] in picked}
+            columns.append((f"env {env}, pose {pose}", "held out", paths))
+    return picked, columns
+
+
+def capture_sheet(capture, read, title: str = "", max_cameras: int = 4) -> np.ndarray:
+    """Cameras × lighting contact sheet of a capture (rows: cameras, columns: see
+    :func:`capture_views`).  ``read(relative path)`` → (rgb [H, W, 3], mask [H, W]).
+    Each tile is ``auto``-exposed over its mask (the hand), the value shown white
+    in its note; a camera without an image in a column gets a blank tile."""
+    cameras, columns = capture_views(capture, max_cameras)
+    rows = []
+    for name in cameras:
+        row = []
+        for label, note, paths in columns:
+            cam = capture.camera(name)
+            if name in paths:
+                rgb, mask = read(paths[name])
+                row.append(tile(rgb, f"{name} {label}", region=mask, note=note))
+            else:
+                row.append(Tile(np.full((cam.height, cam.width, 3), BACKGROUND),
+                                f"{name} {label}", "not rendered"))
+        rows.append(row)
+    return sheet(rows, title)
+
+
+# ------------------------------------------------------------------ deep Gaussian shadow maps
+
+
+def _crop_box(pixels, shape, least: int = 48) -> tuple[int, int, int, int]:
+    """The ROI's inclusive texel box [x0, y0, x1, y1] grown to ``least`` texels a side
+    (and a 25 % margin) inside the atlas [H, W]; the whole atlas without an ROI."""
+    h, w = shape
+    if not pixels or pixels[2] < pixels[0] or pixels[3] < pixels[1]:
+        return 0, 0, w - 1, h - 1
+    box = []
+    for lo, hi, n in ((pixels[0], pixels[2], w), (pixels[1], pixels[3], h)):
+        size = min(n, max(least, math.ceil(1.5 * (hi - lo + 1))))
+        start = int(np.clip((lo + hi + 1) // 2 - size // 2, 0, n - size))
+        box.append((start, start + size - 1))
+    return box[0][0], box[1][0], box[0][1], box[1][1]
+
+
+def dgsm_camera(occluders, receivers, strength, lights, width: int = 320, height: int = 240,
+                fov_y_deg: float = 50.0):
+    """A look-at camera that frames the occluders and the shadow they cast.
+
+    Target: the centre of the box around the occluders (2-98 % of their
+    centres) and the shadowed receivers (strength > 0.05); the camera frames
+    that box's bounding sphere, looking across the shadow from the side of the
+    light direction and above (so neither the object nor the light hides the
+    shadow), and stays inside the receivers' robust bounding box (a room's
+    walls do not hide the view).
+    """
+    from relight_cli.formats.camera import Camera
+    occ = np.asarray(occluders.means, np.float64)
+    pts = np.asarray(receivers.means, np.float64)
+    shadowed = pts[np.asarray(strength) > 0.05]
+    corners = [np.percentile(occ, 2, 0), np.percentile(occ, 98, 0)]
+    if len(shadowed):
+        corners += [shadowed.min(0), shadowed.max(0)]
+    lo_box, hi_box = np.min(corners, axis=0), np.max(corners, axis=0)
+    target = (lo_box + hi_box) / 2
+    radius = max(float(np.linalg.norm(hi_box - lo_box)) / 2, 0.05)
+    distance = 1.15 * radius / math.sin(math.radians(fov_y_deg) / 2)
+    down = np.asarray(lights, np.float64).reshape(-1, 3).mean(0) - target
+    horizontal = np.array([down[0], 0.0, down[2]])
+    if np.linalg.norm(horizontal) < 1e-6 * max(np.linalg.norm(down), 1e-9):
+        horizontal = np.array([0.0, 0.0, 1.0])
+    horizontal /= np.linalg.norm(horizontal)
+    side = np.array([-horizontal[2], 0.0, horizontal[0]])
+    lo, hi = np.percentile(pts, 2, 0), np.percentile(pts, 98, 0)
+    margin = 0.05 * (hi - lo)
+    best = None
+    for s in (side, -side):                   # the side with more room in front of it
+        direction = 0.75 * s + 0.35 * horizontal + 0.55 * np.array([0.0, 1.0, 0.0])
+        eye = target + distance * direction / np.linalg.norm(direction)
+        clipped = eye.copy()
+        for axis in (0, 2):
+            if hi[axis] - lo[axis] > 2 * radius:
+                clipped[axis] = np.clip(eye[axis], lo[axis] + margin[axis], hi[axis] - margin[axis])
+        clipped[1] = max(clipped[1], lo[1] + radius)
+        if hi[1] - lo[1] > 4 * radius:       # a ceiling, maybe: stay under it
+            clipped[1] = min(clipped[1], hi[1] - margin[1])
+        room = float(np.linalg.norm(clipped - target))
+        if best is None or room > best[0] + 1e-9:
+            best = (room, clipped)
+    return Camera.look_at(best[1], target, width=width, height=height, fov_y_deg=fov_y_deg,
+                          name="dgsm-preview")
+
+
+def dgsm_sheet(shadow_map, occluders, receivers=None, camera=None, footprint: str = "stencil",
+               samples: int = 16, seed: int = 0, title: str = "", max_lights: int = 3):
+    """A DGSM's result as a sheet.  With receivers: (1) the scene as ``relight``
+    draws it (receivers darkened by the shadow factor, occluders in their own
+    colours), ``reinhard`` as relight's own previews; (2) the paper's shadow matte 1 − Σ w_l T_l / Σ w_l
+    on the receivers only (Sec. 4.2), ``unit``; both from ``camera`` (default
+    :func:`dgsm_camera`).  Then per light (at most ``max_lights``) the atlas
+    slice the lookups read, min over radial bins of T (``unit``, black = opaque).
+    Returns (display sheet, the camera used or None)."""
+    from relight_cli.formats.gaussians_ply import concatenate
+    from relight_cli.gaussians import dgsm as D
+    from relight_cli.gaussians import shadow_matte as SM
+    from relight_cli.gaussians import transfer as TF
+    from relight_cli.gaussians.splat import render
+    rows = []
+    if receivers is not None:
+        mode = TF.effective_light_weights("intensity", shadow_map.intensities)
+        weights = TF.dgsm_light_weights(mode, shadow_map, receivers)
+        T = D.sample_transmittance(shadow_map, receivers.means, receivers.scales,
+                                   receivers.rotations, footprint=footprint, samples=samples,
+                                   seed=seed)                                    # [L, M]
+        factor = TF.shadow_factor(T, weights, 1.0)
+        strength = SM.shadow_strength(factor)
+        if camera is None:
+            camera = dgsm_camera(occluders, receivers, strength, shadow_map.lights)
+        scene = render(concatenate([TF.attenuate(receivers, factor), occluders]), camera)
+        matte = render(receivers, camera, colors=SM.matte_colors(strength))
+        where = f"{camera.width}x{camera.height}, camera {camera.name or 'given'}"
+        rows.append([tile(scene.image, "receivers shadowed + occluders", "reinhard", note=where),
+                     tile(matte.image, "shadow matte on receivers",
+                          "unit", note=f"{int((strength > 0.1).sum())} of {len(strength)} "
+                                       f"> 0.1")])
+    atlas = []
+    for li in range(min(len(shadow_map.lights), max_lights)):
+        slice_ = shadow_map.transmittance[li].min(axis=0)                      # [H, W]
+        roi = shadow_map.roi[li] if li < len(shadow_map.roi) else {}
+        x0, y0, x1, y1 = _crop_box(roi.get("pixels"), slice_.shape)
+        crop = slice_[y0:y1 + 1, x0:x1 + 1]
+        step = max(1, math.ceil(max(crop.shape) / 256))
+        where = ("all texels" if crop.shape == slice_.shape else
+                 f"texels x {x0}-{x1}, y {y0}-{y1}")
+        atlas.append(tile(crop[::step, ::step], f"light {li} atlas: min T over {shadow_map.bins} "
+                          f"bins", "unit", note=where))
+    return sheet([[t for row in rows for t in row] + atlas], title, columns=3), camera

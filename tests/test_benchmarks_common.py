@@ -1,0 +1,54 @@
+"""benchmarks/_common.py: the missing-matplotlib line, the shared options, the plot helper."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCH))
+import _common as B  # noqa: E402
+
+
+def test_a_runner_without_matplotlib_stops_with_one_line(tmp_path):
+    code = ("import sys; sys.modules['matplotlib'] = None; sys.argv = ['bench_envmap.py', "
+            f"'--quick', '--out', {str(tmp_path / 'out')!r}]; import runpy; "
+            f"runpy.run_path({str(BENCH / 'bench_envmap.py')!r}, run_name='__main__')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1
+    assert r.stderr.strip() == ("bench_envmap.py: error: matplotlib is not installed; pip install "
+                                "'relight[bench]' (make benchmarks does)")
+    assert not (tmp_path / "out").exists()           # stopped before any work
+
+
+def test_every_benchmark_takes_out_and_quick():
+    for script in sorted(BENCH.glob("bench_*.py")):
+        text = script.read_text()
+        assert "B.parser(" in text and "B.start(" in text, script.name
+        assert "machine_limits(" in text, script.name
+
+
+def test_options_and_machine_line():
+    args = B.parser("doc").parse_args(["--quick", "--out", "x"])
+    assert args.quick and args.out == "x"
+    assert B.parser("doc").parse_args([]).out == str(B.OUT)
+    line = B.machine_line({"platform": "p", "cpus": 2, "load_average": "1 1 1", "gemm_gflops": 10.0,
+                           "memory_gbs": 5.0, "embree_mrays": 1.5})
+    assert "fp32 GEMM 10.0 GFLOP/s" in line and "embree 1.50 Mrays/s" in line
+
+
+def test_plot_draws_every_curve_including_exact_and_nonfinite_points(tmp_path):
+    pytest.importorskip("matplotlib")
+    B.require_matplotlib("test")
+    fig, (ax,) = B.figure(1)
+    B.plot(ax, {"a": [(1.0, 0.1, "x"), (2.0, 0.0, "exact"), (3.0, float("nan"))],
+                "b": [(0.5, 1e-3), (4.0, 1e-4)], "empty": []}, "seconds", "error")
+    names = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert names == ["a", "exact (0)", "b"]
+    assert ax.get_xscale() == "log" and ax.get_yscale() == "log"
+    path = B.save(fig, tmp_path / "p.png", {"platform": "p", "cpus": 2, "load_average": "0",
+                                            "gemm_gflops": 1.0, "memory_gbs": 1.0})
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
