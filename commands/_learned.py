@@ -40,11 +40,12 @@ def check_outputs(output: str, metrics_out: str | None, no_clobber: bool) -> Non
 
 
 def write_validation(metrics_out: str | None, result, inputs: dict, config, record) -> None:
-    """The run's validation record (relight/metrics, kind validation), if asked for."""
+    """The run's validation record (relight/metrics, kind validation), if asked for;
+    ``record`` is the checkpoint's provenance, restated as this file's format."""
     if metrics_out is None:
         return
-    from relight_cli.formats.metrics_json import make_record, write_metrics
+    from relight_cli.formats.metrics_json import FORMAT, VERSION, make_record, write_metrics
     write_metrics(metrics_out, make_record(
         "validation", {k: v for k, v in result.metrics.items() if k != "step"},
-        {role: {"path": path} for role, path in inputs.items()}, config.to_dict(), record,
-        details={"history": result.history}))
+        {role: {"path": path} for role, path in inputs.items()}, config.to_dict(),
+        dict(record, format=FORMAT, version=VERSION), details={"history": result.history}))

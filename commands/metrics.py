@@ -227,6 +227,11 @@ def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpi
     if extra:
         log(f"note: {len(extra)} ground-truth file(s) have no prediction and are ignored", quiet)
     masks = match_masks(mask, [n for n, _, _ in pairs])
+    for _, p_path, g_path in pairs:   # every input registered before the first comparison:
+        check_input(g_path)           # an output that is one of them is refused first
+        check_input(p_path)
+    for mask_path in filter(None, masks.values()):
+        check_input(mask_path)
     results = []
     for name, p_path, g_path in (pairs if len(pairs) < 2 else
                                  _progress(pairs, "image pairs", quiet)):

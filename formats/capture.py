@@ -262,8 +262,9 @@ def write_image(path: str, rgb: np.ndarray, mask: np.ndarray, key: str,
 def read_image(path: str, camera=None) -> tuple[np.ndarray, np.ndarray]:
     """([H, W, 3] float32 radiance, [H, W] float32 mask) of a capture image.
 
-    Raises DataError for a damaged file, missing channels, non-finite pixels, or a
-    size different from ``camera``'s.
+    Raises DataError for a damaged file, a newer version of the format, missing
+    channels, non-finite pixels, or a size different from ``camera``'s.  Images of
+    other tools (a converted real capture) may carry no relight header.
     """
     return read_image_hands(path, camera, 0)[:2]
 
@@ -275,8 +276,13 @@ def read_image_hands(path: str, camera=None, n_hands: int = 0):
 
     Raises DataError as :func:`read_image`, and for a partial set of per-hand channels.
     """
-    from relight_cli.formats.exr import read_exr
+    from relight_cli.formats.exr import FORMAT_KEY, VERSION_KEY, read_exr
+
+    from ._common import check_format_version
     image = read_exr(path)
+    if FORMAT_KEY in image.attributes or VERSION_KEY in image.attributes:
+        check_format_version(image.attributes.get(FORMAT_KEY), image.attributes.get(VERSION_KEY),
+                             IMAGE_FORMAT, IMAGE_VERSION, path)
     missing = [c for c in "RGBA" if c not in image.channels]
     if missing:
         raise DataError(f"capture image lacks channel(s) {', '.join(missing)}", path)

@@ -66,16 +66,14 @@ class RelightGroup(click.Group):
             raise
         except click.Abort:
             raise
-        except KeyboardInterrupt:
-            click.echo(f"relight {_subcommand(ctx)}: interrupted", err=True)
-            sys.exit(130)
-        except Terminated as exc:
-            click.echo(f"relight {_subcommand(ctx)}: terminated by signal {exc.signal_name}",
-                       err=True)
-            sys.exit(128 + exc.signal_number)
+        except (KeyboardInterrupt, Terminated) as exc:
+            _stopped(ctx, exc)
         except MemoryError:
             _report(ctx, RelightError("out of memory; try a smaller resolution or fewer inputs"), 1)
         except Exception as exc:  # a bug, not a user error: still one line unless --debug
+            stop = _stop_in_chain(exc)
+            if stop is not None:   # a library's clean-up failed after the signal (zipfile)
+                _stopped(ctx, stop)
             _report(ctx, RelightError(f"internal error: {type(exc).__name__}: {exc}",
                                       hint="rerun with --debug for a traceback and report it"), 1)
 
@@ -135,12 +133,45 @@ _STOP_SIGNALS = ("SIGTERM", "SIGHUP")
 
 
 def _terminate(signal_number, frame):
+    from .provenance import defer_stop_signal
+    if defer_stop_signal(signal_number):   # raised again once the temporary file is known
+        return
     # `timeout` signals the process and then its whole group: the second copy must
     # not interrupt the clean-up (or the interpreter's shutdown) the first one started.
     for name in _STOP_SIGNALS:
         if hasattr(signal, name):
             signal.signal(getattr(signal, name), signal.SIG_IGN)
     raise Terminated(signal_number)
+
+
+def _interrupt(signal_number, frame):
+    """Ctrl-C: KeyboardInterrupt, as Python's own handler, but held like SIGTERM."""
+    from .provenance import defer_stop_signal
+    if not defer_stop_signal(signal_number):
+        raise KeyboardInterrupt
+
+
+def _stop_in_chain(exc: BaseException):
+    """The KeyboardInterrupt or Terminated an exception was raised while handling, if any."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, (KeyboardInterrupt, Terminated)):
+            return exc
+        exc = exc.__context__
+    return None
+
+
+def _stopped(ctx, exc: BaseException):
+    # Objects a signal left half-done (a zipfile member being written) complain when
+    # collected at exit; the one line below says what happened.
+    sys.unraisablehook = lambda unraisable: None
+    if isinstance(exc, Terminated):
+        click.echo(f"relight {_subcommand(ctx)}: terminated by signal {exc.signal_name}",
+                   err=True)
+        sys.exit(128 + exc.signal_number)
+    click.echo(f"relight {_subcommand(ctx)}: interrupted", err=True)
+    sys.exit(130)
 
 
 def _subcommand(ctx) -> str:
@@ -192,6 +223,7 @@ def main():  # console-script entry point
     for name in _STOP_SIGNALS:
         if hasattr(signal, name):
             signal.signal(getattr(signal, name), _terminate)
+    signal.signal(signal.SIGINT, _interrupt)
     try:
         cli.main()
     except Terminated as exc:  # before or after a subcommand ran

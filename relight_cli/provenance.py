@@ -24,6 +24,7 @@ import errno
 import hashlib
 import os
 import shlex
+import signal
 import stat
 import sys
 import tempfile
@@ -112,6 +113,10 @@ class _Run:
 # succeeds, and all removed when it fails (see output_transaction).
 _PENDING: list[tuple[str, str, str]] | None = None
 _RUN: _Run | None = None
+# Temporary files that exist now and are not committed: the transaction removes them
+# when the command fails, even one whose writer never got to clean up (a signal in
+# contextlib's code between the writer's yield and its with-block).
+_LIVE_TEMPS: set[str] = set()
 
 
 _INPUT_IS_OUTPUT = "an output is also an input of this command; give the output another name"
@@ -266,13 +271,47 @@ def _probe_folder(folder: str, name: str, target: str) -> None:
         limit = 255
     if len(os.fsencode(name)) > limit:
         raise OutputError(f"file name too long (more than {limit} bytes)", target)
+    with _stop_signals_held():   # created and removed before a Ctrl-C can interrupt
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), dir=folder)
+        except OSError as exc:
+            raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}",
+                              target) from None
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+
+
+# Ctrl-C, SIGTERM and SIGHUP that arrived while a temporary file was being created
+# (see _stop_signals_held); the CLI's handlers ask defer_stop_signal first.
+_HOLDING = 0
+_HELD: list[int] = []
+
+
+def defer_stop_signal(signal_number: int) -> bool:
+    """True when a temporary file is being created and named: the signal is kept and
+    raised again right after, where the caller's clean-up knows the file."""
+    if _HOLDING:
+        _HELD.append(signal_number)
+        return True
+    return False
+
+
+@contextlib.contextmanager
+def _stop_signals_held() -> Iterator[None]:
+    """Hold Ctrl-C, SIGTERM and SIGHUP (as handled by the CLI) while a temporary file
+    is created and its name stored: one arriving in between would leave the file with
+    no one to remove it."""
+    global _HOLDING
+    _HOLDING += 1
     try:
-        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), dir=folder)
-    except OSError as exc:
-        raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}", target) from None
-    os.close(fd)
-    with contextlib.suppress(OSError):
-        os.unlink(tmp)
+        yield
+    finally:
+        _HOLDING -= 1
+        if not _HOLDING and _HELD:
+            signal_number = _HELD[0]
+            _HELD.clear()
+            signal.raise_signal(signal_number)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -319,22 +358,21 @@ def output_transaction() -> Iterator[None]:
         yield
         return
     _PENDING, _RUN = [], _Run()
+    staged = None
     try:
         yield
         staged, _PENDING = _PENDING, None
-        for i, (tmp, final, mode) in enumerate(staged):
-            try:
-                _commit(tmp, final, mode)
-            except BaseException:
-                for later, _, _ in staged[i + 1:]:
-                    with contextlib.suppress(OSError):
-                        os.unlink(later)
-                raise
+        for tmp, final, mode in staged:
+            _commit(tmp, final, mode)
     except BaseException:
-        staged, _PENDING = _PENDING or [], None
-        for tmp, _, _ in staged:
+        # Whatever was not committed (a committed file's temporary name is gone), also
+        # when a signal came between taking the list and committing it.
+        leftovers = {tmp for tmp, _, _ in (staged if staged is not None else _PENDING or [])}
+        for tmp in leftovers | _LIVE_TEMPS:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+        _LIVE_TEMPS.clear()
+        _PENDING = None
         raise
     finally:
         _RUN = None
@@ -357,6 +395,7 @@ def _commit(tmp: str, final: str, mode: str) -> None:
     try:
         if mode == "replace":
             os.replace(tmp, final)
+            _LIVE_TEMPS.discard(tmp)
             return
         _copy_in_place(tmp, final)
     except OSError as exc:
@@ -365,6 +404,7 @@ def _commit(tmp: str, final: str, mode: str) -> None:
         if mode != "replace":
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+            _LIVE_TEMPS.discard(tmp)
 
 
 def _copy_in_place(tmp: str, target: str) -> None:
@@ -450,12 +490,17 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
     folder = (os.path.dirname(final) or ".") if mode == "replace" else tempfile.gettempdir()
     name = os.path.basename(final)
     remove_stale_temps(folder, name)
+    tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), suffix=suffix, dir=folder)
-    except OSError as exc:
-        raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}", target) from None
-    os.close(fd)
-    try:
+        try:
+            with _stop_signals_held():
+                fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(name, folder), suffix=suffix,
+                                           dir=folder)
+                _LIVE_TEMPS.add(tmp)
+                os.close(fd)
+        except OSError as exc:
+            raise OutputError(f"cannot create a file in {folder!r}: {_reason(exc)}",
+                              target) from None
         try:
             yield tmp
         except OSError as exc:
@@ -475,8 +520,10 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
         else:
             _commit(tmp, final, mode)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            _LIVE_TEMPS.discard(tmp)
         raise
 
 

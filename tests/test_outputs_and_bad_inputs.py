@@ -667,9 +667,16 @@ def _wait_for_temp(folder: Path, proc, timeout=60.0) -> bool:
     return False
 
 
-@pytest.mark.parametrize("how", [signal.SIGTERM, signal.SIGKILL])
+# signal -> (exit code, last stderr line) of a run that cleans up; SIGKILL cannot.
+_STOPPED = {signal.SIGINT: (130, "interrupted"),
+            signal.SIGTERM: (128 + signal.SIGTERM, "terminated by signal SIGTERM"),
+            signal.SIGHUP: (128 + signal.SIGHUP, "terminated by signal SIGHUP")}
+
+
+@pytest.mark.parametrize("how", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGKILL])
 def test_killed_run_leaves_no_temp_files_after_the_next_run(data, tmp_path, how):
-    """fit-geometry stages hand.npz, then renders the preview: kill it in between."""
+    """fit-geometry stages hand.npz, then renders the preview: stop it in between.
+    Ctrl-C, SIGTERM and SIGHUP clean up at once; SIGKILL's leftovers go with the next run."""
     args = ["fit-geometry", "--pose", "fist", "-o", tmp_path / "h.npz", "--preview",
             tmp_path / "h.png", "--preview-size", "160x160", "-q"]
     proc = subprocess.Popen([relight_executable(), *map(str, args)], stderr=subprocess.PIPE,
@@ -683,9 +690,10 @@ def test_killed_run_leaves_no_temp_files_after_the_next_run(data, tmp_path, how)
         with contextlib.suppress(ProcessLookupError):
             proc.send_signal(how)
     stderr = proc.communicate(timeout=60)[1]
-    if how == signal.SIGTERM:
-        assert proc.returncode == 128 + signal.SIGTERM, stderr
-        assert stderr.strip().splitlines()[-1].endswith("terminated by signal SIGTERM"), stderr
+    if how in _STOPPED:
+        code, last_line = _STOPPED[how]
+        assert proc.returncode == code, stderr
+        assert stderr.strip().splitlines()[-1].endswith(last_line), stderr
         assert "Traceback" not in stderr
         assert os.listdir(tmp_path) == []   # cleaned up at once, nothing half-written
     else:
