@@ -783,6 +783,8 @@ def _checkpoint_roles(paths) -> dict:
 
 def _is_capture(spec: str) -> bool:
     import os
+    if spec.lower().endswith((".npz", ".ply", ".obj", ".glb", ".gltf", ".stl", ".off")):
+        return False      # a file name (a folder by that name is then refused as a hand/avatar)
     return os.path.isdir(spec) or os.path.basename(spec) == "capture.json"
 
 
