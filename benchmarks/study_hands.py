@@ -311,8 +311,8 @@ def synth_capture(folder: Path, hand: str, seed: int, capture: dict, eval_envs: 
 
     from relight_cli.cli import cli
     args = ["synth-capture", hand, "-o", str(folder), "--seed", seed,
-            "--cameras", capture["cameras"], "--lights", capture["lights"],
-            "--group", capture["group"], "--frames", capture["frames"], "--res", capture["res"],
+            "--cameras", capture["cameras"], "--leds", capture["lights"],
+            "--group", capture["group"], "--frames", capture["frames"], "--size", capture["res"],
             "--tex-res", capture["tex_res"], "--aa", capture["aa"],
             "--eval-poses", capture["eval_poses"], "--eval-cameras", capture["eval_cameras"],
             "--eval-envs", ",".join(eval_envs), "-q"]
