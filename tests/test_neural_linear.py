@@ -4,8 +4,6 @@ training, resume, DDP, CLI and bad input."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 
 import numpy as np
 import pytest
@@ -15,7 +13,7 @@ torch = pytest.importorskip("torch")
 from relight_cli.errors import UsageProblem  # noqa: E402
 from relight_cli.neural import linear as LM  # noqa: E402
 from relight_cli.neural import shading_features as SF  # noqa: E402
-from test_neural_teacher import _plane, _torchrun, capture_dir  # noqa: E402,F401
+from test_neural_teacher import _ddp_pair, _plane, capture_dir  # noqa: E402,F401
 
 # The smallest model: 16² maps, 4-wide F_G, 8-wide light path with 2 levels (16 → 4²).
 SMALL = {"tex_res": 16, "encoder": [4, 4, 4], "decoder": [4, 4, 4], "pose_channels": [4, 4],
@@ -371,15 +369,7 @@ torch.save(result.checkpoint["weights"], sys.argv[2] + f"/rank{os.environ['RANK'
 
 
 def test_ddp_two_processes_identical_weights(capture_dir, tmp_path):  # noqa: F811
-    script = tmp_path / "ddp.py"
-    script.write_text(DDP_SCRIPT % {"small": repr(SMALL)})
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
-    r = subprocess.run([_torchrun(), "--standalone", "--nproc_per_node=2", str(script),
-                        str(capture_dir), str(tmp_path)], capture_output=True, text=True,
-                       timeout=300, env=env)
-    assert r.returncode == 0, r.stderr[-2000:]
-    w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
-    w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    w0, w1 = _ddp_pair(DDP_SCRIPT % {"small": repr(SMALL)}, capture_dir, tmp_path)
     for k in w0:
         assert torch.equal(w0[k], w1[k]), k
 

@@ -384,17 +384,23 @@ def _torchrun():
     return str(exe)
 
 
-def test_ddp_two_processes_identical_weights(capture_dir, tmp_path):
+def _ddp_pair(script_text: str, capture_dir, tmp_path):
+    """Run ``script_text`` (it saves OUT/rank{RANK}.pt) under torchrun with 2 CPU processes;
+    the two ranks' saved weights."""
     script = tmp_path / "ddp.py"
-    script.write_text(DDP_SCRIPT % {"small": repr(SMALL)})
+    script.write_text(script_text)
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
     # --standalone: a local rendezvous on a free port
     r = subprocess.run([_torchrun(), "--standalone", "--nproc_per_node=2", str(script),
                         str(capture_dir), str(tmp_path)], capture_output=True, text=True,
                        timeout=300, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
-    w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
-    w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    return (torch.load(tmp_path / "rank0.pt", weights_only=True),
+            torch.load(tmp_path / "rank1.pt", weights_only=True))
+
+
+def test_ddp_two_processes_identical_weights(capture_dir, tmp_path):
+    w0, w1 = _ddp_pair(DDP_SCRIPT % {"small": repr(SMALL)}, capture_dir, tmp_path)
     init = _model(_data(capture_dir, 16))[0].state_dict()
     moved = False
     for k in w0:
