@@ -149,6 +149,11 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
                         f"this one is {data.key})", resume)
     rank = int(os.environ.get("RANK", "0"))
     quiet = quiet or rank != 0
+    config.aa = data.aa        # the sampling used, recorded in the checkpoint
+    if not data.sampling["matched"]:
+        log(f"note: pixels sampled {data.aa}×{data.aa}, but the capture's images were made "
+            f"with {data.sampling['capture_aa']}×{data.sampling['capture_aa']} (recorded in "
+            f"the scores as sampling.matched = false)", quiet)
     splits = data.splits()
     log(f"read {capture}: {len(splits['train'])} training, {len(splits['heldout'])} held-out, "
         f"{len(splits['fully_lit'])} fully lit, {len(splits.get('env', []))} env-map samples; "

@@ -101,7 +101,10 @@ class TeacherConfig(TrainingConfig):
         neg_schedule: ``decay`` γ = exp(−max(η (t − t_s)/t, 0)) (1 until t_s, then decaying
             to e^−η: our reading of "starts decaying") or ``literal`` γ = exp(−max(η t/(t −
             t_s), 0)) as printed (1 until t_s, ≈ 0 just after, rising to e^−η).
-        aa: G-buffer samples per pixel axis when rendering textures into images.
+        aa: G-buffer samples per pixel axis when rendering textures into images; 0 (the
+            default): the capture's own (``settings.aa``, see
+            :func:`relight_cli.neural.data.capture_aa`), so training and scoring sample
+            pixels as the images were made.  The trained checkpoint records the value used.
         holdout: fraction of the grouped frames (the last ones in time: a held-out
             segment, as the paper excludes segments) kept for validation.
         val_every: validate every this many steps (0: only at the end).
@@ -120,7 +123,7 @@ class TeacherConfig(TrainingConfig):
     falloff: str = "analytic"
     lambda_s: float = 25.0
     lambda_b: float = 100.0
-    aa: int = 2
+    aa: int = 0
     holdout: float = 0.25
     cache_poses: int = 64
 
@@ -144,7 +147,7 @@ class TeacherConfig(TrainingConfig):
         check.number("lambda_s", 0.0, 1e6, open_lo=True)
         check.number("lambda_b", 0.0, 1e6)
         check.number("holdout", 0.0, 0.9)
-        check.integer("aa", 1, 8)
+        check.integer("aa", 0, 8)
         check.integer("cache_poses", 1, 100000)
         check.boolean("visibility")
 

@@ -109,19 +109,36 @@ def assemble_inputs(texels, k: int, lights, view: np.ndarray, intensity: np.ndar
     return inputs, weights
 
 
+#: The pixel sampling of a capture that does not record one (a converted real capture):
+#: a sensor integrates its pixel's area, which 2×2 samples approximate.
+DEFAULT_CAPTURE_AA = 2
+
+
+def capture_aa(capture) -> int:
+    """Samples per pixel axis the capture's images were made with (``settings.aa`` of
+    capture.json, as ``synth-capture --aa`` records it), else :data:`DEFAULT_CAPTURE_AA`."""
+    value = (capture.settings or {}).get("aa")
+    if isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 8:
+        return value
+    return DEFAULT_CAPTURE_AA
+
+
 class CaptureData:
     """Lazy access to a capture's training and evaluation samples.
 
     Args:
         folder: the capture folder (holding capture.json).
         tex_res: teacher texture size N.
-        aa: camera G-buffer samples per pixel axis.
+        aa: camera G-buffer samples per pixel axis; 0 (the default): the capture's own
+            (:func:`capture_aa`), so a model is trained and scored through the pixel
+            sampling its images were made with (one sampling rule).  A different value is
+            kept but recorded in :attr:`sampling` (``matched`` False).
         visibility, falloff: see :func:`assemble_inputs`.
         holdout: fraction of grouped frames held out (the last in time).
         cache_poses: LRU size of texel G-buffers and camera G-buffers.
     """
 
-    def __init__(self, folder: str, tex_res: int, aa: int = 2, visibility: bool = True,
+    def __init__(self, folder: str, tex_res: int, aa: int = 0, visibility: bool = True,
                  falloff: str = "analytic", holdout: float = 0.25, cache_poses: int = 64):
         from relight_cli.formats import capture as C
         from relight_cli.formats.hand_npz import read_hand
@@ -143,7 +160,10 @@ class CaptureData:
             if os.path.isfile(path):
                 self.eval_hand = read_hand(path)
         self.tex_res = tex_res
-        self.aa = aa
+        captured = capture_aa(self.capture)
+        self.aa = int(aa) if aa else captured
+        #: how pixels are sampled against how the capture's images were made
+        self.sampling = {"aa": self.aa, "capture_aa": captured, "matched": self.aa == captured}
         self.visibility = visibility
         self.falloff = falloff
         self.cache_poses = cache_poses
@@ -171,6 +191,13 @@ class CaptureData:
         self.train_frames = grouped[:len(grouped) - n_hold]
         self.heldout_frames = grouped[len(grouped) - n_hold:]
         self.fully_lit_frames = [f for f in frames if f.lit == "full"]
+        # Fully lit frames are interleaved with the grouped ones: only those before the
+        # held-out segment starts may be trained on (e.g. a student's poses), so no split
+        # shares a time segment with training.
+        cut = (self.heldout_frames[0].time, self.heldout_frames[0].index) \
+            if self.heldout_frames else None
+        self.train_fully_lit_frames = [f for f in self.fully_lit_frames
+                                       if cut is None or (f.time, f.index) < cut]
 
     # ---------------------------------------------------------------- identity
 

@@ -310,7 +310,7 @@ class StudentTask:
         self.vgg = vgg
         self.teacher_digest = teacher_digest
         self.features = StudentFeatures(config)
-        frames = data.train_frames + data.fully_lit_frames
+        frames = data.train_frames + data.train_fully_lit_frames    # no held-out segment
         poses = sorted({f.pose for f in frames})
         cams = [c.name for c in data.capture.cameras]
         self.items = [(p, c) for p in poses for c in cams]

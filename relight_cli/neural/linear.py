@@ -146,7 +146,7 @@ class LinearConfig:
     lambda_gan: float = 0.0
     gan_conditioned: bool = True
     gan_width: int = 16
-    aa: int = 2
+    aa: int = 0
     holdout: float = 0.25
     val_every: int = 0
     val_samples: int = 8
@@ -188,7 +188,7 @@ class LinearConfig:
                    "fresnel": ("schlick", "sg")}
         ints = {"tex_res": (8, 4096), "light_levels": (0, 7), "iters": (1, 10 ** 9),
                 "lr_drop": (0, 10 ** 9),
-                "batch": (1, 4096), "linearity_every": (1, 10 ** 9), "gan_width": (1, 4096), "aa": (1, 8),
+                "batch": (1, 4096), "linearity_every": (1, 10 ** 9), "gan_width": (1, 4096), "aa": (0, 8),
                 "val_every": (0, 10 ** 9), "val_samples": (1, 100000), "save_every": (0, 10 ** 9),
                 "cache_poses": (1, 100000), "seed": (0, 2 ** 63 - 1)}
         numbers = {"lr": (0, 10, True), "lr_final": (0, 10, True), "shininess": (0, 1e4, True),
