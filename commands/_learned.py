@@ -39,7 +39,8 @@ def check_outputs(output: str, metrics_out: str | None, no_clobber: bool) -> Non
     check_output(metrics_out, no_clobber, kind="json", what="--metrics-out")
 
 
-def write_validation(metrics_out: str | None, result, inputs: dict, config, record) -> None:
+def write_validation(metrics_out: str | None, result, inputs: dict, config, record,
+                     sampling: dict | None = None) -> None:
     """The run's validation record (relight/metrics, kind validation), if asked for;
     ``record`` is the checkpoint's provenance, restated as this file's format."""
     if metrics_out is None:
@@ -48,4 +49,5 @@ def write_validation(metrics_out: str | None, result, inputs: dict, config, reco
     write_metrics(metrics_out, make_record(
         "validation", {k: v for k, v in result.metrics.items() if k != "step"},
         {role: {"path": path} for role, path in inputs.items()}, config.to_dict(),
-        dict(record, format=FORMAT, version=VERSION), details={"history": result.history}))
+        dict(record, format=FORMAT, version=VERSION),
+        details={"history": result.history, **({"sampling": sampling} if sampling else {})}))

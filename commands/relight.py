@@ -696,7 +696,7 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
         view = read_camera(camera)
     else:
         view = preview_camera(meshes, width, height)
-    samples_axis = (config.aa if model == "teacher" else 2) if aa is None else aa
+    samples_axis = ((config.aa or 2) if model == "teacher" else 2) if aa is None else aa
     if model == "student":
         return _write_student_render(**locals())
 
@@ -847,6 +847,10 @@ def _relight_capture(input, env, output, checkpoint, device, model, aa, env_res,
         evaluator = CaptureEvaluator(folder, models, torch_device, aa, grid)
     except ValueError as exc:
         raise UsageProblem(str(exc)) from None
+    if not evaluator.sampling["matched"]:
+        log(f"note: pixels sampled {evaluator.aa}×{evaluator.aa}, but the capture's images were "
+            f"made with {evaluator.sampling['capture_aa']}×{evaluator.sampling['capture_aa']} "
+            f"(recorded as settings.sampling.matched = false)", quiet)
     chosen = names or evaluator.default_splits()
     available = evaluator.data.splits()
     total = sum(len(available.get(n) or []) if eval_samples is None
@@ -857,7 +861,7 @@ def _relight_capture(input, env, output, checkpoint, device, model, aa, env_res,
         raise DataError(f"the capture has no samples in {', '.join(chosen)}", index)
     inputs = {"capture": index, **_checkpoint_roles(checkpoint)}
     settings = {"model": model, "splits": chosen, "eval_samples": eval_samples,
-                "env_res": list(grid), "aa": evaluator.aa,
+                "env_res": list(grid), "aa": evaluator.aa, "sampling": evaluator.sampling,
                 "hands": [{"hand": k, "name": evaluator.names[k], "checkpoint": m.name,
                            "model": m.model_name, "sides": m.sides, "step": m.step}
                           for k, m in enumerate(evaluator.models)]}

@@ -183,7 +183,8 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     if rank != 0:
         return
     write_checkpoint(output, result.checkpoint)
-    write_validation(metrics_out, result, {"capture": data.index_path}, config, record)
+    write_validation(metrics_out, result, {"capture": data.index_path}, config, record,
+                     data.sampling)
     its = result.steps_run / result.seconds if result.seconds > 0 else float("inf")
     from relight_cli.neural.train import _summary
     log(f"wrote {output}: {result.steps_run} step(s) in {result.seconds:.1f} s ({its:.2f} it/s); "

@@ -181,8 +181,14 @@ def test_eq10_head_and_units():
     expect = [sig * (max(0, ls * t) + lb) for t in (-1.0, 0.0, 2.0)]
     np.testing.assert_allclose(colour[0, :, 0, 0].numpy(), expect, rtol=1e-6)
     np.testing.assert_allclose(scaled[0, :, 0, 0].numpy(), [-ls, 0, 2 * ls], rtol=1e-6)
-    # 255 paper units = a white Lambertian facing the light: 1/π sr⁻¹
-    assert math.isclose(255 * PAPER_UNIT, 1 / math.pi)
+    # the authors' code's reading: the bias inside the ReLU, L_neg on the pre-ReLU value
+    code = OLATTeacher(TeacherConfig.from_dict({**SMALL, "head": "code"}), 6)
+    code.net.forward = lambda x, pose, hand_of: raw
+    colour, pre = code(torch.zeros(1, 7, 16, 16), torch.zeros(1, 6),
+                       torch.zeros(1, dtype=torch.long), return_raw=True)
+    np.testing.assert_allclose(colour[0, :, 0, 0].numpy(),
+                               [sig * max(0, ls * t + lb) for t in (-1.0, 0.0, 2.0)], rtol=1e-6)
+    np.testing.assert_allclose(pre[0, :, 0, 0].numpy(), [lb - ls, lb, 2 * ls + lb], rtol=1e-6)
 
 
 def test_neg_weight_schedules():
@@ -284,59 +290,96 @@ def test_point_lights_and_env_are_linear(capture_dir):
 # ---------------------------------------------------------------- training
 
 
-def _constant_baseline_mse(data, items_fit, items_eval):
-    """Best constant texture C_i ≡ c (per channel, least squares on the training images)."""
-    from relight_cli.neural.teacher import composite
-
-    def basis(item):
-        s = data.sample(*item)
-        tex = []
-        for k in range(s.n_hands):
-            w = torch.from_numpy(s.weights[s.hand_of == k]).sum(0)     # Σ b_i falloff [3, N, N]
-            tex.append(w)
-        img = composite(tex, s.gbuffer).numpy()
-        m = (s.mask > 0) | (s.gbuffer.mask > 0)
-        return img[m], s.image[m]
-
-    num = np.zeros(3)
-    den = np.zeros(3)
-    for item in items_fit:
-        x, y = basis(item)
-        num += (x * y).sum(0)
-        den += (x * x).sum(0)
-    c = num / np.maximum(den, 1e-30)
-    errs = []
-    for item in items_eval:
-        x, y = basis(item)
-        errs.append(np.mean((x * c - y) ** 2))
-    return float(np.mean(errs))
+# What a learned teacher must beat on held-out poses: the capture's mean texture shaded
+# with Lambert and the traced visibility of the same lights, one least-squares scale per
+# channel (relight_cli.neural.evaluate.LambertBaseline).  Measured on this capture (2 shared
+# cores): baseline 22.3 dB held-out, ceiling 25.2 dB at 32²; tiny teacher 20.2 dB after 60
+# iterations at lr 1e-3 (it loses), 22.3 at 150, 22.9 at 150 with lr 3e-3, 23.2 at 300
+# with lr 3e-3.  The margin below is a third of the measured lead; a frozen network
+# scores ~12 dB.
+LEARN = {"iters": 300, "lr": 3e-3, "val_samples": 4, "lambda_vgg": 0.0, "neg_start": 75}
+LEAD_DB = 0.3
 
 
-def test_training_beats_untrained_and_constant_texture(capture_dir):
-    from relight_cli.neural.train import sample_loss, train
+def _held_psnr(model, data, cfg, mean_texture=None) -> dict:
+    from relight_cli.neural.train import evaluate
+    return evaluate(model, data, cfg, torch.device("cpu"), splits=["heldout"],
+                    mean_texture=mean_texture)["heldout"]
 
-    cfg = resolve_config("tiny", None, {"iters": 60, "val_samples": 4, "lambda_vgg": 0.0})
-    data = _data(capture_dir, cfg.tex_res)
-    held = data.splits()["heldout"]
-    assert held
+
+@pytest.fixture(scope="module")
+def learned(capture_dir):
+    """(data, config, Lambert baseline's held-out scores, trained teacher's, frozen one's)."""
+    from relight_cli.neural.evaluate import fit_lambert_baseline
     from relight_cli.neural.models import build_model
-    torch.manual_seed(cfg.seed)
-    untrained = build_model(cfg, data.pose_dim)
+    from relight_cli.neural.train import model_from_checkpoint, train
 
-    def held_mse(model):
-        with torch.no_grad():
-            return float(np.mean([sample_loss(model, data, it, cfg, 0, "cpu")[1]["mse"]
-                                  for it in held]))
-
-    before = held_mse(untrained)
+    cfg = resolve_config("tiny", None, LEARN)
+    data = _data(capture_dir, cfg.tex_res)
+    baseline = _held_psnr(fit_lambert_baseline(data, data.splits()["train"]), data, cfg)
     result = train(data, cfg, torch.device("cpu"), show_progress=False)
-    from relight_cli.neural.train import model_from_checkpoint
     trained, _, _ = model_from_checkpoint(result.checkpoint)
-    after = held_mse(trained)
-    constant = _constant_baseline_mse(data, data.splits()["train"], held)
-    assert after < 0.5 * before, (before, after)
-    assert after < constant, (after, constant)
-    assert result.metrics["heldout"]["mse"] == pytest.approx(after, rel=0.2)
+    # sabotage: the same network, never updated (what a dead optimizer leaves)
+    torch.manual_seed(cfg.seed)
+    frozen = build_model(cfg, data.pose_dim)
+    return data, cfg, baseline, _held_psnr(trained, data, cfg), _held_psnr(frozen, data, cfg)
+
+
+def beats_baseline(model_scores: dict, baseline_scores: dict) -> bool:
+    """The gate a learned teacher must pass: held-out PSNR above the Lambert baseline's."""
+    return model_scores["psnr"] > baseline_scores["psnr"] + LEAD_DB
+
+
+def test_trained_teacher_beats_the_lambert_baseline(learned):
+    data, cfg, baseline, trained, frozen = learned
+    assert beats_baseline(trained, baseline), (trained["psnr"], baseline["psnr"])
+    # the ceiling is carried beside the score, and nothing beats it
+    assert trained["ceiling"]["psnr"] > trained["psnr"]
+    assert trained["gap_to_ceiling"] == pytest.approx(trained["ceiling"]["psnr"] -
+                                                      trained["psnr"])
+
+
+def test_sabotaged_teacher_fails_the_same_gate(learned):
+    data, cfg, baseline, trained, frozen = learned
+    assert not beats_baseline(frozen, baseline), (frozen["psnr"], baseline["psnr"])
+
+
+def test_ceiling_is_the_stage_shader_through_the_same_compositing(capture_dir):
+    """The perfect texture at the stage's own resolution and sampling reproduces the
+    capture's images (only the texture lookup's filtering differs), and coarser textures
+    score lower: the ceiling measures resolution, not the pipeline."""
+    from relight_cli.neural.evaluate import score
+
+    scores = {}
+    for n in (16, 64, 256):
+        data = _data(capture_dir, n)
+        ceiling = data.ceiling()
+        assert ceiling.available
+        item = data.splits()["heldout"][0]
+        sample = data.sample(*item)
+        pred = ceiling.predict(item, [data.texels(sample.pose)], sample.gbuffer)
+        scores[n] = score(pred, sample.image, sample.mask)["psnr"]
+    # the stage's skin maps are 256²: a 256² perfect texture reproduces the image to
+    # within the lookup's filtering (measured 50.1 dB; 31.6 at 64², 19.8 at 16²)
+    assert scores[256] > 45, scores
+    assert scores[16] < scores[64] - 6 < scores[256] - 12, scores
+
+
+def test_sampling_follows_the_capture(capture_dir):
+    from relight_cli.neural.data import CaptureData
+    data = CaptureData(str(capture_dir), 16)
+    assert data.sampling == {"aa": 1, "capture_aa": 1, "matched": True}
+    other = CaptureData(str(capture_dir), 16, aa=2)
+    assert other.sampling == {"aa": 2, "capture_aa": 1, "matched": False}
+
+
+def test_no_training_frame_inside_the_held_out_segment(capture_dir):
+    data = _data(capture_dir, holdout=0.5)        # frames 5 and 7 held out, 6 fully lit
+    start = min((f.time, f.index) for f in data.heldout_frames)
+    trained = data.train_frames + data.train_fully_lit_frames
+    assert trained and all((f.time, f.index) < start for f in trained)
+    # a fully lit frame inside the held-out segment exists, and is not trained on
+    assert any((f.time, f.index) > start for f in data.fully_lit_frames)
 
 
 def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli):

@@ -35,6 +35,7 @@ DEFAULT_BETTER = {
     "mse": "lower", "mae": "lower", "lpips": "lower", "sae": "lower",
     "paa_y": "lower", "apf_y": "lower", "ncm_ab": "lower",
     "paa_angle": "lower", "apf_rms": "lower", "ncm_ab_weighted": "lower",
+    "gap_to_ceiling": "lower",
 }
 DIRECTIONS = ("higher", "lower", "either")
 

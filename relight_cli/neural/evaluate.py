@@ -281,6 +281,137 @@ def mean_scores(rows: list) -> dict:
     return out
 
 
+class LambertBaseline(torch.nn.Module):
+    """The strongest non-learned teacher we test learned models against.
+
+    Per light i and texel: C_i = s ⊙ T̄ · max(l_z, 0) · h_i, with T̄ the capture's mean
+    texture (:meth:`~relight_cli.neural.data.CaptureData.mean_texture`: what the cameras
+    saw under the fully lit frames, ≈ albedo), l_z the light direction's cosine in the
+    texel frame, h_i the ray-traced visibility — the teacher's own inputs — and one scale
+    per colour channel s fitted by least squares on the training images
+    (:func:`fit_lambert_baseline`): Lambertian skin with correct shadows and its
+    measured colour.  A learned teacher has to beat it on held-out data to show it
+    learned more than that; a dead network (frozen, or never trained) does not.
+
+    Called like a teacher (``forward(inputs, pose, hand_of, mean_texture)``), so it
+    renders through the same :func:`~relight_cli.neural.teacher.render_sample`,
+    compositing and scoring.
+    """
+
+    kind = "olat"
+
+    def __init__(self, mean_texture: torch.Tensor):
+        super().__init__()
+        self.register_buffer("mean", torch.as_tensor(mean_texture, dtype=torch.float32))
+        self.register_buffer("scale", torch.ones(3))
+
+    def forward(self, inputs, pose, hand_of, mean_texture=None, return_raw: bool = False):
+        mean = self.mean if self.mean.shape[0] == 1 else self.mean[hand_of]
+        cosine = torch.clamp(inputs[:, 2:3], min=0) * inputs[:, 6:7]
+        colour = self.scale[None, :, None, None] * mean * cosine
+        return (colour, None) if return_raw else colour
+
+
+def fit_lambert_baseline(data, items: list, max_items: int = 24) -> LambertBaseline:
+    """:class:`LambertBaseline` of ``data`` (a CaptureData) with s fitted on at most
+    ``max_items`` evenly spaced training ``items`` (inside the ground-truth mask)."""
+    from .teacher import render_sample
+    base = LambertBaseline(torch.from_numpy(data.mean_texture()))
+    num, den = np.zeros(3), np.zeros(3)
+    with torch.no_grad():
+        for i in spread(len(items), max_items):
+            sample = data.sample(*items[i])
+            pred = render_sample(base, sample).numpy()
+            region = sample.mask > 0.5
+            x, y = pred[region].astype(np.float64), sample.image[region].astype(np.float64)
+            num += (x * y).sum(0)
+            den += (x * x).sum(0)
+    base.scale.copy_(torch.from_numpy(num / np.maximum(den, 1e-30)).float())
+    return base
+
+
+class Ceiling:
+    """The perfect-texture score of a capture's samples: a learned model's ceiling.
+
+    For a synthetic capture (its capture.json records every stage setting,
+    :func:`relight_cli.render.capture.stage_settings`), the stage's own shader is evaluated
+    at the N×N texel centres of the model's texture (:class:`~relight_cli.render.capture.
+    StageShader`), and that texture goes through the model's own compositing
+    (:func:`~relight_cli.neural.teacher.composite` on the same camera G-buffer, i.e. the
+    same pixel sampling) and the same :func:`score`.  No texture of that resolution can do
+    better through that pipeline, whatever the network; what remains is the texture's
+    resolution and the lookup's filtering.  Real captures have no ceiling
+    (:attr:`available` False).
+
+    Args:
+        data: the :class:`~relight_cli.neural.data.CaptureData` (its hand, eval hand,
+            lights and env maps).
+    """
+
+    def __init__(self, data):
+        from relight_cli.render.capture import StageShader, stage_settings
+        from relight_cli.render.shading import PointLights
+
+        self.data = data
+        settings = stage_settings(data.capture.settings)
+        self.shader = None
+        if settings is not None:
+            lights = PointLights(np.asarray(data.capture.light_positions, np.float64),
+                                 np.asarray(data.capture.light_intensity, np.float64))
+            self.shader = StageShader(data.hand, settings, lights)
+        self._lighting = LRU(2)
+        self._scores = {}
+
+    @property
+    def available(self) -> bool:
+        return self.shader is not None
+
+    def _lit(self, pose: int, held_out: bool, lights_on=None, env_name=None):
+        def make():
+            renderer = self.shader.renderer(self.data.meshes(pose, held_out))
+            if env_name is not None:
+                return renderer, renderer.light(env=self.data.env_map(env_name))
+            return renderer, renderer.light(self.shader.lights.subset(list(lights_on)))
+        key = (held_out, pose, env_name, None if lights_on is None else tuple(lights_on))
+        return self._lighting.get_or(key, make)
+
+    def predict(self, item, texels: list, gbuffer) -> np.ndarray:
+        """[H, W, 3] image of the perfect textures of ``item`` (a capture (frame, camera)
+        or an ``("env", render record)``), hand k's at the texel centres of ``texels[k]``
+        (a PoseTexels of the scene at that hand model's N), through ``gbuffer``."""
+        if item[0] == "env":
+            render = item[1]
+            renderer, lighting = self._lit(int(render["pose"]), True, env_name=render["env"])
+        else:
+            frame = self.data.frame(item[0])
+            renderer, lighting = self._lit(frame.pose, False, lights_on=frame.lights_on)
+        surfaces = [texels[k].surfaces[k] for k in range(len(texels))]
+        radiance = self.shader.texel_radiance(renderer, lighting, surfaces, gbuffer.eye)
+        textures = [torch.from_numpy(texels[k].to_maps(k, radiance[k].astype(np.float32)))
+                    for k in range(len(texels))]
+        return composite(textures, gbuffer).numpy()
+
+    def score(self, item, texels: list, gbuffer, gt, mask, hand_masks=None,
+              names=None) -> dict:
+        """:func:`score` of :meth:`predict` (cached per item, texture sizes and sampling)."""
+        ident = ("env", item[1]["image"]) if item[0] == "env" else tuple(item)
+        key = (ident, tuple(t.tex_res for t in texels), gbuffer.spp, gbuffer.width)
+        if key not in self._scores:
+            pred = self.predict(item, texels, gbuffer)
+            self._scores[key] = score(pred, gt, mask, hand_masks, names)
+        return self._scores[key]
+
+
+def attach_ceiling(scores: dict, ceiling_rows: list) -> dict:
+    """Add ``ceiling`` (the mean perfect-texture scores of the same samples) and
+    ``gap_to_ceiling`` (ceiling PSNR − model PSNR, dB) to one split's ``scores``."""
+    ceiling = mean_scores([r for r in ceiling_rows if r])
+    if scores and ceiling and "psnr" in scores:
+        scores["ceiling"] = ceiling
+        scores["gap_to_ceiling"] = float(ceiling["psnr"] - scores["psnr"])
+    return scores
+
+
 class CaptureEvaluator:
     """Renders and scores a capture's samples with one model per hand.
 
@@ -304,14 +435,19 @@ class CaptureEvaluator:
         given = capture if isinstance(capture, CaptureData) else None
         self.device = device
         self.env_res = tuple(env_res)
-        self.aa = int(aa if aa is not None else given.aa if given is not None else first.config.aa)
+        if aa is None and given is not None:
+            aa = given.aa
+        self.aa = int(aa) if aa else 0          # 0: the capture's own sampling
         folder = given.folder if given is not None else capture
         self._data = {}
         self._make_data = lambda tex_res, vis: CaptureData(
             folder, tex_res, self.aa, vis, holdout=getattr(first.config, "holdout", 0.25),
             cache_poses=cache_poses)
         base = given or self._make_data(first.tex_res, first.visibility)
+        self.aa = base.aa
         self.data = base
+        self.sampling = dict(base.sampling)
+        self.ceiling = Ceiling(base)
         self._data[(base.tex_res, base.visibility)] = base
         sides = handedness(base.hand)
         self.models = assign_models(models, sides)
@@ -395,12 +531,22 @@ class CaptureEvaluator:
                             intensity, self.device, timing=timing)
         if hands is None and n > 1:
             hands = np.stack([gbuffer.coverage(k) * (mask > 0.5) for k in range(n)])
+        self._last = (texels, gbuffer)
         return pred.cpu().numpy(), gt, mask, hands
 
-    def score(self, item) -> dict:
+    def score(self, item, with_ceiling: bool = False):
+        """:func:`score` of one item; with ``with_ceiling`` the pair (model's, ceiling's:
+        {} where the capture has no stage to rebuild)."""
         pred, gt, mask, hands = self.predict(item)
         names = self.names if self.data.n_hands > 1 else []
-        return score(pred, gt, mask, hands, names)
+        ours = score(pred, gt, mask, hands, names)
+        if not with_ceiling:
+            return ours
+        best = {}
+        if self.ceiling.available:
+            texels, gbuffer = self._last
+            best = self.ceiling.score(item, texels, gbuffer, gt, mask, hands, names)
+        return ours, best
 
     # ---------------------------------------------------------------- splits
 
@@ -417,12 +563,14 @@ class CaptureEvaluator:
             items = all_splits.get(name) or []
             if not items:
                 continue
-            rows = []
+            rows, best = [], []
             for i in spread(len(items), max_samples):
-                rows.append(self.score(items[i]))
+                ours, ceiling = self.score(items[i], with_ceiling=True)
+                rows.append(ours)
+                best.append(ceiling)
                 if progress is not None:
                     progress(1)
-            scores = mean_scores(rows)
+            scores = attach_ceiling(mean_scores(rows), best)
             if scores:
                 out[name] = scores
         return out

@@ -50,7 +50,10 @@ def neg_weight(step: int, eta: float, start: int, schedule: str = "decay") -> fl
     ``decay``: exp(−max(η (t − t_s)/t, 0)) — 1 until t_s, then decaying towards e^−η.
     ``literal``: exp(−max(η t/(t − t_s), 0)) as printed — 1 before t_s, then ≈ 0 just
     after it, rising towards e^−η (we believe the printed fraction is inverted).
+    ``constant``: 1 (the authors' public code weights L_neg by a constant).
     """
+    if schedule == "constant":
+        return 1.0
     t = float(step)
     ts = float(start)
     if schedule == "literal":

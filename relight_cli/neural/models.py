@@ -17,7 +17,11 @@ resolution levels: we read "4-layer" as the input plus three levels, so a 1024²
 texture has its bottleneck at 256².  3×3 convolutions, LeakyReLU(0.2) between.
 
 Eq. 10:  C_i = σ(S_i) · (ReLU(λ_s T_i) + λ_b), with λ_s, λ_b converted from the paper's
-8-bit units (:data:`relight_cli.neural.config.PAPER_UNIT`).  C_i is radiance per unit
+8-bit units (:data:`relight_cli.neural.config.PAPER_UNIT`); L_neg (Eq. 6) on λ_s T_i.  The
+authors' public code places the bias inside the ReLU, C_i = σ(S_i)·ReLU(λ_s T_i + λ_b),
+with L_neg on λ_s T_i + λ_b at a constant weight (``head: code``).  As printed, λ_b is a
+floor under every unshadowed texel (σ(S)·λ_b); inside the ReLU it is only a starting
+offset, so a dark texel can reach 0 without the shadow gate.  C_i is radiance per unit
 irradiance (sr⁻¹).  A frame's texture is Eq. 2, Σ_i b_i C_i, where our b_i is the light's
 RGB intensity times its 1/r² falloff at the texel (``falloff="analytic"``), or the
 intensity alone (``"none"``, the paper's form).
@@ -137,6 +141,7 @@ class OLATTeacher(nn.Module):
         self.net = UNet(N_INPUT, 4, config.encoder, config.decoder, pose_dim, config.pose_channels)
         self.lambda_s = config.lambda_s * PAPER_UNIT
         self.lambda_b = config.lambda_b * PAPER_UNIT
+        self.head = getattr(config, "head", "printed")
 
     def forward(self, inputs: torch.Tensor, pose: torch.Tensor, hand_of: torch.Tensor,
                 mean_texture=None, return_raw: bool = False):
@@ -144,7 +149,11 @@ class OLATTeacher(nn.Module):
         with ``return_raw`` also the pre-ReLU λ_s T_i [B, 3, N, N] (for L_neg)."""
         raw = self.net(inputs, pose, hand_of)
         scaled, shadow = self.lambda_s * raw[:, :3], raw[:, 3:4]
-        colour = torch.sigmoid(shadow) * (F.relu(scaled) + self.lambda_b)
+        if self.head == "code":
+            scaled = scaled + self.lambda_b
+            colour = torch.sigmoid(shadow) * F.relu(scaled)
+        else:
+            colour = torch.sigmoid(shadow) * (F.relu(scaled) + self.lambda_b)
         return (colour, scaled) if return_raw else colour
 
 

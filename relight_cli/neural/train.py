@@ -161,18 +161,19 @@ def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, p
     env)`` → the prediction of an ``eval/`` env render (held-out hand)."""
     from relight_cli.features import discretize_env
 
-    from .evaluate import mean_scores, spread
+    from .evaluate import attach_ceiling, mean_scores, spread
     model.eval()
     out = {}
     all_splits = data.splits()
     names = splits or [s for s in ("heldout", "fully_lit", "env") if all_splits.get(s)]
+    ceiling = data.ceiling()
     with torch.no_grad():
         for name in names:
             items = all_splits.get(name) or []
             if not items:
                 continue
             pick = spread(len(items), val_samples)
-            rows = []
+            rows, best = [], []
             for i in pick:
                 if name == "env":
                     pose, env_name, camera, gt, mask = data.env_target(items[i][1])
@@ -182,11 +183,17 @@ def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, p
                     pred = predict_env(texels, gb, data.poses(pose, True), denv)
                 else:
                     pred, gt, mask = predict_frame(items[i])
+                    frame = data.frame(items[i][0])
+                    texels = data.texels(frame.pose)
+                    gb = data.gbuffer(frame.pose, data.capture.camera(items[i][1]))
                 m = _metrics(pred, gt, mask)
                 if m:
                     rows.append(m)
+                    if ceiling.available:
+                        best.append(ceiling.score(items[i], [texels] * texels.n_hands, gb,
+                                                  gt, mask))
             if rows:
-                out[name] = mean_scores(rows)
+                out[name] = attach_ceiling(mean_scores(rows), best)
     model.train()
     return out
 

@@ -421,3 +421,81 @@ class FrameRenderer:
         lighting = renderer.light(env=env)
         for cam in cameras:
             yield cam, renderer.render(cam, lighting)
+
+
+def stage_settings(settings: dict) -> StageSettings | None:
+    """The :class:`StageSettings` a capture.json ``settings`` object records (as
+    ``synth-capture`` writes it), or None when it does not record every field (a
+    converted real capture, or an older generator): only then can the stage be rebuilt."""
+    from dataclasses import fields
+    names = [f.name for f in fields(StageSettings)]
+    if not isinstance(settings, dict) or not all(n in settings for n in names):
+        return None
+    values = {n: settings[n] for n in names}
+    values["eval_env_res"] = tuple(values["eval_env_res"])
+    try:
+        return StageSettings(**values)
+    except TypeError:
+        return None
+
+
+class StageShader:
+    """The synthetic stage's own shader, rebuilt from a capture, evaluated anywhere.
+
+    :meth:`texel_radiance` evaluates exactly what ``synth-capture`` evaluated at its
+    pixel samples (texture-space irradiance with SSS at the stage's ``tex_res``, the
+    procedural skin's albedo and roughness, the GGX lobe with texel-map visibility), but
+    at the texel centres of another N×N map: the *perfect texture* of a learned model of
+    that resolution — the best any texture-space model can do through the same
+    compositing and pixel sampling (DESIGN.md, "How a learned model is judged").
+
+    Args:
+        hand: the capture's HandData (its hand.npz: model and motion).
+        settings: the capture's :class:`StageSettings` (:func:`stage_settings`).
+        lights: the stage's :class:`~relight_cli.render.shading.PointLights`.
+    """
+
+    def __init__(self, hand, settings: StageSettings, lights):
+        from relight_cli.render.appearance import hand_materials
+        from relight_cli.uvraster import rasterize_uv
+
+        self.settings = settings
+        self.lights = lights
+        self.materials = hand_materials(hand, "fine", max(settings.tex_res, 256),
+                                        settings.skin_seed)
+        model = hand.mesh("fine")
+        self.rasters = [rasterize_uv(model.uv, model.faces_uv, settings.tex_res)] * len(hand.hands)
+
+    def renderer(self, meshes):
+        """A stage renderer of posed fine ``meshes`` (as :meth:`FrameRenderer.renderer`)."""
+        from .shading import HandRenderer, RenderSettings
+        s = self.settings
+        return HandRenderer(meshes, self.materials,
+                            RenderSettings(tex_res=s.tex_res, aa=s.aa, sss=s.sss, bounce=s.bounce,
+                                           direct="texel", env_res=tuple(s.eval_env_res)),
+                            rasters=self.rasters)
+
+    def texel_radiance(self, renderer, lighting, surfaces, eye) -> list:
+        """Per hand [K_k, 3] float64 stage radiance at the texel centres of ``surfaces``
+        (:class:`~relight_cli.render.shading.TexelSurface` of each hand, any N, same pose
+        as ``renderer``) seen from ``eye`` [3], under ``lighting`` (``renderer.light``)."""
+        from .gbuffer import GBuffer
+        points = [np.asarray(s.points, np.float64) for s in surfaces]
+        normals = [np.asarray(s.normals, np.float64) for s in surfaces]
+        hand = np.concatenate([np.full(len(p), k, np.int64) for k, p in enumerate(points)])
+        position = np.concatenate(points)
+        normal = np.concatenate(normals)
+        view = np.asarray(eye, np.float64)[None] - position
+        view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-300)
+        P = len(hand)
+        gb = GBuffer(width=P, height=1, spp=1, hand=hand, face=np.zeros(P, np.int64),
+                     barycentric=np.zeros((P, 3)),
+                     uv=np.concatenate([np.asarray(s.uv, np.float64) for s in surfaces]),
+                     position=position, normal=normal, depth=np.ones(P), view=view,
+                     eye=np.asarray(eye, np.float64))
+        radiance = renderer.render(None, lighting, gbuffer=gb).samples
+        out, start = [], 0
+        for p in points:
+            out.append(radiance[start:start + len(p)])
+            start += len(p)
+        return out
