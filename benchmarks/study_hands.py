@@ -52,7 +52,7 @@ SCALES = HERE / "studies" / "scales.json"
 HDRI_DIR = (HERE.parent / ".." / "shared" / "data" / "envmaps" / "polyhaven").resolve()
 RESULTS = HERE / "results"
 #: bump when a change of this runner changes what a cached row holds
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 # ---------------------------------------------------------------------------- tables
@@ -211,12 +211,6 @@ TABLES = {
                    "frames (every LED on: novel illumination), and the stage's env-map "
                    "renders of held-out poses (ground truth the paper lacks). LPIPS is not "
                    "computed (no local weights).",
-        notes=("The MLP-based row is degenerate: its scores are the same at every validation "
-               "step and every seed, i.e. its render never moves from initialization — the "
-               "engine's holistic baseline (light_path mlp) does not train here; its "
-               "gradients are non-zero and we have not found why — so its 'reproduced' "
-               "verdicts below show a broken baseline, not the paper's point about holistic "
-               "lighting.",),
         claims=(Claim("the linear model beats the non-linear one on fully lit frames",
                       "Ours (linear)", "Non-linear", "fully_lit.psnr",
                       explain="our non-linear ablation keeps every light-path layer bias-free, "
@@ -685,6 +679,12 @@ def summarize(table: Table, runs: dict) -> dict:
             for split in table.splits:
                 cell[split] = {m: mean_std([r["metrics"].get(split, {}).get(m) for r in records])
                                for m, _, _ in table.metrics}
+                ceiling = [r["metrics"].get(split, {}).get("ceiling") for r in records]
+                if all(ceiling):
+                    cell[split]["ceiling"] = {m: mean_std([c.get(m) for c in ceiling])
+                                              for m, _, _ in table.metrics}
+                    cell[split]["gap_to_ceiling"] = mean_std(
+                        [r["metrics"][split].get("gap_to_ceiling") for r in records])
             rows.setdefault(name, {})[hand] = cell
             steps = sorted({p[0] for r in records for p in r["curve"]})
             curves.setdefault(name, {})[hand] = [
@@ -700,10 +700,15 @@ def summarize(table: Table, runs: dict) -> dict:
     return out
 
 
+#: the smallest effect a verdict may rest on (dB): a smaller difference is a tie
+MIN_EFFECT_DB = 0.2
+
+
 def verdict(table: Table, claim: Claim, runs: dict) -> dict:
     """Per hand: the paired (same seed) difference worse − better in the paper's direction;
-    ``reproduced`` when its mean exceeds its std over seeds (and is > 0), ``reversed``
-    when it is below −std, else ``within the seed spread``."""
+    a ``tie`` when the effect is below max(:data:`MIN_EFFECT_DB`, 2σ over seeds) in dB
+    (PSNR, or 10 log10 of an MSE ratio); else ``reproduced`` when the mean exceeds 2σ
+    (and is > 0), ``reversed`` when it is below −2σ, else ``within 2σ``."""
     split, metric = claim.metric.split(".")
     sign = 1.0 if metric in LOWER else -1.0
     per_hand = {}
@@ -712,18 +717,33 @@ def verdict(table: Table, claim: Claim, runs: dict) -> dict:
                   for r in runs[claim.better][hand]}
         worse = {r["seed"]: r["metrics"].get(split, {}).get(metric)
                  for r in runs.get(claim.worse, {}).get(hand, [])}
-        gaps = [sign * (worse[s] - better[s]) for s in better
-                if s in worse and better[s] is not None and worse[s] is not None]
+        pairs = [s for s in better
+                 if s in worse and better[s] is not None and worse[s] is not None]
+        gaps = [sign * (worse[s] - better[s]) for s in pairs]
         stats = mean_std(gaps)
+        # the effect in dB (PSNR directly; MSE as 10 log10 of the ratio), for the minimum
+        # size a verdict needs
+        if metric == "psnr":
+            effect = mean_std(gaps)
+        elif metric in ("mse", "mae") and all(better[s] > 0 and worse[s] > 0 for s in pairs):
+            effect = mean_std([10 * math.log10(worse[s] / better[s]) for s in pairs])
+        else:
+            effect = None
+        bar = max(2 * stats["std"], 0.0) if stats["n"] else 0.0
+        small = (effect is not None and effect["n"]
+                 and abs(effect["mean"]) < max(MIN_EFFECT_DB, 2 * effect["std"]))
         if not stats["n"]:
             word = "not measured"
-        elif stats["mean"] > 0 and stats["mean"] > stats["std"]:
+        elif small:
+            word = "tie (smaller than max(0.2 dB, 2σ over seeds))"
+        elif stats["mean"] > 0 and stats["mean"] > bar:
             word = "reproduced"
-        elif stats["mean"] < 0 and -stats["mean"] > stats["std"]:
+        elif stats["mean"] < 0 and -stats["mean"] > bar:
             word = "not reproduced (reversed)"
         else:
-            word = "not reproduced (within the seed spread)"
-        per_hand[hand] = {"verdict": word, "gap": stats}
+            word = "not reproduced (within 2σ of the seed spread)"
+        per_hand[hand] = {"verdict": word, "gap": stats,
+                          "effect_db": effect["mean"] if effect and effect["n"] else None}
     return {"text": claim.text, "better": claim.better, "worse": claim.worse,
             "metric": claim.metric, "hands": per_hand, "explain": claim.explain}
 
@@ -763,6 +783,29 @@ def markdown(table: Table, record: dict) -> str:
         secs = [record["seconds"][name][h]["mean"] or 0 for h in hands]
         cells.append(f"{sum(secs) / max(len(secs), 1):.0f}")
         lines.append("| " + " | ".join(cells) + " |")
+    # the ceiling: the perfect texture at each row's N through the same compositing and
+    # sampling (rows of one N share it; the first row's is shown, others' gaps below)
+    first = next(iter(record["rows"].values()), {})
+    cells = ["ceiling (perfect texture, first row's N)"]
+    shown = False
+    for hand in hands:
+        for split in table.splits:
+            ceiling = first.get(hand, {}).get(split, {}).get("ceiling")
+            for metric, scale, _ in table.metrics:
+                cells.append(fmt(ceiling[metric], scale) if ceiling else "—")
+                shown = shown or bool(ceiling)
+    if shown:
+        lines.append("| " + " | ".join(cells + [""]) + " |")
+        gaps = []
+        for name, per_hand in record["rows"].items():
+            parts = [f"{hand} {SPLIT_NAMES.get(split, split)} "
+                     f"{per_hand[hand][split]['gap_to_ceiling']['mean']:+.2f} dB"
+                     for hand in hands for split in table.splits
+                     if per_hand[hand][split].get("gap_to_ceiling", {}).get("mean") is not None]
+            if parts:
+                gaps.append(f"{name}: " + ", ".join(parts))
+        lines += ["", "Gap to the ceiling (ceiling PSNR − row PSNR, mean over seeds): "
+                  + "; ".join(gaps) + "."]
     lines += ["", "Mean ± sample standard deviation over the seeds (each seed: a fresh "
               "initialization and sampling order on the same capture). Masked by the "
               "ground-truth hand mask; linear radiance, PSNR's data range that of the ground "
@@ -793,8 +836,9 @@ def markdown(table: Table, record: dict) -> str:
                 line += f" What we believe explains it: {explain}."
             lines.append(line)
     lines += ["", "A claim is *reproduced* when the paired difference over seeds is in the "
-              "paper's direction and larger than its standard deviation; *reversed* when it "
-              "is as clearly the other way.", "",
+              "paper's direction and larger than twice its standard deviation and than "
+              f"{MIN_EFFECT_DB} dB; *reversed* when it is as clearly the other way; a *tie* "
+              "when the effect is smaller than that.", "",
               f"Plot: `study_{table.name}.png` — {SPLIT_NAMES.get(table.curve[0], table.curve[0])} "
               f"{table.curve[1].upper()} against training iterations, mean over seeds ± std.",
               ""]
@@ -870,8 +914,24 @@ def machine() -> str:
             f"{torch.get_num_threads()} threads, no GPU used")
 
 
+def portable(obj):
+    """``obj`` with every absolute path under the repository's parent folder written
+    relative to the repository (``../shared/…``, ``benchmarks/out/…``): committed tables
+    name no machine's folders."""
+    root = str(HERE.parent)
+    parent = str(HERE.parent.parent)
+    if isinstance(obj, dict):
+        return {k: portable(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [portable(v) for v in obj]
+    if isinstance(obj, str) and parent in obj:
+        return obj.replace(root + os.sep, "").replace(root, ".").replace(parent, "..")
+    return obj
+
+
 def write_table(table: Table, record: dict, results: Path) -> None:
     from relight_cli.provenance import write_text_atomic
+    record = portable(record)
     results.mkdir(parents=True, exist_ok=True)
     write_json(results / f"study_{table.name}.json", record)
     write_text_atomic(str(results / f"study_{table.name}.md"), markdown(table, record))

@@ -34,7 +34,9 @@ from relight_cli.clitools import (SquareSize, check_output, log, no_clobber_opti
 @click.option("--tex-res", type=SquareSize(), default=256, show_default=True,
               help="Renderer's texture-space lighting map size.")
 @click.option("--aa", type=int, default=2, show_default=True,
-              help="Stratified sub-pixel samples per axis.")
+              help="Stratified sub-pixel samples per axis: the images integrate each pixel's "
+                   "area as a sensor does (recorded in capture.json; learned models sample "
+                   "pixels the same way).")
 @click.option("--no-sss", is_flag=True, help="Ablation: no subsurface scattering.")
 @click.option("--bounce", is_flag=True, help="Add one bounce of interreflection (slower).")
 @click.option("--eval-poses", type=int, default=2, show_default=True,

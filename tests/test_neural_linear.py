@@ -280,30 +280,198 @@ def test_rgb_light_is_per_channel_exact(capture_dir):  # noqa: F811
 # ---------------------------------------------------------------- training
 
 
-def test_training_lowers_heldout_loss(capture_dir):  # noqa: F811
-    from relight_cli.neural.linear_train import albedo_texture, feature_scale, sample_loss, train
+# A trained model is judged by gates a dead light path fails (DESIGN.md, "How a learned model
+# is judged").  Training runs share one CaptureData of the test capture at 32² (at 16² a
+# perfect texture is only 0.8 dB above the untrained model: little left to learn) and run
+# 50 iterations of the SMALL model (~3.5 s each after the first).
+TRAIN = {**SMALL, "tex_res": 32, "iters": 50, "lambda_vgg": 0.0}
+# Measured (seed 0, 2 shared cores, one thread), 50 iterations:
+#   default (Eq. 9 on F_l-enc, λ converted): learned share 0.054 of the image (training
+#     frames); held-out MSE 0.002252 model, 0.002305 its physical branch, 0.002666 the
+#     Lambert T̄ baseline with fitted channel scales;
+#   old reading (every map, λ 0.01 on radiance): share 0.0000, model = physical branch;
+#   mlp light path: its render 0.69 of the image's RMS, residual 0.59 (0.005 / 1.0 at init).
+SHARE_FLOOR = 0.02        # 2.7× under the measured 0.054; a dead path gives < 1e-4
+PHYSICAL_MARGIN = 0.99    # held-out MSE ≤ 0.99 × the physical branch's (measured 0.977)
 
-    cfg = LM.LinearConfig.from_dict({**SMALL, "iters": 25, "lambda_vgg": 0.0})
-    data = _data(capture_dir, cfg.tex_res)
-    mean = torch.from_numpy(albedo_texture(data))
-    # T̄ in sr⁻¹: synthetic skin albedos are < 1, so T̄ < 1/π nearly everywhere
-    assert 0.02 < float(mean.median()) < 0.4
-    held = data.splits()["heldout"]
-    torch.manual_seed(cfg.seed)
-    untrained = LM.URHandModel(cfg, data.pose_dim)
-    untrained.feature_scale.fill_(feature_scale(data))
 
-    def held_l1(model, tex):
-        with torch.no_grad():
-            return float(np.mean([sample_loss(model, data, it, cfg, 0, "cpu", tex)[1]["l1"]
-                                  for it in held]))
-    before = held_l1(untrained, mean)
+@pytest.fixture(scope="session")
+def data32(capture_dir):  # noqa: F811
+    return _data(capture_dir, 32)
+
+
+def _train(data, **overrides):
+    from relight_cli.neural.linear_train import train
+    cfg = LM.LinearConfig.from_dict({**TRAIN, **overrides})
     result = train(data, cfg, torch.device("cpu"), show_progress=False)
-    trained, _, tex = LM.model_from_checkpoint(result.checkpoint)
-    after = held_l1(trained, tex)
-    # the untrained light path adds a random term to the physical start; training removes it
-    assert after < 0.95 * before, (before, after)
+    model, _, tex = LM.model_from_checkpoint(result.checkpoint)
+    return model, tex, result
+
+
+@pytest.fixture(scope="session")
+def trained(data32):
+    return _train(data32)
+
+
+def _renders(model, data, items, tex):
+    """Per (frame, camera) item: neural render, physical-branch render, image, hand mask."""
+    from relight_cli.neural.linear_train import lights_of, render_image
+    out = []
+    with torch.no_grad():
+        for item in items:
+            s = data.sample(*item)
+            lights, intensity = lights_of(data, s.frame)
+            img, pb, _ = render_image(model, data.texels(s.pose), s.gbuffer, s.poses, lights,
+                                      intensity, tex, physical=True)
+            inside = (s.mask > 0) | (s.gbuffer.mask > 0)
+            out.append((img.double().numpy(), pb.double().numpy(), s.image.astype(np.float64),
+                        inside))
+    return out
+
+
+def _share(renders):
+    """RMS(neural − physical) / RMS(image) inside the hand: what the learned path adds."""
+    num = sum(((n - p)[m] ** 2).sum() for n, p, _, m in renders)
+    return float(np.sqrt(num / sum((i[m] ** 2).sum() for _, _, i, m in renders)))
+
+
+def _mse(renders, which=0):
+    """MSE inside the hand of the neural (0) or physical (1) render."""
+    err = sum(((r[which] - r[2])[r[3]] ** 2).sum() for r in renders)
+    return float(err / sum(r[3].sum() * 3 for r in renders))
+
+
+def _share_gate(model, data, tex):
+    """(passes, share) of the learned-path gate on the training frames."""
+    share = _share(_renders(model, data, data.splits()["train"], tex))
+    return share > SHARE_FLOOR, share
+
+
+def _physical_gate(model, data, tex):
+    """(passes, model MSE, physical MSE) on held-out frames: the learned path must improve
+    on the model's own physical branch (a dead path equals it)."""
+    held = _renders(model, data, data.splits()["heldout"], tex)
+    ours, phys = _mse(held, 0), _mse(held, 1)
+    return ours <= PHYSICAL_MARGIN * phys, ours, phys
+
+
+def _lambert(data, item, tex):
+    """T̄ shaded by Lambert: Σ_i I_i · falloff · traced visibility · max(0, l_z) (coarse
+    tangent frame), composited like the model's textures; ([H, W, 3], the sample)."""
+    from relight_cli.neural.linear_train import lights_of
+    from relight_cli.neural.teacher import composite
+    s = data.sample(*item)
+    texels = data.texels(s.pose)
+    lights, intensity = lights_of(data, s.frame)
+    maps = []
+    for k in range(texels.n_hands):
+        li = lights[k]
+        shade = li.falloff * li.visibility * np.clip(li.local_light[..., 2], 0, None)  # [L, K]
+        e = np.einsum("lc,lk->kc", np.asarray(intensity, np.float64), shade)
+        maps.append(torch.from_numpy(texels.to_maps(k, e)).double() * tex[0].double())
+    return composite(maps, s.gbuffer).numpy(), s
+
+
+def test_learned_light_path_carries_part_of_the_image(data32, trained):
+    """Eq. 9 on F_l-enc with λ_reg in our units leaves the learned path alive: after 50
+    iterations it adds > SHARE_FLOOR of the image (RMS inside the hand) to the physical
+    branch; the validation record reports that share."""
+    model, tex, result = trained
+    ok, share = _share_gate(model, data32, tex)
+    assert ok, share
     assert {"heldout", "fully_lit", "env"} <= set(result.metrics)
+    assert result.metrics["heldout"]["light_path_share"] > 0.1 * SHARE_FLOOR
+    # T̄ in sr⁻¹: synthetic skin albedos are < 1, so T̄ < 1/π nearly everywhere
+    assert 0.02 < float(tex.median()) < 0.4
+
+
+def test_trained_model_beats_baselines_on_heldout_frames(data32, trained):
+    """Held-out MSE: the model beats (1) T̄ shaded by Lambert × visibility × I × 1/r² with
+    one least-squares scale per channel fitted on the training frames (the best such
+    baseline), and (2) its own physical branch by ≥ 1 %.  (1) alone would not catch a dead
+    light path: the physical branch (specular, refined normals) beats that baseline too
+    (measured 0.002305 vs 0.002666); (2) is the gate that does."""
+    model, tex, _ = trained
+    splits = data32.splits()
+    num, den = np.zeros(3), np.zeros(3)
+    for item in splits["train"]:
+        pred, s = _lambert(data32, item, tex)
+        m = (s.mask > 0) | (s.gbuffer.mask > 0)
+        num += (pred[m] * s.image[m]).sum(0)
+        den += (pred[m] ** 2).sum(0)
+    scale = num / den
+    err = count = 0.0
+    for item in splits["heldout"]:
+        pred, s = _lambert(data32, item, tex)
+        m = (s.mask > 0) | (s.gbuffer.mask > 0)
+        err += ((pred * scale - s.image)[m] ** 2).sum()
+        count += m.sum() * 3
+    baseline = err / count
+    ok, ours, phys = _physical_gate(model, data32, tex)
+    assert ours < baseline, (ours, baseline)
+    assert ok, (ours, phys)
+
+
+def test_sabotaged_light_path_fails_the_gates(data32, trained):
+    """The gates catch a dead light path: (a) the old reading (Eq. 9 on every light-path map,
+    decoder included, at λ = 0.01 on our radiance loss) trains the learned path to zero;
+    (b) the trained model with F_l's last layer zeroed renders its physical branch."""
+    import copy
+
+    from relight_cli.neural.config import PAPER_UNIT
+    model, tex, _ = trained
+    old = 0.01 / (PAPER_UNIT * float(model.feature_scale))    # the unconverted weight
+    dead, dead_tex, _ = _train(data32, reg_layers="all", lambda_reg=old)
+    ok, share = _share_gate(dead, data32, dead_tex)
+    assert not ok and share < 1e-3, share
+    assert not _physical_gate(dead, data32, dead_tex)[0]
+    zeroed = copy.deepcopy(model)
+    with torch.no_grad():
+        zeroed.light.dec[-1].weight.zero_()
+    ok, share = _share_gate(zeroed, data32, tex)
+    assert not ok and share < 1e-6, share          # float32 rounding only
+    assert not _physical_gate(zeroed, data32, tex)[0]
+
+
+def _mlp_fit(model, data, tex):
+    """(RMS(render) / RMS(image), RMS(render − image) / RMS(image)) on the training frames."""
+    renders = _renders(model, data, data.splits()["train"], tex)
+    img = sum((i[m] ** 2).sum() for _, _, i, m in renders)
+    level = sum((n[m] ** 2).sum() for n, _, _, m in renders)
+    err = sum(((n - i)[m] ** 2).sum() for n, _, i, m in renders)
+    return float(np.sqrt(level / img)), float(np.sqrt(err / img))
+
+
+def test_mlp_baseline_trains(data32):
+    """supp. 10.2's holistic light path (no residual start: its render is all learned)
+    leaves zero: after 50 iterations its render carries > 30 % of the image's RMS and its
+    residual is < 90 % of it (measured 0.69 / 0.59; 0.005 / 1.0 at initialization); with
+    its one linear layer zeroed it fails both."""
+    model, tex, _ = _train(data32, light_path="mlp")
+    level, residual = _mlp_fit(model, data32, tex)
+    assert level > 0.3 and residual < 0.9, (level, residual)
+    with torch.no_grad():
+        model.light.mlp.weight.zero_()
+    level, residual = _mlp_fit(model, data32, tex)
+    assert not (level > 0.3 or residual < 0.9), (level, residual)
+
+
+def test_eq9_regularizer_layers_and_units():
+    """Eq. 9 takes F_l-enc (every encoder level) by default and the decoder maps too with
+    reg_layers="all"; λ_reg = 0.01 paper units is 0.01 / (255 π) × feature_scale of ours."""
+    from relight_cli.neural.linear_train import light_path_l1, reg_weight
+    model, cfg = _model()
+    sizes = [16 >> max(cfg.light_levels - j - 1, 0) for j in range(7)]
+    mods = [torch.ones(1, w, n, n) for w, n in zip(cfg.light_decoder[1:], sizes)]
+    with torch.no_grad():
+        _, inter = model.light(torch.rand(1, 2, 16, 16), mods, return_intermediate=True)
+    assert len(inter["encoder"]) == cfg.light_levels + 1 and len(inter["decoder"]) == 6
+    enc = sum(float(x.abs().mean()) for x in inter["encoder"])
+    dec = sum(float(x.abs().mean()) for x in inter["decoder"])
+    assert float(light_path_l1(inter)) == pytest.approx(enc, rel=1e-6)
+    assert float(light_path_l1(inter, "all")) == pytest.approx(enc + dec, rel=1e-6)
+    assert cfg.reg_layers == "encoder"
+    assert reg_weight(cfg, 2.0) == pytest.approx(0.01 * 2.0 / (255 * np.pi))
 
 
 def test_config_validation_and_presets():
@@ -314,7 +482,7 @@ def test_config_validation_and_presets():
     assert LM.resolve_config("tiny").sigma_t * LM.PAPER_UNIT == pytest.approx(64 / (255 * np.pi))
     for bad in ({"light_decoder": [8, 8, 8, 8, 8, 8, 8, 3]},
                 {"tex_res": 20}, {"linearity_loss": 1.0}, {"light_path": "holistic"},
-                {"olat": 1}, {"refiner": 1}):
+                {"olat": 1}, {"refiner": 1}, {"reg_layers": "decoder"}):
         with pytest.raises(UsageProblem):
             LM.LinearConfig.from_dict(bad)
     assert LM.LinearConfig.from_dict({"light_path": "nonlinear", "linearity_loss": 0.1})
@@ -346,8 +514,8 @@ def test_resume_is_exact_and_ablations_run(capture_dir, linear_config, tmp_path,
     r = run_cli("train-teacher", str(capture_dir), "--model", "linear", "--config", str(vanilla),
                 "--iters", "1", "-q", "-o", tmp_path / "vanilla.pt")
     assert r.exit_code == 0, r.output
-    for flags in (["--features", "phong", "--no-specular"], ["--no-visibility", "--no-refiner"],
-                  ["--light-path", "mlp"]):
+    # (the mlp light path trains in test_mlp_baseline_trains)
+    for flags in (["--features", "phong", "--no-specular"], ["--no-visibility", "--no-refiner"]):
         out = tmp_path / f"abl{len(flags)}{flags[1]}.pt"
         r = run_cli("train-teacher", str(capture_dir), "--model", "linear", "--config",
                     str(linear_config), "--iters", "1", "-q", "-o", out, *flags)

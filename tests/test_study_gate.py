@@ -162,8 +162,8 @@ def test_gate_fails_without_visibility(gate_run, tmp_path, monkeypatch):
 
 def test_claim_verdicts():
     """A claim's verdict from same-seed differences: in the paper's direction by more
-    than their std → reproduced; as clearly the other way → reversed; else within the
-    spread (MSE: lower is better; SSIM: higher)."""
+    than 2σ and 0.2 dB → reproduced; as clearly the other way → reversed; smaller → a tie
+    (MSE: lower is better; SSIM: higher)."""
     study_hands = _study_module()
 
     def runs(better, worse, metric):
@@ -177,7 +177,50 @@ def test_claim_verdicts():
 
     assert word([1.0, 1.1, 0.9], [1.5, 1.6, 1.4])["verdict"] == "reproduced"
     assert word([1.5, 1.6, 1.4], [1.0, 1.1, 0.9])["verdict"] == "not reproduced (reversed)"
-    assert word([1.0, 1.2, 0.9], [1.1, 1.0, 1.0])["verdict"].endswith("(within the seed spread)")
+    # an effect inside 2σ over seeds, or below 0.2 dB, is a tie, never "reversed"
+    assert word([1.0, 1.2, 0.9], [1.1, 1.0, 1.0])["verdict"].startswith("tie")
+    assert word([30.0, 30.1, 29.9], [29.99, 30.09, 29.89], "psnr")["verdict"].startswith("tie")
+    assert word([30.0, 30.1, 29.9], [30.01, 30.11, 29.91], "psnr")["verdict"].startswith("tie")
+    assert word([30.0, 30.1, 29.9], [29.5, 29.6, 29.4], "psnr")["verdict"] == "reproduced"
+    assert word([1.0, 1.0, 1.0], [1.03, 1.02, 1.04])["verdict"].startswith("tie")   # 0.13 dB
+    # SSIM has no dB: 2σ alone decides
+    assert word([0.9, 0.8, 0.85], [0.85, 0.85, 0.8], "ssim")["verdict"].endswith("within 2σ "
+                                                                                 "of the seed spread)")
     assert word([0.9, 0.8, 0.85], [0.7, 0.6, 0.65], "ssim")["verdict"] == "reproduced"
     gap = word([1.0, 1.1, 0.9], [1.5, 1.6, 1.4])["gap"]
     assert gap["mean"] == pytest.approx(0.5) and gap["std"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_gate_fails_with_a_featureless_student(gate_run, tmp_path, monkeypatch):
+    """Sabotage of another kind: the student's texel-aligned lighting features are zeroed
+    (it sees the pose only, as a dead feature path would leave it); retrained, it must lose
+    to DRAM, which still has its light code, and the student_vs_dram check must regress."""
+    from relight_cli.formats.metrics_json import dumps
+    from relight_cli.neural import student as S
+    study_hands = _study_module()
+    study, metrics = gate_run
+    if "student_vs_dram" not in thresholds():
+        pytest.skip("student_vs_dram is not gated at this size")
+    original = S.StudentNet.forward
+
+    def blind(self, features, pose, env_code=None, return_raw=False):
+        return original(self, features * 0, pose, env_code, return_raw)
+    monkeypatch.setattr(S.StudentNet, "forward", blind)
+    sabotaged = study_hands.Study("tiny", tmp_path / "sabotaged", log=lambda m: None)
+    sabotaged.captures, sabotaged.capture_info = study.captures, study.capture_info
+    kind, better_row, _, _ = study_hands.GATE["student_vs_dram"]
+    keep = study.row(kind, study_hands.GATE_HAND, better_row, SEED,
+                     *study_hands.GATE_SPLITS[kind],
+                     study.row("teacher", study_hands.GATE_HAND, {}, SEED, ("heldout",),
+                               ("heldout", "mse")))["key"]
+    (tmp_path / "sabotaged" / "runs").mkdir(parents=True)
+    for path in (study.out / "runs").glob("*.json"):       # every row but the student's
+        if path.stem != keep:
+            shutil.copy(path, tmp_path / "sabotaged" / "runs")
+    with one_thread():
+        worse = {**metrics, **study_hands.gate_metrics(sabotaged, SEED, ["student_vs_dram"])}
+    assert worse["student_vs_dram"]["mse_ratio"] < 1.0, worse
+    new = tmp_path / "sabotaged.json"
+    new.write_text(dumps(_record(worse)))
+    result = compare(new)
+    assert result.returncode == 3, result.stdout + result.stderr

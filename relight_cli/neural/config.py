@@ -94,13 +94,22 @@ class TeacherConfig(TrainingConfig):
             the network (ours: near lights extrapolate); ``none`` is the paper's Eq. 2
             (intensity weight b_i only; the network sees directions only).
         lambda_s, lambda_b: Eq. 10's scale and bias in the paper's units (× PAPER_UNIT).
+        head: where Eq. 10's bias sits.  ``printed``: C = σ(S)·(ReLU(λ_s T) + λ_b), as the
+            paper prints it, L_neg on λ_s T; ``code``: C = σ(S)·ReLU(λ_s T + λ_b), the
+            reading of the authors' public code (facebookresearch/goliath), L_neg on the
+            pre-ReLU λ_s T + λ_b (use it with ``neg_schedule: constant``, as that code
+            does).  See :mod:`relight_cli.neural.models` for the measurement that chose
+            the default.
+        untied_bias: the OLAT U-Net's decoder and head carry one bias per texel (the
+            authors' code) instead of one per channel.
         iters, batch, lr: Adam iterations, samples (frame × camera) per step, learning rate.
         lambda_mse, lambda_vgg, lambda_neg: Eq. 5's weights (VGG only with local weights).
         neg_eta, neg_start: Eq. 6's γ schedule η_neg and t_s (an iteration, so that a run
             extended by ``--resume --iters`` keeps the schedule it started with).
         neg_schedule: ``decay`` γ = exp(−max(η (t − t_s)/t, 0)) (1 until t_s, then decaying
-            to e^−η: our reading of "starts decaying") or ``literal`` γ = exp(−max(η t/(t −
-            t_s), 0)) as printed (1 until t_s, ≈ 0 just after, rising to e^−η).
+            to e^−η: our reading of "starts decaying"), ``literal`` γ = exp(−max(η t/(t −
+            t_s), 0)) as printed (1 until t_s, ≈ 0 just after, rising to e^−η), or
+            ``constant`` γ = 1 (the authors' code: a constant weight).
         aa: G-buffer samples per pixel axis when rendering textures into images; 0 (the
             default): the capture's own (``settings.aa``, see
             :func:`relight_cli.neural.data.capture_aa`), so training and scoring sample
@@ -123,6 +132,8 @@ class TeacherConfig(TrainingConfig):
     falloff: str = "analytic"
     lambda_s: float = 25.0
     lambda_b: float = 100.0
+    head: str = "printed"
+    untied_bias: bool = False
     aa: int = 0
     holdout: float = 0.25
     cache_poses: int = 64
@@ -132,7 +143,8 @@ class TeacherConfig(TrainingConfig):
         check = _Checker(self, where)
         check.choice("model", ("olat", "ggx"))
         check.choice("falloff", ("analytic", "none"))
-        check.choice("neg_schedule", ("decay", "literal"))
+        check.choice("head", ("printed", "code"))
+        check.choice("neg_schedule", ("decay", "literal", "constant"))
         check.integer("tex_res", 8, 4096)
         for name in ("encoder", "decoder", "pose_channels"):
             check.widths(name)
@@ -150,6 +162,7 @@ class TeacherConfig(TrainingConfig):
         check.integer("aa", 0, 8)
         check.integer("cache_poses", 1, 100000)
         check.boolean("visibility")
+        check.boolean("untied_bias")
 
 
 class _Checker:
@@ -235,10 +248,12 @@ class StudentConfig(TrainingConfig):
 
     Attributes:
         student: ``student`` (texel-aligned features, App. A.2) or ``dram`` (App. A.3).
-        tex_res: N of the N×N feature maps and predicted texture (paper 128).
+        tex_res: N of the N×N feature maps and predicted texture (paper 128); DRAM's
+            decoder (untied per-texel biases) is built for this size.
         decoder: the 8-layer decoder's widths between input and output (paper 256, 256,
-            128, 128, 64, 64, 32).
-        pose_channels: J_s(θ)'s widths (paper 16, 64).
+            128, 128, 64, 64, 32); DRAM: the first is its 4×4 code grid, each next one
+            up-samples ×2 until tex_res.
+        pose_channels: J_s(θ)'s widths (paper 16, 64; DRAM does not use J_s).
         specular: Phong features (False: Table 2's "w/o specular").
         visibility: features baked with visibility (False: Table 2's "w/o visibility").
         shininess: Phong exponents (paper 16, 32, 64).
@@ -247,9 +262,11 @@ class StudentConfig(TrainingConfig):
         rotations: augment training env maps with random rotations about +Y by whole
             longitude steps (exact: a column roll of the 16×32 grid).
         dram_code: DRAM's light code size (512).
-        lambda_s, lambda_b: Eq. 11 in the paper's units; λ_b = 0 by default (see
-            :mod:`relight_cli.neural.student`: without a shadow gate λ_b is a radiance
-            floor), 100 is the paper's.
+        lambda_s, lambda_b: Eq. 11 in the paper's units, applied × PAPER_UNIT (the
+            teacher's conversion: λ_b = 100 is a floor of 0.125 where a white texel
+            under a uniform env is 1, π× below the paper's 100/255 — see
+            :mod:`relight_cli.neural.student`); λ_b = 0 by default (without a shadow
+            gate λ_b is a radiance floor).
         cache_mb: memory budget of the teacher's per-direction textures (pseudo ground
             truth); beyond it they go to the disk cache (``distill --cache DIR``) or are
             recomputed.

@@ -338,10 +338,11 @@ class Ceiling:
     at the N×N texel centres of the model's texture (:class:`~relight_cli.render.capture.
     StageShader`), and that texture goes through the model's own compositing
     (:func:`~relight_cli.neural.teacher.composite` on the same camera G-buffer, i.e. the
-    same pixel sampling) and the same :func:`score`.  No texture of that resolution can do
-    better through that pipeline, whatever the network; what remains is the texture's
-    resolution and the lookup's filtering.  Real captures have no ceiling
-    (:attr:`available` False).
+    same pixel sampling) and the same :func:`score`: what a texture of that resolution
+    scores when it holds the exact answer at its texel centres.  It is not a strict
+    bound — a texture fitted through the bilinear lookup (pre-filtered) can beat point
+    samples by a fraction of a dB — but a model far below it has not learned what its
+    resolution allows.  Real captures have no ceiling (:attr:`available` False).
 
     Args:
         data: the :class:`~relight_cli.neural.data.CaptureData` (its hand, eval hand,

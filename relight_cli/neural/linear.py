@@ -53,6 +53,14 @@ no spatial features, no residual start), ``features="phong"``,
 ``residual=True`` is ours (not the paper's): g and b start from the physical branch's
 own C^d and C^s/σ_T (still linear in the features), so a short CPU run starts from the
 physically based render instead of from zero.
+
+Eq. 9 (L_reg = Σ_j ‖F_l-enc^j‖₁): the text says "intermediate features from all layers in
+the linear branch" but the equation writes the encoder's maps F_l-enc, and the authors'
+code (facebookresearch/goliath, URHand) penalizes only the maps its encoder adds into the
+decoder; we follow the equation and the code (``reg_layers="encoder"``).  Penalizing the
+modulated decoder maps too (``reg_layers="all"``) is minimized by zeroing F_l's output: the
+model then renders its physical branch only.  λ_reg is the paper's number in its 8-bit
+units, converted in the loss (:func:`~relight_cli.neural.linear_train.reg_weight`).
 """
 
 from __future__ import annotations
@@ -75,6 +83,7 @@ from .shading_features import map_to_texels, refined_normals, shading_features, 
 LIGHT_PATHS = ("linear", "nonlinear", "mlp")
 HOLISTIC_RES = (16, 32)
 FEATURES = ("pbr", "phong")
+REG_LAYERS = ("encoder", "all")
 
 
 @dataclass
@@ -104,7 +113,13 @@ class LinearConfig:
             run extended by ``--resume --iters`` keeps its schedule).
         lambda_img, lambda_pb: Eq. 7's L1 weights of the neural and physical renders.
         lambda_vgg: perceptual loss (only with local weights; the paper's is EfficientNet).
-        lambda_reg: Eq. 9's L1 on the light path's intermediate features (0.01).
+        lambda_reg: Eq. 9's L1 weight on the light path's intermediate maps, in the paper's
+            units (0.01); the loss converts it to ours (× PAPER_UNIT × feature_scale, see
+            :func:`~relight_cli.neural.linear_train.reg_weight`).
+        reg_layers: which maps Eq. 9 penalizes: ``encoder`` (the default: F_l-enc, as Eq. 9
+            writes and the authors' code does) or ``all`` (every encoder and decoder map,
+            a literal reading of "all layers in the linear branch"; it lets the loss zero
+            the modulated decoder and so the whole learned light path).
         linearity_loss: weight of Eq. 17 (0: off); applied every ``linearity_every`` steps.
         lambda_gan: Eq. 8's lighting-aware hinge adversarial loss (paper 0.01; 0: off,
             the tiny default: seconds matter more than sharpness there).
@@ -141,6 +156,7 @@ class LinearConfig:
     lambda_pb: float = 1.0
     lambda_vgg: float = 1.0
     lambda_reg: float = 0.01
+    reg_layers: str = "encoder"
     linearity_loss: float = 0.0
     linearity_every: int = 1
     lambda_gan: float = 0.0
@@ -185,7 +201,7 @@ class LinearConfig:
             return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
         choices = {"model": ("linear",), "light_path": LIGHT_PATHS, "features": FEATURES,
-                   "fresnel": ("schlick", "sg")}
+                   "fresnel": ("schlick", "sg"), "reg_layers": REG_LAYERS}
         ints = {"tex_res": (8, 4096), "light_levels": (0, 7), "iters": (1, 10 ** 9),
                 "lr_drop": (0, 10 ** 9),
                 "batch": (1, 4096), "linearity_every": (1, 10 ** 9), "gan_width": (1, 4096), "aa": (0, 8),
@@ -299,7 +315,8 @@ class LightPath(nn.Module):
 
     def forward(self, features: torch.Tensor, modulation: list, return_intermediate=False):
         """features [B, cin, N, N], modulation: 7 maps [B, widths[j+1], ·, ·] → [B, 4, N, N]
-        (and the intermediate feature maps for Eq. 9)."""
+        (and the intermediate maps for Eq. 9: ``{"encoder": F_l-enc^j of every level (the
+        ``mlp`` path: its one linear layer's map), "decoder": the first 6 F_l-dec^j}``)."""
         skips = []
         h = features
         if self.holistic is not None:
@@ -310,13 +327,13 @@ class LightPath(nn.Module):
                 h = F.avg_pool2d(h, 2)
             h = self._act(conv(h))
             skips.append(h)
-        inter = [x for x in skips if x is not None]
+        inter = {"encoder": [x for x in skips if x is not None], "decoder": []}
         h = skips[-1]                                   # F_enc^0 + F_dec^0 (F_dec^0 = 0)
         for j, layer in enumerate(self.dec):
             h = self._act(layer(h) * modulation[j]) / math.sqrt(2)
             nxt = self.levels - (j + 1)
             if j < 6:
-                inter.append(h)
+                inter["decoder"].append(h)
                 if nxt >= 0 and skips[nxt] is not None:
                     h = h + skips[nxt]                  # F_enc^{j+1} + F_dec^{j+1}
         return (h, inter) if return_intermediate else h
@@ -418,7 +435,7 @@ class Textures:
     neural: list           # [3, N, N] C (Eq. 6)
     physical: list         # [3, N, N] C_pb (Eq. 3)
     features: list         # [C', 2, N, N] F_pb (gradients stopped)
-    intermediate: list     # per hand: the light path's feature maps (Eq. 9)
+    intermediate: list     # per hand: the light path's maps {"encoder", "decoder"} (Eq. 9)
 
 
 def render_textures(model: URHandModel, texels, views: list, light_inputs: list, intensity,

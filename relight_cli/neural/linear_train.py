@@ -5,8 +5,9 @@
   LED group by :class:`~relight_cli.neural.data.CaptureData`) and the camera's view.
   One pass of the model per sample, whatever the number of lights: features are sums.
 * **Loss** (Eq. 7): λ_img L1(C) + λ_pb L1(C_pb) (both renders supervised, Sec. 4.3)
-  + λ_VGG perceptual (local weights only) + λ_reg Σ_j mean |F_l^j| (Eq. 9, every
-  intermediate light-path map, at the features' unit scale) + λ_lc L_lc (Eq. 17,
+  + λ_VGG perceptual (local weights only) + λ_reg Σ_j mean |F_l-enc^j| (Eq. 9 on the
+  encoder's maps at the features' unit scale, λ_reg converted from the paper's 8-bit units:
+  :func:`reg_weight`; ``reg_layers="all"`` adds the decoder's maps) + λ_lc L_lc (Eq. 17,
   ablation: the frame's LEDs split in two halves, random a₁, a₂ ∈ (0, 1), RMS)
   + λ_GAN L_G (Eq. 8, :mod:`relight_cli.neural.adversarial`; its discriminator takes one
   Adam step (β 0.5, 0.999) per step on the batch's real and rendered images, and its
@@ -26,6 +27,7 @@ import time
 import numpy as np
 import torch
 
+from .config import PAPER_UNIT
 from .linear import LinearConfig, URHandModel, render_textures
 from .train import (TrainResult, average_gradients, check_training_frames, evaluate_splits,
                     fit)
@@ -72,6 +74,43 @@ def feature_scale(data, n_frames: int = 4) -> float:
             values.append(float((power[:, None] * li.falloff * li.visibility * cos).sum(0).mean()))
     scale = float(np.mean(values)) if values else 1.0
     return scale if scale > 0 and np.isfinite(scale) else 1.0
+
+
+def reg_weight(config: LinearConfig, scale) -> float:
+    """Eq. 9's weight in our units: λ_reg · PAPER_UNIT · feature_scale.
+
+    Eq. 7 adds λ_reg L_reg to an image L1 measured in the paper's 8-bit pixel units (255 =
+    white; the authors' code: images and T̄ in 0–255, L1 a mean over pixels).  Its light
+    path sees O(1) features (the authors divide the shading features by the lights' total
+    intensity and multiply the output back), as ours does (features ÷ ``feature_scale`` s),
+    so L_reg means the same number in both.  Our L1 is radiance: the network's output o
+    gives C = s (o_g T̄ + o_b σ_T), T̄ = PAPER_UNIT · T̄_paper, so one paper pixel unit at the
+    normalised maps' scale is PAPER_UNIT · s of our radiance, and matching the paper's
+    balance of the two terms needs λ = λ_reg · PAPER_UNIT · s (0.01 → 1.25e-5 · s).
+    The paper's 0.01 used directly on our radiance loss is 1 / (PAPER_UNIT · s) ≈ 1.5–3 ×
+    10³ times too strong (s ≈ 0.3–0.55 on our synthetic captures); with the decoder's maps
+    penalized too it trained the learned light path to zero.
+    """
+    return float(config.lambda_reg) * PAPER_UNIT * float(scale)
+
+
+def light_path_l1(intermediate: dict, layers: str = "encoder") -> torch.Tensor:
+    """L_reg of Eq. 9 for one hand: Σ_j mean |F^j| over the light path's encoder maps
+    F_l-enc^j (``layers="encoder"``, the paper's Eq. 9 and the authors' code) or over its
+    encoder and decoder maps (``"all"``); maps from :meth:`LightPath.forward`."""
+    maps = list(intermediate["encoder"])
+    if layers == "all":
+        maps += list(intermediate["decoder"])
+    return sum(f.abs().mean() for f in maps)
+
+
+def learned_share(neural: torch.Tensor, physical: torch.Tensor, image, mask) -> tuple:
+    """(Σ|C − C_pb|², Σ|I|²) over the hand's pixels: the learned light path's part of a
+    render (neural render minus the physical branch's) against the image; the share is
+    √(first / second) summed over samples."""
+    m = torch.as_tensor(np.asarray(mask) > 0, device=neural.device)
+    img = torch.as_tensor(np.asarray(image), device=neural.device, dtype=neural.dtype)
+    return (float(((neural - physical)[m] ** 2).sum()), float((img[m] ** 2).sum()))
 
 
 def masked_l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -122,8 +161,8 @@ def sample_loss(model, data, item, config: LinearConfig, step: int, device, mean
         total = total + config.lambda_vgg * perceptual
         parts["vgg"] = float(perceptual.detach())
     if config.lambda_reg > 0:
-        reg = sum(sum(f.abs().mean() for f in inter) for inter in tex.intermediate)
-        total = total + config.lambda_reg * reg
+        reg = sum(light_path_l1(inter, config.reg_layers) for inter in tex.intermediate)
+        total = total + reg_weight(config, model.feature_scale) * reg
         parts["reg"] = float(reg.detach())
     if config.linearity_loss > 0 and step % config.linearity_every == 0 and len(intensity) > 1:
         lc = linearity_consistency(model, texels, sample, lights, intensity, mean_texture,
@@ -173,22 +212,41 @@ def linearity_consistency(model, texels, sample, lights, intensity, mean_texture
 
 
 def evaluate(model, data, config: LinearConfig, device, mean_texture, splits=None) -> dict:
-    """Per split {mse, psnr, ssim, mae, samples} (:func:`relight_cli.neural.train.evaluate_splits`)."""
+    """Per split {mse, psnr, ssim, mae, samples} (:func:`relight_cli.neural.train.evaluate_splits`);
+    the capture's splits also get ``light_path_share``: RMS of (neural − physical-branch
+    render) over RMS of the image inside the hand (:func:`learned_share`; ≈ 0 when the
+    learned light path is dead and the model is its physical branch)."""
     from .teacher import env_light_inputs
+    share = {}
+    current = [None]
 
     def frame(item):
         sample = data.sample(*item)
         lights, weights = lights_of(data, sample.frame)
-        pred = render_image(model, data.texels(sample.pose), sample.gbuffer, sample.poses,
-                            lights, weights, mean_texture)[0]
+        pred, pb, _ = render_image(model, data.texels(sample.pose), sample.gbuffer,
+                                   sample.poses, lights, weights, mean_texture, physical=True)
+        inside = (sample.mask > 0) | (sample.gbuffer.mask > 0)
+        num, den = learned_share(pred, pb, sample.image, inside)
+        acc = share.setdefault(current[0], [0.0, 0.0])
+        acc[0] += num
+        acc[1] += den
         return pred.cpu().numpy(), sample.image, sample.mask
 
     def env(texels, gbuffer, poses, denv):
         lights, weights = env_light_inputs(texels, denv, config.visibility)
         return render_image(model, texels, gbuffer, poses, lights, weights,
                             mean_texture)[0].cpu().numpy()
-    return evaluate_splits(model, data, config.val_samples, frame, env, splits,
-                           tuple(config.env_res))
+    names = splits or [s for s, items in data.splits().items()
+                       if s in ("heldout", "fully_lit", "env") and items]
+    out = {}
+    for name in names:                  # one split at a time: the share is per split
+        current[0] = name
+        out.update(evaluate_splits(model, data, config.val_samples, frame, env, [name],
+                                   tuple(config.env_res)))
+    for name, (num, den) in share.items():
+        if name in out and den > 0:
+            out[name]["light_path_share"] = float(np.sqrt(num / den))
+    return out
 
 
 def learning_rate(config: LinearConfig, step: int) -> float:
