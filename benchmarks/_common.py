@@ -6,7 +6,12 @@
   one line instead of after minutes of work.
 * :func:`machine_limits` measures, in the same run, the ceilings the benchmark's numbers
   are read against: float32 GEMM GFLOP/s (torch, else numpy), main-memory copy
-  bandwidth, and on request raw embree occlusion rays/s and erf throughput.
+  bandwidth, and on request raw embree occlusion rays/s, erf throughput and the dense
+  3×3 convolution rate of torch's own conv kernels (``conv=True``: then ``peak_gflops``
+  is the best of GEMM and conv, on ``torch_threads`` threads).
+* :class:`ConvFlops` counts the FLOPs of the convolutions a model really runs (forward
+  hooks, 2 per multiply-add, the backward they imply); :func:`rate_cell` prints a
+  measured GFLOP/s, or ``inconsistent measurement`` where it exceeds the same run's peak.
 * :func:`plot` draws time against error: every curve, each point labelled, log axes,
   a grid, and the machine line under the axes; exact (zero) errors sit on the axis
   floor with their own marker instead of vanishing from a log plot.
@@ -118,6 +123,161 @@ def erf_gelems(n: int = 4_000_000, repeat: int = 3) -> float:
     return n / seconds / 1e9
 
 
+#: (in channels, out channels, size) of the dense 3×3 convolutions :func:`conv_gflops`
+#: times: the widths and sizes of the teacher's and the student's big layers.
+CONV_SHAPES = ((64, 64, 128), (128, 128, 128), (256, 256, 64))
+
+
+def conv_gflops(repeat: int = 5, shapes=CONV_SHAPES) -> float:
+    """float32 GFLOP/s of torch's own dense 3×3 convolutions (batch 1, stride 1, padded;
+    oneDNN on x86), in inference mode: the best of ``repeat`` over ``shapes`` and both
+    memory layouts.  On CPUs where the GEMM library runs a generic code path (MKL on AMD)
+    the conv kernels are faster than ``torch.mm``: this is the ceiling a network's convs
+    are read against, with :func:`gemm_gflops`."""
+    import torch
+    best = 0.0
+    with torch.inference_mode():
+        for cin, cout, n in shapes:
+            conv = torch.nn.Conv2d(cin, cout, 3, padding=1).eval()
+            x = torch.randn(1, cin, n, n)
+            flops = 2.0 * cin * cout * 9 * n * n
+            for layout in (torch.contiguous_format, torch.channels_last):
+                c = conv.to(memory_format=layout)
+                xl = x.contiguous(memory_format=layout)
+                best = max(best, flops / _best(lambda: c(xl), repeat) / 1e9)
+    return best
+
+
+def flop_peak(limits: dict) -> dict:
+    """Measure GEMM and conv again and keep, in ``limits``, the best of every measurement
+    (``peak_gflops``): call it at the end of a run, so that a machine busier at the start
+    than later does not leave a ceiling below what the run itself reached."""
+    import torch
+    if limits.get("torch_threads") not in (None, torch.get_num_threads()):
+        raise RuntimeError(f"torch threads changed during the run: {limits['torch_threads']} "
+                           f"→ {torch.get_num_threads()}")
+    limits["gemm_gflops"] = max(limits.get("gemm_gflops", 0.0), gemm_gflops())
+    limits["conv_gflops"] = max(limits.get("conv_gflops", 0.0), conv_gflops())
+    limits["peak_gflops"] = max(limits["gemm_gflops"], limits["conv_gflops"],
+                                limits.get("gemm_gflops_2048", 0.0))
+    limits["peak_measurements"] = limits.get("peak_measurements", 1) + 1
+    return limits
+
+
+def set_threads(threads: int | None) -> int:
+    """torch's intra-op threads for the whole run (None: keep torch's default, which
+    follows OMP_NUM_THREADS); returns the count every measurement of the run uses."""
+    import torch
+    if threads:
+        torch.set_num_threads(int(threads))
+    return torch.get_num_threads()
+
+
+class ConvFlops:
+    """FLOPs of the convolutions (and linear layers) ``model`` runs while counting.
+
+    Forward: 2·(C_in/groups)·C_out·k_h·k_w·H_out·W_out per conv per sample (2 per
+    multiply-add), 2·in·out per linear row; bias adds, activations, resizes and losses
+    are not counted (a lower bound of the arithmetic, so a rate computed from it is a
+    lower bound too).  Backward, when autograd records the pass: the weight gradient
+    costs one forward, the input gradient another — only where the layer's input needs a
+    gradient (not for the first layer), so a training pass is ≈ 3× its forward.
+    ``forward``/``backward``/``total`` accumulate; counting stops at :meth:`close`.
+    """
+
+    def __init__(self, model, training_only: bool = False):
+        import torch
+        self.forward = 0.0
+        self.backward = 0.0
+        self.training_only = training_only
+        self._hooks = [m.register_forward_hook(self._hook) for m in model.modules()
+                       if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))]
+
+    def _hook(self, module, inputs, output):
+        import torch
+        if self.training_only and not module.training:
+            return
+        if isinstance(module, torch.nn.Conv2d):
+            kh, kw = module.kernel_size
+            flops = 2.0 * output.numel() * (module.in_channels // module.groups) * kh * kw
+        else:
+            flops = 2.0 * output.numel() * module.in_features
+        self.forward += flops
+        if torch.is_grad_enabled() and output.requires_grad:
+            if module.weight.requires_grad:
+                self.backward += flops
+            if inputs[0].requires_grad:
+                self.backward += flops
+
+    @property
+    def total(self) -> float:
+        return self.forward + self.backward
+
+    def close(self) -> None:
+        for h in self._hooks:
+            h.remove()
+        self._hooks = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def rate_cell(gflops: float, peak: float, threads: int | None = None,
+              peak_threads: int | None = None) -> str:
+    """A measured GFLOP/s for a table: the number, or ``inconsistent measurement`` (with
+    both numbers) where it exceeds the same run's peak or was measured on another number
+    of threads than the peak — a rate above the machine's own ceiling means the FLOP
+    count or the timing is wrong, and must not be read as a result."""
+    if threads is not None and peak_threads is not None and threads != peak_threads:
+        return (f"**inconsistent measurement** ({gflops:.1f} on {threads} threads, peak on "
+                f"{peak_threads})")
+    if not math.isfinite(gflops) or gflops > peak:
+        return f"**inconsistent measurement** ({gflops:.1f} > peak {peak:.1f})"
+    return f"{gflops:.1f}"
+
+
+def consistent(gflops: float, peak: float) -> bool:
+    return math.isfinite(gflops) and gflops <= peak
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "?"
+
+
+def run_command(script: str, argv: list[str]) -> str:
+    """The command that made a run, relative to the checkout, ``--out`` left out (outputs
+    never hold a machine's paths)."""
+    args, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        if a == "--out":
+            skip = True
+            continue
+        if a.startswith("--out="):
+            continue
+        args.append(a)
+    return " ".join(["python", f"benchmarks/{script}", *args])
+
+
+def run_description(command: str, quick: bool, seconds: float) -> str:
+    """One line: the command, its mode and the wall time of the run."""
+    mode = "quick mode (`--quick`, a smoke run)" if quick else "full mode"
+    m, s = divmod(int(round(seconds)), 60)
+    return f"Made by `{command}` in {mode}; the whole run took {m} min {s} s of wall-clock time."
+
+
 def load_average() -> str:
     try:
         return " ".join(Path("/proc/loadavg").read_text().split()[:3])
@@ -125,9 +285,10 @@ def load_average() -> str:
         return "?"
 
 
-def machine_limits(embree: bool = False, erf: bool = False) -> dict:
+def machine_limits(embree: bool = False, erf: bool = False, conv: bool = False) -> dict:
     """The machine and its measured ceilings (this run): see the module docstring."""
-    limits = {"platform": platform.platform(), "python": platform.python_version(),
+    limits = {"platform": platform.platform(), "cpu_model": cpu_model(),
+              "python": platform.python_version(),
               "cpus": os.cpu_count(), "load_average": load_average()}
     try:
         import torch
@@ -136,6 +297,9 @@ def machine_limits(embree: bool = False, erf: bool = False) -> dict:
     except ImportError:
         pass
     limits["gemm_gflops"] = gemm_gflops()
+    if conv:
+        limits["conv_gflops"] = conv_gflops()
+        limits["peak_gflops"] = max(limits["gemm_gflops"], limits["conv_gflops"])
     limits["memory_gbs"] = memory_gbs()
     if embree:
         limits["embree_mrays"] = embree_mrays()
@@ -146,10 +310,13 @@ def machine_limits(embree: bool = False, erf: bool = False) -> dict:
 
 def machine_line(m: dict) -> str:
     """One line for tables and plots."""
-    parts = [f"{m['cpus']} CPUs (load {m['load_average']})"]
+    cpus = f"{m['cpus']} CPUs" + (f" ({m['cpu_model']})" if m.get("cpu_model") else "")
+    parts = [f"{cpus} (load {m['load_average']})"]
     if "torch" in m:
         parts.append(f"torch {m['torch']} on {m['torch_threads']} threads")
     parts.append(f"fp32 GEMM {m['gemm_gflops']:.1f} GFLOP/s")
+    if "conv_gflops" in m:
+        parts.append(f"fp32 3×3 conv {m['conv_gflops']:.1f} GFLOP/s")
     parts.append(f"memory copy {m['memory_gbs']:.1f} GB/s")
     if "embree_mrays" in m:
         parts.append(f"embree {m['embree_mrays']:.2f} Mrays/s")

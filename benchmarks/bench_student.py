@@ -1,13 +1,17 @@
 """The student's per-frame cost (RelightableHands App. C on this machine) and its quality.
 
-1. Machine limits, measured in the same run: float32 GEMM GFLOP/s (torch.mm, 2048²) and
-   raw embree occlusion rays/s on the very rays the feature bake traces.
+1. Machine limits, measured in the same run and on the same torch threads as the
+   decoder: float32 GEMM GFLOP/s (torch.mm, 1024² and 2048²), the dense 3×3 conv GFLOP/s
+   of torch's own conv kernels — their best, measured again at the end of the run, is
+   the peak the decoder is checked against — and raw embree occlusion rays/s.
 2. Per-frame stages for one hand and two hands, tiny and paper widths: joint features,
    visibility tracing, feature transport (cull + transport + shade, thread-seconds),
    UV sampling (texel maps), decoder, rendering (G-buffer lookup) — beside the paper's
    V100 numbers (0.3 / 2.7 / 1.5 / 15.8 ms; 21 ms one hand, 32 ms two hands).
-3. The decoder's GFLOP per frame and its achieved GFLOP/s against the GEMM peak, for
-   plain eager, channels_last and torch.compile (where it works), all in inference mode.
+3. The decoder's GFLOP per frame (counted by hooks on the very convolutions timed:
+   2·C_in·C_out·k²·H·W per conv per hand, forward only) and its achieved GFLOP/s against
+   the peak, for plain eager, channels_last and torch.compile (where it works), all in
+   inference mode; a rate above the peak is printed as ``inconsistent measurement``.
 4. Features for a new pose at the paper's defaults (coarse proxy, 16×32, Phong
    16/32/64): wall time, rays traced against the N·M a naive tracer casts, and the
    bake's throughput as a fraction of raw embree on the same rays.
@@ -18,8 +22,9 @@
 Writes student.{md,json,png} under --out (default benchmarks/out); the plot: per-frame
 stage times beside the paper's (left) and, with ``--quality``, distillation seconds
 against the MSE vs the teacher and vs the ground truth, every model (right).
-``--quick``: tiny widths only, no torch.compile.  Run:
-    .venv/bin/python benchmarks/bench_student.py [--quick] [--quality] [--iters N] [--out DIR]
+``--quick``: tiny widths (one and two hands) and the paper widths on one hand, no
+torch.compile.  Run:
+    .venv/bin/python benchmarks/bench_student.py [--quick] [--quality] [--iters N] [--threads N] [--out DIR]
 """
 
 from __future__ import annotations
@@ -53,25 +58,7 @@ def best_of(fn, repeat=5):
     return min(times)
 
 
-def decoder_flops(net, feats, pose):
-    total = 0.0
-    hooks = []
-
-    def hook(module, inputs, output):
-        nonlocal total
-        total += 2.0 * output.numel() * module.in_channels * module.kernel_size[0] ** 2
-
-    for m in net.modules():
-        if isinstance(m, torch.nn.Conv2d):
-            hooks.append(m.register_forward_hook(hook))
-    with torch.inference_mode():
-        net(feats, pose)
-    for h in hooks:
-        h.remove()
-    return total
-
-
-def frame_stages(hand, preset: str, peak: float, compile_decoder: bool = True) -> dict:
+def frame_stages(hand, preset: str, compile_decoder: bool = True) -> dict:
     from relight_cli.builtin_envs import builtin_envmap
     from relight_cli.features import discretize_env
     from relight_cli.hand.scene import posed_meshes, preview_camera
@@ -110,6 +97,9 @@ def frame_stages(hand, preset: str, peak: float, compile_decoder: bool = True) -
                 h = torch.nn.functional.leaky_relu(conv(h), 0.2)
             return module.head(h)
 
+        with B.ConvFlops(net) as counted:          # the very convs timed below
+            decode(net, inp)
+        flops = counted.forward
         out["decoder"] = best_of(lambda: decode(net, inp))
         variants = {"eager": out["decoder"]}
         cl = D.build_student(cfg, 12, pose_dim).eval().to(memory_format=torch.channels_last)
@@ -123,15 +113,14 @@ def frame_stages(hand, preset: str, peak: float, compile_decoder: bool = True) -
                 variants["compile"] = best_of(lambda: compiled(inp))
             except Exception as exc:  # no compiler toolchain: report, do not fail
                 variants["compile"] = f"unavailable ({type(exc).__name__})"
-    flops = decoder_flops(net, x, pose)
     gb = render_gbuffer(meshes, cam, 1)
     tex = [torch.rand(3, cfg.tex_res, cfg.tex_res) for _ in range(n_hands)]
     out["rendering"] = best_of(lambda: composite(tex, gb))
     numeric = [v for v in variants.values() if isinstance(v, float)]
     best = min(numeric)
     out.update({"hands": n_hands, "preset": preset, "decoder_gflop": flops / 1e9,
-                "decoder_gflops_achieved": flops / 1e9 / best,
-                "decoder_vs_floor": best / (flops / 1e9 / peak), "decoder_variants": variants,
+                "decoder_best_seconds": best, "decoder_gflops_achieved": flops / 1e9 / best,
+                "threads": torch.get_num_threads(), "decoder_variants": variants,
                 "total": out["joint features"] + out["features wall"] + best + out["rendering"]})
     return out
 
@@ -170,7 +159,7 @@ def new_pose_features(hand) -> dict:
                 pf.stats.get("trace", 1e-9), 1e-9)}
 
 
-def quality(iters: int, work: Path) -> dict:
+def quality(iters: int, work: Path) -> tuple:
     from click.testing import CliRunner
 
     from relight_cli.cli import cli
@@ -205,36 +194,28 @@ def quality(iters: int, work: Path) -> dict:
         rows[name] = {"metrics": record["metrics"], "seconds": time.perf_counter() - t0}
     rows["(teacher, vs ground truth)"] = {"metrics": {"vs_ground_truth": teacher.get("env", {})},
                                           "seconds": 0.0}
-    return rows
+    names = {"train": [e for flag, e in zip(envs[::2], envs[1::2]) if flag == "--envs"],
+             "eval": [e for flag, e in zip(envs[::2], envs[1::2]) if flag == "--eval-envs"]}
+    return rows, {k: [Path(e).name if os.path.isabs(e) else e for e in v]
+                  for k, v in names.items()}
 
 
-def main():
-    ap = B.parser(__doc__, "tiny widths only, no torch.compile")
-    ap.add_argument("--quality", action="store_true", help="also distill and score 4 models")
-    ap.add_argument("--iters", type=int, default=150)
-    args = ap.parse_args()
-    out = B.start(args, "bench_student.py")
-    from relight_cli.hand.model import builtin_hand
-    from relight_cli.hand.scene import two_hands
-
-    report = {"machine": B.machine_limits(embree=True)}
-    peak = B.gemm_gflops(2048)
-    report["machine"]["gemm_gflops_2048"] = peak
-    one = builtin_hand("right", "fist")
-    two = two_hands(builtin_hand("right", "fist"))
-    presets = ("tiny",) if args.quick else ("tiny", "paper")
-    report["stages"] = [frame_stages(h, p, peak, not args.quick) for p in presets
-                        for h in (one, two)]
-    report["new_pose_features"] = new_pose_features(one)
-    if args.quality:
-        work = Path(tempfile.mkdtemp(prefix="bench_student_"))
-        try:
-            report["quality"] = quality(args.iters, work)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-    lines = ["# Student: per-frame cost and quality", "", B.machine_line(report["machine"]),
-             f"The decoder's FLOP floor below uses the fp32 GEMM peak at 2048²: {peak:.1f} "
-             f"GFLOP/s (this run).", "",
+def markdown(report: dict, quick: bool) -> list[str]:
+    from relight_cli.features import trace_threads
+    m = report["machine"]
+    peak, threads = m["peak_gflops"], m["torch_threads"]
+    lines = ["# Student: per-frame cost and quality", "",
+             B.run_description(report["command"], quick, report["wall_seconds"]), "",
+             B.machine_line(m), "",
+             f"**FLOP ceiling**: {peak:.1f} GFLOP/s on {threads} torch thread(s) — the best of "
+             f"fp32 GEMM (torch.mm 1024²: {m['gemm_gflops']:.1f}, 2048²: "
+             f"{m['gemm_gflops_2048']:.1f}) and dense 3×3 convolutions (torch's conv kernels, "
+             f"{', '.join(f'{a}→{b} at {n}²' for a, b, n in B.CONV_SHAPES)}: "
+             f"{m['conv_gflops']:.1f}), measured {m.get('peak_measurements', 1)} times in this "
+             f"run (start and end), on the same threads as the decoder.  The decoder's FLOP "
+             f"floor is its GFLOP at that peak; a rate above the peak (below 1× the floor) "
+             f"would mean a wrong FLOP count or timing and is printed as *inconsistent "
+             f"measurement*.", "",
              "## Per-frame stages (ms; 256² view, features at the preset's size)", "",
              "| preset | hands | joint features | visibility | feature transport | uv sampling | "
              "decoder | rendering | total |", "|---|---|---|---|---|---|---|---|---|"]
@@ -242,42 +223,103 @@ def main():
         lines.append(f"| {s['preset']} | {s['hands']} | " + " | ".join(
             f"{1e3 * s[k]:.1f}" for k in ("joint features", "visibility", "feature transport",
                                           "uv sampling", "decoder", "rendering", "total")) + " |")
-    lines.append("| paper (V100) | 1 | 0.3 | 2.7 | — | 1.5 | 15.8 | — | 21 (two hands: 32) |")
-    lines += ["", "Visibility/transport are thread-seconds of the bake (2 threads); total uses the "
-              "bake's wall time.", "", "## Decoder", "",
+    lines.append("| paper's numbers (V100) | 1 | 0.3 | 2.7 | — | 1.5 | 15.8 | — | "
+                 "21 (two hands: 32) |")
+    lines += ["", f"Visibility and feature transport are thread-seconds of the bake "
+              f"({trace_threads()} tracing threads); decoder: eager; total: joint features + the "
+              f"bake's wall time + the fastest decoder variant + rendering.", "",
+              "## Decoder", "",
+              "GFLOP/frame: forward convs of the timed decoder (2 per multiply-add, every hand; "
+              "the joint features are timed and counted apart).  Best of 5 runs each.", "",
               "| preset | hands | GFLOP/frame | eager ms | channels_last ms | compile ms | "
               "best GFLOP/s | × FLOP floor |", "|---|---|---|---|---|---|---|---|"]
     for s in report["stages"]:
         v = s["decoder_variants"]
         fmt = lambda x: f"{1e3 * x:.1f}" if isinstance(x, float) else str(x)  # noqa: E731
-        lines.append(f"| {s['preset']} | {s['hands']} | {s['decoder_gflop']:.2f} | "
+        floor = s["decoder_gflop"] / peak                  # seconds at the peak
+        ratio = s["decoder_best_seconds"] / floor
+        ok = B.consistent(s["decoder_gflops_achieved"], peak) and s["threads"] == threads
+        lines.append(f"| {s['preset']} | {s['hands']} | {s['decoder_gflop']:.3f} | "
                      f"{fmt(v['eager'])} | {fmt(v['channels_last'])} | {fmt(v['compile'])} | "
-                     f"{s['decoder_gflops_achieved']:.1f} | {s['decoder_vs_floor']:.2f} |")
+                     f"{B.rate_cell(s['decoder_gflops_achieved'], peak, s['threads'], threads)} | "
+                     f"{ratio:.2f}{'' if ok else ' (inconsistent)'} |")
     f = report["new_pose_features"]
     lines += ["", "## Features for a new pose (coarse proxy, 16×32, Phong 16/32/64, 128²)", "",
-              f"{1e3 * f['seconds']:.0f} ms wall (goal ≤ 100 ms); {f['rays_traced']:,} rays traced "
+              f"{1e3 * f['seconds']:.0f} ms wall (best of 3); {f['rays_traced']:,} rays traced "
               f"of {f['rays_naive']:,} naive ({100 * f['rays_traced'] / f['rays_naive']:.0f} %); "
-              f"raw embree on as many rays: {1e3 * f['raw_embree_seconds']:.0f} ms — the bake's "
-              f"trace stage runs at {100 * f['trace_fraction_of_raw']:.0f} % of raw embree "
-              f"throughput."]
+              f"raw embree on as many rays of the same kind, one call: "
+              f"{1e3 * f['raw_embree_seconds']:.0f} ms — the bake's trace stage runs at "
+              f"{100 * f['trace_fraction_of_raw']:.0f} % of raw embree's rays per "
+              f"thread-second."]
     if "quality" in report:
-        lines += ["", f"## Quality ({args.iters} iterations, tiny preset)", "",
+        lines += ["", f"## Quality ({report['iters']} iterations, tiny preset)", "",
+                  "Held-out poses × evaluation env maps "
+                  f"({', '.join(report['quality_envs']['eval']) or 'split by distill'}); "
+                  f"training env maps: {', '.join(report['quality_envs']['train'])}.", "",
                   "| model | vs teacher MSE ×1e-3 | PSNR | SSIM | vs ground truth MSE ×1e-3 | PSNR | "
                   "SSIM | s |", "|---|---|---|---|---|---|---|---|"]
+        nan = float("nan")
         for name, r in report["quality"].items():
             t = r["metrics"].get("vs_teacher", {})
             g = r["metrics"].get("vs_ground_truth", {})
-            lines.append(f"| {name} | {t.get('mse', float('nan')) * 1e3:.3f} | "
-                         f"{t.get('psnr', float('nan')):.2f} | {t.get('ssim', float('nan')):.3f} | "
-                         f"{g.get('mse', float('nan')) * 1e3:.3f} | {g.get('psnr', float('nan')):.2f} "
-                         f"| {g.get('ssim', float('nan')):.3f} | {r['seconds']:.0f} |")
-        lines += ["", "RelightableHands Table 2: student < w/o visibility, w/o specular < DRAM "
-                  "in MSE (against the teacher)."]
+            lines.append(f"| {name} | {t.get('mse', nan) * 1e3:.3f} | "
+                         f"{t.get('psnr', nan):.2f} | {t.get('ssim', nan):.3f} | "
+                         f"{g.get('mse', nan) * 1e3:.3f} | {g.get('psnr', nan):.2f} "
+                         f"| {g.get('ssim', nan):.3f} | {r['seconds']:.0f} |")
+        for key, label in (("vs_teacher", "against the teacher"),
+                           ("vs_ground_truth", "against the ground truth")):
+            rows = sorted((r["metrics"][key]["mse"], name) for name, r in report["quality"].items()
+                          if np.isfinite(r["metrics"].get(key, {}).get("mse", nan)))
+            if rows:
+                lines += ["", f"MSE {label}, lowest first, as measured in this table: "
+                          + " < ".join(f"{name} ({mse * 1e3:.3f})" for mse, name in rows) + "."]
     lines += ["", "Plot: student.png."]
+    return lines
+
+
+def main():
+    ap = B.parser(__doc__, "tiny widths (one and two hands) and the paper widths on one hand, "
+                           "no torch.compile")
+    ap.add_argument("--quality", action="store_true", help="also distill and score 4 models")
+    ap.add_argument("--iters", type=int, default=150)
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads for the whole run, peak included [default: torch's, "
+                         "which follows OMP_NUM_THREADS]")
+    args = ap.parse_args()
+    out = B.start(args, "bench_student.py")
+    wall0 = time.perf_counter()
+    B.set_threads(args.threads)
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.hand.scene import two_hands
+
+    report = {"command": B.run_command("bench_student.py", sys.argv[1:]), "quick": args.quick,
+              "iters": args.iters, "machine": B.machine_limits(embree=True, conv=True)}
+    report["machine"]["gemm_gflops_2048"] = B.gemm_gflops(2048)
+    one = builtin_hand("right", "fist")
+    two = two_hands(builtin_hand("right", "fist"))
+    runs = ([("tiny", one), ("tiny", two), ("paper", one)] if args.quick else
+            [(p, h) for p in ("tiny", "paper") for h in (one, two)])
+    report["stages"] = [frame_stages(h, p, not args.quick) for p, h in runs]
+    report["new_pose_features"] = new_pose_features(one)
+    if args.quality:
+        work = Path(tempfile.mkdtemp(prefix="bench_student_"))
+        try:
+            report["quality"], report["quality_envs"] = quality(args.iters, work)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    B.flop_peak(report["machine"])                   # again at the end: the best of all
+    report["wall_seconds"] = time.perf_counter() - wall0
+    peak = report["machine"]["peak_gflops"]
+    report["inconsistent"] = [s["decoder_gflops_achieved"] for s in report["stages"]
+                              if not B.consistent(s["decoder_gflops_achieved"], peak)]
+    lines = markdown(report, args.quick)
     (out / "student.md").write_text("\n".join(lines) + "\n")
     (out / "student.json").write_text(json.dumps(report, indent=1, default=str) + "\n")
     write_plot(out / "student.png", report)
     print("\n".join(lines))
+    if report["inconsistent"]:
+        print(f"bench_student.py: warning: {len(report['inconsistent'])} decoder rate(s) above "
+              f"the measured peak {peak:.1f} GFLOP/s: inconsistent measurement", file=sys.stderr)
 
 
 def write_plot(path: Path, report: dict) -> None:

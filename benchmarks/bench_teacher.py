@@ -1,23 +1,33 @@
 """The OLAT teacher: training throughput, render cost per frame, and quality against baselines.
 
-1. Machine limits, measured in the same run: float32 GEMM GFLOP/s of torch on this
-   machine's threads (the ceiling every conv runs against).
+1. Machine limits, measured in the same run and on the same torch threads as every
+   network below: float32 GEMM GFLOP/s (torch.mm) and the dense 3×3 conv GFLOP/s of
+   torch's own conv kernels; their best, measured again at the end of the run, is the
+   peak every achieved GFLOP/s is checked against (a rate above it is printed as
+   ``inconsistent measurement``, never as a result).
 2. Training throughput (iterations/s) and peak memory: ``tiny`` (as trained), and the
-   ``paper`` widths on 128² and 256² textures (a few iterations each), extrapolated to the
-   paper's 1024² by the FLOP count (∝ texels), with the FLOPs per iteration.
+   ``paper`` widths on 128² (also in ``--quick``) and 256² textures (a few iterations
+   each), extrapolated to the paper's 1024² (conv FLOPs ∝ texels).  FLOPs are counted by
+   hooks on the very convolutions each timed iteration runs (:class:`_common.ConvFlops`:
+   2·C_in·C_out·k²·H·W per conv per sample forward; backward = weight gradient + input
+   gradient, one forward each, the input gradient only where the input needs one), and
+   the rate is over the iterations after the first (warm-up), whole iterations timed
+   (data, loss and Adam included: a lower bound of the convs' own rate).
 3. Env-map render per frame at 16×32 directions, split into visibility, inputs, network and
-   compositing, for the tiny model and the paper widths (timing only: untrained weights).
+   compositing, for the tiny model and the paper widths (timing only: untrained weights),
+   with the network's forward GFLOP and GFLOP/s.
 4. Quality on held-out poses (masked MSE ×10⁻³, PSNR, SSIM) — and on fully lit frames and
    the env-map ground truth — for: the teacher, the teacher without visibility
    (RelightableHands Table 1), the GGX baseline (App. B / Table 3), and the physical
    renderer with the stage's true materials (the upper bound only a synthetic stage has),
    on a single hand and on two interacting hands; with held-out MSE against training time
-   as a plot.
+   as a plot.  The only ordering written is the one measured here.
 
 Writes teacher.{md,json,png} under --out (default benchmarks/out); the plot: held-out
 MSE against training seconds, one curve per scene and model.  ``--quick``: one scene
-(single hand), small capture, 8 iterations, tiny widths, teacher with and without visibility.  Run:
-    .venv/bin/python benchmarks/bench_teacher.py [--quick] [--iters N] [--out DIR]
+(single hand), small capture, 8 iterations, tiny widths, teacher with and without
+visibility, and the paper widths' training throughput at 128² only.  Run:
+    .venv/bin/python benchmarks/bench_teacher.py [--quick] [--iters N] [--threads N] [--out DIR]
 """
 
 from __future__ import annotations
@@ -37,27 +47,34 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common as B  # noqa: E402
 
 
-def conv_flops(config, pose_dim: int) -> float:
-    """Forward FLOPs of one U-Net pass (one light) of ``config`` (2 per MAC)."""
-    from relight_cli.neural.models import build_model
-    model = build_model(config, pose_dim)
-    n = config.tex_res
-    total = 0.0
-    hooks = []
+def _timed_task(data, cfg, evaluate: bool = True):
+    """A TeacherTask that times every training step (data, forward, backward, Adam;
+    validation excluded) and counts the conv FLOPs each step runs; ``evaluate=False``
+    skips the final validation (a throughput run does not need its scores)."""
+    from relight_cli.neural.train import TeacherTask
 
-    def hook(module, inputs, output):
-        nonlocal total
-        k = module.kernel_size[0] * module.kernel_size[1]
-        total += 2.0 * output.numel() * module.in_channels * k
+    class Timed(TeacherTask):
+        def evaluate(self, model, device):
+            return super().evaluate(model, device) if evaluate else {}
 
-    for m in model.modules():
-        if isinstance(m, torch.nn.Conv2d):
-            hooks.append(m.register_forward_hook(hook))
-    with torch.no_grad():
-        model(torch.zeros(1, 7, n, n), torch.zeros(1, pose_dim), torch.zeros(1, dtype=torch.long))
-    for h in hooks:
-        h.remove()
-    return total
+        def __init__(self):
+            super().__init__(data, cfg)
+            self.steps = []              # (seconds, flops fwd+bwd, flops fwd) per step
+            self.flops = None
+
+        def build(self, device, resume=None):
+            model = super().build(device, resume)
+            self.flops = B.ConvFlops(model, training_only=True)
+            return model
+
+        def before_step(self, optimizer, step):
+            self._start = (time.perf_counter(), self.flops.total, self.flops.forward)
+
+        def after_step(self, step, world):
+            t0, total, forward = self._start
+            self.steps.append((time.perf_counter() - t0, self.flops.total - total,
+                               self.flops.forward - forward))
+    return Timed()
 
 
 def make_capture(folder: Path, two_hands: bool, frames: int, quick: bool) -> Path:
@@ -121,7 +138,7 @@ def validation(iters: int) -> dict:
 def train_variant(folder: Path, variant: str, iters: int) -> dict:
     from relight_cli.neural.config import resolve_config
     from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.train import train
+    from relight_cli.neural.train import fit
 
     overrides = {"iters": iters, **validation(iters),
                  "lambda_vgg": 0.0, "neg_start": iters // 4}
@@ -131,31 +148,47 @@ def train_variant(folder: Path, variant: str, iters: int) -> dict:
         overrides["model"] = "ggx"
     cfg = resolve_config("tiny", None, overrides)
     data = CaptureData(str(folder), cfg.tex_res, cfg.aa, cfg.visibility, cfg.falloff, cfg.holdout)
+    task = _timed_task(data, cfg)
     t0 = time.perf_counter()
-    result = train(data, cfg, torch.device("cpu"), show_progress=False)
+    result = fit(task, cfg, torch.device("cpu"), show_progress=False)
     total = time.perf_counter() - t0
-    # validation steps are spread evenly: map them to training seconds
-    per_step = result.seconds / max(1, result.steps_run)
-    curve = [(h["step"] * per_step, h.get("heldout", {}).get("mse")) for h in result.history]
-    return {"metrics": result.metrics, "seconds": total, "train_seconds": result.seconds,
-            "its": result.steps_run / result.seconds, "peak_rss_mb": result.peak_memory_mb,
+    task.flops.close()
+    # training seconds (validation excluded) at each validation step
+    elapsed = np.cumsum([0.0] + [t for t, _, _ in task.steps])
+    curve = [(float(elapsed[min(h["step"], len(task.steps))]), h.get("heldout", {}).get("mse"))
+             for h in result.history]
+    train_seconds = float(elapsed[-1])
+    return {"metrics": result.metrics, "seconds": total, "train_seconds": train_seconds,
+            "its": len(task.steps) / train_seconds, "peak_rss_mb": result.peak_memory_mb,
             "curve": curve}
 
 
-def throughput(folder: Path, widths: str, tex: int, iters: int) -> dict:
+def throughput(folder: Path, widths: str, tex: int, iters: int, threads: int) -> dict:
     from relight_cli.neural.config import resolve_config
     from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.train import train
+    from relight_cli.neural.train import fit
     cfg = resolve_config(widths, None, {"tex_res": tex, "iters": iters, "val_samples": 1,
                                         "lambda_vgg": 0.0, "val_every": 0, "save_every": 0})
+    from relight_cli.neural.train import batch_indices
     data = CaptureData(str(folder), cfg.tex_res, cfg.aa, cfg.visibility, cfg.falloff, cfg.holdout)
-    data.sample(*data.splits()["train"][0])              # warm the geometry cache
-    t0 = time.perf_counter()
-    result = train(data, cfg, torch.device("cpu"), show_progress=False)
-    del t0
-    flops = conv_flops(cfg, data.pose_dim) * 3 * cfg.batch * 4     # fwd+bwd ≈ 3×, 4 LEDs/frame
-    return {"preset": widths, "tex_res": tex, "its": result.steps_run / result.seconds,
-            "sec_per_it": result.seconds / result.steps_run, "gflop_per_it": flops / 1e9,
+    items = data.splits()["train"]
+    for step in range(iters):      # warm the geometry caches of every sample the steps draw
+        for i in batch_indices(cfg.seed, step, len(items), cfg.batch):
+            data.sample(*items[int(i)], with_image=False)
+    task = _timed_task(data, cfg, evaluate=False)
+    result = fit(task, cfg, torch.device("cpu"), show_progress=False)
+    task.flops.close()
+    assert torch.get_num_threads() == threads
+    timed = task.steps[1:] if len(task.steps) > 1 else task.steps   # the first one warms up
+    seconds = sum(t for t, _, _ in timed)
+    flops = sum(f for _, f, _ in timed)
+    forward = sum(f for _, _, f in timed)
+    return {"preset": widths, "tex_res": tex, "iterations": len(task.steps),
+            "iterations_timed": len(timed), "first_iteration_s": task.steps[0][0],
+            "sec_per_it": seconds / len(timed), "its": len(timed) / seconds,
+            "gflop_per_it": flops / len(timed) / 1e9,
+            "forward_gflop_per_it": forward / len(timed) / 1e9,
+            "gflops": flops / seconds / 1e9, "threads": torch.get_num_threads(),
             "peak_rss_mb": result.peak_memory_mb}
 
 
@@ -179,10 +212,14 @@ def env_render_cost(folder: Path, widths: str, tex: int) -> dict:
     gb = render_gbuffer(texels.meshes, cam, 2, scene=texels.renderer.scene)
     timing.add("geometry", time.perf_counter() - t0)
     lights, weights = T.env_light_inputs(texels, denv, True, timing)
-    T.render_lights(model, texels, gb, data.poses(0), lights, weights, True, cfg.falloff,
-                    timing=timing)
+    with B.ConvFlops(model) as flops:
+        T.render_lights(model, texels, gb, data.poses(0), lights, weights, True, cfg.falloff,
+                        timing=timing)
     return {"preset": widths, "tex_res": tex, "directions": int(len(weights)),
             **{k: v for k, v in timing.seconds.items()},
+            "network_gflop": flops.forward / 1e9,
+            "network_gflops": flops.forward / 1e9 / timing.seconds["network"],
+            "threads": torch.get_num_threads(),
             "total": float(sum(timing.seconds.values()))}
 
 
@@ -190,89 +227,170 @@ def write_plot(path: Path, curves: dict, machine: dict, what: str = "teacher"):
     """Held-out MSE (×1e-3) against training seconds, every curve."""
     fig, (ax,) = B.figure(1, 7.2, 4.6)
     B.plot(ax, {name: [(t, m * 1e3) for t, m in curve if m] for name, curve in curves.items()},
-           "training seconds", "held-out MSE x 1e-3 (log)", f"{what}: validation during training",
-           logx=False, labels=False)
+           "training seconds (validation excluded)", "held-out MSE x 1e-3 (log)",
+           f"{what}: validation during training", logx=False, labels=False)
     B.save(fig, path, machine)
 
 
-def main():
-    ap = B.parser(__doc__, "one small capture (single hand), 8 iterations, tiny widths only")
-    ap.add_argument("--iters", type=int, default=None, help="training iterations per variant")
-    args = ap.parse_args()
-    out = B.start(args, "bench_teacher.py")
-    iters = args.iters or (8 if args.quick else 400)
-    frames = 8 if args.quick else 24
-    work = Path(tempfile.mkdtemp(prefix="bench_teacher_"))
-    report = {"machine": B.machine_limits(), "iters": iters}
-    try:
-        t0 = time.perf_counter()
-        captures = {"single": make_capture(work / "single", False, frames, args.quick)}
-        if not args.quick:
-            captures["two"] = make_capture(work / "two", True, frames, args.quick)
-        report["capture_seconds"] = time.perf_counter() - t0
-        report["throughput"] = [throughput(captures["single"], "tiny", 32, 5 if args.quick else 20)]
-        if not args.quick:
-            report["throughput"] += [throughput(captures["single"], "paper", 128, 2),
-                                     throughput(captures["single"], "paper", 256, 1)]
-        report["env_render"] = [env_render_cost(captures["single"], "tiny", 32)]
-        if not args.quick:
-            report["env_render"].append(env_render_cost(captures["single"], "paper", 128))
-        quality = {}
-        curves = {}
-        for cname, folder in captures.items():
-            for variant in ("teacher", "no-visibility") if args.quick else ("teacher", "no-visibility", "ggx"):
-                r = train_variant(folder, variant, iters)
-                quality[f"{cname}/{variant}"] = r
-                curves[f"{cname} {variant}"] = r["curve"]
-            quality[f"{cname}/physical (true materials)"] = {
-                "metrics": {"heldout": physical_upper_bound(folder)}}
-        report["quality"] = quality
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+def _f(v, spec):
+    return "—" if v is None or not np.isfinite(v) else format(v, spec)
 
-    lines = ["# OLAT teacher: speed and quality", "", B.machine_line(report["machine"]),
-             f"Captures: {frames} frames, 32 LEDs (groups of 4), 64² or 48² images; "
-             f"made in {report['capture_seconds']:.1f} s.", "",
+
+def markdown(report: dict, quick: bool) -> list[str]:
+    m = report["machine"]
+    peak, threads = m["peak_gflops"], m["torch_threads"]
+    lines = ["# OLAT teacher: speed and quality", "",
+             B.run_description(report["command"], quick, report["wall_seconds"]),
+             "", B.machine_line(m), "",
+             f"**FLOP ceiling**: {peak:.1f} GFLOP/s on {threads} torch thread(s) — the best of "
+             f"fp32 GEMM (torch.mm 1024²) and dense 3×3 convolutions (torch's conv kernels, "
+             f"{', '.join(f'{a}→{b} at {n}²' for a, b, n in B.CONV_SHAPES)}), measured "
+             f"{m.get('peak_measurements', 1)} times in this run (start and end), on the same "
+             f"threads as every network below.  An achieved rate above it would mean a wrong "
+             f"FLOP count or timing and is printed as *inconsistent measurement*.", "",
+             "**FLOPs**: convolutions only, 2 per multiply-add, counted by hooks on the passes "
+             "that were timed: forward 2·C_in·C_out·k²·H·W per conv per sample (one U-Net pass "
+             "per light and hand); backward = weight gradient (1× forward) + input gradient "
+             "(1× forward, none where the conv's input needs no gradient), so an iteration is "
+             "≈ 3× its forward.  Bias adds, activations, resizes, the loss and Adam are not "
+             "counted but are timed: the GFLOP/s are lower bounds of the convs' own rate.", "",
+             f"Captures: {report['frames']} frames, 32 LEDs (groups of 4), "
+             f"{report['image_size']}² images; made in {report['capture_seconds']:.1f} s.", "",
              "## Training throughput", "",
-             "| widths | texture | it/s | s/it | GFLOP/it | GFLOP/s achieved | peak RSS MB |",
-             "|---|---|---|---|---|---|---|"]
+             "Seconds per iteration over the iterations after the first (which warms up); "
+             "batch 2 (frame, camera) samples of 4 lights each, their texel geometry and "
+             "visibility cached beforehand: an iteration times input assembly, image reads, "
+             "forward, loss, backward and Adam.", "",
+             "| widths | texture | iterations (timed) | s/it | it/s | forward GFLOP/it | "
+             "fwd+bwd GFLOP/it | GFLOP/s achieved | % of peak | peak RSS MB |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for t in report["throughput"]:
-        lines.append(f"| {t['preset']} | {t['tex_res']}² | {t['its']:.2f} | {t['sec_per_it']:.2f} | "
-                     f"{t['gflop_per_it']:.1f} | {t['gflop_per_it'] / t['sec_per_it']:.1f} | "
+        ok = B.consistent(t["gflops"], peak) and t["threads"] == threads
+        lines.append(f"| {t['preset']} | {t['tex_res']}² | {t['iterations']} "
+                     f"({t['iterations_timed']}) | {t['sec_per_it']:.3f} | {t['its']:.2f} | "
+                     f"{t['forward_gflop_per_it']:.2f} | {t['gflop_per_it']:.2f} | "
+                     f"{B.rate_cell(t['gflops'], peak, t['threads'], threads)} | "
+                     f"{100 * t['gflops'] / peak:.0f} %{'' if ok else ' (inconsistent)'} | "
                      f"{t['peak_rss_mb']:.0f} |")
     big = ([t for t in report["throughput"] if t["preset"] == "paper"] or [None])[-1]
     if big is not None:
         scale = (1024 / big["tex_res"]) ** 2
-        lines += ["", f"Paper preset at 1024² (extrapolated ×{scale:.0f} from {big['tex_res']}² "
-                  f"by FLOPs): {big['sec_per_it'] * scale:.0f} s/iteration here, i.e. 100k "
-                  f"iterations ≈ {big['sec_per_it'] * scale * 1e5 / 86400:.0f} days on this CPU "
-                  f"— a GPU job."]
+        lines += ["", f"Paper widths at 1024², extrapolated ×{scale:.0f} from {big['tex_res']}² "
+                  f"(conv FLOPs ∝ texels): {big['sec_per_it'] * scale:.0f} s/iteration here, "
+                  f"so the paper's 100k iterations ≈ "
+                  f"{big['sec_per_it'] * scale * 1e5 / 86400:.0f} days on this machine."]
     lines += ["", "## Env-map render per frame (16×32 directions, seconds)", "",
-              "| widths | texture | lit dirs | geometry | visibility | inputs | network | composite | total |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "Untrained weights (timing only); network GFLOP: forward convs of every lit "
+              "direction's pass.", "",
+              "| widths | texture | lit dirs | geometry | visibility | inputs | network | "
+              "composite | total | network GFLOP | network GFLOP/s |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for e in report["env_render"]:
         lines.append(f"| {e['preset']} | {e['tex_res']}² | {e['directions']} | "
                      + " | ".join(f"{e.get(k, 0):.3f}" for k in ("geometry", "visibility", "inputs",
                                                                    "network", "composite"))
-                     + f" | {e['total']:.3f} |")
-    lines += ["", f"## Quality ({iters} iterations, tiny preset, no VGG)", "",
-              "| scene / model | held-out MSE ×1e-3 | PSNR | SSIM | fully lit PSNR | env PSNR | train s |",
-              "|---|---|---|---|---|---|---|"]
+                     + f" | {e['total']:.3f} | {e['network_gflop']:.1f} | "
+                     f"{B.rate_cell(e['network_gflops'], peak, e['threads'], threads)} |")
+    lines += ["", f"## Quality ({report['iters']} iterations, tiny preset, no VGG)", "",
+              "| scene / model | held-out MSE ×1e-3 | PSNR | SSIM | fully lit PSNR | env PSNR | "
+              "train s |", "|---|---|---|---|---|---|---|"]
     for name, r in report["quality"].items():
-        m = r["metrics"]
-        h = m.get("heldout", {})
-        lines.append(f"| {name} | {h.get('mse', float('nan')) * 1e3:.3f} | {h.get('psnr', float('nan')):.2f} "
-                     f"| {h.get('ssim', float('nan')):.3f} | "
-                     f"{m.get('fully_lit', {}).get('psnr', float('nan')):.2f} | "
-                     f"{m.get('env', {}).get('psnr', float('nan')):.2f} | "
-                     f"{r.get('train_seconds', 0):.0f} |")
-    lines += ["", "RelightableHands Table 1/3 (real light stage, their units): teacher with visibility "
-              "beats without, and beats the GGX baseline by a large margin. Plot: teacher.png "
-              "(held-out MSE against training seconds)."]
+        mm = r["metrics"]
+        h = mm.get("heldout", {})
+        lines.append(f"| {name} | {_f(h.get('mse', np.nan) * 1e3, '.3f')} | "
+                     f"{_f(h.get('psnr'), '.2f')} | {_f(h.get('ssim'), '.3f')} | "
+                     f"{_f(mm.get('fully_lit', {}).get('psnr'), '.2f')} | "
+                     f"{_f(mm.get('env', {}).get('psnr'), '.2f')} | "
+                     f"{_f(r.get('train_seconds'), '.1f')} |")
+    lines += ["", "Train s: training steps only (validation excluded).  Held-out MSE, lowest "
+              "first, as measured in this table (learned models only):"]
+    scenes = {}
+    for name, r in report["quality"].items():
+        scene, model = name.split("/", 1)
+        mse = r["metrics"].get("heldout", {}).get("mse")
+        if "train_seconds" in r and mse is not None and np.isfinite(mse):
+            scenes.setdefault(scene, []).append((mse, model))
+    for scene, rows in scenes.items():
+        lines.append(f"- {scene}: " + " < ".join(f"{model} ({mse * 1e3:.3f})"
+                                                  for mse, model in sorted(rows)))
+    lines += ["", "Plot: teacher.png (held-out MSE against training seconds)."]
+    return lines
+
+
+def main():
+    ap = B.parser(__doc__, "one small capture (single hand), 8 iterations, tiny widths, "
+                           "paper widths' throughput at 128² only")
+    ap.add_argument("--iters", type=int, default=None, help="training iterations per variant")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads for the whole run, peak included [default: torch's, "
+                         "which follows OMP_NUM_THREADS]")
+    args = ap.parse_args()
+    out = B.start(args, "bench_teacher.py")
+    wall0 = time.perf_counter()
+    threads = B.set_threads(args.threads)
+    iters = args.iters or (8 if args.quick else 400)
+    frames = 8 if args.quick else 24
+    report = {"command": B.run_command("bench_teacher.py", sys.argv[1:]), "quick": args.quick,
+              "machine": B.machine_limits(conv=True), "iters": iters, "frames": frames,
+              "image_size": 48 if args.quick else 64, "stage_seconds": {}}
+    stage_t = [wall0]
+
+    def stage(name):
+        now = time.perf_counter()
+        report["stage_seconds"][name] = now - stage_t[0]
+        stage_t[0] = now
+        print(f"bench_teacher.py: {name} done ({now - wall0:.0f} s)", file=sys.stderr, flush=True)
+
+    stage("machine limits")
+    work = Path(tempfile.mkdtemp(prefix="bench_teacher_"))
+    try:
+        captures = {"single": make_capture(work / "single", False, frames, args.quick)}
+        if not args.quick:
+            captures["two"] = make_capture(work / "two", True, frames, args.quick)
+        report["capture_seconds"] = time.perf_counter() - stage_t[0]
+        stage("captures")
+        report["throughput"] = [throughput(captures["single"], "tiny", 32,
+                                           5 if args.quick else 20, threads),
+                                throughput(captures["single"], "paper", 128, 2 if args.quick
+                                           else 3, threads)]
+        if not args.quick:
+            report["throughput"].append(throughput(captures["single"], "paper", 256, 2, threads))
+        stage("throughput")
+        report["env_render"] = [env_render_cost(captures["single"], "tiny", 32)]
+        if not args.quick:
+            report["env_render"].append(env_render_cost(captures["single"], "paper", 128))
+        stage("env render")
+        quality = {}
+        curves = {}
+        variants = ("teacher", "no-visibility") if args.quick else ("teacher", "no-visibility",
+                                                                    "ggx")
+        for cname, folder in captures.items():
+            for variant in variants:
+                r = train_variant(folder, variant, iters)
+                quality[f"{cname}/{variant}"] = r
+                curves[f"{cname} {variant}"] = r["curve"]
+                stage(f"quality {cname}/{variant}")
+            quality[f"{cname}/physical (true materials)"] = {
+                "metrics": {"heldout": physical_upper_bound(folder)}}
+            stage(f"quality {cname}/physical")
+        report["quality"] = quality
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    B.flop_peak(report["machine"])                   # again at the end: the best of both
+    stage("peak again")
+    report["wall_seconds"] = time.perf_counter() - wall0
+    peak = report["machine"]["peak_gflops"]
+    rates = [t["gflops"] for t in report["throughput"]] + [e["network_gflops"]
+                                                            for e in report["env_render"]]
+    report["inconsistent"] = [r for r in rates if not B.consistent(r, peak)]
+    lines = markdown(report, args.quick)
     (out / "teacher.md").write_text("\n".join(lines) + "\n")
     (out / "teacher.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
     write_plot(out / "teacher.png", curves, report["machine"])
     print("\n".join(lines))
+    if report["inconsistent"]:
+        print(f"bench_teacher.py: warning: {len(report['inconsistent'])} rate(s) above the "
+              f"measured peak {peak:.1f} GFLOP/s: inconsistent measurement", file=sys.stderr)
 
 
 if __name__ == "__main__":
