@@ -221,7 +221,8 @@ def test_student_renders_one_and_two_hands(setup, tmp_path, student):
         assert r.returncode == 0, r.stderr
         im = read_exr(str(out))
         rgb = np.stack([im.channels[c] for c in "RGB"], -1)
-        assert (im.width, im.height) == (32, 24) and np.isfinite(rgb).all() and rgb.max() > 0
+        # a 2-iteration smoke test: whether learning works is checked by the learning gates
+        assert (im.width, im.height) == (32, 24) and np.isfinite(rgb).all()
         assert im.attributes["relight.model"] == "student"
 
 
@@ -350,3 +351,284 @@ def test_fixed_evaluation_envs(setup, tmp_path):
     envs = json.loads(ckpt["extra"]["envs"])
     assert envs == {"train": ["sky", "uniform"], "eval": ["studio"]}
     assert json.loads(ckpt["config"])["env_res"] == [4, 8]        # --env-res is WxH, stored (H, W)
+
+
+# ---------------------------------------------------------------- learning is alive
+#
+# The teacher in the module fixture is 10 iterations old and its renders are nearly
+# constant: on held-out poses the best constant per image scores an MSE of 4e-4 against
+# them, T̄ · diffuse / π (capture T̄, LSQ scale) 0.18, and a student fed zeroed features
+# 0.041 — a "beats the baseline" gate against it passes for a dead light path (measured).
+# These checks use instead a pseudo ground truth the student's own inputs can explain —
+# a uniform albedo ρ on bake-features' visibility-aware diffuse map plus a Phong α = 16
+# lobe (a linear map of two of its input channels) — and a strong non-learned baseline
+# that knows all of it but the lobe: T̄ · diffuse / π with T̄ = ρ (this teacher's mean
+# texture) and one least-squares scale per colour channel fitted on the training items.
+# Both are scored against the same targets, on the held-out poses under every env map
+# (the evaluation map never trained on).  Env rotations are off: with them the held-out
+# score of these short runs swings by 10× between evaluations (measured), too noisy for
+# a gate.  Features are memoized (deterministic) so a run is not all baking.
+
+ALBEDO = (0.6, 0.4, 0.3)
+LOBE = 0.5
+#: DRAM's interior texture std over the teacher's, and their correlation, at least (measured
+#: over seeds 0–3 on this capture: 0.77–1.12 and 0.26–0.36; the spatially constant
+#: sabotage: 0 and 0; the previous DRAM design: 0.17 and 0.19; untrained: std ~1e-5).
+DRAM_STD, DRAM_CORR = 0.3, 0.15
+LEARN = {**STUDENT, "iters": 300, "batch": 4, "lambda_vgg": 0.0, "rotations": False,
+         "env_holdout": 0.0}
+
+
+class _FeatureTeacher:
+    """Pseudo ground truth ρ/π · diffuse + k_s · phong16 from bake-features' maps (cached)."""
+
+    def __init__(self, data, config):
+        from relight_cli.neural.distill import StudentFeatures
+        self.data = data
+        self.features = StudentFeatures(config)
+        self.albedo = torch.tensor(ALBEDO)[:, None, None]
+        self._cache = {}
+
+    def diffuse(self, pose, camera, denv) -> torch.Tensor:
+        """[H, 3, N, N] the student's diffuse input (irradiance)."""
+        return self._maps(pose, camera, denv)[:, :3]
+
+    def _maps(self, pose, camera, denv):
+        key = (pose, camera, denv.name)
+        if key not in self._cache:
+            pf = self.features.pose(self.data.hand, pose, key=(False, pose))
+            self._cache[key] = torch.from_numpy(self.features.maps(
+                pf, denv, self.data._cameras[camera].center))
+        return self._cache[key]
+
+    def texture(self, pose, camera, denv, held_out=False) -> list:
+        maps = self._maps(pose, camera, denv)
+        return list(self.albedo / np.pi * maps[:, :3] + LOBE * maps[:, 3:6])
+
+    def image(self, pose, camera, denv, held_out=False) -> torch.Tensor:
+        from relight_cli.neural.teacher import composite
+        return composite(self.texture(pose, camera, denv),
+                         self.data.gbuffer(pose, self.data._cameras[camera]))
+
+
+def _cached_maps(features):
+    """Memoize a StudentFeatures' maps (deterministic) so a short run is not all baking."""
+    maps, cache = features.maps, {}
+
+    def cached(pose_features, denv, eye):
+        key = (id(pose_features), denv.name, tuple(np.asarray(eye, float)))
+        if key not in cache:
+            cache[key] = maps(pose_features, denv, eye)
+        return cache[key]
+    features.maps = cached
+
+
+class _ConstantDRAM(torch.nn.Module):
+    """Sabotage: DRAM whose texture is its own spatial mean (cannot vary in space)."""
+
+    kind = "dram"
+
+    def __init__(self, net):
+        super().__init__()
+        self.net = net
+
+    def forward(self, *args, return_raw=False, **kwargs):
+        tex, raw = self.net(*args, return_raw=True, **kwargs)
+        tex, raw = (t.mean((2, 3), keepdim=True).expand_as(t) for t in (tex, raw))
+        return (tex, raw) if return_raw else tex
+
+
+@pytest.fixture(scope="module")
+def learning(setup):
+    """run(student, sabotage, **config) → trained model; score(model) → held-out MSEs."""
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.features import discretize_env
+    from relight_cli.neural import distill as D
+    from relight_cli.neural.config import StudentConfig
+    from relight_cli.neural.data import CaptureData
+    from relight_cli.neural.losses import masked_mse
+    from relight_cli.neural.teacher import composite
+    from relight_cli.neural.train import fit
+
+    data = CaptureData(str(setup / "cap"), 16, 1)
+    h, w = STUDENT["env_res"]
+    names = ["sky", "studio", "uniform"]
+    envs = [discretize_env(builtin_envmap("builtin:" + n), h, w) for n in names]
+    train_env, eval_env = [0, 1], [2]
+    teacher = _FeatureTeacher(data, StudentConfig.from_dict(LEARN))
+    cams = [c.name for c in data.capture.cameras]
+    train = [(p, c, e) for p in sorted({f.pose for f in data.train_frames
+                                        + data.train_fully_lit_frames})
+             for c in cams for e in train_env]
+    held = [(f.pose, c, e) for f in data.heldout_frames for c in cams
+            for e in train_env + eval_env]
+    assert held and not {p for p, _, _ in held} & {p for p, _, _ in train}
+
+    def target(p, c, e):
+        s = D.env_scale(envs[e])
+        mask = torch.from_numpy(data.gbuffer(p, data._cameras[c]).mask > 0)
+        return s, teacher.image(p, c, envs[e]) / s, mask
+
+    def baseline_image(p, c, e):
+        tbar = teacher.albedo[None]                  # this teacher's T̄: its uniform albedo
+        tex = tbar * teacher.diffuse(p, c, envs[e]) / np.pi
+        return composite(list(tex), data.gbuffer(p, data._cameras[c]))
+
+    num, den = torch.zeros(3), torch.zeros(3)
+    for p, c, e in train:                            # one LSQ scale per channel
+        s, gt, mask = target(p, c, e)
+        b = baseline_image(p, c, e) / s
+        num += (b * gt)[mask].sum(0)
+        den += (b * b)[mask].sum(0)
+    scale = num / den
+
+    def run(student="student", sabotage=None, **overrides):
+        cfg = StudentConfig.from_dict({**LEARN, "student": student, **overrides})
+        task = D.StudentTask(data, cfg, teacher, envs, train_env, eval_env, names)
+        task.evaluate = lambda model, device: {}
+        _cached_maps(task.features)
+        if sabotage == "zero-features":
+            maps = task.features.maps
+            task.features.maps = lambda *a: np.zeros_like(maps(*a))
+        if sabotage == "constant":
+            build = task.build
+            task.build = lambda device, resume=None: _ConstantDRAM(build(device, resume))
+        result = fit(task, cfg, torch.device("cpu"), show_progress=False)
+        model = task.build("cpu")
+        model.load_state_dict(result.checkpoint["weights"])
+        return task, model.eval()
+
+    @torch.no_grad()
+    def score(task, model):
+        rows = []
+        for p, c, e in held:
+            s, gt, mask = target(p, c, e)
+            pred = task.render(model, p, c, envs[e], "cpu") / s
+            rows.append((float(masked_mse(pred, gt, mask)),
+                         float(masked_mse(baseline_image(p, c, e) * scale / s, gt, mask))))
+        model_mse, base_mse = np.mean(rows, 0)
+        return {"model": float(model_mse), "baseline": float(base_mse)}
+
+    @torch.no_grad()
+    def interior(task, model, erode=2):
+        """The texture over hand texels ``erode`` texels inside the charts (the model's and
+        the teacher's; training pose, first camera, training envs): mean per-channel std of
+        each and their correlation."""
+        from scipy.ndimage import binary_erosion
+        pose, cam = data.train_frames[0].pose, cams[0]
+        inner = torch.from_numpy(binary_erosion(data.texels(pose).surfaces[0].inside,
+                                                iterations=erode))
+        hand = data.hand
+        ours, theirs = [], []
+        for e in train_env:
+            pf = task.features.pose(hand, pose, key=(False, pose))
+            feats = task.features.maps(pf, envs[e], data._cameras[cam].center)
+            tex = D.student_forward(model, task.config, feats, D.hand_poses(hand, pose), envs[e],
+                                    D.wrist_rotations(hand, pose), "cpu")[0]
+            s = D.env_scale(envs[e])
+            ours.append((tex / s)[:, inner])
+            theirs.append((teacher.texture(pose, cam, envs[e])[0] / s)[:, inner])
+        std = [float(np.mean([float(t.std(1).mean()) for t in x])) for x in (ours, theirs)]
+        a, b = (torch.cat([t - t.mean(1, keepdim=True) for t in x], 1).flatten()
+                for x in (ours, theirs))
+        corr = float((a * b).sum() / max(float(a.norm() * b.norm()), 1e-30))
+        return {"std": std[0], "teacher_std": std[1], "corr": corr, "texels": int(inner.sum())}
+
+    return run, score, interior
+
+
+def _beats_baseline(scores) -> bool:
+    """The learning gate: the student's held-out MSE at most 80 % of the baseline's
+    (measured, seeds 0–3: 38–54 %; frozen: ~600 %; zeroed features: 225–270 %)."""
+    return scores["model"] <= 0.8 * scores["baseline"]
+
+
+def test_student_beats_a_strong_baseline_on_held_out_poses(learning):
+    run, score, _ = learning
+    scores = score(*run())
+    assert _beats_baseline(scores), scores
+
+
+@pytest.mark.parametrize("sabotage", ["frozen", "zero-features"])
+def test_sabotaged_student_fails_the_baseline_gate(learning, sabotage):
+    """A run that cannot learn (lr 1e-12) or cannot see its features must fail the gate."""
+    run, score, _ = learning
+    if sabotage == "frozen":
+        scores = score(*run(lr=1e-12))
+    else:
+        scores = score(*run(sabotage="zero-features"))
+    assert not _beats_baseline(scores), scores
+
+
+def test_dram_texture_varies_inside_the_charts(learning):
+    """DRAM (codes decoded through untied per-texel biases) learns a spatially varying
+    texture that follows the teacher's away from chart borders; the same DRAM made
+    spatially constant fails the same floor."""
+    run, _, interior = learning
+
+    def varies(r):
+        return r["std"] >= DRAM_STD * r["teacher_std"] and r["corr"] >= DRAM_CORR
+
+    live = interior(*run("dram"))
+    assert live["texels"] >= 40 and live["teacher_std"] > 0.2, live
+    assert varies(live), live
+    constant = interior(*run("dram", sabotage="constant"))
+    assert not varies(constant), constant
+
+
+# ---------------------------------------------------------------- held-out segment
+
+
+def test_distill_trains_on_no_held_out_pose(setup):
+    """No distill training item's pose is a held-out frame's, nor any frame's at or
+    after the held-out segment's start (fully lit frames interleave with it)."""
+    from relight_cli.neural import distill as D
+    from relight_cli.neural.config import StudentConfig
+    from relight_cli.neural.data import CaptureData
+
+    def leaks(data, task):
+        start = data.heldout_frames[0]
+        late = {f.pose for f in data.capture.frames
+                if (f.time, f.index) >= (start.time, start.index)}
+        late |= {f.pose for f in data.heldout_frames}
+        return sorted({p for p, _ in task.items} & late)
+
+    cfg = StudentConfig.from_dict(STUDENT)
+    checked = 0
+    for holdout in (0.25, 0.5, 0.75):
+        data = CaptureData(str(setup / "cap"), 16, 1, holdout=holdout)
+        task = D.StudentTask(data, cfg, None, [], [0], [], ["x"])
+        assert task.items and leaks(data, task) == [], holdout
+        # a fully lit frame after the segment's start exists here: the gate can fail
+        if any((f.time, f.index) > (data.heldout_frames[0].time, data.heldout_frames[0].index)
+               for f in data.fully_lit_frames):
+            checked += 1
+            data.train_fully_lit_frames = data.fully_lit_frames      # the old, leaking split
+            assert leaks(data, D.StudentTask(data, cfg, None, [], [0], [], ["x"]))
+    assert checked
+
+
+@pytest.mark.parametrize("untied", [0, 24])
+def test_student_untied_biases_give_spatial_capacity(untied):
+    """With zero features (nothing spatial in), only untied per-texel biases let the
+    student fit a spatially varying texture; the tied student stays constant inside
+    (away from the zero padding's reach: 2 pose-encoder convs, 2 decoder convs and the
+    head, 5 texels)."""
+    from relight_cli.neural.student import StudentNet
+    torch.manual_seed(0)
+    net = StudentNet(3, (8, 8), 6, (4, 4), untied=untied)
+    target = torch.rand(1, 3, 24, 24) * 0.3
+    features, pose = torch.zeros(1, 3, 24, 24), torch.zeros(1, 6)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-2)
+    for _ in range(300):
+        opt.zero_grad()
+        loss = ((net(features, pose) - target) ** 2).mean()
+        loss.backward()
+        opt.step()
+    inner = net(features, pose)[..., 6:-6, 6:-6].detach()
+    spread = float(inner.std(dim=(-2, -1)).max())          # over texels, per channel
+    if untied:
+        assert spread > 0.5 * float(target[..., 6:-6, 6:-6].std(dim=(-2, -1)).min())
+        assert loss.item() < 0.3 * float(target.var())
+    else:
+        assert spread < 1e-5

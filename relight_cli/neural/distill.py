@@ -261,10 +261,11 @@ def build_student(config, feature_channels: int, pose_dim: int):
     h, w = config.env_res
     if config.student == "dram":
         net = DRAMNet(h * w * 3, config.decoder, pose_dim, config.pose_channels, config.dram_code,
-                      config.lambda_s, config.lambda_b)
+                      config.lambda_s, config.lambda_b, config.tex_res)
     else:
         net = StudentNet(feature_channels, config.decoder, pose_dim, config.pose_channels,
-                         config.lambda_s, config.lambda_b)
+                         config.lambda_s, config.lambda_b,
+                         config.tex_res if getattr(config, "untied_bias", False) else 0)
     return net
 
 
