@@ -948,6 +948,13 @@ def test_relight_two_teachers_cli(two_capture, hand_teachers, tmp_path, run_cli)
     assert record["kind"] == "validation" and set(record["metrics"]) == {"grouped", "fully_lit",
                                                                          "env"}
     assert record["metrics"]["env"]["left"]["samples"] == 1
+    # the perfect-texture ceiling beside every split's score (per hand too), sampled as
+    # the capture's images were
+    for split in ("grouped", "fully_lit", "env"):
+        m = record["metrics"][split]
+        assert m["gap_to_ceiling"] == pytest.approx(m["ceiling"]["psnr"] - m["psnr"])
+        assert {"right", "left"} <= set(m["ceiling"])
+    assert record["settings"]["sampling"]["matched"] is True
     again = tmp_path / "again.json"
     from conftest import run_relight
     p = run_relight("relight", two_capture, "--model", "teacher", "--checkpoint", right,
