@@ -993,8 +993,8 @@ def main(argv=None):
         ap.error("--out DIR is required (the captures and trained rows go there)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    command = "python benchmarks/study_hands.py " + " ".join(sys.argv[1:] if argv is None
-                                                             else argv)
+    command = portable("python benchmarks/study_hands.py " + " ".join(
+        sys.argv[1:] if argv is None else argv))
     where = machine()
     study = Study(args.scale, out, log=lambda m: print(m, file=sys.stderr, flush=True))
     if args.gate_spread:
