@@ -653,8 +653,8 @@ def gate_markdown(record: dict, command: str) -> str:
               "not gated: at this size the ordering is not robust.", "",
               "To re-measure (then regenerate the baseline, `RELIGHT_REGEN_BASELINE=1`): "
               "`.venv/bin/python benchmarks/study_hands.py --scale tiny --seeds 5 --out DIR "
-              "--gate-spread tests/baseline/study_gate_spread.json` (about half an hour on 2 "
-              "shared cores).", ""]
+              "--gate-spread tests/baseline/study_gate_spread.json` (about 10 minutes on 2 "
+              "cores).", ""]
     return "\n".join(lines)
 
 
