@@ -824,10 +824,9 @@ def _relight_capture(input, env, output, checkpoint, device, model, aa, env_res,
     from relight_cli.clitools import parse_env_res
     grid_w, grid_h = parse_env_res(env_res or "32x16")
     grid = (grid_h, grid_w)
-    folder = input if os.path.isdir(input) else (os.path.dirname(input) or ".")
-    index = os.path.join(folder, "capture.json")
-    if not os.path.isfile(index):
-        raise DataError("not a capture folder (no capture.json)", folder)
+    from relight_cli.formats.capture import index_path
+    index = index_path(input)   # names a folder without capture.json and a capture.json that is a folder
+    folder = os.path.dirname(index) or "."
     for path in (index, *checkpoint):
         check_input(path)
     # after the inputs (never one of them): the scores are a relight/metrics JSON

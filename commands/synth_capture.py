@@ -87,15 +87,12 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
     import time
     from dataclasses import asdict
 
-    from relight_cli.clitools import progress
     from relight_cli.errors import UsageProblem
     from relight_cli.formats import capture as C
-    from relight_cli.formats.hand_npz import write_hand
     from relight_cli.provenance import provenance
     from relight_cli.render.appearance import hand_materials
-    from relight_cli.render.capture import (FrameRenderer, StageSettings, hand_coverage,
-                                            hand_motion, plan_capture, stage_envmap,
-                                            two_hand_record)
+    from relight_cli.render.capture import (FrameRenderer, StageSettings, hand_motion,
+                                            plan_capture, stage_envmap, two_hand_record)
 
     from .bake_features import _load_hand
     from ._inputs import load_envmap
@@ -186,13 +183,62 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
                         plan.light_names, plan.frames, "hand.npz", settings.fps, evaluation,
                         plan.key, False, stage, record)
     start = time.perf_counter()
+    # A folder this run makes is removed again when the run fails before anything is in
+    # it (a full disk, a folder where no file can be created); one the user gave, and
+    # anything written (kept for a resume), stay.
+    made = not os.path.lexists(output)
+    try:
+        rendered, skipped = _write(output, index_path, capture, plan, inputs, renderer,
+                                   evaluation, eval_hand, env_names, env_specs, envs,
+                                   eval_poses, eval_cameras, n_hands, quiet)
+    except BaseException:
+        if made:
+            _remove_empty_tree(output)
+        raise
+    log(f"wrote {output}: {rendered} image(s) rendered, {skipped} already there "
+        f"({time.perf_counter() - start:.1f} s)", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        from relight_cli.preview import capture_sheet
+        title = (f"synth-capture {hand} -> {output}: {settings.cameras} cameras, "
+                 f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})")
+        write_png(preview, capture_sheet(
+            capture, lambda rel: C.read_image(os.path.join(output, rel)), title))
+        log(f"wrote {preview}", quiet)
+
+
+def _remove_empty_tree(folder: str) -> None:
+    """Remove ``folder`` if it holds nothing but empty folders (never a file)."""
+    import os
+    for root, dirs, files in os.walk(folder, topdown=False):
+        if files:
+            return
+        try:
+            os.rmdir(root)
+        except OSError:
+            return
+
+
+def _write(output, index_path, capture, plan, inputs, renderer, evaluation, eval_hand,
+           env_names, env_specs, envs, eval_poses, eval_cameras, n_hands, quiet):
+    """Write the capture (resumable: finished files land at once); (rendered, skipped)."""
+    import os
+
+    from relight_cli.clitools import progress
+    from relight_cli.formats import capture as C
+    from relight_cli.formats.hand_npz import write_hand
+    from relight_cli.provenance import provenance
+    from relight_cli.render.capture import hand_coverage
+
     rendered = skipped = 0
     with C.immediate_writes():
         os.makedirs(output, exist_ok=True)
+        # the index first (complete: false): a run stopped after it resumes, whatever
+        # else it wrote
+        C.write_capture(index_path, capture)
         write_hand(os.path.join(output, "hand.npz"), plan.motion,
                    provenance("relight/hand", 1, inputs, {"role": "capture ground truth",
                                                           "key": plan.key}))
-        C.write_capture(index_path, capture)
         for frame in progress(plan.frames, desc="frames", quiet=quiet):
             folder = os.path.join(output, "images", f"{frame.index:06d}")
             todo = [c for c in plan.cameras
@@ -240,13 +286,4 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
                         rendered += 1
         capture.complete = True
         C.write_capture(index_path, capture)
-    log(f"wrote {output}: {rendered} image(s) rendered, {skipped} already there "
-        f"({time.perf_counter() - start:.1f} s)", quiet)
-    if preview is not None:
-        from relight_cli.formats.image import write_png
-        from relight_cli.preview import capture_sheet
-        title = (f"synth-capture {hand} -> {output}: {settings.cameras} cameras, "
-                 f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})")
-        write_png(preview, capture_sheet(
-            capture, lambda rel: C.read_image(os.path.join(output, rel)), title))
-        log(f"wrote {preview}", quiet)
+    return rendered, skipped

@@ -216,7 +216,9 @@ def colmap_model_files(path: str) -> tuple[str, str]:
         if not os.path.isfile(needed):
             binary = needed[:-4] + ".bin"
             hint = ("this is a binary model: convert it with colmap model_converter "
-                    "--output_type TXT" if os.path.exists(binary) else None)
+                    "--output_type TXT" if os.path.exists(binary) else
+                    "this is a relight capture: give its capture.json"
+                    if os.path.isfile(os.path.join(folder, "capture.json")) else None)
             raise DataError(f"a COLMAP text model needs {os.path.basename(needed)}", needed,
                             hint=hint)
     return cameras, images
@@ -246,6 +248,31 @@ def _read_text(path: str) -> str:
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0])
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
                    "camera_model") + NERFSTUDIO_DISTORTION
+
+
+# A field of view a pinhole camera can have: in (0, π) radians, kept 1° from π (where the
+# focal length goes to 0: π itself gives 10⁻¹⁴ pixels) and 10⁻⁶ rad from 0 (where it
+# goes to infinity).
+ANGLE_RANGE = (1e-6, math.pi - math.radians(1.0))
+
+
+def _angle(p: dict, key: str, where: str, path: str) -> float:
+    """A nerfstudio field of view (radians), checked against :data:`ANGLE_RANGE`."""
+    value = float(p[key])
+    lo, hi = ANGLE_RANGE
+    if not (math.isfinite(value) and lo <= value <= hi):
+        raise DataError(f"{where}: '{key}' must be a field of view in radians, in (0, π) with a "
+                        f"margin: from {lo:g} to {hi:.4f} (179°), got {value:g}", path)
+    return value
+
+
+def _focal(p: dict, key: str, where: str, path: str) -> float:
+    """A nerfstudio focal length in pixels: finite and positive."""
+    value = float(p[key])
+    if not (math.isfinite(value) and value > 0):
+        raise DataError(f"{where}: '{key}' (focal length in pixels) must be a positive "
+                        f"number, got {value:g}", path)
+    return value
 
 
 def is_nerfstudio(obj) -> bool:
@@ -288,12 +315,15 @@ def cameras_from_nerfstudio(obj, path: str = "transforms.json",
             if key not in ("camera_model", "w", "h") and not is_number(value):
                 raise DataError(f"{where}: '{key}' must be a number, got {value!r}"[:160], path)
         w, h = p["w"], p["h"]
+        if not (0 < w <= 65536 and 0 < h <= 65536):
+            raise DataError(f"{where}: 'w' and 'h' (image size) must be positive (at most "
+                            f"65536), got {w}x{h}", path)
         if "fl_x" in p:
-            fx = float(p["fl_x"])
-            fy = float(p.get("fl_y", fx))
+            fx = _focal(p, "fl_x", where, path)
+            fy = _focal(p, "fl_y", where, path) if "fl_y" in p else fx
         elif "camera_angle_x" in p:
-            fx = 0.5 * w / math.tan(0.5 * float(p["camera_angle_x"]))
-            fy = (0.5 * h / math.tan(0.5 * float(p["camera_angle_y"]))
+            fx = 0.5 * w / math.tan(0.5 * _angle(p, "camera_angle_x", where, path))
+            fy = (0.5 * h / math.tan(0.5 * _angle(p, "camera_angle_y", where, path))
                   if "camera_angle_y" in p else fx)
         else:
             raise DataError(f"{where}: no focal length (fl_x or camera_angle_x)", path)

@@ -139,7 +139,47 @@ def _finite_list(value, n, what, path):
     return [float(v) for v in value]
 
 
+def _string(value, what, path, empty=False):
+    if not isinstance(value, str) or (not empty and not value):
+        raise DataError(f"{what} must be a{'' if empty else ' non-empty'} string, got "
+                        f"{value!r}"[:200], path)
+    return value
+
+
+def _evaluation(ev, camera_names, path):
+    """The checked ``evaluation`` object: ``hand`` (a path), ``envs`` (name → path) and
+    ``renders`` (each a pose ≥ 0, one of the envs, one of the cameras and an image path)."""
+    if not isinstance(ev, dict):
+        raise DataError("'evaluation' must be an object with hand, envs and renders", path)
+    for key in ("hand", "envs", "renders"):
+        if key not in ev:
+            raise DataError(f"'evaluation' lacks '{key}'", path)
+    _string(ev["hand"], "evaluation.hand", path)
+    envs = ev["envs"]
+    if not isinstance(envs, dict):
+        raise DataError("evaluation.envs must be an object (env name → env map path)", path)
+    for name, file in envs.items():
+        _string(file, f"evaluation.envs[{name!r}]", path)
+    if not isinstance(ev["renders"], list):
+        raise DataError("evaluation.renders must be a list", path)
+    for i, r in enumerate(ev["renders"]):
+        what = f"evaluation.renders[{i}]"
+        if not isinstance(r, dict):
+            raise DataError(f"{what} must be an object with pose, env, camera and image", path)
+        _int(r.get("pose"), f"{what}.pose", path)
+        if r.get("env") not in envs:
+            raise DataError(f"{what}.env must name one of evaluation.envs, got "
+                            f"{r.get('env')!r}"[:200], path)
+        if r.get("camera") not in camera_names:
+            raise DataError(f"{what}.camera must name one of the cameras, got "
+                            f"{r.get('camera')!r}"[:200], path)
+        _string(r.get("image"), f"{what}.image", path)
+    return ev
+
+
 def capture_from_json(obj, path: str = "") -> Capture:
+    """A :class:`Capture` from parsed ``capture.json``, every field checked against
+    formats/capture.md (one-line DataErrors naming ``path``)."""
     from relight_cli.formats.camera import camera_from_json
 
     if not isinstance(obj, dict):
@@ -155,6 +195,23 @@ def capture_from_json(obj, path: str = "") -> Capture:
     for key in ("cameras", "lights", "frames"):
         if not isinstance(obj.get(key), list):
             raise DataError(f"'{key}' must be a list", path)
+    if "hand" not in obj:
+        raise DataError("'hand' is missing (the path of the capture's hand.npz)", path)
+    hand = _string(obj["hand"], "'hand' (the path of the capture's hand.npz)", path)
+    fps = obj.get("fps", 30.0)
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not (
+            math.isfinite(fps) and fps > 0):
+        raise DataError(f"'fps' must be a positive number, got {fps!r}"[:200], path)
+    key = _string(obj.get("key", ""), "'key'", path, empty=True)
+    complete = obj.get("complete", False)
+    if not isinstance(complete, bool):
+        raise DataError(f"'complete' must be true or false, got {complete!r}"[:200], path)
+    settings = obj.get("settings", {})
+    if not isinstance(settings, dict):
+        raise DataError("'settings' must be an object", path)
+    provenance = obj.get("provenance")
+    if provenance is not None and not isinstance(provenance, dict):
+        raise DataError("'provenance' must be an object", path)
     if not obj["cameras"]:
         raise DataError("'cameras' is empty", path)
     cameras = [camera_from_json(c, path, i) for i, c in enumerate(obj["cameras"])]
@@ -169,14 +226,14 @@ def capture_from_json(obj, path: str = "") -> Capture:
         if min(inten) < 0:
             raise DataError(f"lights[{i}].intensity must be non-negative", path)
         intensity.append(inten)
-        names.append(str(item.get("name", f"light{i:03d}")))
+        names.append(_string(item.get("name", f"light{i:03d}"), f"lights[{i}].name", path))
     n_lights = len(lights)
     frames = []
     for i, item in enumerate(obj["frames"]):
         if not isinstance(item, dict):
             raise DataError(f"frames[{i}] must be an object", path)
         index = _int(item.get("index"), f"frames[{i}].index", path)
-        t = item.get("time", index / 30.0)
+        t = item.get("time", index / fps)
         if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t):
             raise DataError(f"frames[{i}].time must be a finite number", path)
         pose = _int(item.get("pose"), f"frames[{i}].pose", path)
@@ -191,12 +248,13 @@ def capture_from_json(obj, path: str = "") -> Capture:
         if not isinstance(images, list) or not all(isinstance(s, str) for s in images):
             raise DataError(f"frames[{i}].images must be a list of camera names", path)
         frames.append(CaptureFrame(index, float(t), pose, lit, on, images))
+    evaluation = obj.get("evaluation")
+    if evaluation is not None:
+        evaluation = _evaluation(evaluation, {c.name for c in cameras}, path)
     cap = Capture(cameras, np.array(positions, np.float64).reshape(-1, 3),
                   np.array(intensity, np.float64).reshape(-1, 3), names, frames,
-                  hand=str(obj.get("hand", "hand.npz")), fps=float(obj.get("fps", 30.0)),
-                  evaluation=obj.get("evaluation"), key=str(obj.get("key", "")),
-                  complete=bool(obj.get("complete", False)),
-                  settings=obj.get("settings") or {}, provenance=obj.get("provenance"))
+                  hand=hand, fps=float(fps), evaluation=evaluation, key=key,
+                  complete=complete, settings=settings, provenance=provenance)
     validate(cap, path)
     return cap
 
@@ -217,12 +275,44 @@ def validate(capture: Capture, path: str = "") -> None:
         unknown = [n for n in f.images if n not in names]
         if unknown:
             raise DataError(f"frame {f.index} lists images of unknown camera {unknown[0]!r}", path)
+    n_lights = len(capture.light_positions)
+    for f in capture.frames:
+        # every frame is lit: a frame with no light on has nothing to learn from (and no
+        # lights to sum over); a light listed twice would count twice
+        if not f.lights_on:
+            raise DataError(f"frame {f.index} has no light on (its lights_on is empty or "
+                            f"missing)", path)
+        seen = set()
+        for i in f.lights_on:
+            if not 0 <= int(i) < n_lights:
+                raise DataError(f"frame {f.index} turns on light {i}, but the capture has "
+                                f"{n_lights} light(s)", path)
+            if i in seen:
+                raise DataError(f"frame {f.index} lists light {i} twice in lights_on", path)
+            seen.add(i)
+
+
+def index_path(path: str) -> str:
+    """The ``capture.json`` of a capture given as its folder or as the index itself.
+
+    Raises DataError naming the path: a folder without ``capture.json``, and a
+    ``capture.json`` that is a folder (not a file) — whichever of the two was given.
+    """
+    if os.path.isdir(path):
+        inner = os.path.join(path, INDEX)
+        if os.path.isdir(inner):
+            raise DataError(f"{INDEX} is a folder, not a file", inner)
+        if os.path.lexists(inner):
+            return inner
+        if os.path.basename(os.path.normpath(path)) == INDEX:
+            raise DataError("is a folder, not a file (a capture's index is a JSON file)", path)
+        raise DataError(f"not a capture folder (no {INDEX})", path)
+    return path
 
 
 def read_capture(path: str) -> Capture:
     """Read ``capture.json`` (or a folder holding it).  Raises DataError naming the file."""
-    if os.path.isdir(path):
-        path = os.path.join(path, INDEX)
+    path = index_path(path)
     from ._common import read_json
     obj = read_json(path)
     return capture_from_json(obj, path)

@@ -263,19 +263,30 @@ def _check_header(ply, path: str) -> dict | None:
     """Read relight's format/provenance lines (absent for foreign files); reject newer versions."""
     provenance = None
     for line in list(ply.obj_info) + list(ply.comments):
-        if line.startswith(_FORMAT_TAG + " "):
-            parts = line.split()
-            if len(parts) != 3 or parts[1] != FORMAT or not parts[2].isdigit():
-                raise DataError(f"damaged '{_FORMAT_TAG}' header line: {line!r}", path)
+        # the tag is the line's first word, whatever follows it (nothing, a tab, a space):
+        # a tag line without its value is damaged, never skipped as a foreign line
+        parts = line.split()
+        tag = parts[0] if parts else ""
+        if tag == _FORMAT_TAG:
+            if (len(parts) != 3 or parts[1] != FORMAT
+                    or not parts[2].isascii() or not parts[2].isdigit() or int(parts[2]) < 1):
+                raise DataError(f"damaged '{_FORMAT_TAG}' header line: {line!r} (expected "
+                                f"'{_FORMAT_TAG} {FORMAT} VERSION')"[:240], path)
             if int(parts[2]) > VERSION:
                 raise DataError(f"{FORMAT} version {parts[2]} is newer than this relight "
                                 f"understands (≤ {VERSION})", path, hint="upgrade relight")
-        elif line.startswith(_PROVENANCE_TAG + " "):
+        elif tag == _PROVENANCE_TAG:
             from ._common import parse_json
+            text = line.strip()[len(_PROVENANCE_TAG):].strip()
             try:
-                provenance = parse_json(line[len(_PROVENANCE_TAG) + 1:], path, non_finite="allow")
+                if not text:
+                    raise DataError("empty", path)
+                provenance = parse_json(text, path, non_finite="allow")
             except DataError:
                 raise DataError("damaged relight.provenance header line", path) from None
+            if not isinstance(provenance, dict):
+                raise DataError("damaged relight.provenance header line (not a JSON object)",
+                                path)
     return provenance
 
 

@@ -63,6 +63,9 @@ def keypoints_from_array(a, path: str, n_joints: int = 25, frames=None,
     conf = a[..., 3] if a.shape[2] == 4 else np.ones(a.shape[:2])
     if conf.min() < 0 or conf.max() > 1:
         raise DataError("keypoint confidences must lie in [0, 1]", path)
+    if not (conf > 0).any():
+        raise DataError("no frame measures any joint (every confidence is 0): nothing to fit",
+                        path)
     if frames is None:
         frames = np.arange(a.shape[0])
     frames = np.asarray(frames)

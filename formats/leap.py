@@ -139,8 +139,9 @@ def select_hand(frames: list, choice, path: str) -> tuple[list[dict | None], str
 def leap_keypoints(obj, path: str, hand=None) -> Keypoints:
     """One tracked hand of a parsed Leap recording as Keypoints on the 25 WebXR joints.
 
-    Frames where the hand is absent are left out (``frames`` holds the
-    recording's frame indices, 0-based, of the frames kept).  Positions are
+    Frames where the hand is absent, or present without any measured joint, are
+    left out (``frames`` holds the recording's frame indices, 0-based, of the frames
+    kept); a recording with no frame measuring a joint of the hand is a DataError.  Positions are
     metres in Leap's axes (right-handed, +Y up, +Z towards the user);
     ``positions`` is NaN and ``confidence`` 0 where Leap gives no joint.
 
@@ -183,7 +184,16 @@ def leap_keypoints(obj, path: str, hand=None) -> Keypoints:
                     positions[row, j] = _vector(
                         p[key], f"Leap frame {i}, {FINGER_NAMES[finger]} '{key}'", path)
                     confidence[row, j] = 1.0
-    positions *= MM_TO_M
+    # A frame whose hand measures no joint (no pointables of it, only tools, no position
+    # fields) tells nothing about the hand: it is a missing frame, as one without the hand.
+    measured = confidence.any(axis=1)
+    if not measured.any():
+        raise DataError(f"no frame of the recording measures any joint of the {side} hand "
+                        f"(id {', '.join(map(str, ids))}): it is in {len(keep)} of "
+                        f"{len(frames)} frame(s), but with no joint position (no pointables "
+                        f"of it, only tools, or no position fields)", path)
+    keep = [i for i, ok in zip(keep, measured) if ok]
+    positions, confidence = positions[measured] * MM_TO_M, confidence[measured]
     from relight_cli.hand.model import JOINT_NAMES
     source = {"format": FORMAT, "hand": side, "hand_ids": ids, "recorded_frames": len(frames),
               "frames_without_hand": len(frames) - len(keep),

@@ -64,6 +64,14 @@ class Sample:
     env: str = ""
 
 
+def _require_file(path: str, what: str) -> None:
+    """One line naming ``path`` when it is missing or a folder (``what``: its role)."""
+    if os.path.isdir(path):
+        raise DataError(f"{what} is a folder, not a file", path)
+    if not os.path.isfile(path):
+        raise DataError(f"{what} is missing", path)
+
+
 class LRU(OrderedDict):
     """A tiny LRU cache (get-or-compute)."""
 
@@ -143,22 +151,37 @@ class CaptureData:
         from relight_cli.formats import capture as C
         from relight_cli.formats.hand_npz import read_hand
 
-        self.folder = folder
-        index = os.path.join(folder, C.INDEX) if os.path.isdir(folder) else folder
+        index = C.index_path(folder)      # a folder or its capture.json (not a folder)
         self.folder = os.path.dirname(index) or "."
         self.index_path = index
         self.capture = C.read_capture(index)
         hand_path = os.path.join(self.folder, self.capture.hand)
-        if not os.path.isfile(hand_path):
-            raise DataError("the capture's hand.npz is missing", hand_path)
+        _require_file(hand_path, "the capture's hand.npz")
         self.hand_path = hand_path
         self.hand = read_hand(hand_path)
         self.eval_hand = None
-        ev = self.capture.evaluation or {}
-        if ev.get("hand"):
+        ev = self.capture.evaluation
+        if ev is not None:
+            # every file the evaluation names must be there: a capture missing one is
+            # damaged, refused before any training or scoring (never a silently dropped split)
             path = os.path.join(self.folder, ev["hand"])
-            if os.path.isfile(path):
-                self.eval_hand = read_hand(path)
+            _require_file(path, "capture.json's evaluation names a held-out hand.npz that")
+            self.eval_hand = read_hand(path)
+            if (len(self.eval_hand.hands), self.eval_hand.n_joints) != (
+                    len(self.hand.hands), self.hand.n_joints):
+                raise DataError(f"the held-out hand has {len(self.eval_hand.hands)} hand(s) of "
+                                f"{self.eval_hand.n_joints} joints, the capture's hand.npz "
+                                f"{len(self.hand.hands)} of {self.hand.n_joints}", path)
+            for name, file in ev["envs"].items():
+                _require_file(os.path.join(self.folder, file),
+                              f"capture.json's evaluation names an env map ({name!r}) that")
+            for r in ev["renders"]:
+                if r["pose"] >= self.eval_hand.n_frames:
+                    raise DataError(f"evaluation render {r['image']!r} uses held-out pose "
+                                    f"{r['pose']}, but the held-out hand has "
+                                    f"{self.eval_hand.n_frames} pose(s)", path)
+                _require_file(os.path.join(self.folder, r["image"]),
+                              "capture.json's evaluation names a render that")
         self.tex_res = tex_res
         captured = capture_aa(self.capture)
         self.aa = int(aa) if aa else captured
