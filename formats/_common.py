@@ -6,6 +6,7 @@ import json
 import os
 
 from relight_cli.errors import DataError
+from relight_cli.provenance import MAX_JSON_BYTES  # noqa: F401  (the documented limit)
 
 
 def check_format_version(found_format, found_version, format_name: str, max_version: int,
@@ -31,16 +32,20 @@ MAX_JSON_DEPTH = 64
 
 
 def read_json(path: str):
-    """Parse a JSON file (``-``: stdin); a missing file, a folder, non-UTF-8 bytes or
-    bad JSON raise one-line DataErrors naming the file."""
+    """Parse a JSON file (``-``: stdin); a missing file, a folder, non-UTF-8 bytes,
+    more than MAX_JSON_BYTES or bad JSON raise one-line DataErrors naming the file."""
     return parse_json(read_text(path, "a JSON file"), path)
 
 
 def read_text(path: str, what: str = "a JSON file") -> str:
     """A UTF-8 text file's content (``-``: stdin, read once per command, see
-    relight_cli.provenance.stdin_bytes); one-line DataErrors naming the file."""
+    relight_cli.provenance.stdin_bytes); one-line DataErrors naming the file.
+
+    A JSON input may be a FIFO or a device (``<(...)``, ``/dev/stdin``), read once
+    per command; any input is read at most MAX_JSON_BYTES (256 MiB), and a larger
+    one is refused, so ``--probe /dev/zero`` ends with one line."""
+    from relight_cli.provenance import read_input_bytes, stdin_bytes
     if path == "-":
-        from relight_cli.provenance import stdin_bytes
         try:
             return stdin_bytes().decode("utf-8")
         except UnicodeDecodeError:
@@ -50,8 +55,7 @@ def read_text(path: str, what: str = "a JSON file") -> str:
     if os.path.isdir(path):
         raise DataError(f"is a directory, expected {what}", path)
     try:
-        with open(path, encoding="utf-8") as f:
-            return f.read()
+        return read_input_bytes(path).decode("utf-8")
     except UnicodeDecodeError:
         raise DataError("not a text (UTF-8 JSON) file", path) from None
 

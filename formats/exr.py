@@ -133,6 +133,8 @@ def read_exr(path: str) -> ExrImage:
         raise DataError("no such file", path)
     if os.path.isdir(path):
         raise DataError("is a directory, expected an EXR file", path)
+    if not os.path.isfile(path):      # a FIFO or device would block or never end
+        raise DataError("not a regular file, expected an EXR file", path)
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic != b"\x76\x2f\x31\x01":

@@ -98,8 +98,12 @@ def read_keypoints(path: str, n_joints: int = 25, reader: str = "auto", hand=Non
         if reader == "leap":
             raise DataError("a .npy array is not a Leap Motion recording (LeapJS JSON)", path)
         try:
-            a = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as exc:
+            a = np.load(path, allow_pickle=False, mmap_mode="r")     # the header first:
+            if a.nbytes > os.path.getsize(path):                   # a declared shape that
+                raise ValueError(f"its header declares {a.shape} ({a.nbytes} bytes), more "
+                                 f"than the file holds")            # the file cannot hold
+            a = np.array(a)
+        except (ValueError, OSError, EOFError, MemoryError) as exc:
             raise DataError(f"not a readable .npy array: {exc}", path) from None
         return keypoints_from_array(a, path, n_joints)
     from ._common import read_json

@@ -68,12 +68,24 @@ class RelightGroup(click.Group):
             raise
         except (KeyboardInterrupt, Terminated) as exc:
             _stopped(ctx, exc)
-        except MemoryError:
+        except MemoryError as exc:
+            where = _input_in_traceback(exc)
+            if where is not None:   # e.g. an .npy whose header declares a huge shape
+                _report(ctx, RelightError("out of memory reading this input (damaged, or "
+                                          "larger than this machine can hold)", where), 1)
             _report(ctx, RelightError("out of memory; try a smaller resolution or fewer inputs"), 1)
+        except OSError as exc:   # a reader's open() or read(): permissions, a folder, EIO...
+            stop = _stop_in_chain(exc)
+            if stop is not None:
+                _stopped(ctx, stop)
+            _report(ctx, _os_error(exc), 1)
         except Exception as exc:  # a bug, not a user error: still one line unless --debug
             stop = _stop_in_chain(exc)
             if stop is not None:   # a library's clean-up failed after the signal (zipfile)
                 _stopped(ctx, stop)
+            library = _library_message(exc)
+            if library is not None:
+                _report(ctx, library, 1)
             _report(ctx, RelightError(f"internal error: {type(exc).__name__}: {exc}",
                                       hint="rerun with --debug for a traceback and report it"), 1)
 
@@ -182,8 +194,129 @@ def _report(ctx, exc: RelightError, code: int):
     debug = ctx.params.get("debug") or ctx.meta.get("relight.debug")
     if debug:
         traceback.print_exc()
-    click.echo(f"relight {_subcommand(ctx)}: error: {exc}", err=True)
+    if exc.path is not None and _is_placeholder(exc.path):
+        # "(<in memory>)" says nothing: name the inputs the bad data came from
+        inputs, _ = _run_files()
+        if inputs:
+            exc.path = ", ".join(inputs)
+    click.echo(f"relight {_subcommand(ctx)}: error: {_one_line(str(exc))}", err=True)
     sys.exit(code)
+
+
+# ----------------------------------------------------------------------------- error lines
+# Exceptions that reach the top level without naming their file (a library's or a
+# reader's own), turned into the one line `relight CMD: error: WHAT (FILE)`.
+
+
+def _one_line(text: str) -> str:
+    """One printable line: a library's message may hold newlines, control bytes, or raw
+    bytes decoded with replacement."""
+    import re
+    lines = [line.strip() for line in re.split(r"[\r\n]+", str(text).replace("\t", " "))
+             if line.strip()]
+    text = " ".join(lines)
+    return "".join(c if c.isprintable() else "\ufffd" for c in text)
+
+
+def _is_placeholder(path: str) -> bool:
+    return path.startswith("<") and path.endswith(">")
+
+
+def _run_files() -> tuple[list[str], list[str]]:
+    from .provenance import run_files
+    return run_files()
+
+
+def _same_file(a, b) -> bool:
+    import os
+    try:
+        return os.path.realpath(os.fspath(a)) == os.path.realpath(os.fspath(b))
+    except (TypeError, ValueError):
+        return False
+
+
+def _is_reader(frame) -> bool:
+    """A frame of a file reader: a format module, or a function named read*/load*."""
+    module = str(frame.f_globals.get("__name__", ""))
+    name = frame.f_code.co_name.lstrip("_")
+    return module.startswith("relight_cli.formats.") or name.startswith(("read", "load"))
+
+
+def _input_in_traceback(exc: BaseException) -> str | None:
+    """The input file (one the command declared: relight_cli.provenance.declare_input)
+    that the innermost reader frame of ``exc``'s traceback was given: the file a reader
+    was reading when it failed without saying which (a MemoryError from an .npy header,
+    an OSError without a file name).  None when no reader frame holds one."""
+    import os
+    inputs, _ = _run_files()
+    if not inputs:
+        return None
+    frames = []
+    tb = exc.__traceback__
+    while tb is not None:
+        frames.append(tb.tb_frame)
+        tb = tb.tb_next
+    for frame in reversed(frames):
+        if not _is_reader(frame):
+            continue
+        for value in list(frame.f_locals.values()):
+            if not isinstance(value, (str, os.PathLike)):
+                continue
+            value = os.fspath(value)
+            if not isinstance(value, str) or not 0 < len(value) < 4096:   # not a JSON text
+                continue
+            for path in inputs:
+                if value == path or _same_file(value, path):
+                    return path
+    return None
+
+
+def _input_in_text(text: str) -> str | None:
+    """A declared input named in a library's message (OpenImageIO writes the file name)."""
+    inputs, _ = _run_files()
+    for path in sorted(inputs, key=len, reverse=True):
+        if path and path in text:
+            return path
+    return None
+
+
+def _os_error(exc: OSError) -> RelightError:
+    """``cannot read: permission denied (FILE)`` for an OSError a reader let through
+    (PermissionError, IsADirectoryError, EIO...); ``cannot write`` for an output."""
+    import errno
+    import os
+    reason = (exc.strerror or str(exc) or type(exc).__name__).lower()
+    if exc.errno == errno.ENOSPC:
+        reason = "no space left on device"
+    name = exc.filename
+    if name is None:
+        where = _input_in_traceback(exc)
+        if where is not None:
+            return RelightError(f"cannot read: {reason}", where)
+        return RelightError(f"input/output error: {reason}")
+    name = os.fsdecode(name) if isinstance(name, bytes) else str(name)
+    from .provenance import TEMP_MARK
+    _, outputs = _run_files()
+    writing = TEMP_MARK in os.path.basename(name) or any(_same_file(name, o) for o in outputs)
+    return RelightError(f"cannot {'write' if writing else 'read'}: {reason}", name)
+
+
+def _library_message(exc: Exception) -> RelightError | None:
+    """A library's error text that Python could not decode (OpenImageIO's geterror() on a
+    damaged EXR holds raw header bytes: UnicodeDecodeError), decoded with replacement:
+    one line naming the input it is about, or None when no input can be named."""
+    if not isinstance(exc, UnicodeDecodeError) or not isinstance(exc.object, (bytes, bytearray)):
+        return None
+    import re
+    text = bytes(exc.object).decode("utf-8", "replace")
+    first = next((line for line in re.split(r"[\r\n]+", text) if line.strip()), "")
+    where = _input_in_text(first) or _input_in_traceback(exc)
+    if where is None:
+        return None
+    first = first.replace(f"({where})", "").replace(f'"{where}"', "").replace(where, "")
+    first = re.sub(r"\s+:", ":", " ".join(first.split())).strip(" :")
+    return RelightError(f"unreadable file: {first[:200] or 'undecodable library message'}",
+                        where)
 
 
 @click.group(cls=RelightGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -208,7 +341,8 @@ def cli(ctx, debug, quiet):
       writes a JSON output to stdout; binary outputs need a file name whose
       extension says what it is (.exr .png .json .npz .ply .pt);
       progress is a bar on a terminal, else a plain line every few seconds;
-      a closed stdout pipe (... | head) exits quietly with status 141;
+      a closed stdout pipe (... | head) exits quietly with status 141, a
+      full one (disk, /dev/full) with 1, and no file is committed;
       -q and --debug go before or after the subcommand; an old spelling of a
       renamed option (synth-capture --lights/--res, relight --t-max,
       bake-features --frames) is refused, naming the new one.
@@ -217,7 +351,30 @@ def cli(ctx, debug, quiet):
     ctx.meta["relight.quiet"] = quiet
 
 
+def _fill_closed_standard_descriptors():
+    """Point a closed stdin/stdout/stderr (``relight ... >&-``) at /dev/null.
+
+    Python then has no sys.stdout (``-o -`` fails with one line before any work), and
+    the next file opened can never become descriptor 1: a library printing on stdout, or
+    a write meant for stdout, would otherwise land in that file."""
+    import os
+    for fd, flags in ((0, os.O_RDONLY), (1, os.O_WRONLY), (2, os.O_WRONLY)):
+        try:
+            os.fstat(fd)
+            continue
+        except OSError:
+            pass
+        try:
+            new = os.open(os.devnull, flags)
+        except OSError:
+            continue
+        if new != fd:
+            os.dup2(new, fd)
+            os.close(new)
+
+
 def main():  # console-script entry point
+    _fill_closed_standard_descriptors()
     # `timeout`, CI runners and process managers stop jobs with SIGTERM (or SIGHUP):
     # clean up exactly as for Ctrl-C instead of dying with temporary files left.
     for name in _STOP_SIGNALS:

@@ -165,6 +165,8 @@ def check_output(path: str | None, no_clobber: bool = False, text: bool = False,
         if not text:
             raise UsageProblem(f"{what} is binary and cannot go to stdout ('-' is for JSON "
                                f"outputs); give a file name")
+        from .provenance import check_stdout
+        check_stdout()   # `-o - >&-`: one line (stdout), exit 1, before any work
         return
     if no_clobber and os.path.lexists(path):
         raise UsageProblem("output exists and --no-clobber was given", path)
@@ -197,11 +199,19 @@ def check_extension(path: str, kind: str, what: str = "-o") -> None:
     raise UsageProblem(f"{what} is {noun} (name it {' or '.join(extensions)})", path)
 
 
+#: Names of inputs that may be FIFOs or devices (read once, bounded: formats._common.read_text).
+STREAM_INPUT_EXTENSIONS = (".json", ".jsonl")
+
+
 def check_input(path: str, stdin: str | None = None) -> str:
     """Fail early and clearly for a missing input or a directory given as a file.
 
     ``-`` reads stdin, for JSON inputs only: ``stdin`` names the input (e.g.
-    ``"--lights"``) so that two inputs both given as ``-`` are a usage error."""
+    ``"--lights"``) so that two inputs both given as ``-`` are a usage error.
+
+    A FIFO, device or socket is refused (exit 1) unless the input is JSON (``stdin``
+    given, or a name ending .json/.jsonl): binary readers (EXR, PLY, npz, checkpoints)
+    would block on a FIFO with no writer or read /dev/zero without end."""
     from .errors import DataError, UsageProblem
     if path.startswith("builtin:"):
         return path
@@ -216,11 +226,29 @@ def check_input(path: str, stdin: str | None = None) -> str:
         raise DataError("no such file", path)
     if os.path.isdir(path):
         raise DataError("is a directory, expected a file", path)
+    special = _special_kind(path)
+    if special and stdin is None and not path.lower().endswith(STREAM_INPUT_EXTENSIONS):
+        raise DataError(f"is a {special}, not a regular file (this input is read as a file)",
+                        path)
     if not os.access(path, os.R_OK):
         raise DataError("file is not readable (permissions)", path)
     from .provenance import declare_input
     declare_input(path)
     return path
+
+
+def _special_kind(path: str) -> str | None:
+    """What a non-regular file is ("FIFO", "character device", ...), None for a regular one."""
+    import stat
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    for test, name in ((stat.S_ISFIFO, "FIFO (named pipe)"), (stat.S_ISCHR, "character device"),
+                       (stat.S_ISBLK, "block device"), (stat.S_ISSOCK, "socket")):
+        if test(mode):
+            return name
+    return None if stat.S_ISREG(mode) else "special file"
 
 
 def log(message: str, quiet: bool = False) -> None:

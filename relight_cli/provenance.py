@@ -15,6 +15,13 @@ written in place (its node is never replaced); a folder, block device or socket
 is refused.  The running command's outputs and inputs are registered
 (:func:`declare_output`, :func:`declare_input`), so an output that is also an
 input, or two outputs on one file, are refused before any work.
+
+A JSON output on stdout (``-o -``, :func:`write_stdout`) is held until the command
+succeeds and goes out before the files are committed: every byte is checked (a
+short write is finished or fails), a regular file behind stdout is synced, and a
+failure (a reader that went away: BrokenPipeError; a full disk, /dev/full, a closed
+stdout: a one-line OutputError naming ``stdout``) commits no file.  JSON inputs
+(files, FIFOs, stdin) are read at most :data:`MAX_JSON_BYTES`.
 """
 
 from __future__ import annotations
@@ -59,6 +66,10 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
         return "builtin:" + hashlib.sha256(p.encode()).hexdigest()[:16]
     if p == "-":
         return hashlib.sha256(stdin_bytes()).hexdigest()
+    if _RUN is not None and p in _RUN.streams:   # a FIFO already read: the same bytes
+        return hashlib.sha256(_RUN.streams[p]).hexdigest()
+    if os.path.exists(p) and not os.path.isfile(p):   # a device or FIFO: bounded, once
+        return hashlib.sha256(read_input_bytes(p)).hexdigest()
     h = hashlib.sha256()
     with open(p, "rb") as f:
         while True:
@@ -107,12 +118,17 @@ class _Run:
         self.outputs: list[tuple[str, tuple]] = []
         self.stdin_role: str | None = None     # the one input given as '-'
         self.stdin: bytes | None = None        # its bytes, read once
+        self.streams: dict[str, bytes] = {}    # JSON inputs that are FIFOs/devices, read once
 
 
 # Outputs staged by the running command: all are committed together when it
 # succeeds, and all removed when it fails (see output_transaction).
 _PENDING: list[tuple[str, str, str]] | None = None
 _RUN: _Run | None = None
+# JSON documents for stdout, held with _PENDING: written first when the command succeeds.
+_STDOUT: list[bytes] | None = None
+# The registry of the command that ended last (its error line names its files).
+_LAST_RUN: _Run | None = None
 # Temporary files that exist now and are not committed: the transaction removes them
 # when the command fails, even one whose writer never got to clean up (a signal in
 # contextlib's code between the writer's yield and its with-block).
@@ -163,11 +179,56 @@ def stdin_bytes() -> bytes:
     if _RUN is not None and _RUN.stdin is not None:
         return _RUN.stdin
     stream = getattr(sys.stdin, "buffer", sys.stdin)
-    data = stream.read() if stream is not None else b""
-    if isinstance(data, str):
-        data = data.encode("utf-8")
+    data = _read_bounded(stream, "-") if stream is not None else b""
     if _RUN is not None:
         _RUN.stdin = data
+    return data
+
+
+#: The most bytes read from one JSON input (a file, a FIFO, a device or stdin): more is
+#: refused with one line instead of reading without end (``--probe /dev/zero``).
+MAX_JSON_BYTES = 256 * 1024 * 1024
+
+
+def _too_large(path: str):
+    from .errors import DataError
+    return DataError(f"larger than {MAX_JSON_BYTES // (1024 * 1024)} MiB, the most relight "
+                     f"reads from a JSON input", path)
+
+
+def _read_bounded(stream, path: str) -> bytes:
+    """Everything ``stream`` holds, in blocks, refusing more than MAX_JSON_BYTES."""
+    chunks, total = [], 0
+    while True:
+        block = stream.read(min(1 << 20, MAX_JSON_BYTES + 1 - total))
+        if not block:
+            break
+        if isinstance(block, str):
+            block = block.encode("utf-8", "surrogateescape")
+        chunks.append(block)
+        total += len(block)
+        if total > MAX_JSON_BYTES:
+            raise _too_large(path)
+    return b"".join(chunks)
+
+
+def read_input_bytes(path: str) -> bytes:
+    """The bytes of a JSON input file, at most MAX_JSON_BYTES (a larger one is a one-line
+    DataError, refused before reading when its size is known).  A FIFO or device is read
+    once per command and its bytes kept, so that provenance hashes what was parsed."""
+    from .errors import DataError
+    if _RUN is not None and path in _RUN.streams:
+        return _RUN.streams[path]
+    try:
+        st = os.stat(path)
+        if stat.S_ISREG(st.st_mode) and st.st_size > MAX_JSON_BYTES:
+            raise _too_large(path)
+        with open(path, "rb") as f:
+            data = _read_bounded(f, path)
+    except OSError as exc:
+        raise DataError(f"cannot read: {_reason(exc)}", path) from None
+    if _RUN is not None and not stat.S_ISREG(st.st_mode):
+        _RUN.streams[path] = data
     return data
 
 
@@ -353,15 +414,19 @@ def output_transaction() -> Iterator[None]:
     only when the whole block succeeds (a command with an EXR and a PNG output
     never leaves one without the other).  The block is also the scope of the
     input/output registry (declare_input, declare_output)."""
-    global _PENDING, _RUN
+    global _PENDING, _RUN, _STDOUT, _LAST_RUN
     if _PENDING is not None:  # nested: the outer transaction decides
         yield
         return
-    _PENDING, _RUN = [], _Run()
+    _PENDING, _RUN, _STDOUT = [], _Run(), []
+    _LAST_RUN = _RUN
     staged = None
     try:
         yield
         staged, _PENDING = _PENDING, None
+        documents, _STDOUT = _STDOUT, None
+        for data in documents:     # stdout first: if it fails, no file is committed
+            _emit_stdout(data)
         for tmp, final, mode in staged:
             _commit(tmp, final, mode)
     except BaseException:
@@ -372,7 +437,7 @@ def output_transaction() -> Iterator[None]:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
         _LIVE_TEMPS.clear()
-        _PENDING = None
+        _PENDING = _STDOUT = None
         raise
     finally:
         _RUN = None
@@ -382,12 +447,13 @@ def output_transaction() -> Iterator[None]:
 def outside_transaction() -> Iterator[None]:
     """Let atomic writes in this block land at once, even inside a command's
     output transaction (a resumable job keeps each finished piece)."""
-    global _PENDING
+    global _PENDING, _STDOUT
     saved, _PENDING = _PENDING, None
+    saved_stdout, _STDOUT = _STDOUT, None
     try:
         yield
     finally:
-        _PENDING = saved
+        _PENDING, _STDOUT = saved, saved_stdout
 
 
 def _commit(tmp: str, final: str, mode: str) -> None:
@@ -528,11 +594,162 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
 
 
 def write_text_atomic(target: str, text: str) -> None:
-    """Write text to ``target`` atomically, or to stdout when target is ``-``."""
+    """Write text to ``target`` atomically, or to stdout when target is ``-``
+    (:func:`write_stdout`: held until the command succeeds)."""
     if target == "-":
-        sys.stdout.write(text)
-        sys.stdout.flush()
+        write_stdout(text)
         return
     with atomic_path(target) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
+
+
+# ----------------------------------------------------------------------------- stdout
+
+#: What the error line names when stdout cannot take an output.
+STDOUT_NAME = "stdout"
+
+
+def check_stdout() -> None:
+    """Before any work: a one-line OutputError when there is no stdout to write to
+    (``-o - >&-``: the CLI points a closed descriptor 1 at /dev/null, and sys.stdout
+    is None); BrokenPipeError (exit 141) when stdout is a pipe whose reader is gone."""
+    from .errors import OutputError
+    stream = sys.stdout
+    if stream is None or getattr(stream, "closed", False):
+        raise OutputError("cannot write: stdout is closed", STDOUT_NAME)
+    if _reader_gone(stream):   # `... | head` that has had enough: exit 141 now, not later
+        raise BrokenPipeError(errno.EPIPE, "the reader of stdout went away")
+
+
+def _reader_gone(stream) -> bool:
+    """True when stdout is a pipe whose reading end is closed (poll reports POLLERR)."""
+    import select
+    try:
+        fd = stream.fileno()
+        if not stat.S_ISFIFO(os.fstat(fd).st_mode) or not hasattr(select, "poll"):
+            return False
+        poller = select.poll()
+        poller.register(fd, 0)      # POLLERR and POLLHUP are always reported
+        return any(events & select.POLLERR for _, events in poller.poll(0))
+    except (AttributeError, OSError, ValueError):
+        return False
+
+
+def write_stdout(text: str) -> None:
+    """A JSON document for stdout.  Inside a command (output_transaction) it is held and
+    written when the command succeeds, before its files are committed; elsewhere it is
+    written now.  Either way every byte is checked (see _emit_stdout)."""
+    data = text.encode("utf-8")
+    if _STDOUT is not None:
+        check_stdout()
+        _STDOUT.append(data)
+    else:
+        _emit_stdout(data)
+
+
+def _emit_stdout(data: bytes) -> None:
+    """Write ``data`` to stdout completely or fail.
+
+    Python's text stdout can accept a short count silently (unbuffered, as under
+    PYTHONUNBUFFERED, ``write`` returns what the kernel took), which turned a full disk
+    or a reader that went away mid-document into exit 0 with a cut-short output.  Here
+    the bytes go to the descriptor in a loop until all are taken; a regular file behind
+    stdout is synced (deferred write errors) and, on failure, cut back to its size
+    before the write.  Raises BrokenPipeError when the reader went away (the CLI exits
+    141), else a one-line OutputError naming ``stdout``.
+    """
+    from .errors import OutputError
+    check_stdout()
+    stream = sys.stdout
+    try:
+        stream.flush()                       # whatever went before goes first
+    except BrokenPipeError:
+        raise
+    except (OSError, ValueError) as exc:
+        raise OutputError(f"cannot write: {_reason(exc)}", STDOUT_NAME) from None
+    try:
+        fd = stream.fileno()
+    except (AttributeError, OSError, ValueError):   # not a descriptor (CliRunner, StringIO)
+        fd = None
+    if fd is None:
+        _write_stream(stream, data)
+        return
+    regular, restore = _stdout_file(fd)
+    try:
+        _write_fd(fd, data)
+        if regular:
+            os.fsync(fd)
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        if restore is not None:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, restore)
+                os.lseek(fd, restore, os.SEEK_SET)
+        raise OutputError(f"cannot write: {_reason(exc)}", STDOUT_NAME) from None
+
+
+def _stdout_file(fd: int) -> tuple[bool, int | None]:
+    """(stdout is a regular file, its size now when written at its end: a failed write
+    is cut back to it, else None: a pipe, a device, a write in the middle of a file)."""
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            return False, None
+        import fcntl
+        at_end = (fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_APPEND
+                  or os.lseek(fd, 0, os.SEEK_CUR) >= st.st_size)
+        return True, (st.st_size if at_end else None)
+    except (OSError, ImportError):
+        return False, None
+
+
+def _write_fd(fd: int, data: bytes) -> None:
+    """os.write until every byte is taken; a non-blocking descriptor waits for room."""
+    import select
+    view = memoryview(data)
+    while view:
+        try:
+            n = os.write(fd, view)
+        except BlockingIOError:
+            select.select([], [fd], [])
+            continue
+        if n <= 0:
+            raise OSError(errno.EIO, "the output took no bytes")
+        view = view[n:]
+
+
+def _write_stream(stream, data: bytes) -> None:
+    """The same for a stdout that is no descriptor (click's CliRunner, a StringIO)."""
+    from .errors import OutputError
+    try:
+        buffer = getattr(stream, "buffer", None)
+        if buffer is None:
+            stream.write(data.decode("utf-8"))
+        else:
+            view = memoryview(data)
+            while view:
+                n = buffer.write(view)
+                if n is None:          # a non-blocking raw stream that took nothing
+                    continue
+                if n <= 0:
+                    raise OSError(errno.EIO, "the output took no bytes")
+                view = view[n:]
+            buffer.flush()
+        stream.flush()
+    except BrokenPipeError:
+        raise
+    except (OSError, ValueError) as exc:
+        raise OutputError(f"cannot write: {_reason(exc)}", STDOUT_NAME) from None
+
+
+# ----------------------------------------------------------------------------- error lines
+
+def run_files() -> tuple[list[str], list[str]]:
+    """(inputs, outputs) declared by the running command, or by the one that ended last:
+    the CLI names them in error lines whose exception did not say which file it was."""
+    run = _RUN if _RUN is not None else _LAST_RUN
+    if run is None:
+        return [], []
+    return [p for p, _ in run.inputs], [p for p, _ in run.outputs]
