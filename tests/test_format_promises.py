@@ -72,6 +72,15 @@ What an output may be (in test_outputs_and_bad_inputs.py unless written here)
   /proc, name too long .................... test_bad_output_target[*-proc], [*-name-too-long]
   read-only file system ................... test_read_only_file_system_is_one_line
   full disk ............................... see "read back on a full disk" above
+What is checked when a checkpoint, a distill cache and a capture are read
+  checkpoints ............................. test_hostile_checkpoints.py::
+                                            test_hostile_checkpoint_is_one_line,
+                                            test_real_checkpoints_still_load_and_resume
+  distill cache ........................... test_hostile_checkpoints.py::
+                                            test_damaged_cache_entry_is_recomputed,
+                                            test_cache_write_interrupted_leaves_nothing
+  captures ................................ test_hostile_files.py::
+                                            test_a_hostile_file_is_one_line_and_writes_nothing
 Names say what is written (test_outputs_and_bad_inputs.py unless written here)
   extension matches the format, any case .. test_output_extension_must_say_what_is_written,
                                             test_extensions_are_checked_in_any_case

@@ -43,6 +43,7 @@ class _Config:
 
     @classmethod
     def from_dict(cls, values: dict, where: str = "config"):
+        check_field_types(cls, values, where)
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(values) - set(known))
         if unknown:
@@ -55,6 +56,53 @@ class _Config:
         cfg = cls(**base)
         cfg.validate(where)
         return cfg
+
+
+#: Longest list and string a configuration field may hold (the longest real one is
+#: light_decoder's 8 widths; a longer value is no configuration and must not reach a
+#: message or a model builder whole).
+MAX_LIST = 64
+MAX_TEXT = 64
+
+
+def check_field_types(cls, values, where: str = "config") -> None:
+    """UsageProblem unless ``values`` is a JSON object whose known fields each have their
+    default's JSON type: true/false for flags, integers for counts, numbers for reals,
+    strings for choices (≤ MAX_TEXT characters), lists of numbers for widths and sizes
+    (≤ MAX_LIST items).  Run before a configuration is built, so that no field of a file
+    (a checkpoint's ``config``, ``--config``) reaches ``validate`` or a model with a type
+    it does not expect; ranges and choices are ``validate``'s.  Unknown fields are left
+    to ``from_dict``'s own message."""
+    if not isinstance(values, dict):
+        raise UsageProblem(f"{where} must be a JSON object of fields, got "
+                           f"{type(values).__name__}")
+    defaults = asdict(cls())
+
+    def number(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    for name, value in values.items():
+        if name not in defaults:
+            continue
+        default = defaults[name]
+        if isinstance(default, bool):
+            ok, what = isinstance(value, bool), "true or false"
+        elif isinstance(default, int):
+            ok, what = isinstance(value, int) and not isinstance(value, bool), "an integer"
+        elif isinstance(default, float):
+            ok, what = number(value), "a number"
+        elif isinstance(default, str):
+            ok, what = isinstance(value, str) and len(value) <= MAX_TEXT, "a short string"
+        elif isinstance(default, (tuple, list)):
+            ok = isinstance(value, (list, tuple)) and len(value) <= MAX_LIST and \
+                all(number(v) for v in value)
+            what = f"a list of at most {MAX_LIST} numbers"
+        else:
+            continue
+        if not ok:
+            text = repr(value)
+            raise UsageProblem(f"{where}: {name} must be {what}, got "
+                               f"{text if len(text) <= 60 else text[:57] + '...'}")
 
 
 @dataclass
@@ -339,16 +387,23 @@ def resume_config(checkpoint: dict, cls, overrides: dict, config_file: str | Non
     import json as _json
     raw = checkpoint["config"]
     try:
-        config = cls.from_dict(_json.loads(raw) if isinstance(raw, str) else raw,
-                               "checkpoint config")
+        values = _json.loads(raw) if isinstance(raw, str) else raw
+        check_field_types(cls, values, "checkpoint config")
+        config = cls.from_dict(values, "checkpoint config")
     except UsageProblem as exc:
         raise DataError(exc.message, source) from None
+    except (TypeError, ValueError) as exc:    # not JSON (read_checkpoint checked it before)
+        raise DataError(f"checkpoint config: {str(exc).splitlines()[0][:120]}",
+                        source) from None
     changed = sorted(k for k, v in overrides.items()
                      if v is not None and k != "iters" and getattr(config, k) != v)
     if changed or config_file is not None:
         raise UsageProblem("--resume continues the checkpoint's own configuration; only "
                            "--iters may change (got " + ", ".join(changed or ["--config"]) + ")")
-    step = int(checkpoint["step"])
+    step = checkpoint["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or not 0 <= step <= config.iters:
+        raise DataError(f"checkpoint step must be an integer in [0, {config.iters}], got "
+                        f"{step!r}"[:160], source)
     if iters is not None:
         if iters <= step:
             raise UsageProblem(f"--iters {iters} is not beyond the checkpoint's step {step}")

@@ -125,15 +125,19 @@ class TeacherTargets:
         model: the teacher (eval mode).  config: its TeacherConfig.
         data: CaptureData at the teacher's texture size.
         grid: a DiscreteEnv whose directions/solid angles define the 16×32 grid.
-        cache_dir: folder for spilled textures (None: recompute beyond the budget).
+        cache_dir: folder for spilled textures (None: recompute beyond the budget); a
+            damaged entry is a miss (see :meth:`textures`).
         budget_mb: memory kept.  device: torch device.  mean_texture: GGX teachers' T̄.
         chunk: directions per teacher pass.
+        log: callable(str) for the one note about damaged cache entries (default: stderr,
+            unless the running command was given ``-q``).
     """
 
     def __init__(self, model, config, data: CaptureData, grid, cache_dir: str | None = None,
                  budget_mb: int = 2048, device="cpu", mean_texture=None, chunk: int = 64,
-                 identity: str = ""):
+                 identity: str = "", log=None):
         self.model = model
+        self.log = log if log is not None else _stderr_note
         self.identity = identity
         self.config = config
         self.data = data
@@ -146,7 +150,9 @@ class TeacherTargets:
         self.chunk = chunk
         self._memory = OrderedDict()
         self._bytes = 0
+        self._verified = {}
         self.computed = 0
+        self.repaired = 0
 
     def _key(self, pose: int, camera: str, held_out: bool) -> str:
         text = f"{self.identity}|{self.data.key}|{held_out}|{pose}|{camera}|" \
@@ -154,24 +160,93 @@ class TeacherTargets:
         return hashlib.sha256(text.encode()).hexdigest()[:24]
 
     def textures(self, pose: int, camera: str, held_out: bool = False) -> np.ndarray:
-        """[H_hands, M, 3, N, N] float32 per-direction textures C_m (sr⁻¹)."""
+        """[H_hands, M, 3, N, N] float32 per-direction textures C_m (sr⁻¹).
+
+        A ``--cache`` entry (``KEY.npy``) is used only when it is what this teacher
+        computes there: a plain float32 ``.npy`` (never a pickle) of that shape, the
+        file as long as its header says, every value finite.  Anything else is a miss:
+        it is recomputed and rewritten, and the first such entry of a run is named once
+        on stderr (``log``).  Entries are written atomically (a temporary file in the
+        folder, renamed; removed on errors and Ctrl-C/SIGTERM/SIGHUP)."""
         key = self._key(pose, camera, held_out)
         if key in self._memory:
             self._memory.move_to_end(key)
             return self._memory[key]
         path = None if self.cache_dir is None else os.path.join(self.cache_dir, key + ".npy")
-        if path is not None and os.path.isfile(path):
-            return np.load(path, mmap_mode="r")
+        damaged = False
+        if path is not None and os.path.lexists(path):
+            cached, why = self._read_cached(path, key, held_out)
+            if cached is not None:
+                return cached
+            damaged = True
+            self._note_damaged(path, why)
         value = self._compute(pose, camera, held_out)
-        if value.nbytes + self._bytes <= self.budget:
+        fits = value.nbytes + self._bytes <= self.budget
+        if fits:
             self._memory[key] = value
             self._bytes += value.nbytes
-        elif path is not None:
-            os.makedirs(self.cache_dir, exist_ok=True)
-            tmp = path + f".{os.getpid()}.tmp.npy"
-            np.save(tmp, value)
-            os.replace(tmp, path)
+        if path is not None and (damaged or not fits):
+            self._write_cached(path, value)
         return value
+
+    def _expected_shape(self, held_out: bool) -> tuple:
+        hand = self.data.eval_hand if held_out and self.data.eval_hand is not None \
+            else self.data.hand
+        n = int(self.config.tex_res)
+        return (len(hand.hands), len(self.directions), 3, n, n)
+
+    def _read_cached(self, path: str, key: str, held_out: bool):
+        """(memory-mapped array, None) of a valid cache entry, else (None, why)."""
+        from numpy.lib import format as npy
+        expected = self._expected_shape(held_out)
+        try:
+            stat = os.stat(path)
+            if not os.path.isfile(path):
+                return None, "not a file"
+            with open(path, "rb") as f:
+                version = npy.read_magic(f)
+                if version == (1, 0):
+                    shape, fortran, dtype = npy.read_array_header_1_0(f)
+                elif version == (2, 0):
+                    shape, fortran, dtype = npy.read_array_header_2_0(f)
+                else:
+                    return None, f"unknown .npy version {version}"
+                offset = f.tell()
+        except (OSError, ValueError, EOFError, SyntaxError) as exc:
+            return None, f"not a .npy array: {(str(exc).splitlines() or ['?'])[0][:80]}"
+        if dtype != np.dtype("<f4") or fortran:
+            return None, f"holds {dtype} data, expected float32"
+        if tuple(shape) != expected:
+            return None, f"shape {tuple(shape)}, this teacher's is {expected}"[:160]
+        if stat.st_size != offset + 4 * int(np.prod(expected)):
+            return None, "truncated or padded"
+        try:
+            array = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            return None, f"unreadable: {(str(exc).splitlines() or ['?'])[0][:80]}"
+        stamp = (stat.st_size, stat.st_mtime_ns, stat.st_ino)
+        if self._verified.get(key) != stamp:
+            flat = array.reshape(-1)
+            step = 1 << 22
+            for start in range(0, flat.size, step):
+                if not np.isfinite(flat[start:start + step]).all():
+                    return None, "holds NaN/Inf"
+            self._verified[key] = stamp
+        return array, None
+
+    def _note_damaged(self, path: str, why: str) -> None:
+        self.repaired += 1
+        if self.repaired == 1 and self.log is not None:
+            self.log(f"note: --cache entry {why}: recomputing and rewriting it (and any other "
+                     f"damaged entry) ({path})")
+
+    def _write_cached(self, path: str, value: np.ndarray) -> None:
+        from relight_cli.provenance import atomic_path, outside_transaction
+        os.makedirs(self.cache_dir, exist_ok=True)
+        with outside_transaction(), atomic_path(path, suffix=".npy") as tmp:
+            with open(tmp, "wb") as f:
+                np.save(f, np.ascontiguousarray(value, np.float32), allow_pickle=False)
+        self._verified.pop(os.path.basename(path)[:-4], None)
 
     @torch.no_grad()
     def _compute(self, pose: int, camera_name: str, held_out: bool) -> np.ndarray:
@@ -214,6 +289,15 @@ class TeacherTargets:
         """[H, W, 3] the teacher's render of (pose, camera) under ``denv``."""
         gb = self.data.gbuffer(pose, self.data._cameras[camera], held_out)
         return composite(self.texture(pose, camera, denv, held_out), gb)
+
+
+def _stderr_note(message: str) -> None:
+    """A note on stderr as the running command's log lines are (silent under its -q)."""
+    import click
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None and ctx.params.get("quiet"):
+        return
+    click.echo(message, err=True)
 
 
 # ---------------------------------------------------------------- student inputs
@@ -444,15 +528,20 @@ def evaluate_student(task: StudentTask, model, device) -> dict:
 
 def student_from_checkpoint(checkpoint: dict, device="cpu"):
     """(model in eval mode, StudentConfig) from a read student checkpoint dict.
-    Raises ValueError on missing, extra or mis-shaped tensors."""
+    The weights are compared with the module the configuration builds before it is
+    allocated.  Raises ValueError on missing, extra or mis-shaped tensors."""
     import json
 
     from .config import StudentConfig
-    from .train import load_weights
+    from .train import build_checked
     raw = checkpoint["config"]
     config = StudentConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
                                      "checkpoint config")
     channels = 3 * (1 + (len(config.shininess) if config.specular else 0))
-    model = build_student(config, channels, int(checkpoint["pose_dim"]))
-    load_weights(model, checkpoint["weights"])
+    pose_dim = checkpoint["pose_dim"]
+    if isinstance(pose_dim, bool) or not isinstance(pose_dim, int) or not 3 <= pose_dim <= 300:
+        raise ValueError(f"checkpoint pose_dim must be (joints − 1) × 3 ≤ 300, got "
+                         f"{pose_dim!r}"[:120])
+    model = build_checked(lambda: build_student(config, channels, pose_dim),
+                          checkpoint["weights"])
     return model.to(device).eval(), config

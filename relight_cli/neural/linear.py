@@ -181,6 +181,8 @@ class LinearConfig:
 
     @classmethod
     def from_dict(cls, values: dict, where: str = "config") -> "LinearConfig":
+        from .config import check_field_types
+        check_field_types(cls, values, where)
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(values) - known)
         if unknown:
@@ -510,16 +512,26 @@ def holistic_lighting(frames: np.ndarray, lights, intensity) -> np.ndarray:
 
 
 def model_from_checkpoint(checkpoint: dict, device="cpu"):
-    """(model in eval mode, config, mean texture [1, 3, N, N]) from a read checkpoint.
-    Raises ValueError for missing/mismatched tensors (the caller names the file)."""
-    from .train import load_weights
+    """(model in eval mode, config, mean texture [1, 3, N, N]) from a read checkpoint
+    (:func:`relight_cli.formats.checkpoint.read_checkpoint`).  The weights are compared
+    with the module the configuration builds before it is allocated
+    (:func:`~relight_cli.neural.train.build_checked`).  Raises ValueError for
+    missing/mismatched tensors or mean texture (the caller names the file)."""
+    from .train import build_checked
     raw = checkpoint["config"]
     config = LinearConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
                                     "checkpoint config")
-    model = URHandModel(config, int(checkpoint["pose_dim"]))
-    load_weights(model, checkpoint["weights"])
+    pose_dim = checkpoint["pose_dim"]
+    if isinstance(pose_dim, bool) or not isinstance(pose_dim, int) or not 3 <= pose_dim <= 300:
+        raise ValueError(f"checkpoint pose_dim must be (joints − 1) × 3 ≤ 300, got "
+                         f"{pose_dim!r}"[:120])
+    model = build_checked(lambda: URHandModel(config, pose_dim), checkpoint["weights"])
     model.to(device).eval()
     mean = checkpoint.get("extra", {}).get("mean_texture")
     if mean is None:
         raise ValueError("a linear checkpoint needs its mean texture (extra.mean_texture)")
+    n = config.tex_res
+    if not isinstance(mean, torch.Tensor) or mean.ndim != 4 or mean.dtype != torch.float32 \
+            or not 1 <= mean.shape[0] <= 4 or tuple(mean.shape[1:]) != (3, n, n):
+        raise ValueError(f"extra.mean_texture must be float32 [1..4, 3, {n}, {n}]")
     return model, config, mean.to(device)

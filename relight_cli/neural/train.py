@@ -100,12 +100,14 @@ def _python_state():
     return [version, list(internal), gauss]
 
 
-def set_rng_state(state: dict) -> None:
-    torch.set_rng_state(state["torch"])
-    np_state = json.loads(state["numpy"]) if isinstance(state["numpy"], str) else state["numpy"]
-    np.random.set_state((np_state[0], np.asarray(np_state[1], np.uint32), *np_state[2:]))
-    py = json.loads(state["python"]) if isinstance(state["python"], str) else state["python"]
-    random.setstate((py[0], tuple(py[1]), py[2]))
+def set_rng_state(state: dict, source: str | None = None) -> None:
+    """Restore the torch / numpy / python RNGs from a checkpoint's ``rng`` field, each
+    state checked first (DataError naming ``source``; nothing is restored then)."""
+    from relight_cli.formats.checkpoint import decode_rng
+    torch_state, np_state, py_state = decode_rng(state, source)
+    torch.set_rng_state(torch_state)
+    np.random.set_state(np_state)
+    random.setstate(py_state)
 
 
 def sample_loss(model, data: CaptureData, item, config: TeacherConfig, step: int, device,
@@ -234,8 +236,15 @@ class TeacherTask:
         return model
 
     def restore(self, resume: dict, device):
-        if "mean_texture" in resume.get("extra", {}):
-            self.mean_texture = resume["extra"]["mean_texture"].to(device)
+        mean = resume.get("extra", {}).get("mean_texture")
+        if mean is not None:
+            n = self.config.tex_res
+            if not isinstance(mean, torch.Tensor) or mean.ndim != 4 or \
+                    tuple(mean.shape[1:]) != (3, n, n) or mean.dtype != torch.float32:
+                raise ValueError(f"extra.mean_texture must be float32 [1, 3, {n}, {n}]")
+            self.mean_texture = mean.to(device)
+        elif self.config.model == "ggx":
+            raise ValueError("a ggx checkpoint needs its mean texture (extra.mean_texture)")
 
     def loss(self, net, item, step, device):
         return sample_loss(net, self.data, item, self.config, step, device, self.vgg,
@@ -279,7 +288,10 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         config: a configuration with ``iters``, ``batch``, ``lr``, ``seed``, ``val_every``,
             ``save_every`` and ``to_dict()``.
         device: torch device (``resolve_device``).
-        resume: a checkpoint dict (``formats.checkpoint.read_checkpoint``) to continue.
+        resume: a checkpoint dict (``formats.checkpoint.read_checkpoint``) to continue;
+            its weights are compared with the module the task builds (on the meta device,
+            before allocating it) and its whole state with this run's model and
+            optimizer (:func:`restore_state`) before any of it is used.
         provenance: stored in the checkpoint.
         save: callable(checkpoint dict) for periodic saves (rank 0; ``save_every``).
         show_progress: progress on stderr (rank 0): a tqdm bar on a terminal, else plain lines.
@@ -296,15 +308,15 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
     torch.manual_seed(config.seed)
     np.random.seed(config.seed % (2 ** 32))
     random.seed(config.seed)
+    if resume is not None:
+        # the checkpoint's weights must be those of the module its configuration builds,
+        # compared on the meta device before anything is allocated for it
+        check_resume_weights(lambda: task.build(torch.device("meta"), resume), resume)
     model = task.build(device, resume)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
     start = 0
     if resume is not None:
-        model.load_state_dict({k: v.to(device) for k, v in resume["weights"].items()})
-        optimizer.load_state_dict(resume["optimizer"])
-        start = int(resume["step"])
-        set_rng_state(resume["rng"])
-        task.restore(resume, device)
+        start = restore_state(task, model, optimizer, resume, device)
     net = model
     use_ddp = world > 1 and getattr(task, "ddp", True)
     before_step = getattr(task, "before_step", None)
@@ -411,32 +423,187 @@ def _summary(record: dict) -> str:
     return "; ".join(parts)
 
 
-def load_weights(model, weights: dict) -> None:
-    """Load a state dict, refusing missing, unexpected or mis-shaped tensors (ValueError)."""
-    expected = model.state_dict()
+def check_weights(expected: dict, weights: dict, what: str = "checkpoint") -> None:
+    """Compare a state dict with a module's (``expected``: its ``state_dict()``, on any
+    device, meta included): the same names, and each tensor of the same shape and dtype.
+    ValueError naming the first difference; no tensor's values are touched."""
+    if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor)
+                                                for v in weights.values()):
+        raise ValueError(f"{what} weights must map names to tensors")
     missing = [k for k in expected if k not in weights]
     if missing:
-        raise ValueError(f"checkpoint lacks tensor {missing[0]} ({len(missing)} missing)")
+        raise ValueError(f"{what} lacks tensor {missing[0]} ({len(missing)} missing)")
     unexpected = [k for k in weights if k not in expected]
     if unexpected:
-        raise ValueError(f"checkpoint has unexpected tensor {unexpected[0]}")
+        raise ValueError(f"{what} has unexpected tensor {str(unexpected[0])[:80]}")
     for k, v in expected.items():
         if tuple(weights[k].shape) != tuple(v.shape):
-            raise ValueError(f"tensor {k} has shape {tuple(weights[k].shape)}, the model "
-                             f"expects {tuple(v.shape)}")
+            shape = tuple(weights[k].shape)
+            text = str(shape) if len(str(shape)) <= 60 else str(shape)[:57] + "..."
+            raise ValueError(f"{what} tensor {k} has shape {text}, the model expects "
+                             f"{tuple(v.shape)}")
+        if weights[k].dtype != v.dtype:
+            raise ValueError(f"{what} tensor {k} is {weights[k].dtype}, the model expects "
+                             f"{v.dtype}")
+
+
+def load_weights(model, weights: dict) -> None:
+    """Load a state dict, refusing missing, unexpected, mis-shaped or mis-typed tensors
+    (ValueError) before any value is copied."""
+    check_weights(model.state_dict(), weights)
     model.load_state_dict(weights)
 
 
+def build_checked(build, weights: dict):
+    """``build()``'s module with ``weights`` loaded — built for real only once the weights
+    match the module it makes on the meta device (no memory): a configuration read from
+    a file cannot make us allocate a model its file does not hold.  ValueError on a
+    mismatch (the caller names the file)."""
+    with torch.device("meta"):
+        probe = build()
+    check_weights(probe.state_dict(), weights)
+    model = build()
+    model.load_state_dict(weights)
+    return model
+
+
+def check_resume_weights(build_meta, resume: dict) -> None:
+    """A resumed checkpoint's weights against the module its task builds (on the meta
+    device); DataError naming the checkpoint."""
+    with torch.device("meta"):
+        probe = build_meta()
+    try:
+        check_weights(probe.state_dict(), resume["weights"])
+    except ValueError as exc:
+        raise DataError(str(exc), resume.get("path")) from None
+
+
+def check_optimizer_state(optimizer, state, what: str = "optimizer") -> None:
+    """A saved Adam ``state_dict()`` against ``optimizer`` (built over the model's
+    parameters): the same groups over the same parameter indices, the same
+    hyperparameters but the learning rate (a schedule's to set), and each parameter's
+    moments of its shape and dtype, finite, the second moment ≥ 0.  ValueError naming
+    the first difference; the optimizer is untouched."""
+    import math
+    fresh = optimizer.state_dict()
+    if not isinstance(state, dict) or not isinstance(state.get("param_groups"), list) \
+            or not isinstance(state.get("state"), dict):
+        raise ValueError(f"{what} must be an optimizer state dict (state, param_groups)")
+    if len(state["param_groups"]) != len(fresh["param_groups"]):
+        raise ValueError(f"{what} has {len(state['param_groups'])} parameter group(s), the "
+                         f"model's has {len(fresh['param_groups'])}")
+    params = {}
+    for saved, group, live in zip(state["param_groups"], fresh["param_groups"],
+                                  optimizer.param_groups):
+        if not isinstance(saved, dict) or saved.get("params") != group["params"]:
+            raise ValueError(f"{what} groups list other parameters than the model's "
+                             f"({len(group['params'])} in a group)")
+        extra = sorted(str(k) for k in set(saved) - set(group))
+        if extra:
+            raise ValueError(f"{what} has unknown hyperparameter {extra[0][:40]}")
+        for key, value in saved.items():
+            if key == "params":
+                continue
+            if key == "lr":
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                        not math.isfinite(value) or not 0 < value <= 10:
+                    raise ValueError(f"{what} learning rate must be in (0, 10], got "
+                                     f"{value!r}"[:120])
+            elif type(value) is not type(group[key]) or value != group[key]:
+                raise ValueError(f"{what} hyperparameter {key} is {value!r}, this model's "
+                                 f"optimizer has {group[key]!r}"[:160])
+        for i, p in zip(group["params"], live["params"]):
+            params[i] = p
+    amsgrad = any(g.get("amsgrad") for g in fresh["param_groups"])
+    keys = {"step", "exp_avg", "exp_avg_sq"} | ({"max_exp_avg_sq"} if amsgrad else set())
+    for i, entry in state["state"].items():
+        if i not in params:
+            raise ValueError(f"{what} has moments for parameter {i!r}, which the model does "
+                             f"not have"[:160])
+        if not isinstance(entry, dict) or set(entry) != keys:
+            raise ValueError(f"{what} state of parameter {i} must hold {', '.join(sorted(keys))}")
+        step = entry["step"]
+        if isinstance(step, torch.Tensor):
+            if step.ndim != 0 or not step.is_floating_point():
+                raise ValueError(f"{what} step of parameter {i} must be a scalar")
+            step = float(step)
+        if isinstance(step, bool) or not isinstance(step, (int, float)) or \
+                not math.isfinite(step) or not 0 <= step <= 1e9 or step != int(step):
+            raise ValueError(f"{what} step of parameter {i} must be a count, got {step!r}"[:120])
+        p = params[i]
+        for key in keys - {"step"}:
+            moment = entry[key]
+            if not isinstance(moment, torch.Tensor) or tuple(moment.shape) != tuple(p.shape) \
+                    or moment.dtype != p.dtype:
+                got = (tuple(moment.shape), moment.dtype) if isinstance(moment, torch.Tensor) \
+                    else type(moment).__name__
+                raise ValueError(f"{what} {key} of parameter {i} must be {p.dtype} "
+                                 f"{tuple(p.shape)}, got {got}"[:160])
+            if not bool(torch.isfinite(moment).all()) or (key != "exp_avg" and
+                                                          bool((moment < 0).any())):
+                raise ValueError(f"{what} {key} of parameter {i} holds NaN/Inf or negative "
+                                 f"values")
+
+
+def restore_state(task, model, optimizer, resume: dict, device) -> int:
+    """Continue from a read checkpoint: its weights, Adam state, step, RNG states and the
+    task's own extras (``task.restore``; a task's second module and optimizer, ``disc`` and
+    ``opt_d``, from ``extra.discriminator`` / ``extra.optimizer_discriminator``), all
+    checked against this run's modules and optimizers before any is used.  Returns the
+    step to continue from.  DataError naming the checkpoint (``resume["path"]``) for
+    anything that does not fit."""
+    from relight_cli.formats.checkpoint import decode_rng
+    source = resume.get("path")
+    try:
+        check_weights(model.state_dict(), resume["weights"])
+        check_optimizer_state(optimizer, resume["optimizer"])
+        step = resume["step"]
+        if isinstance(step, bool) or not isinstance(step, int) or not 0 <= step <= 10 ** 9:
+            raise ValueError(f"checkpoint step must be an integer count, got {step!r}"[:120])
+        extra = resume.get("extra", {})
+        if not isinstance(extra, dict):
+            raise ValueError("checkpoint extra must be a dict")
+        disc, opt_d = getattr(task, "disc", None), getattr(task, "opt_d", None)
+        if disc is not None:
+            check_weights(disc.state_dict(), extra.get("discriminator"),
+                          "checkpoint extra.discriminator")
+            check_optimizer_state(opt_d, extra.get("optimizer_discriminator"),
+                                  "extra.optimizer_discriminator")
+        decode_rng(resume["rng"], source)
+        model.load_state_dict(resume["weights"])
+        optimizer.load_state_dict(resume["optimizer"])
+        task.restore(resume, device)
+    except DataError:
+        raise
+    except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+        # task.restore's own loads fail inside torch: still one line naming the checkpoint
+        text = (str(exc).splitlines() or [type(exc).__name__])[0][:160]
+        raise DataError(f"cannot resume from this checkpoint: {text}", source) from None
+    set_rng_state(resume["rng"], source)
+    return step
+
+
 def model_from_checkpoint(checkpoint: dict, device="cpu"):
-    """(model in eval mode, config, mean texture or None) from a read checkpoint dict.
-    Raises DataError (via the caller's path) on missing/mismatched tensors."""
+    """(model in eval mode, config, mean texture or None) from a read checkpoint dict
+    (:func:`relight_cli.formats.checkpoint.read_checkpoint`).  The weights are compared
+    with the module the configuration builds before it is allocated; ValueError (the
+    caller names the file) on missing, extra or mis-shaped tensors or a missing or
+    mis-shaped mean texture."""
     raw = checkpoint["config"]
     config = TeacherConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
                                      "checkpoint config")
-    model = build_model(config, int(checkpoint["pose_dim"]))
-    load_weights(model, checkpoint["weights"])
+    pose_dim = checkpoint["pose_dim"]
+    if isinstance(pose_dim, bool) or not isinstance(pose_dim, int) or not 3 <= pose_dim <= 300:
+        raise ValueError(f"checkpoint pose_dim must be (joints − 1) × 3 ≤ 300, got "
+                         f"{pose_dim!r}"[:120])
+    model = build_checked(lambda: build_model(config, pose_dim), checkpoint["weights"])
     model.to(device).eval()
     mean = checkpoint.get("extra", {}).get("mean_texture")
     if config.model == "ggx" and mean is None:
         raise ValueError("a ggx checkpoint needs its mean texture (extra.mean_texture)")
+    if mean is not None:
+        n = config.tex_res
+        if not isinstance(mean, torch.Tensor) or mean.ndim != 4 or mean.dtype != torch.float32 \
+                or not 1 <= mean.shape[0] <= 4 or tuple(mean.shape[1:]) != (3, n, n):
+            raise ValueError(f"extra.mean_texture must be float32 [1..4, 3, {n}, {n}]")
     return model, config, (None if mean is None else mean.to(device))
