@@ -485,3 +485,36 @@ def test_damaged_exrs_get_one_line_each(damaged, tmp_path, suffix):
     assert failures == [], failures[:5]
     assert os.listdir(tmp_path) == []
     assert before == {name: (DAMAGED / name).stat().st_size for name in DAMAGED_FILES}
+
+
+#: every other command that reads an image (each refuses a damaged file before any work, so
+#: the whole cross product costs a few seconds)
+IMAGE_READERS = {
+    "envmap-convert": lambda f, o: ["envmap", f, "--to", "latlong", "--size", "8x4", "-o",
+                                    str(o / "o.exr")],
+    "sh-probe": lambda f, o: ["sh-probe", f, "--degree", "1", "-o", str(o / "o.json")],
+    "relight-env": lambda f, o: ["relight", "builtin:right", f, "--model", "physical",
+                                 "--size", "16x16", "-o", str(o / "o.exr")],
+    "bake-features": lambda f, o: ["bake-features", "builtin:right", f, "-o",
+                                   str(o / "o.exr")],
+    "camera-from": lambda f, o: ["camera", "--from", f, "-o", str(o / "o.json")],
+}
+
+
+@pytest.mark.parametrize("command", sorted(IMAGE_READERS))
+def test_damaged_exrs_into_every_image_reader(damaged, tmp_path, command):
+    """Every fuzzed EXR (as NAME.exr) into each command that reads an image: exit 1 and one
+    line naming the file, nothing written, the file untouched."""
+    failures = []
+    sample = DAMAGED_FILES
+    before = {name: (DAMAGED / name).stat().st_size for name in sample}
+    for name in sample:
+        f = str(damaged / (name + ".exr"))
+        r = CliRunner().invoke(cli, IMAGE_READERS[command](f, tmp_path))
+        lines = [line for line in r.stderr.splitlines() if line.strip()]
+        if (r.exit_code != 1 or len(lines) != 1 or "internal error" in r.stderr
+                or "Traceback" in r.output or not lines[0].endswith(f"({f})") or r.stdout):
+            failures.append((name, r.exit_code, r.stderr[:300]))
+    assert failures == [], failures[:5]
+    assert os.listdir(tmp_path) == []
+    assert before == {name: (DAMAGED / name).stat().st_size for name in sample}
