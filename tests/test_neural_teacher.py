@@ -221,9 +221,16 @@ def test_config_validation_and_presets(tmp_path):
     with pytest.raises(UsageProblem):
         resolve_config("huge")
     for bad in ({"iters": 0}, {"lr": float("nan")}, {"tex_res": 30}, {"model": "mlp"},
-                {"bogus": 1}, {"batch": True}, {"encoder": []}):
+                {"bogus": 1}, {"batch": True}, {"encoder": []}, {"head": "inside"},
+                {"untied_bias": 1}, {"neg_schedule": "never"}, {"aa": 9}, {"aa": -1}):
         with pytest.raises(UsageProblem):
             TeacherConfig.from_dict(bad)
+    from relight_cli.neural.config import StudentConfig
+    for bad in ({"untied_bias": "yes"}, {"neg_schedule": "never"}):
+        with pytest.raises(UsageProblem):
+            StudentConfig.from_dict(bad)
+    assert TeacherConfig.from_dict({"head": "code", "neg_schedule": "constant",
+                                    "untied_bias": True, "aa": 0}).head == "code"
     cfg = tmp_path / "c.json"
     cfg.write_text('{"iters": 7, "lr": 0.01}')
     assert resolve_config("tiny", str(cfg), {"iters": 9}).iters == 9
@@ -606,7 +613,7 @@ def _edit_index(cap, edit):
 
 @pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
                                   "iters-0", "unknown-preset", "not-pt", "not-a-folder",
-                                  "bad-config", "resume-other-config"])
+                                  "bad-config", "bad-head", "resume-other-config"])
 def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli):
     from relight_cli.formats import capture as C
     cap = _copy_capture(capture_dir, tmp_path)
@@ -647,6 +654,10 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
         args[1] = str(tmp_path / "nope")
     elif case == "bad-config":
         (tmp_path / "bad.json").write_text('{"tex_res": 33}')
+        args[3] = str(tmp_path / "bad.json")
+        code = 2
+    elif case == "bad-head":
+        (tmp_path / "bad.json").write_text('{"head": "inside", "untied_bias": true}')
         args[3] = str(tmp_path / "bad.json")
         code = 2
     elif case == "resume-other-config":
