@@ -338,6 +338,20 @@ def _fit(hand, keypoints, reader, scan_paths, interpolate, iterations, bone_scal
     kp = None
     if keypoints is not None:
         kp = _read_targets(keypoints, hand.n_joints, hand.side, reader)
+    skipped = []
+    if kp is not None:
+        empty = ~(kp.confidence > 0).any(axis=1)
+        if empty.all():
+            raise DataError("no selected keypoint frame measures any joint (every confidence "
+                            "is 0): nothing to fit", keypoints)
+        if empty.any() and scan_paths is not None:
+            raise DataError(f"keypoint frame {int(kp.frames[empty][0])} measures no joint "
+                            f"(every confidence is 0); with --scans every frame needs "
+                            f"keypoints", keypoints)
+        if empty.any():   # a frame without any measured joint is a missing frame
+            skipped = [int(f) for f in kp.frames[empty]]
+            kp.positions, kp.confidence, kp.frames = \
+                kp.positions[~empty], kp.confidence[~empty], kp.frames[~empty]
     scans = None
     if scan_paths is not None:
         scans = [_read_scan(p, rng) for p in scan_paths]
@@ -353,6 +367,11 @@ def _fit(hand, keypoints, reader, scan_paths, interpolate, iterations, bone_scal
             f"{src['recorded_frames'] - src['frames_without_hand']} of {src['recorded_frames']} "
             f"frames; missing joints (never measured): "
             f"{', '.join(src['never_observed_joints']) or 'none'}", quiet)
+    if skipped:
+        shown = ", ".join(map(str, skipped[:8])) + (", …" if len(skipped) > 8 else "")
+        log(f"skipping {len(skipped)} keypoint frame(s) that measure no joint (frame "
+            f"{shown}): " + ("--interpolate fills them" if interpolate else
+                             "missing from the output; --interpolate fills them"), quiet)
     log(f"fitting {n} frame(s)" + (f" to {keypoints}" if keypoints else "")
         + (f" and {len(scans)} scan(s)" if scans else ""), quiet)
     bar = progress(total=n, desc="fit frames", quiet=quiet)
@@ -408,6 +427,7 @@ def _fit(hand, keypoints, reader, scan_paths, interpolate, iterations, bone_scal
         "per_frame": per_frame,
     }
     if kp is not None:
+        report["frames_without_joints"] = skipped
         report["mpjpe_mm"] = _num(np.nanmean(result.joint_error_mm))
         if kp.source is not None:
             report["keypoints"] = kp.source

@@ -681,7 +681,7 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
         try:
             EV.check_hands(per_hand, data)
         except ValueError as exc:
-            raise DataError(str(exc), input) from None
+            raise DataError(str(exc), getattr(exc, "path", None) or input) from None
         config, ckpt = per_hand[0].config, None
         _log_mirrored(per_hand, handedness(data), quiet)
     envmap = load_envmap(env) if env is not None else None

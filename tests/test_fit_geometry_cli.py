@@ -104,9 +104,11 @@ def test_fit_keypoints_json_interpolate_report(run_cli, tmp_path):
     conf = np.ones((3, 25, 1))
     conf[1, 20:25] = 0                              # pinky missing in the middle keyframe
     data = np.concatenate([kp, conf], -1)
+    # Frame 6 measures no joint at all: a missing frame, filled like the others.
+    data = np.concatenate([data[:2], np.zeros((1, 25, 4)), data[2:]])
     spec = tmp_path / "kp.json"
     spec.write_text(json.dumps({"format": "relight/keypoints", "version": 1,
-                                "frames": [0, 4, 8], "keypoints": data.tolist()}))
+                                "frames": [0, 4, 6, 8], "keypoints": data.tolist()}))
     out, report = tmp_path / "fit.npz", tmp_path / "fit.json"
     r = run_cli("fit-geometry", "--keypoints", spec, "--interpolate", "--iterations", "90",
                 "-o", out, "--report", report, "-q")
@@ -116,6 +118,7 @@ def test_fit_keypoints_json_interpolate_report(run_cli, tmp_path):
     rep = json.loads(report.read_text())
     assert rep["output_frames"] == list(range(9))
     assert [row["frame"] for row in rep["per_frame"]] == [0, 4, 8]
+    assert rep["frames_without_joints"] == [6]
     assert rep["per_frame"][1]["observed_joints"] == 20
     assert rep["mpjpe_mm"] < 5.0
     # Keyframes reproduce the fitted joints; in-betweens are slerps of them.
@@ -123,6 +126,7 @@ def test_fit_keypoints_json_interpolate_report(run_cli, tmp_path):
     assert np.linalg.norm(j0 - kp[0], axis=1).mean() < 0.005
     mid = P.slerp(h.poses[0], h.poses[4], 0.5)
     np.testing.assert_allclose(h.poses[2], mid, atol=1e-9)
+    np.testing.assert_allclose(h.poses[6], P.slerp(h.poses[4], h.poses[8], 0.5), atol=1e-9)
 
 
 def test_fit_npy_with_scan_subprocess(tmp_path):

@@ -70,6 +70,13 @@ def _load(path):
     return torch.load(path, weights_only=True)
 
 
+def _other_layout():
+    """The UV layout digest of another hand model (the coarse mesh's chart)."""
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.neural.geometry import uv_layout_digest
+    return uv_layout_digest(builtin_hand().mesh("coarse"))
+
+
 def _first(state):
     return next(iter(state))
 
@@ -214,6 +221,13 @@ ROWS = [
     ("model-unet9", "teacher", lambda c: _set(c, "model", "unet9"), "relight", "unet9"),
     ("uv-layout-not-hex", "teacher", lambda c: _set(c, "extra.uv_layout", ["x"]), "relight",
      "uv_layout"),
+    ("uv-layout-other-hand", "teacher", lambda c: _set(c, "extra.uv_layout", _other_layout()),
+     "relight", "uv_layout is not the UV layout"),
+    ("uv-layout-other-hand-linear", "linear",
+     lambda c: _set(c, "extra.uv_layout", _other_layout()), "relight-linear", "uv_layout is not the UV layout"),
+    ("uv-layout-other-hand-capture", "teacher",
+     lambda c: _set(c, "extra.uv_layout", _other_layout()), "capture",
+     "uv_layout is not the UV layout"),
     ("ggx-mean-texture-nan", "ggx",
      lambda c: _set(c, "extra.mean_texture", c["extra"]["mean_texture"] * float("nan")),
      "relight", "NaN"),

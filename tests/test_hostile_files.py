@@ -179,6 +179,33 @@ def _zero_confidence_keypoints(t):
     return path
 
 
+def _one_empty_frame_keypoints(t):
+    """Two keypoint frames; the second measures no joint."""
+    import numpy as np
+
+    from relight_cli.formats.keypoints import Keypoints, write_keypoints
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.hand.scene import posed_joints_world
+    path = t / "kp.json"
+    joints = posed_joints_world(builtin_hand(), 0)[0]
+    conf = np.ones((2, 25))
+    conf[1] = 0
+    write_keypoints(str(path), Keypoints(np.stack([joints, joints]), conf, np.arange(2),
+                                         None, None, None))
+    return path
+
+
+def _scan(t):
+    """A PLY point cloud (the relaxed hand's vertices) to pass as a scan."""
+    import trimesh
+
+    from relight_cli.hand.model import builtin_hand
+    path = t / "scan.ply"
+    if not path.exists():
+        trimesh.PointCloud(builtin_hand().coarse.vertices).export(str(path))
+    return path
+
+
 # Each row: id -> (make(base, work folder) -> argv with OUT.ext for the output, exit code,
 # words the error line must hold, the file it must name relative to the work folder).
 ROWS = {
@@ -239,6 +266,9 @@ ROWS = {
     "keypoints-no-confidence": (
         lambda b, t: _fit(_zero_confidence_keypoints(t)), 1, "measures any joint",
         "kp.json"),
+    "keypoints-frame-no-joint/--scans": (
+        lambda b, t: _fit(_one_empty_frame_keypoints(t), "--scans", _scan(t), "--scans",
+                          _scan(t)), 1, "keypoint frame 1 measures no joint", "kp.json"),
     "capture-index-folder/camera": (
         lambda b, t: _camera(_index_is_folder(b, t) / "capture.json"), 1, "directory",
         "cap/capture.json"),

@@ -46,6 +46,9 @@ class HandModel:
         sides: handedness of the hands it was trained on (empty: not recorded, a
             checkpoint from before the record existed).
         uv_layouts: the UV layout digest of each trained hand (as rendered).
+        layout: the checkpoint's ``uv_layout``, the digest of its training hand's fine
+            mesh as rendered ("" when not recorded); checked against a scene's hand in
+            either winding, so a checkpoint cannot claim another hand model's layout.
         capture_key: the training capture's key.  pose_dim: pose vector length.
         name: a label for messages (e.g. the checkpoint path).  step: iterations trained.
     """
@@ -60,6 +63,7 @@ class HandModel:
     pose_dim: int = 0
     name: str = ""
     step: int = 0
+    layout: str = ""
 
     @property
     def model_name(self) -> str:
@@ -97,7 +101,8 @@ def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel
     if not hands and extra.get("uv_layout"):
         layouts = [str(extra["uv_layout"])]
     return HandModel(kind, net, config, mean, sides, layouts, str(checkpoint["capture_key"]),
-                     int(checkpoint["pose_dim"]), name, int(checkpoint["step"]))
+                     int(checkpoint["pose_dim"]), name, int(checkpoint["step"]),
+                     str(extra.get("uv_layout") or ""))
 
 
 def assign_models(models: list, sides: list) -> list:
@@ -134,9 +139,12 @@ def assign_models(models: list, sides: list) -> list:
 
 def check_hands(models: list, hand) -> None:
     """Refuse a scene a hand's model cannot render: another joint count, or another UV
-    chart than the one its texture was learned on (ValueError naming the hand)."""
-    from .geometry import hand_records, uv_layout_digest
+    chart than the one its texture was learned on (ValueError naming the hand), or a
+    checkpoint whose ``uv_layout`` contradicts its own hands record (ValueError whose
+    ``path`` attribute is the model's name: the checkpoint is at fault)."""
+    from .geometry import hand_records, uv_layout_digest, uv_layout_digests
     records = hand_records(hand)
+    windings = uv_layout_digests(hand.mesh("fine"))
     for k, (model, record) in enumerate(zip(models, records)):
         label = model.name or "the model"
         if (hand.n_joints - 1) * 3 != model.pose_dim:
@@ -146,6 +154,12 @@ def check_hands(models: list, hand) -> None:
             ok = record["uv_chart"] in model.uv_layouts
         else:   # an older checkpoint: the digest of its training hand's model mesh
             ok = not model.uv_layouts or uv_layout_digest(hand.mesh("fine")) in model.uv_layouts
+        if ok and model.layout and model.layout not in windings:
+            err = ValueError(f"the checkpoint's uv_layout is not the UV layout of the hand "
+                             f"its hands record names (hand {k} of the scene matches the "
+                             f"record): a damaged or edited checkpoint")
+            err.path = model.name      # the checkpoint is at fault, not the scene
+            raise err
         if not ok:
             raise ValueError(f"hand {k}'s UV layout differs from the one {label} learned its "
                              f"texture on (another hand model?)")
@@ -457,7 +471,7 @@ class CaptureEvaluator:
             if base.eval_hand is not None:
                 check_hands(self.models, base.eval_hand)
         except ValueError as exc:
-            raise DataError(str(exc), base.hand_path) from None
+            raise DataError(str(exc), getattr(exc, "path", None) or base.hand_path) from None
         self.names = hand_names(sides)
         self._env_inputs = LRU(4)
         self._envs = {}

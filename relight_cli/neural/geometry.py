@@ -56,6 +56,13 @@ def uv_layout_digest(mesh) -> str:
     return _digest(mesh.uv, mesh.faces_uv)
 
 
+def uv_layout_digests(mesh) -> tuple:
+    """:func:`uv_layout_digest` of ``mesh`` as it is and of its mirror image (each face's
+    corners in the other winding): a layout learned on a hand matches its mirror too."""
+    faces_uv = np.asarray(mesh.faces_uv, np.int64)
+    return _digest(mesh.uv, faces_uv), _digest(mesh.uv, faces_uv[:, [0, 2, 1]])
+
+
 def uv_tangents(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
                 faces_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-UV-vertex ∂x/∂u and ∂x/∂v ([T, 3] each, unnormalized, area weighted).
