@@ -670,9 +670,41 @@ def mean_std(values: list) -> dict:
     return {"mean": m, "std": s, "n": len(vals), "values": vals}
 
 
+#: a row is converged when its validation curve gains less than this over the last
+#: CONVERGED_TAIL of its iterations (issue 21's rule)
+CONVERGED_DB = 0.2
+CONVERGED_TAIL = 0.2
+
+
+def converged(curves: list, iters: list, metric: str) -> dict:
+    """Per seed, the held-out gain in dB over the last 20 % of iterations — the curve's
+    final value against its first point at ≥ 80 % of the iterations (MSE as
+    10·log10(mse₈₀ / mse_end), PSNR as a difference) — and whether every seed gained less
+    than :data:`CONVERGED_DB` (None where a curve has no point in the window)."""
+    gains = []
+    for curve, n in zip(curves, iters):
+        points = [(s, v) for s, v in curve if v is not None]
+        start = [v for s, v in points if s >= (1 - CONVERGED_TAIL) * n and s < n]
+        if not points or not start or points[-1][0] != n:
+            gains.append(None)
+            continue
+        a, b = start[0], points[-1][1]
+        if metric == "mse":
+            gain = 10 * math.log10(a / b) if a > 0 and b > 0 else None
+        elif metric == "ssim":
+            gain = None
+        else:
+            gain = b - a
+        gains.append(gain)
+    known = [g for g in gains if g is not None]
+    return {"gain_db": mean_std(known) if known else None,
+            "converged": (all(g < CONVERGED_DB for g in known) if len(known) == len(gains)
+                          and known else None)}
+
+
 def summarize(table: Table, runs: dict) -> dict:
     """rows → hand → split → metric → mean/std/values; curves; claims' verdicts."""
-    rows, curves, seconds = {}, {}, {}
+    rows, curves, seconds, convergence = {}, {}, {}, {}
     for name, per_hand in runs.items():
         for hand, records in per_hand.items():
             cell = {}
@@ -691,10 +723,12 @@ def summarize(table: Table, runs: dict) -> dict:
                 [s, mean_std([p[1] for r in records for p in r["curve"] if p[0] == s])]
                 for s in steps]
             seconds.setdefault(name, {})[hand] = mean_std([r["seconds"] for r in records])
+            convergence.setdefault(name, {})[hand] = converged(
+                [r["curve"] for r in records], [r["iters"] for r in records], table.curve[1])
     out = {"table": table.name, "title": table.title, "rows": rows, "curves": curves,
            "row_seconds": round(sum(r["seconds"] for p in runs.values() for rs in p.values()
                                     for r in rs), 1),
-           "seconds": seconds, "seeds": sorted({r["seed"] for p in runs.values()
+           "seconds": seconds, "convergence": convergence, "seeds": sorted({r["seed"] for p in runs.values()
                                                 for rs in p.values() for r in rs})}
     out["claims"] = [verdict(table, c, runs) for c in table.claims]
     return out
@@ -806,6 +840,22 @@ def markdown(table: Table, record: dict) -> str:
                 gaps.append(f"{name}: " + ", ".join(parts))
         lines += ["", "Gap to the ceiling (ceiling PSNR − row PSNR, mean over seeds): "
                   + "; ".join(gaps) + "."]
+    conv = record.get("convergence") or {}
+    if conv:
+        parts = []
+        for name, per_hand in conv.items():
+            for hand in hands:
+                c = per_hand.get(hand) or {}
+                if c.get("gain_db") is None:
+                    continue
+                verdict_text = {True: "converged", False: "NOT converged"}.get(
+                    c.get("converged"), "unknown")
+                parts.append(f"{name} {hand} {c['gain_db']['mean']:+.2f} dB ({verdict_text})")
+        if parts:
+            lines += ["", f"Convergence ({SPLIT_NAMES.get(table.curve[0], table.curve[0])} "
+                      f"gain over the last {CONVERGED_TAIL:.0%} of iterations, mean over "
+                      f"seeds; converged when every seed gained < {CONVERGED_DB} dB): "
+                      + "; ".join(parts) + "."]
     lines += ["", "Mean ± sample standard deviation over the seeds (each seed: a fresh "
               "initialization and sampling order on the same capture). Masked by the "
               "ground-truth hand mask; linear radiance, PSNR's data range that of the ground "
@@ -954,7 +1004,7 @@ def require_matplotlib() -> None:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scale", choices=("tiny", "medium", "paper"), default="tiny")
+    ap.add_argument("--scale", choices=("tiny", "medium", "converged", "paper"), default="tiny")
     ap.add_argument("--seeds", type=int, default=3, help="seeds 0 … N−1 per row (default 3)")
     ap.add_argument("--out", help="work folder: captures, trained rows (cache); required "
                                   "unless --report")

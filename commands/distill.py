@@ -24,8 +24,12 @@ from ._learned import training_options
 @click.option("--student", type=click.Choice(["student", "dram"]), default=None,
               help="student: texel-aligned features (App. A.2); dram: the bottleneck "
                    "hypernetwork baseline (App. A.3) [default: student].")
-@click.option("--preset", type=click.Choice(["tiny", "paper"]), default="tiny", show_default=True,
-              help="tiny: minutes on a CPU (tests, demo); paper: RelightableHands' sizes.")
+@click.option("--preset", type=click.Choice(["tiny", "cpu", "paper"]), default="tiny",
+              show_default=True,
+              help="tiny: 32² maps, minutes on a CPU (tests, demo); cpu: 64² maps, 4000 "
+                   "iterations with a cosine learning-rate decay, about 30 min on 2 CPU "
+                   "cores (benchmarks/results/presets.md); paper: RelightableHands' sizes "
+                   "(100k iterations: a GPU job).")
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
               help="JSON object of config fields overriding the preset (formats/checkpoint.md; "
                    "'-': stdin).")

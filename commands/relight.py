@@ -862,7 +862,8 @@ def _relight_capture(input, env, output, checkpoint, device, model, aa, env_res,
     settings = {"model": model, "splits": chosen, "eval_samples": eval_samples,
                 "env_res": list(grid), "aa": evaluator.aa, "sampling": evaluator.sampling,
                 "hands": [{"hand": k, "name": evaluator.names[k], "checkpoint": m.name,
-                           "model": m.model_name, "sides": m.sides, "step": m.step}
+                           "model": m.model_name, "sides": m.sides, "step": m.step,
+                           **({"subject": m.subject} if m.subject else {})}
                           for k, m in enumerate(evaluator.models)]}
     record = provenance("relight/metrics", 2, inputs, settings)
     write_metrics(output, make_record("validation", scores, {r: {"path": p} for r, p in

@@ -13,12 +13,16 @@ from ._learned import training_options
 @click.command("train-teacher",
                short_help="Train the OLAT teacher, its GGX baseline or URHand's linear model "
                           "on a capture.")
-@click.argument("capture", metavar="CAPTURE")
+@click.argument("captures", metavar="CAPTURE...", nargs=-1, required=True)
 @click.option("-o", "--output", required=True, metavar="TEACHER.pt",
               help="Checkpoint to write (relight/checkpoint, formats/checkpoint.md).")
-@click.option("--preset", type=click.Choice(["tiny", "paper"]), default="tiny", show_default=True,
-              help="tiny: seconds to minutes on a CPU (tests, demo); paper: RelightableHands' "
-                   "sizes and 100k iterations (a GPU).")
+@click.option("--preset", type=click.Choice(["tiny", "cpu", "paper"]), default="tiny",
+              show_default=True,
+              help="tiny: 32² texture, ~150 iterations, seconds to minutes (tests, demo); "
+                   "cpu: 64² texture, 6000 iterations with a cosine learning-rate decay, "
+                   "about 15-30 min on 2 CPU cores (benchmarks/results/presets.md says how "
+                   "close each model comes to its ceiling); paper: the papers' sizes and "
+                   "iterations (100k teacher, 2M linear model: a GPU job).")
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
               help="JSON object of config fields overriding the preset (see "
                    "formats/checkpoint.md; '-': stdin).")
@@ -49,10 +53,11 @@ from ._learned import training_options
 @training_options("held-out poses, fully lit frames, env-map ground truth, per validation step")
 @no_clobber_option
 @quiet_option
-def command(capture, output, preset, config_file, model, iters, batch, lr, tex_res, no_visibility,
+def command(captures, output, preset, config_file, model, iters, batch, lr, tex_res, no_visibility,
             light_path, linearity_loss, light_features, no_specular, no_refiner, vgg_weights, resume, device, metrics_out, seed, no_clobber, quiet):
     """Train RelightableHands' teacher on CAPTURE (a relight/capture folder, e.g. from
-    synth-capture) and write the checkpoint -o.
+    synth-capture) and write the checkpoint -o.  With --model linear, several CAPTUREs
+    (one per subject) train one universal model (URHand Sec. 4.3, Table 2).
 
     Per light, texel-aligned maps of the light and view directions in each texel's
     tangent frame and that light's ray-traced visibility go through a U-Net with the
@@ -90,14 +95,25 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
     # ---- usage checks before any work
     if iters is not None and iters < 1:
         raise UsageProblem(f"--iters must be ≥ 1, got {iters}")
-    if not os.path.isdir(capture):
-        from relight_cli.errors import DataError
-        if os.path.exists(capture) and os.path.basename(capture) == "capture.json":
-            capture = os.path.dirname(capture) or "."
-        else:
-            raise DataError("CAPTURE must be a capture folder (with capture.json)", capture)
-    if os.path.isfile(os.path.join(capture, "capture.json")):
-        check_input(os.path.join(capture, "capture.json"))
+    if len(captures) > 1 and (model in ("olat", "ggx") or (model is None and resume is None)):
+        raise UsageProblem(f"several CAPTUREs (one per subject) train --model linear only, "
+                           f"not --model {model or 'olat'}; give one capture")
+    folders = []
+    for capture in captures:
+        if not os.path.isdir(capture):
+            from relight_cli.errors import DataError
+            if os.path.exists(capture) and os.path.basename(capture) == "capture.json":
+                capture = os.path.dirname(capture) or "."
+            else:
+                raise DataError("CAPTURE must be a capture folder (with capture.json)", capture)
+        if os.path.isfile(os.path.join(capture, "capture.json")):
+            check_input(os.path.join(capture, "capture.json"))
+        same = [f for f in folders if os.path.realpath(f) == os.path.realpath(capture)]
+        if same:
+            raise UsageProblem(f"CAPTURE {capture} is given twice (also as {same[0]}): give "
+                               f"each subject once")
+        folders.append(capture)
+    capture = folders[0]
     for path, role in ((config_file, "--config"), (vgg_weights, None), (resume, None)):
         if path is not None:
             check_input(path, stdin=role)
@@ -128,6 +144,9 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
                                               linear_train.train)
     elif kind != "teacher":
         raise DataError(f"checkpoint holds a {kind!r} model, expected a teacher", resume)
+    elif len(folders) > 1:
+        raise UsageProblem(f"several CAPTUREs (one per subject) train --model linear only; "
+                           f"{resume} holds the {ckpt['model']} teacher: give one capture")
     elif any(v is not None for v in linear_only.values()):
         raise UsageProblem("--light-path, --linearity-loss, --features, --no-specular and "
                            "--no-refiner belong to --model linear")
@@ -142,11 +161,24 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
         from relight_cli.neural.losses import load_vgg
         vgg = load_vgg(vgg_weights).to(torch_device)
     # ---- data (data errors)
-    data = CaptureData(capture, config.tex_res, config.aa, config.visibility, config.falloff,
-                       config.holdout, config.cache_poses)
-    if ckpt is not None and ckpt["capture_key"] != data.key:
+    subjects = [CaptureData(folder, config.tex_res, config.aa, config.visibility,
+                            config.falloff, config.holdout, config.cache_poses)
+                for folder in folders]
+    data = subjects[0]
+    if len(subjects) > 1:
+        # what one model cannot share (joints, UV layout, hands, sampling), named per capture
+        linear_train.check_subjects(subjects)
+    if ckpt is not None and len(subjects) == 1 and "subjects" not in ckpt["extra"] \
+            and ckpt["capture_key"] != data.key:
         raise DataError(f"checkpoint was trained on another capture (key {ckpt['capture_key']}, "
                         f"this one is {data.key})", resume)
+    if ckpt is not None and (len(subjects) > 1 or "subjects" in ckpt["extra"]):
+        trained = [r["capture_key"] for r in ckpt["extra"].get("subjects") or
+                   [{"capture_key": ckpt["capture_key"]}]]
+        if trained != [d.key for d in subjects]:
+            raise DataError(f"checkpoint was trained on other subjects (keys "
+                            f"{', '.join(trained)}; these captures are "
+                            f"{', '.join(d.key for d in subjects)}, in this order)", resume)
     rank = int(os.environ.get("RANK", "0"))
     quiet = quiet or rank != 0
     config.aa = data.aa        # the sampling used, recorded in the checkpoint
@@ -161,9 +193,18 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
         f"checkpoint); model {config.model}, {config.tex_res}² texture, "
         f"{config.iters} iterations on {torch_device}"
         + ("" if vgg is not None else "; no VGG weights: λ_VGG = 0"), quiet)
+    for s, other in enumerate(subjects[1:], 1):
+        more = other.splits()
+        log(f"read {folders[s]} (subject {s}): {len(more['train'])} training, "
+            f"{len(more['heldout'])} held-out, {len(more['fully_lit'])} fully lit, "
+            f"{len(more.get('env', []))} env-map samples; each subject conditioned on its "
+            f"own mean texture (URHand Sec. 4)", quiet)
     if vgg is None:
         config.lambda_vgg = 0.0 if ckpt is None else config.lambda_vgg
     inputs = {"capture": data.index_path}
+    for s, other in enumerate(subjects[1:], 1):
+        inputs[f"capture.{s}"] = other.index_path
+    captures_in = dict(inputs)
     if vgg_weights is not None:
         inputs["vgg_weights"] = vgg_weights
     if resume is not None:
@@ -177,14 +218,14 @@ def command(capture, output, preset, config_file, model, iters, batch, lr, tex_r
         with outside_transaction():
             write_checkpoint(output, checkpoint)
 
-    result = train_model(data, config, torch_device, resume=ckpt, vgg=vgg, provenance=record,
+    result = train_model(data if len(subjects) == 1 else subjects, config, torch_device,
+                         resume=ckpt, vgg=vgg, provenance=record,
                    save=save if rank == 0 else None, show_progress=not quiet,
                    log=lambda m: log(m, quiet))
     if rank != 0:
         return
     write_checkpoint(output, result.checkpoint)
-    write_validation(metrics_out, result, {"capture": data.index_path}, config, record,
-                     data.sampling)
+    write_validation(metrics_out, result, captures_in, config, record, data.sampling)
     its = result.steps_run / result.seconds if result.seconds > 0 else float("inf")
     from relight_cli.neural.train import _summary
     log(f"wrote {output}: {result.steps_run} step(s) in {result.seconds:.1f} s ({its:.2f} it/s); "

@@ -56,6 +56,7 @@ MODELS = {"teacher": (("olat", "ggx"), "model"), "student": (("student", "dram")
 #: Bounds of what a file may declare (checked before anything is computed on it).
 MAX_POSE_DIM = 300           # (joints − 1) × 3: a hand of up to 101 joints
 MAX_HANDS = 4                # per-hand records and mean textures
+MAX_SUBJECTS = 1024          # subjects of a linear model (extra.subjects, URHand Sec. 4)
 MAX_TENSORS = 100_000        # tensors anywhere in the archive
 MAX_DEPTH = 16               # nesting of the plain-data tree
 MAX_STEP = 10 ** 9           # the configurations' largest ``iters``
@@ -161,7 +162,8 @@ def read_checkpoint(path: str, kind: str | None = None, model: str | None = None
     _check_state_dict(obj["weights"], "weights", path)
     check_optimizer(obj["optimizer"], "optimizer", path)
     decode_rng(obj["rng"], path)
-    obj["extra"] = _check_extra(obj.get("extra", {}), obj["kind"], obj["model"], config, path)
+    obj["extra"] = _check_extra(obj.get("extra", {}), obj["kind"], obj["model"], config, path,
+                                obj["capture_key"])
     for where, value in tensors:
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             label = where[len("weights."):] if where.startswith("weights.") else where
@@ -378,7 +380,8 @@ def _hex(value, digits: int) -> bool:
         c in "0123456789abcdef" for c in value)
 
 
-def _check_extra(extra, kind: str, model: str, config, path: str) -> dict:
+def _check_extra(extra, kind: str, model: str, config, path: str,
+                 capture_key: str | None = None) -> dict:
     """``extra``'s known fields typed (see the spec); unknown fields are kept as read."""
     import torch
     if not isinstance(extra, dict) or not all(isinstance(k, str) for k in extra):
@@ -407,6 +410,8 @@ def _check_extra(extra, kind: str, model: str, config, path: str) -> dict:
                 type(mean).__name__
             raise DataError(f"checkpoint extra.mean_texture must be float32 [1..{MAX_HANDS}, 3, "
                             f"{n}, {n}] (tex_res {n}), got {shape}", path)
+    if "subjects" in extra or "mean_textures" in extra:
+        _check_subjects(extra, kind, config, path, capture_key)
     if kind == "linear" and getattr(config, "lambda_gan", 0) > 0:
         for key in ("discriminator", "optimizer_discriminator"):
             if key not in extra:
@@ -427,6 +432,59 @@ def _check_extra(extra, kind: str, model: str, config, path: str) -> dict:
             raise DataError("checkpoint extra.envs must be the JSON of {train: [names], "
                             "eval: [names]}", path)
     return extra
+
+
+def _check_subjects(extra: dict, kind: str, config, path: str, capture_key) -> None:
+    """``extra.subjects`` and ``extra.mean_textures`` of a linear model trained on several
+    subjects (URHand Sec. 4.3, Table 2): together or not at all; one record {capture_key:
+    a short string, unique, the first the checkpoint's ``capture_key``; skin_seed: an
+    integer or null; mean_texture: a row of mean_textures} per subject; mean_textures
+    float32 [S, 1..4, 3, N, N] (N = tex_res), finite, its first subject's row equal to
+    ``extra.mean_texture``."""
+    import torch
+    if kind != "linear":
+        raise DataError(f"checkpoint extra.subjects belongs to a linear checkpoint, not a "
+                        f"{kind} one", path)
+    if "subjects" not in extra or "mean_textures" not in extra:
+        raise DataError("checkpoint extra.subjects and extra.mean_textures come together "
+                        "(one without the other)", path)
+    subjects, means = extra["subjects"], extra["mean_textures"]
+    n = config.tex_res
+    if not isinstance(means, torch.Tensor) or means.dtype != torch.float32 or means.ndim != 5 \
+            or not 1 <= means.shape[0] <= MAX_SUBJECTS or not 1 <= means.shape[1] <= MAX_HANDS \
+            or tuple(means.shape[2:]) != (3, n, n):
+        shape = _short(tuple(means.shape)) if isinstance(means, torch.Tensor) else \
+            type(means).__name__
+        raise DataError(f"checkpoint extra.mean_textures must be float32 [1..{MAX_SUBJECTS}, "
+                        f"1..{MAX_HANDS}, 3, {n}, {n}] (tex_res {n}), got {shape}", path)
+    if not bool(torch.isfinite(means).all()):
+        raise DataError("checkpoint extra.mean_textures holds NaN/Inf", path)
+
+    def record(r):
+        return isinstance(r, dict) and isinstance(r.get("capture_key"), str) \
+            and 1 <= len(r["capture_key"]) <= 256 and "skin_seed" in r \
+            and (r["skin_seed"] is None or _is_int(r["skin_seed"])) \
+            and _is_int(r.get("mean_texture")) and 0 <= r["mean_texture"] < means.shape[0]
+    if not isinstance(subjects, list) or not 1 <= len(subjects) <= MAX_SUBJECTS or \
+            not all(record(r) for r in subjects):
+        raise DataError(f"checkpoint extra.subjects must list 1 to {MAX_SUBJECTS} {{capture_key: "
+                        f"a short string, skin_seed: an integer or null, mean_texture: a row "
+                        f"of extra.mean_textures (0..{means.shape[0] - 1})}}", path)
+    keys = [r["capture_key"] for r in subjects]
+    if len(set(keys)) != len(keys):
+        raise DataError("checkpoint extra.subjects lists a capture_key twice", path)
+    if capture_key is not None and keys[0] != capture_key:
+        raise DataError(f"checkpoint extra.subjects[0].capture_key {_short(keys[0])} is not "
+                        f"its capture_key {_short(capture_key)}", path)
+    mean = extra.get("mean_texture")
+    first = means[subjects[0]["mean_texture"]]
+    if isinstance(mean, torch.Tensor) and mean.is_floating_point() and \
+            not bool(torch.isfinite(mean).all()):
+        return                          # read_checkpoint's finite check names it
+    if not isinstance(mean, torch.Tensor) or tuple(mean.shape) != tuple(first.shape) or \
+            mean.dtype != first.dtype or not torch.equal(mean, first):
+        raise DataError("checkpoint extra.mean_texture is not its first subject's row of "
+                        "extra.mean_textures", path)
 
 
 def read_state_dict(path: str, what: str = "weights") -> dict:

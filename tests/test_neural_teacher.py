@@ -389,11 +389,30 @@ def test_no_training_frame_inside_the_held_out_segment(capture_dir):
     assert any((f.time, f.index) > start for f in data.fully_lit_frames)
 
 
-def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli):
+@pytest.mark.parametrize("variant", [{}, {"lr_schedule": "cosine", "lr_final": 1e-4,
+                                      "channels_last": True}], ids=["constant", "cosine-nhwc"])
+def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli, variant):
     full, half, resumed = tmp_path / "full.pt", tmp_path / "half.pt", tmp_path / "resumed.pt"
-    common = [str(capture_dir), "--config", str(small_config), "-q"]
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps({**json.loads(small_config.read_text()), **variant}))
+    common = [str(capture_dir), "--config", str(config), "-q"]
     assert run_cli("train-teacher", *common, "--iters", "4", "-o", full).exit_code == 0
-    assert run_cli("train-teacher", *common, "--iters", "2", "-o", half).exit_code == 0
+    if not variant:       # a constant rate: a 2-step run extended to 4 is the 4-step run
+        assert run_cli("train-teacher", *common, "--iters", "2", "-o", half).exit_code == 0
+    else:                 # a cosine decays over --iters: resume the 4-step run's step-2 save
+        from relight_cli.formats.checkpoint import write_checkpoint
+        from relight_cli.neural.config import TeacherConfig
+        from relight_cli.neural.data import CaptureData
+        from relight_cli.neural.train import train
+        cfg = TeacherConfig.from_dict({**json.loads(config.read_text()), "iters": 4,
+                                       "save_every": 2})
+        data = CaptureData(str(capture_dir), cfg.tex_res, cfg.aa, cfg.visibility, cfg.falloff,
+                           cfg.holdout)
+        saves = []
+        train(data, cfg, torch.device("cpu"), save=saves.append, show_progress=False)
+        assert [c["step"] for c in saves] == [2]
+        saves[0]["config"] = json.dumps({**json.loads(saves[0]["config"]), "save_every": 0})
+        write_checkpoint(str(half), saves[0])
     r = run_cli("train-teacher", str(capture_dir), "--resume", half, "--iters", "4", "-q",
                 "-o", resumed)
     assert r.exit_code == 0, r.output
@@ -406,6 +425,11 @@ def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli):
     for i in sa:
         for name in ("exp_avg", "exp_avg_sq"):
             assert torch.equal(sa[i][name], sb[i][name])
+    if variant:   # the cosine schedule set step 3's rate: lr_final + ½(lr − lr_final)(1 + cos ¾π)
+        lr, end = json.loads(small_config.read_text()).get("lr", 1e-3), 1e-4
+        want = end + 0.5 * (lr - end) * (1 + math.cos(math.pi * 3 / 4))
+        assert b["optimizer"]["param_groups"][0]["lr"] == pytest.approx(want, rel=1e-12)
+        assert all(w.is_contiguous() for w in b["weights"].values())
     # identical runs give identical bytes
     first = full.read_bytes()
     assert run_cli("train-teacher", *common, "--iters", "4", "-o", full).exit_code == 0

@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import json
+import math
 import os
 import shutil
 import sys
@@ -189,6 +190,21 @@ def test_claim_verdicts():
     assert word([0.9, 0.8, 0.85], [0.7, 0.6, 0.65], "ssim")["verdict"] == "reproduced"
     gap = word([1.0, 1.1, 0.9], [1.5, 1.6, 1.4])["gap"]
     assert gap["mean"] == pytest.approx(0.5) and gap["std"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_convergence_rule():
+    """A row is converged when its curve gains < 0.2 dB over the last 20 % of iterations
+    (every seed); a curve still climbing is not; no point in the window is unknown."""
+    converged = _study_module().converged
+    flat = [[200, 2.0e-3], [800, 1.02e-3], [1000, 1.0e-3]]          # 0.09 dB in the tail
+    rising = [[200, 2.0e-3], [800, 1.5e-3], [1000, 1.0e-3]]         # 1.76 dB in the tail
+    assert converged([flat, flat], [1000, 1000], "mse")["converged"] is True
+    out = converged([flat, rising], [1000, 1000], "mse")
+    assert out["converged"] is False
+    assert out["gain_db"]["values"] == pytest.approx([10 * math.log10(1.02), 10 * math.log10(1.5)])
+    assert converged([[[800, 28.0], [1000, 28.3]]], [1000], "psnr")["converged"] is False
+    assert converged([[[800, 28.0], [1000, 28.1]]], [1000], "psnr")["converged"] is True
+    assert converged([[[500, 28.0], [1000, 28.1]]], [1000], "psnr")["converged"] is None
 
 
 def test_gate_fails_with_a_featureless_student(gate_run, tmp_path, monkeypatch):

@@ -51,6 +51,12 @@ class HandModel:
             either winding, so a checkpoint cannot claim another hand model's layout.
         capture_key: the training capture's key.  pose_dim: pose vector length.
         name: a label for messages (e.g. the checkpoint path).  step: iterations trained.
+        subjects: (linear) [(capture key, skin seed or None, T̄ [1, 3, N, N])] of the
+            subjects it was trained on (URHand Sec. 4.3; one for a one-capture checkpoint).
+        subject: (linear, on a capture) ``seen`` when the capture is one of ``subjects``
+            (``mean_texture`` is then that subject's stored T̄), ``unseen`` when not
+            (``mean_texture`` is the capture's own T̄, URHand Table 2's unseen subject);
+            "" otherwise.
     """
 
     kind: str
@@ -64,6 +70,8 @@ class HandModel:
     name: str = ""
     step: int = 0
     layout: str = ""
+    subjects: list = field(default_factory=list)
+    subject: str = ""
 
     @property
     def model_name(self) -> str:
@@ -87,8 +95,9 @@ def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel
         from .train import model_from_checkpoint
         net, config, mean = model_from_checkpoint(checkpoint, device)
     elif kind == "linear":
-        from .linear import model_from_checkpoint
+        from .linear import model_from_checkpoint, subjects_from_checkpoint
         net, config, mean = model_from_checkpoint(checkpoint, device)
+        subjects = subjects_from_checkpoint(checkpoint, device)
     else:
         raise ValueError(f"a {kind!r} checkpoint is not a per-hand model (use a teacher or "
                          f"linear checkpoint)")
@@ -102,7 +111,8 @@ def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel
         layouts = [str(extra["uv_layout"])]
     return HandModel(kind, net, config, mean, sides, layouts, str(checkpoint["capture_key"]),
                      int(checkpoint["pose_dim"]), name, int(checkpoint["step"]),
-                     str(extra.get("uv_layout") or ""))
+                     str(extra.get("uv_layout") or ""),
+                     subjects if kind == "linear" else [])
 
 
 def assign_models(models: list, sides: list) -> list:
@@ -475,6 +485,38 @@ class CaptureEvaluator:
         self.names = hand_names(sides)
         self._env_inputs = LRU(4)
         self._envs = {}
+        self.models = self._condition_on_subject(self.models)
+
+    def _condition_on_subject(self, models: list) -> list:
+        """Each linear model conditioned on this capture's subject (URHand Sec. 4, Fig. 2:
+        T̄ is an input per identity): the stored T̄ of the checkpoint's subject whose
+        capture key is this capture's (``subject = "seen"``), else this capture's own T̄
+        (:func:`~relight_cli.neural.linear_train.albedo_texture`, as at training;
+        ``subject = "unseen"``) — URHand scores an unseen identity given its own mean
+        texture (Table 2's "unseen subject"; Sec. 5.4 feeds a new person's T̄ without
+        finetuning), never a trained subject's.  Teachers are returned as they are."""
+        import dataclasses
+        key = self.data.key
+        made = {}
+        out = []
+        for m in models:
+            if m.kind != "linear" or m.mean_texture is None:
+                out.append(m)
+                continue
+            if id(m) not in made:
+                subjects = m.subjects or [(m.capture_key, None, m.mean_texture)]
+                device = m.mean_texture.device
+                stored = [t for k, _, t in subjects if k == key]
+                if stored:
+                    made[id(m)] = dataclasses.replace(m, mean_texture=stored[0].to(device),
+                                                      subject="seen")
+                else:
+                    from .linear_train import albedo_texture
+                    own = albedo_texture(self.data_for(m.tex_res, m.visibility))
+                    made[id(m)] = dataclasses.replace(
+                        m, mean_texture=torch.from_numpy(own).to(device), subject="unseen")
+            out.append(made[id(m)])
+        return out
 
     # ---------------------------------------------------------------- pieces
 
@@ -490,7 +532,8 @@ class CaptureEvaluator:
     def default_splits(self) -> list:
         """Held-out grouped frames of a capture a model trained on, every grouped frame of
         another one; fully lit frames; env renders (the non-empty ones)."""
-        trained_here = any(m.capture_key == self.data.key for m in self.models)
+        trained_here = any(m.capture_key == self.data.key or m.subject == "seen"
+                           for m in self.models)
         names = ["heldout" if trained_here else "grouped", "fully_lit", "env"]
         splits = self.data.splits()
         return [n for n in names if splits.get(n)]
@@ -599,7 +642,10 @@ def evaluate_capture(capture, models: list, splits=None, max_samples: int | None
     Args:
         capture: capture folder or CaptureData (e.g. a two-hand capture from
             ``synth-capture builtin:two``).
-        models: :class:`HandModel` list (:func:`load_hand_model` of each checkpoint).
+        models: :class:`HandModel` list (:func:`load_hand_model` of each checkpoint); a
+            linear model is conditioned on the capture's subject: its stored T̄ when it
+            trained on the capture, else the capture's own T̄ (an unseen subject, URHand
+            Table 2; :meth:`CaptureEvaluator._condition_on_subject`).
         splits: among :data:`SPLITS` (``grouped``: every grouped-light frame, for a
             capture no model trained on); default :meth:`CaptureEvaluator.default_splits`.
         max_samples: per split, at most this many evenly spaced samples (None: all).

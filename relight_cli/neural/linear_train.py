@@ -1,6 +1,12 @@
 """Training and rendering URHand's linear model (Sec. 4.3): grouped-light frames only.
 
-* **Inputs**: the capture's T̄ (:func:`albedo_texture`), per sample the frame's LEDs as
+* **Subjects** (URHand Sec. 4, Fig. 2; Table 2's "trained subject" / "unseen subject"
+  columns): one universal model trained on one capture per subject at once, each
+  sample conditioned on its own subject's T̄ (:class:`LinearTask` takes a list of
+  CaptureData; :func:`check_subjects` says what they must share).  The checkpoint
+  records them (``extra.subjects``, ``extra.mean_textures``); an unseen subject is
+  scored with its own capture's T̄ (:mod:`relight_cli.neural.evaluate`).
+* **Inputs**: the subject's T̄ (:func:`albedo_texture`), per sample the frame's LEDs as
   point lights (positions, RGB intensities, 1/r², visibility traced once per pose and
   LED group by :class:`~relight_cli.neural.data.CaptureData`) and the camera's view.
   One pass of the model per sample, whatever the number of lights: features are sums.
@@ -74,6 +80,76 @@ def feature_scale(data, n_frames: int = 4) -> float:
             values.append(float((power[:, None] * li.falloff * li.visibility * cos).sum(0).mean()))
     scale = float(np.mean(values)) if values else 1.0
     return scale if scale > 0 and np.isfinite(scale) else 1.0
+
+
+def subjects_feature_scale(datas: list) -> float:
+    """The one feature scale of a model trained on several subjects: the mean of each
+    subject's :func:`feature_scale` (every subject weighs the same).  It stays one number
+    (the model's ``feature_scale`` buffer), not one per subject: it normalises the stage's
+    lighting (LED power, distances, visibility), not the identity, which enters through
+    T̄ alone (URHand Sec. 4.2: the light path takes the shading features, the identity
+    the non-linear branch); an unseen subject at test time is scored through the same
+    stored scale.  For one subject it is exactly :func:`feature_scale`."""
+    scales = [feature_scale(d) for d in datas]
+    scale = float(np.mean(scales)) if scales else 1.0
+    return scale if scale > 0 and np.isfinite(scale) else 1.0
+
+
+def skin_seed(data):
+    """The capture's ``settings.skin_seed`` (synth-capture's subject, formats/capture.md)
+    as an int, else None (a real capture, or one that does not say)."""
+    settings = getattr(data.capture, "settings", None) or {}
+    value = settings.get("skin_seed") if isinstance(settings, dict) else None
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def subject_records(datas: list) -> list:
+    """``extra.subjects`` of a model trained on ``datas`` (one capture per subject, URHand
+    Sec. 4.3): per subject {"capture_key", "skin_seed" (int or None), "mean_texture": its
+    row of ``extra.mean_textures``}."""
+    return [{"capture_key": str(d.key), "skin_seed": skin_seed(d), "mean_texture": i}
+            for i, d in enumerate(datas)]
+
+
+def check_subjects(datas: list) -> None:
+    """Refuse subjects that cannot share one model (DataError naming the odd capture's
+    file): every capture must have the first one's hand joints (the pose vector), its
+    fine mesh's UV layout (the texel-aligned maps), its hands (count, handedness, UV
+    charts: the checkpoint records one set) and its pixel sampling (``config.aa``: one
+    value recorded); a capture may not be given twice (its key).  Light and camera
+    counts, poses and frames may differ (URHand Sec. 4: one stage, many identities)."""
+    from relight_cli.errors import DataError
+
+    from .geometry import hand_records, uv_layout_digest
+    if len(datas) < 2:
+        return
+    first = datas[0]
+    layout = uv_layout_digest(first.hand.mesh("fine"))
+    hands = hand_records(first.hand)
+    seen = {first.key: first.index_path}
+    for d in datas[1:]:
+        if d.hand.n_joints != first.hand.n_joints:
+            raise DataError(f"this capture's hand has {d.hand.n_joints} joints, the first "
+                            f"capture's {first.hand.n_joints} ({first.index_path}): one model "
+                            f"takes one pose vector", d.hand_path)
+        if uv_layout_digest(d.hand.mesh("fine")) != layout:
+            raise DataError(f"this capture's hand has another UV layout than the first "
+                            f"capture's ({first.index_path}): one model learns one texel "
+                            f"layout", d.hand_path)
+        theirs = hand_records(d.hand)
+        if theirs != hands:
+            sides = lambda r: "/".join(h["side"] for h in r)              # noqa: E731
+            raise DataError(f"this capture's hands ({sides(theirs)}) are not the first "
+                            f"capture's ({sides(hands)}, {first.index_path}): the checkpoint "
+                            f"records one set of hands", d.hand_path)
+        if d.aa != first.aa:
+            raise DataError(f"this capture's pixels are sampled {d.aa}×{d.aa}, the first "
+                            f"capture's {first.aa}×{first.aa} ({first.index_path}): one "
+                            f"model trains through one sampling (config.aa)", d.index_path)
+        if d.key in seen:
+            raise DataError(f"this capture is the same subject capture as {seen[d.key]} "
+                            f"(key {d.key}): give each subject once", d.index_path)
+        seen[d.key] = d.index_path
 
 
 def reg_weight(config: LinearConfig, scale) -> float:
@@ -256,7 +332,16 @@ def learning_rate(config: LinearConfig, step: int) -> float:
 class LinearTask:
     """What :func:`relight_cli.neural.train.fit` needs to train URHand's model: T̄ and the
     feature scale on a fresh start, the lr drop before each step, the discriminator's own
-    Adam step after it, and gradients averaged by one all-reduce (``ddp = False``)."""
+    Adam step after it, and gradients averaged by one all-reduce (``ddp = False``).
+
+    ``data`` is one CaptureData or a list of them, one per subject (URHand Sec. 4.3,
+    Table 2: one universal model over identities).  The training items are (subject,
+    item) pairs over every subject's training items, concatenated in subject order, and
+    each step's batch is drawn from them by (seed, step) as for one capture; a sample is
+    conditioned on its own subject's T̄ (``mean_textures[subject]``, Fig. 2: "a mean
+    texture … for each identity").  ``data`` and ``mean_texture`` are the first
+    subject's.  One subject writes exactly the checkpoint it wrote before subjects
+    existed (no ``subjects`` / ``mean_textures`` extras)."""
 
     kind = "linear"
     model_name = "linear"
@@ -264,25 +349,35 @@ class LinearTask:
     ddp = False
 
     def __init__(self, data, config: LinearConfig, vgg=None):
-        self.data = data
+        self.datas = list(data) if isinstance(data, (list, tuple)) else [data]
+        if not self.datas:
+            raise ValueError("give at least one capture")
+        self.data = self.datas[0]
         self.config = config
         self.vgg = vgg
-        self.items = data.splits()["train"]
-        self.capture_key = data.key
-        self.pose_dim = data.pose_dim
+        self.items = [(s, item) for s, d in enumerate(self.datas)
+                      for item in d.splits()["train"]]
+        self.capture_key = self.data.key
+        self.pose_dim = self.data.pose_dim
         self.mean_texture = None
+        self.mean_textures = None
         self.disc = self.opt_d = None
         self._d_batch = []
 
     def check(self):
-        check_training_frames(self.data, self.items)
+        check_subjects(self.datas)
+        for s, d in enumerate(self.datas):
+            check_training_frames(d, [item for t, item in self.items if t == s])
 
     def build(self, device, resume=None):
         config = self.config
         model = URHandModel(config, self.pose_dim).to(device)
         if resume is None:
-            self.mean_texture = torch.from_numpy(albedo_texture(self.data)).to(device)
-            model.feature_scale.fill_(feature_scale(self.data))
+            self.mean_textures = [torch.from_numpy(albedo_texture(d)).to(device)
+                                  for d in self.datas]
+            self.mean_texture = self.mean_textures[0]
+            model.feature_scale.fill_(feature_scale(self.data) if len(self.datas) == 1
+                                      else subjects_feature_scale(self.datas))
         if config.lambda_gan > 0:
             from .adversarial import LightingAwareDiscriminator
             self.disc = LightingAwareDiscriminator(config.gan_width, 2,
@@ -292,7 +387,20 @@ class LinearTask:
         return model
 
     def restore(self, resume, device):
-        self.mean_texture = resume["extra"]["mean_texture"].to(device)
+        extra = resume["extra"]
+        self.mean_texture = extra["mean_texture"].to(device)
+        if "subjects" in extra:
+            keys = [r["capture_key"] for r in extra["subjects"]]
+            if keys != [d.key for d in self.datas]:
+                raise ValueError(f"checkpoint was trained on the subjects {', '.join(keys)}, "
+                                 f"these captures are {', '.join(d.key for d in self.datas)}")
+            self.mean_textures = [extra["mean_textures"][r["mean_texture"]].to(device)
+                                  for r in extra["subjects"]]
+        elif len(self.datas) == 1:
+            self.mean_textures = [self.mean_texture]
+        else:
+            raise ValueError(f"checkpoint was trained on one subject, not "
+                             f"{len(self.datas)}")
         if self.disc is not None:
             self.disc.load_state_dict({k: v.to(device) for k, v in
                                        resume["extra"]["discriminator"].items()})
@@ -303,8 +411,10 @@ class LinearTask:
             group["lr"] = learning_rate(self.config, step)
 
     def loss(self, net, item, step, device):
-        loss, parts, d_inputs = sample_loss(net, self.data, item, self.config, step, device,
-                                            self.mean_texture, self.vgg, self.disc)
+        subject, item = item
+        loss, parts, d_inputs = sample_loss(net, self.datas[subject], item, self.config, step,
+                                            device, self.mean_textures[subject], self.vgg,
+                                            self.disc)
         if d_inputs is not None:
             self._d_batch.append(d_inputs)
         return loss, parts
@@ -322,13 +432,23 @@ class LinearTask:
         self.opt_d.step()
 
     def evaluate(self, model, device):
-        return evaluate(model, self.data, self.config, device, self.mean_texture)
+        """The first subject's splits (as for one capture); with several subjects also
+        ``subject1``, ``subject2`` … (the splits of ``extra.subjects[s]``'s capture, under
+        its own T̄): held-out poses of every trained subject."""
+        out = evaluate(model, self.data, self.config, device, self.mean_texture)
+        for s in range(1, len(self.datas)):
+            out[f"subject{s}"] = evaluate(model, self.datas[s], self.config, device,
+                                          self.mean_textures[s])
+        return out
 
     def extra(self) -> dict:
         from .geometry import hand_records, uv_layout_digest
         out = {"uv_layout": uv_layout_digest(self.data.hand.mesh("fine")),
                "hands": hand_records(self.data.hand),
                "mean_texture": self.mean_texture.detach().cpu()}
+        if len(self.datas) > 1:
+            out["subjects"] = subject_records(self.datas)
+            out["mean_textures"] = torch.stack([t.detach().cpu() for t in self.mean_textures])
         if self.disc is not None:
             out["discriminator"] = {k: v.detach().cpu() for k, v in self.disc.state_dict().items()}
             out["optimizer_discriminator"] = self.opt_d.state_dict()
@@ -338,8 +458,9 @@ class LinearTask:
 def train(data, config: LinearConfig, device: torch.device, resume: dict | None = None,
           vgg=None, provenance: dict | None = None, save=None, show_progress: bool = True,
           log=None) -> TrainResult:
-    """Train URHand's model on ``data``'s grouped frames (arguments as
-    :func:`relight_cli.neural.train.train`; the loop is :func:`relight_cli.neural.train.fit`)."""
+    """Train URHand's model on ``data``'s grouped frames: one CaptureData, or a list of
+    them, one per subject (:class:`LinearTask`; URHand Sec. 4.3, Table 2).  Arguments as
+    :func:`relight_cli.neural.train.train`; the loop is :func:`relight_cli.neural.train.fit`."""
     return fit(LinearTask(data, config, vgg), config, device, resume, provenance, save,
                show_progress, log)
 

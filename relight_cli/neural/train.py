@@ -7,7 +7,9 @@
 * **Determinism**: weights are initialized under ``torch.manual_seed(seed)``; CPU runs
   repeat bit for bit (same thread count).  The checkpoint stores the model, Adam's
   state, the step and the torch / numpy / python RNG states, so ``--resume`` after N
-  steps reproduces an uninterrupted 2N-step run exactly.
+  steps reproduces an uninterrupted 2N-step run exactly.  With ``lr_schedule: cosine``
+  the rate is a function of (step, iters): resuming a periodic save with the same
+  ``--iters`` is exact; extending ``--iters`` stretches the rest of the decay.
 * **Scale**: one process, or data-parallel under ``torchrun --nproc_per_node=N`` with
   PyTorch DDP (gloo on CPU, NCCL on CUDA): gradients are averaged over ranks, every rank
   ends with identical weights, only rank 0 writes files and shows progress.
@@ -23,6 +25,7 @@
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import os
 import random
@@ -85,6 +88,15 @@ def batch_indices(seed: int, step: int, n_items: int, count: int) -> np.ndarray:
     """The global batch of step ``step``: ``count`` indices in [0, n_items)."""
     rng = np.random.default_rng([int(seed), int(step)])
     return rng.integers(0, n_items, size=count)
+
+
+def scheduled_lr(config, step: int) -> float:
+    """The learning rate of step ``step`` under ``config.lr_schedule`` (see TeacherConfig)."""
+    if getattr(config, "lr_schedule", "constant") != "cosine":
+        return config.lr
+    import math
+    t = min(max(step / max(config.iters, 1), 0.0), 1.0)
+    return config.lr_final + 0.5 * (config.lr - config.lr_final) * (1.0 + math.cos(math.pi * t))
 
 
 def rng_state() -> dict:
@@ -293,7 +305,8 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
             before allocating it) and its whole state with this run's model and
             optimizer (:func:`restore_state`) before any of it is used.
         provenance: stored in the checkpoint.
-        save: callable(checkpoint dict) for periodic saves (rank 0; ``save_every``).
+        save: callable(checkpoint dict) for periodic saves (rank 0; ``save_every``); each
+            dict is a snapshot (its tensors are copies), so a caller may keep it.
         show_progress: progress on stderr (rank 0): a tqdm bar on a terminal, else plain lines.
         log: callable(str) for log lines.
 
@@ -313,6 +326,8 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         # compared on the meta device before anything is allocated for it
         check_resume_weights(lambda: task.build(torch.device("meta"), resume), resume)
     model = task.build(device, resume)
+    if getattr(config, "channels_last", False):
+        model = model.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
     start = 0
     if resume is not None:
@@ -337,11 +352,17 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
 
     def checkpoint(step):
         return make_checkpoint(task.kind, task.model_name, config.to_dict(), step,
-                               {k: v.detach().cpu() for k, v in model.state_dict().items()},
-                               optimizer.state_dict(), rng_state(), task.capture_key,
-                               task.pose_dim, provenance or {}, task.extra())
+                               {k: v.detach().cpu().contiguous().clone()
+                                for k, v in model.state_dict().items()},
+                               copy.deepcopy(optimizer.state_dict()), rng_state(),
+                               task.capture_key,
+                               task.pose_dim, provenance or {}, copy.deepcopy(task.extra()))
 
+    cosine = getattr(config, "lr_schedule", "constant") == "cosine"
     for step in range(start, config.iters):
+        if cosine:
+            for group in optimizer.param_groups:
+                group["lr"] = scheduled_lr(config, step)
         if before_step is not None:
             before_step(optimizer, step)
         indices = batch_indices(config.seed, step, len(items), config.batch * world)
