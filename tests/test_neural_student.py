@@ -189,6 +189,17 @@ def test_distillation_lowers_the_loss(setup):
     after = loss_of(trained)
     assert after < 0.5 * before, (before, after)
     assert "vs_teacher" in result.metrics and "vs_ground_truth" in result.metrics
+    # the synthetic capture gives the ground-truth split its ceiling at the student's N
+    truth = result.metrics["vs_ground_truth"]
+    assert truth["gap_to_ceiling"] == pytest.approx(truth["ceiling"]["psnr"] - truth["psnr"])
+    assert truth["ceiling"]["psnr"] > truth["psnr"]       # 40 iterations: far from it
+    # a student of another N than its teacher gets texels of its own N (made once)
+    from types import SimpleNamespace
+    other = SimpleNamespace(data=data, config=SimpleNamespace(tex_res=32))
+    pose = int(data.splits()["env"][0][1]["pose"])      # a held-out env render's pose
+    texels = D._student_texels(other, pose)
+    assert texels.tex_res == 32 and D._student_texels(other, pose) is texels
+    assert D._student_texels(task, pose) is data.texels(pose, held_out=True)
 
 
 def test_identical_runs_identical_weights_and_renders(setup, tmp_path):

@@ -480,11 +480,26 @@ def _metrics(pred, gt, mask):
     return image_metrics(pred, gt, mask)
 
 
+def _student_texels(task, pose: int):
+    """The held-out pose's texel G-buffer at the student's N (the capture data's own
+    when the teacher's N is the same), for the ceiling of ``vs_ground_truth``."""
+    data, n = task.data, int(task.config.tex_res)
+    if n == data.tex_res:
+        return data.texels(pose, held_out=True)
+    cache = task.__dict__.setdefault("_ceiling_texels", {})
+    if pose not in cache:
+        from .geometry import PoseTexels
+        cache[pose] = PoseTexels(data.meshes(pose, True), n, shadows=data.visibility)
+    return cache[pose]
+
+
 @torch.no_grad()
 def evaluate_student(task: StudentTask, model, device) -> dict:
     """Held-out poses × evaluation env maps, scored against the teacher (``vs_teacher``,
     as the paper does) and the capture's ground-truth env renders (``vs_ground_truth``,
-    its held-out poses under its own env maps)."""
+    its held-out poses under its own env maps; on a synthetic capture with ``ceiling`` and
+    ``gap_to_ceiling``: the perfect texture at the student's N through the same
+    compositing, :class:`~relight_cli.neural.evaluate.Ceiling`)."""
     model.eval()
     data, cfg = task.data, task.config
     out = {}
@@ -511,7 +526,9 @@ def evaluate_student(task: StudentTask, model, device) -> dict:
         renders = splits["env"]
         pick = np.unique(np.linspace(0, len(renders) - 1, min(len(renders), cfg.val_samples))
                          .round().astype(int))
-        rows = []
+        from .evaluate import attach_ceiling
+        ceiling = data.ceiling()
+        rows, best = [], []
         for i in pick:
             pose, env_name, camera, gt, mask = data.env_target(renders[i][1])
             denv = discretize_env(data.env_map(env_name), *cfg.env_res)
@@ -519,9 +536,15 @@ def evaluate_student(task: StudentTask, model, device) -> dict:
             m = _metrics(pred.cpu().numpy(), gt, mask)
             if m:
                 rows.append(m)
+                if ceiling.available:   # the perfect texture at the student's N, same view
+                    texels = _student_texels(task, pose)
+                    best.append(ceiling.score(renders[i], [texels] * texels.n_hands,
+                                              data.gbuffer(pose, camera, held_out=True), gt,
+                                              mask))
         if rows:
-            out["vs_ground_truth"] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-            out["vs_ground_truth"]["samples"] = len(rows)
+            scores = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+            scores["samples"] = len(rows)
+            out["vs_ground_truth"] = attach_ceiling(scores, best)
     model.train()
     return out
 
