@@ -185,7 +185,7 @@ def _plot(record: dict, path: Path) -> None:
             ax.axhline(r["ceiling"], color=line.get_color(), linestyle=":", linewidth=1)
     ax.set_xlabel("iteration")
     ax.set_ylabel("held-out PSNR (dB); dotted: ceiling")
-    ax.set_title("cpu presets: held-out PSNR against iterations")
+    ax.set_title(f"{record['preset']} presets: held-out PSNR against iterations")
     ax.grid(True, alpha=0.3)
     ax.legend()
     B.save(fig, path, record["machine"])

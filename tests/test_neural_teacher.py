@@ -222,15 +222,27 @@ def test_config_validation_and_presets(tmp_path):
         resolve_config("huge")
     for bad in ({"iters": 0}, {"lr": float("nan")}, {"tex_res": 30}, {"model": "mlp"},
                 {"bogus": 1}, {"batch": True}, {"encoder": []}, {"head": "inside"},
-                {"untied_bias": 1}, {"neg_schedule": "never"}, {"aa": 9}, {"aa": -1}):
+                {"untied_bias": 1}, {"neg_schedule": "never"}, {"aa": 9}, {"aa": -1},
+                {"lr_schedule": "linear"}, {"lr_final": -1e-4}, {"lr_final": float("inf")},
+                {"channels_last": "yes"}):
         with pytest.raises(UsageProblem):
             TeacherConfig.from_dict(bad)
     from relight_cli.neural.config import StudentConfig
-    for bad in ({"untied_bias": "yes"}, {"neg_schedule": "never"}):
+    for bad in ({"untied_bias": "yes"}, {"neg_schedule": "never"}, {"lr_schedule": "step"},
+                {"channels_last": 1}):
         with pytest.raises(UsageProblem):
             StudentConfig.from_dict(bad)
     assert TeacherConfig.from_dict({"head": "code", "neg_schedule": "constant",
                                     "untied_bias": True, "aa": 0}).head == "code"
+    # the cpu presets resolve for every model (and set what their docs say)
+    cpu = resolve_config("cpu")
+    assert (cpu.tex_res, cpu.iters, cpu.lr_schedule, cpu.channels_last) == (64, 6000, "cosine",
+                                                                             True)
+    from relight_cli.neural.config import STUDENT_PRESETS
+    from relight_cli.neural.linear import resolve_config as linear_config
+    assert resolve_config("cpu", presets=STUDENT_PRESETS,
+                          config_class=StudentConfig).env_res == (8, 16)
+    assert linear_config("cpu").lr_drop == 4500
     cfg = tmp_path / "c.json"
     cfg.write_text('{"iters": 7, "lr": 0.01}')
     assert resolve_config("tiny", str(cfg), {"iters": 9}).iters == 9

@@ -409,19 +409,6 @@ STUDENT_PRESETS = {
             "lr": 2e-3, "lr_schedule": "cosine", "lr_final": 1e-5, "neg_start": 1000,
             "env_res": (8, 16), "val_every": 1000, "val_samples": 16, "save_every": 1000,
             "channels_last": True},
-    # A workstation CPU: the 64² texture with per-texel decoder biases, tiny widths, a
-    # cosine decay from 2e-3 over 6000 iterations, NHWC convolutions (21 % faster per
-    # iteration here).  Measured (one core of the shared 2-core machine, before NHWC:
-    # results differ by float rounding only) on the study's converged capture
-    # (benchmarks/studies/scales.json "converged": 96 frames, 8 cameras, 64² images at
-    # aa 2), held-out poses, 16 samples, seed 0: OLAT teacher 29.52 dB against a 33.12 dB
-    # ceiling (gap 3.60 dB; 31.86 dB on the trained poses, gap 2.31) in 14 min; GGX 32.57
-    # dB (gap 0.55 dB) in 18 min.  Wider OLAT widths (32/64) were no better after 1000
-    # iterations (26.77 vs 26.98 dB) at 2.3× the cost.  benchmarks/bench_presets.py
-    # re-measures every preset against its ceiling.
-    "cpu": {"tex_res": 64, "untied_bias": True, "iters": 6000, "lr": 2e-3,
-            "lr_schedule": "cosine", "lr_final": 1e-5, "neg_start": 1500, "val_every": 1000,
-            "val_samples": 16, "save_every": 1000, "channels_last": True},
     "paper": {"tex_res": 128, "decoder": (256, 256, 128, 128, 64, 64, 32),
               "pose_channels": (16, 64), "dram_code": 512, "iters": 100_000, "batch": 4,
               "lr": 1e-3, "neg_start": 25_000, "val_every": 5000, "val_samples": 64,
