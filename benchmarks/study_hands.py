@@ -23,8 +23,11 @@ sample std over seeds, the paper's numbers, one verdict per claim), ``study_<tab
 ``study_<table>.png`` (the validation metric against training iterations, one curve per
 row, ± std shaded).  Captures are cached under ``--out/captures`` keyed by their settings,
 finished rows under ``--out/runs`` keyed by everything that shaped them, so an interrupted
-run continues where it stopped.  ``--report`` rewrites the Markdown and plots from the
-JSON without training.
+run continues where it stopped: a row in training saves its exact state at every
+validation and a killed row resumes from it (same numbers as uninterrupted).  ``--workers
+N`` runs N runner processes on the same ``--out``; each trains the rows no other holds (a
+lock per row), so independent rows train in parallel.  ``--report`` rewrites the Markdown
+and plots from the JSON without training.
 
 Sizes: ``benchmarks/studies/scales.json`` (tiny: the CI gate's, seconds per row; medium:
 the committed tables, about 45 min on 2 shared CPU cores; paper: the papers' sizes, a GPU job).
@@ -32,6 +35,8 @@ Plots need matplotlib (``pip install -e '.[bench]'``).
 
 Run:
     .venv/bin/python benchmarks/study_hands.py --scale medium --seeds 3 --out benchmarks/out/study
+    .venv/bin/python benchmarks/study_hands.py --scale converged --seeds 2 --workers 2 \
+        --out benchmarks/out/study_converged --results benchmarks/results/converged
 """
 
 from __future__ import annotations
@@ -386,11 +391,20 @@ class Study:
         return config
 
     def row(self, kind: str, hand: str, overrides: dict, seed: int, splits: tuple,
-            curve: tuple, teacher_row: dict | None = None) -> dict:
+            curve: tuple, teacher_row: dict | None = None, wait: bool = True) -> dict | None:
         """Train one row (or read it from the cache): {"metrics", "curve", "seconds",
-        "iters"} and, for teachers, the checkpoint path."""
-        import torch
+        "iters"} and, for teachers, the checkpoint path.
 
+        A row being trained holds ``runs/KEY.lock``, so several runners sharing ``--out``
+        (``--workers``) train different rows; with ``wait=False`` a row another runner
+        holds is left to it (None).  A row saves ``runs/KEY.partial.pt`` (the exact
+        training state) and ``runs/KEY.partial.json`` (its validations so far) at every
+        validation, and a killed row resumes from them: the result is the uninterrupted
+        run's (the trainer's resume is exact)."""
+        import fcntl
+
+        if teacher_row is None and kind == "student":
+            raise ValueError("a student row needs its teacher row")
         folder = self.capture(hand)
         config = self._config(kind, overrides, seed)
         spec = {"v": CACHE_VERSION, "kind": kind, "capture": self.capture_info[hand]["key"],
@@ -403,34 +417,85 @@ class Study:
         runs = self.out / "runs"
         runs.mkdir(parents=True, exist_ok=True)
         cached = runs / f"{key}.json"
-        if cached.is_file():
-            record = json.loads(cached.read_text())
-            self._memo[key] = record
-            return record
-        self.log(f"train {kind} {json.dumps(overrides, sort_keys=True)} on {hand}, seed {seed}: "
-                 f"{config.iters} iterations")
-        task = self._task(kind, folder, config, splits, curve, teacher_row)
+        if not cached.is_file():
+            with open(runs / f"{key}.lock", "w") as lock:
+                try:
+                    fcntl.flock(lock, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+                except BlockingIOError:
+                    return None                       # another runner is training it
+                if not cached.is_file():              # (or finished it while we waited)
+                    self._train(kind, hand, overrides, seed, splits, curve, teacher_row,
+                                folder, config, key, runs)
+        record = json.loads(cached.read_text())
+        self._memo[key] = record
+        return record
+
+    def _train(self, kind, hand, overrides, seed, splits, curve, teacher_row, folder, config,
+               key, runs) -> None:
+        """Train one row into ``runs/KEY.json`` (see :meth:`row`), resuming its partial
+        state when a previous run was stopped."""
+        import torch
+
+        from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
         from relight_cli.neural.train import fit
+        partial, notes = runs / f"{key}.partial.pt", runs / f"{key}.partial.json"
+        resume, before, spent = None, [], 0.0
+        if partial.is_file() and notes.is_file():
+            resume = read_checkpoint(str(partial))
+            done = json.loads(notes.read_text())
+            # the notes are written before the checkpoint: keep what the checkpoint reached
+            before = [p for p in done["curve"] if p[0] <= resume["step"]]
+            spent = done["seconds"]
+            self.log(f"resume {kind} {json.dumps(overrides, sort_keys=True)} on {hand}, seed "
+                     f"{seed} from step {resume['step']} of {config.iters}")
+        else:
+            self.log(f"train {kind} {json.dumps(overrides, sort_keys=True)} on {hand}, seed "
+                     f"{seed}: {config.iters} iterations")
+        task = self._task(kind, folder, config, splits, curve, teacher_row)
+        # the validations during training, with the step each follows (the curve survives
+        # a resume, which the trainer's own history does not)
+        points, at = list(before), [resume["step"] if resume else 0]
+        step_hook, score = getattr(task, "after_step", None), task.evaluate
+
+        def after_step(step, world):
+            if step_hook is not None:
+                step_hook(step, world)
+            at[0] = step + 1
+
+        def evaluate(model, device):
+            out = score(model, device)
+            if at[0] < config.iters:
+                points.append([at[0], out.get(curve[0], {}).get(curve[1])])
+            return out
+        task.after_step, task.evaluate = after_step, evaluate
         t0 = time.perf_counter()
-        result = fit(task, config, torch.device("cpu"), show_progress=False)
-        seconds = time.perf_counter() - t0
-        curve_points = [[h["step"], h.get(curve[0], {}).get(curve[1])] for h in result.history]
+
+        def save(checkpoint):
+            elapsed = spent + time.perf_counter() - t0
+            write_json(notes, {"curve": points, "seconds": round(elapsed, 1),
+                               "step": checkpoint["step"]})
+            write_checkpoint(str(partial), checkpoint)
+        config.save_every = config.val_every
+        result = fit(task, config, torch.device("cpu"), resume=resume, show_progress=False,
+                     save=save)
+        seconds = spent + time.perf_counter() - t0
+        final = result.history[-1]
+        curve_points = points + [[final["step"], final.get(curve[0], {}).get(curve[1])]]
         record = {"key": key, "kind": kind, "hand": hand, "seed": seed, "overrides": overrides,
                   "iters": config.iters, "metrics": {k: v for k, v in result.metrics.items()
                                                      if isinstance(v, dict)},
                   "curve": curve_points, "seconds": round(seconds, 1),
-                  "train_seconds": round(result.seconds, 1)}
+                  "resumed_from": resume["step"] if resume else None}
         if kind == "teacher":
-            from relight_cli.formats.checkpoint import write_checkpoint
             path = runs / f"{key}.pt"
             write_checkpoint(str(path), result.checkpoint)
             record["checkpoint"] = str(path)
-        write_json(cached, record)
-        self._memo[key] = record
+        write_json(runs / f"{key}.json", record)
+        for leftover in (partial, notes):
+            leftover.unlink(missing_ok=True)
         self.log(f"  {seconds:.0f} s: " + ", ".join(
             f"{s} " + " ".join(f"{m} {v:.4g}" for m, v in record["metrics"].get(s, {}).items()
                                if m in ("mse", "psnr", "ssim")) for s in splits))
-        return record
 
     def data(self, folder: Path, config):
         """One CaptureData per (capture, geometry settings), shared by the rows that use
@@ -445,16 +510,20 @@ class Study:
                                           max(config.cache_poses, 256))
         return self._memo[key]
 
-    def scored(self, kind: str, hand: str, overrides: dict, seed: int, split: str) -> dict:
+    def scored(self, kind: str, hand: str, overrides: dict, seed: int, split: str,
+               wait: bool = True) -> dict | None:
         """A row of a column no model trains on (:data:`EVAL_ONLY`): the models of its
         hands' own captures (same row, same seed), each rendering its hand with visibility
         against both, scored on every grouped-light frame of ``hand``'s capture (all its
-        poses are new to them) as the table's ``split``."""
+        poses are new to them) as the table's ``split``.  None when ``wait`` is False and
+        another runner is training one of those models."""
         from relight_cli.formats.checkpoint import read_checkpoint
         from relight_cli.neural.evaluate import evaluate_capture, load_hand_model
 
-        parts = [self.row(kind, h, overrides, seed, (split,), (split, "mse"))
+        parts = [self.row(kind, h, overrides, seed, (split,), (split, "mse"), wait=wait)
                  for h in EVAL_ONLY[hand]]
+        if any(p is None for p in parts):
+            return None
         folder = self.capture(hand)
         spec = {"v": CACHE_VERSION, "scored": hand, "capture": self.capture_info[hand]["key"],
                 "models": [p["key"] for p in parts], "samples": self.settings["val_samples"]}
@@ -530,23 +599,36 @@ class Study:
     # -------------------------------------------------------------- tables
 
     def table(self, table: Table, seeds: list) -> dict:
-        """Every row × hand × seed of ``table`` → the table's record (see :func:`summarize`)."""
+        """Every row × hand × seed of ``table`` → the table's record (see :func:`summarize`).
+
+        Rows another runner is training are left to it on a first pass and read (waiting
+        for them) on a second, so ``--workers`` runners split a table between them."""
+        jobs = [(name, hand, seed) for hand in self.settings[table.hands_key]
+                for seed in seeds for name in table.rows]
+        done = {}
+        for wait in (False, True):
+            for job in jobs:
+                if job not in done:
+                    record = self._job(table, *job, wait)
+                    if record is not None:
+                        done[job] = record
         runs = {}
-        for hand in self.settings[table.hands_key]:
-            for seed in seeds:
-                for name, overrides in table.rows.items():
-                    if hand in EVAL_ONLY:
-                        runs.setdefault(name, {}).setdefault(hand, []).append(
-                            self.scored(table.kind, hand, overrides, seed, table.splits[0]))
-                        continue
-                    teacher = None
-                    if table.kind == "student":
-                        teacher = self.row("teacher", hand, {}, seed, ("heldout",),
-                                           ("heldout", "mse"))
-                    runs.setdefault(name, {}).setdefault(hand, []).append(
-                        self.row(table.kind, hand, overrides, seed, table.splits, table.curve,
-                                 teacher))
+        for name, hand, seed in jobs:
+            runs.setdefault(name, {}).setdefault(hand, []).append(done[name, hand, seed])
         return summarize(table, runs)
+
+    def _job(self, table: Table, name: str, hand: str, seed: int, wait: bool) -> dict | None:
+        overrides = table.rows[name]
+        if hand in EVAL_ONLY:
+            return self.scored(table.kind, hand, overrides, seed, table.splits[0], wait)
+        teacher = None
+        if table.kind == "student":
+            teacher = self.row("teacher", hand, {}, seed, ("heldout",), ("heldout", "mse"),
+                               wait=wait)
+            if teacher is None:
+                return None
+        return self.row(table.kind, hand, overrides, seed, table.splits, table.curve, teacher,
+                        wait=wait)
 
 
 def _final_splits(base, score, splits, curve):
@@ -684,8 +766,9 @@ def converged(curves: list, iters: list, metric: str) -> dict:
     gains = []
     for curve, n in zip(curves, iters):
         points = [(s, v) for s, v in curve if v is not None]
-        start = [v for s, v in points if s >= (1 - CONVERGED_TAIL) * n and s < n]
-        if not points or not start or points[-1][0] != n:
+        start = [v for s, v in points
+                 if n is not None and (1 - CONVERGED_TAIL) * n <= s < n]
+        if n is None or not points or not start or points[-1][0] != n:
             gains.append(None)
             continue
         a, b = start[0], points[-1][1]
@@ -724,7 +807,7 @@ def summarize(table: Table, runs: dict) -> dict:
                 for s in steps]
             seconds.setdefault(name, {})[hand] = mean_std([r["seconds"] for r in records])
             convergence.setdefault(name, {})[hand] = converged(
-                [r["curve"] for r in records], [r["iters"] for r in records], table.curve[1])
+                [r["curve"] for r in records], [r.get("iters") for r in records], table.curve[1])
     out = {"table": table.name, "title": table.title, "rows": rows, "curves": curves,
            "row_seconds": round(sum(r["seconds"] for p in runs.values() for rs in p.values()
                                     for r in rs), 1),
@@ -1002,6 +1085,19 @@ def require_matplotlib() -> None:
                          "extra: .venv/bin/python -m pip install -e '.[bench]'") from None
 
 
+def _without_option(argv: list, option: str) -> list:
+    """``argv`` without ``option`` (as ``--opt VALUE`` or ``--opt=VALUE``)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == option:
+            skip = True
+        elif not a.startswith(option + "="):
+            out.append(a)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scale", choices=("tiny", "medium", "converged", "paper"), default="tiny")
@@ -1018,6 +1114,11 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads (default 1: on a shared machine 2 threads ran a "
                          "teacher 10× slower than 1, OpenMP workers spinning for cores)")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="runner processes sharing --out (default 1): each trains the rows no "
+                         "other runner holds, so 2 use both cores of a 2-core machine; this "
+                         "process writes the tables")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--gate-spread", metavar="FILE.json", default=None,
                     help="instead of tables: the CI gate's ratios for each seed and the "
                          "margins they imply (tests/baseline/study_gate_spread.json)")
@@ -1056,11 +1157,21 @@ def main(argv=None):
         return
     t0 = time.perf_counter()
     seeds = list(range(args.seeds))
+    helpers = []
+    if args.workers > 1 and not args.worker:
+        import subprocess
+        forwarded = _without_option(sys.argv[1:] if argv is None else list(argv), "--workers")
+        helpers = [subprocess.Popen([sys.executable, str(Path(__file__).resolve()), *forwarded,
+                                     "--worker"]) for _ in range(args.workers - 1)]
     records = {}
     for name in names:
         records[name] = study.table(TABLES[name], seeds)
         print(f"{name}: done after {(time.perf_counter() - t0) / 60:.1f} min", file=sys.stderr,
               flush=True)
+    for helper in helpers:
+        helper.wait()
+    if args.worker:
+        return
     wall = time.perf_counter() - t0
     for name, record in records.items():
         record.update({"command": command, "machine": where, "wall_seconds": round(wall, 1),

@@ -240,3 +240,45 @@ def test_gate_fails_with_a_featureless_student(gate_run, tmp_path, monkeypatch):
     new.write_text(dumps(_record(worse)))
     result = compare(new)
     assert result.returncode == 3, result.stdout + result.stderr
+
+
+def test_an_interrupted_row_resumes_to_the_uninterrupted_result(gate_run, tmp_path, monkeypatch):
+    """A study row killed after its first periodic save resumes from ``KEY.partial.pt``
+    and ends with the uninterrupted row's numbers and curve; while another runner holds a
+    row's lock, ``wait=False`` leaves the row to it (the split ``--workers`` relies on)."""
+    import fcntl
+
+    from relight_cli.formats import checkpoint as C
+    study_hands = _study_module()
+    study, _ = gate_run
+    args = ("teacher", study_hands.GATE_HAND, {}, SEED, *study_hands.GATE_SPLITS["teacher"])
+    with one_thread():
+        reference = study.row(*args)
+    other = study_hands.Study("tiny", tmp_path / "resumed", log=lambda m: None)
+    other.captures, other.capture_info = study.captures, study.capture_info
+    runs = tmp_path / "resumed" / "runs"
+    runs.mkdir(parents=True)
+    with open(runs / f"{reference['key']}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        assert other.row(*args, wait=False) is None
+    write = C.write_checkpoint
+
+    class Killed(Exception):
+        pass
+
+    def killed_after_first_save(path, checkpoint, *a, **k):
+        write(path, checkpoint, *a, **k)
+        if path.endswith(".partial.pt"):
+            raise Killed(checkpoint["step"])
+    monkeypatch.setattr(C, "write_checkpoint", killed_after_first_save)
+    with one_thread(), pytest.raises(Killed):
+        other.row(*args)
+    monkeypatch.setattr(C, "write_checkpoint", write)
+    assert (runs / f"{reference['key']}.partial.pt").is_file()
+    other._memo.clear()
+    with one_thread():
+        resumed = other.row(*args)
+    assert 0 < resumed["resumed_from"] < resumed["iters"]
+    assert resumed["metrics"] == reference["metrics"]
+    assert resumed["curve"] == reference["curve"]
+    assert not list(runs.glob("*.partial.*"))
