@@ -42,6 +42,7 @@ Run:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import math
@@ -665,6 +666,18 @@ GATE = {
     "linear_vs_nonlinear_fully_lit": ("linear", {}, {"light_path": "nonlinear"},
                                       "fully_lit.mse"),
 }
+#: learning checks: each model's held-out gap to its ceiling (ceiling PSNR − model PSNR,
+#: dB; lower is better) at the tiny scale, for one seed.  Gated below a threshold halfway
+#: between the worst measured seed and the same model never trained (every optimizer step
+#: skipped, :func:`frozen_optimizers`): a model that stopped learning fails it
+GAP_GATE = {
+    "teacher_gap": ("teacher", {}, "heldout"),
+    "ggx_gap": ("teacher", {"model": "ggx"}, "heldout"),
+    "linear_gap": ("linear", {}, "heldout"),
+}
+#: the value each check is gated on, and which way is better
+GATE_METRIC = {**{name: ("mse_ratio", "higher") for name in GATE},
+               **{name: ("gap_db", "lower") for name in GAP_GATE}}
 GATE_HAND = "right"
 #: the rows' splits and plotted split per kind (those of the tables, so rows are shared)
 GATE_SPLITS = {"teacher": (("heldout",), ("heldout", "mse")),
@@ -673,10 +686,16 @@ GATE_SPLITS = {"teacher": (("heldout",), ("heldout", "mse")),
 
 
 def gate_metrics(study: "Study", seed: int = 0, checks=None) -> dict:
-    """{check: {"mse_ratio": MSE(worse) / MSE(better)}} of :data:`GATE` (or ``checks``) for
-    one seed, training (or reusing) the rows of ``study``."""
+    """{check: {"mse_ratio": MSE(worse) / MSE(better)}} of :data:`GATE` and {check:
+    {"gap_db": gap to the ceiling}} of :data:`GAP_GATE` (or of ``checks``) for one seed,
+    training (or reusing) the rows of ``study``."""
     out = {}
-    for name in checks or GATE:
+    for name in checks or GATE_METRIC:
+        if name in GAP_GATE:
+            kind, overrides, split = GAP_GATE[name]
+            row = study.row(kind, GATE_HAND, overrides, seed, *GATE_SPLITS[kind])
+            out[name] = {"gap_db": row["metrics"][split]["gap_to_ceiling"]}
+            continue
         kind, better, worse, metric = GATE[name]
         split = metric.split(".")[0]
         parent = None
@@ -689,17 +708,46 @@ def gate_metrics(study: "Study", seed: int = 0, checks=None) -> dict:
     return out
 
 
+@contextlib.contextmanager
+def frozen_optimizers():
+    """Every torch optimizer's step skipped: the models train through the whole loop
+    (forward, loss, backward) and keep their initial weights — a dead model."""
+    import torch
+    original = torch.optim.Adam.step
+    torch.optim.Adam.step = lambda self, closure=None: None
+    try:
+        yield
+    finally:
+        torch.optim.Adam.step = original
+
+
 def gate_spread(study: "Study", seeds: list, path: Path) -> dict:
-    """Every gate ratio for each seed, their spread and the margin derived from it: the
-    gate's threshold is halfway between 1 (no effect) and the smallest ratio over the
-    seeds; a check whose smallest ratio is ≤ 1 is not robust (reported, never gated)."""
+    """Every gate value for each seed, their spread and the margin derived from it.
+
+    Ratios (:data:`GATE`): the threshold is halfway between 1 (no effect) and the smallest
+    ratio over the seeds; a check whose smallest ratio is ≤ 1 is not robust (reported,
+    never gated).  Gaps (:data:`GAP_GATE`): halfway between the largest gap over the seeds
+    and the gap of the same row never trained (:func:`frozen_optimizers`, seed 0); not
+    robust when training did not close the gap."""
     per_seed = {seed: gate_metrics(study, seed) for seed in seeds}
+    dead = Study(study.scale, study.out / "frozen", log=study.log, settings=study.settings)
+    dead.captures, dead.capture_info = study.captures, study.capture_info
+    with frozen_optimizers():
+        frozen = gate_metrics(dead, seeds[0], list(GAP_GATE))
     checks = {}
-    for name in GATE:
-        stats = mean_std([per_seed[s][name]["mse_ratio"] for s in seeds])
-        low = min(stats["values"])
-        checks[name] = {**stats, "min": low, "robust": low > 1.0,
-                        "threshold": 1.0 + (low - 1.0) / 2 if low > 1.0 else None}
+    for name, (metric, better) in GATE_METRIC.items():
+        stats = mean_std([per_seed[s][name][metric] for s in seeds])
+        if metric == "mse_ratio":
+            low = min(stats["values"])
+            checks[name] = {**stats, "min": low, "robust": low > 1.0,
+                            "threshold": 1.0 + (low - 1.0) / 2 if low > 1.0 else None}
+        else:
+            high, dead_gap = max(stats["values"]), frozen[name][metric]
+            checks[name] = {**stats, "max": high, "untrained": dead_gap,
+                            "robust": dead_gap > high,
+                            "threshold": high + (dead_gap - high) / 2 if dead_gap > high
+                            else None}
+        checks[name].update({"metric": metric, "better": better})
     record = {"scale": study.scale, "hand": GATE_HAND, "seeds": seeds, "checks": checks,
               "machine": machine(), "settings": study.settings}
     write_json(path, record)
@@ -711,16 +759,20 @@ def gate_markdown(record: dict, command: str) -> str:
     lines = ["# The studies' CI gate: margins and seeds", "",
              "`tests/test_study_gate.py` trains the rows below at the `tiny` scale "
              f"(benchmarks/studies/scales.json), {record['hand']} hand, **seed 0**, and "
-             "compares each gated ratio with `tests/baseline/study_gate.json` through "
-             "`relight metrics compare` (`--better mse_ratio=higher`, `--atol "
-             "CHECK.mse_ratio=baseline − threshold`, `--rtol 0`): exit 3 when a ratio falls "
-             "below its threshold.", "",
+             "compares each gated value with `tests/baseline/study_gate.json` through "
+             "`relight metrics compare` (`--better CHECK.METRIC=higher|lower`, `--atol` "
+             "the distance from the baseline to the threshold, `--rtol 0`): exit 3 when a "
+             "ratio falls below its threshold or a gap rises above it.", "",
              f"Spread over seeds {', '.join(map(str, record['seeds']))} (same capture; "
              f"each seed a fresh initialization and sampling order), measured with "
-             f"`{command}` on {record['machine']}:", "",
+             f"`{command}` on {record['machine']}.", "",
+             "## The papers' orderings", "",
              "| check | ratio MSE(worse)/MSE(better) | per seed | min | gated | threshold |",
              "|---|---|---|---|---|---|"]
-    for name, c in record["checks"].items():
+    checks = record["checks"]
+    for name, c in checks.items():
+        if name not in GATE:
+            continue
         kind, better, worse, metric = GATE[name]
         what = (f"{kind} {json.dumps(worse, sort_keys=True)} / "
                 f"{json.dumps(better, sort_keys=True) if better else 'full'}, {metric}")
@@ -733,6 +785,25 @@ def gate_markdown(record: dict, command: str) -> str:
               "no measured seed would fail and the sabotaged run always does. Checks whose "
               "ratio fell to ≤ 1 for some seed are reported here and in the study tables, "
               "not gated: at this size the ordering is not robust.", "",
+              "## Learning: each model's gap to its ceiling", "",
+              "| check | held-out gap (dB) | per seed | max | never trained | gated | "
+              "threshold |", "|---|---|---|---|---|---|---|"]
+    for name, c in checks.items():
+        if name not in GAP_GATE:
+            continue
+        kind, overrides, split = GAP_GATE[name]
+        what = f"{kind} {json.dumps(overrides, sort_keys=True) if overrides else 'full'}"
+        lines.append(f"| `{name}` ({what}, {split}) | {c['mean']:.2f} ± {c['std']:.2f} | "
+                     + ", ".join(f"{v:.2f}" for v in c["values"])
+                     + f" | {c['max']:.2f} | {c['untrained']:.2f} | "
+                     + f"{'yes' if c['robust'] else 'no: not robust'} | "
+                     + (f"{c['threshold']:.2f}" if c["threshold"] else "—") + " |")
+    lines += ["", "The gap is the ceiling's PSNR (the perfect texture at the model's "
+              "resolution through the same compositing and pixel sampling) minus the "
+              "model's, on held-out poses. Its threshold is halfway between the largest gap "
+              "any seed left and the gap of the same row trained with every optimizer step "
+              "skipped (its initial weights: a dead model), so the sabotage test's dead "
+              "optimizer fails every gap check.", "",
               "To re-measure (then regenerate the baseline, `RELIGHT_REGEN_BASELINE=1`): "
               "`.venv/bin/python benchmarks/study_hands.py --scale tiny --seeds 5 --out DIR "
               "--gate-spread tests/baseline/study_gate_spread.json` (about 10 minutes on 2 "

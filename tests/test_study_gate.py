@@ -1,8 +1,11 @@
 """The studies' CI gate: the paper orderings that are robust at benchmarks/study_hands.py's
 ``tiny`` scale, checked through ``relight metrics compare`` against a checked-in baseline.
 
-Each check is a ratio MSE(the paper's worse row) / MSE(its better row) of one seed
-(:data:`study_hands.GATE`).  Which checks are gated, and with what margin, comes from
+Each ordering check is a ratio MSE(the paper's worse row) / MSE(its better row) of one
+seed (:data:`study_hands.GATE`); each learning check is a model's held-out gap to its
+ceiling in dB (:data:`study_hands.GAP_GATE`: OLAT teacher, GGX, URHand's linear model),
+gated halfway between the worst measured seed and the same model never trained, with a
+dead-optimizer sabotage that must fail every one.  Which checks are gated, and with what margin, comes from
 their spread over five seeds (``tests/baseline/study_gate_spread.json``, made by
 ``study_hands.py --gate-spread``; ``tests/baseline/study_gate_spread.md`` shows it): a check
 whose ratio fell to ≤ 1 for some seed is not robust at this size and is not gated; a
@@ -71,7 +74,8 @@ def _record(metrics: dict) -> dict:
 
 
 def thresholds() -> dict:
-    """gated check → the smallest ratio that passes (from the measured spread)."""
+    """gated check → the threshold it must stay on the good side of (from the measured
+    spread: the smallest ratio that passes, the largest gap that passes)."""
     spread = json.loads(SPREAD.read_text())["checks"]
     return {name: c["threshold"] for name, c in spread.items() if c["robust"]}
 
@@ -79,10 +83,12 @@ def thresholds() -> dict:
 def compare(new: Path) -> "subprocess.CompletedProcess":  # noqa: F821
     """``relight metrics compare`` with each check's margin as its absolute slack."""
     base = json.loads(BASELINE.read_text())["metrics"]
-    args = ["metrics", "compare", new, BASELINE, "--better", "mse_ratio=higher"]
-    for name, low in thresholds().items():
-        args += ["--atol", f"{name}.mse_ratio={base[name]['mse_ratio'] - low!r}",
-                 "--rtol", f"{name}.mse_ratio=0"]
+    args = ["metrics", "compare", new, BASELINE]
+    for name, limit in thresholds().items():
+        metric, better = _study_module().GATE_METRIC[name]
+        key = f"{name}.{metric}"
+        args += ["--better", f"{key}={better}", "--atol", f"{key}={abs(base[name][metric] - limit)!r}",
+                 "--rtol", f"{key}=0"]
     return run_relight(*args)
 
 
@@ -102,11 +108,17 @@ def test_gate_spread_supports_the_margins():
     threshold lies above 1 (a sabotaged ratio) and below every seed's ratio; the
     visibility-dependent check the sabotage test relies on is among them."""
     spread = json.loads(SPREAD.read_text())
+    study_hands = _study_module()
     assert len(spread["seeds"]) >= 3
-    assert set(spread["checks"]) == set(_study_module().GATE)
-    for name, low in thresholds().items():
-        assert 1.0 < low < spread["checks"][name]["min"], name
+    assert set(spread["checks"]) == set(study_hands.GATE_METRIC)
+    for name, limit in thresholds().items():
+        c = spread["checks"][name]
+        if name in study_hands.GAP_GATE:      # between the trained seeds and a dead model
+            assert c["max"] < limit < c["untrained"], name
+        else:
+            assert 1.0 < limit < c["min"], name
     assert set(SABOTAGED) <= set(thresholds())
+    assert set(study_hands.GAP_GATE) <= set(thresholds())
 
 
 def test_study_gate(gate_run, tmp_path):
@@ -282,3 +294,25 @@ def test_an_interrupted_row_resumes_to_the_uninterrupted_result(gate_run, tmp_pa
     assert resumed["metrics"] == reference["metrics"]
     assert resumed["curve"] == reference["curve"]
     assert not list(runs.glob("*.partial.*"))
+
+
+def test_gate_fails_when_nothing_learns(gate_run, tmp_path):
+    """Sabotage of learning itself: the gap rows retrained with every optimizer step
+    skipped (forward, loss and backward run; the weights stay at their initialization)
+    must leave every model's gap to its ceiling above its threshold."""
+    from relight_cli.formats.metrics_json import dumps
+    study_hands = _study_module()
+    study, metrics = gate_run
+    dead = study_hands.Study("tiny", tmp_path / "dead", log=lambda m: None)
+    dead.captures, dead.capture_info = study.captures, study.capture_info
+    with one_thread(), study_hands.frozen_optimizers():
+        worse = {**metrics, **study_hands.gate_metrics(dead, SEED, list(study_hands.GAP_GATE))}
+    new = tmp_path / "dead.json"
+    new.write_text(dumps(_record(worse)))
+    result = compare(new)
+    assert result.returncode == 3, result.stdout + result.stderr
+    limits = thresholds()
+    for name in study_hands.GAP_GATE:
+        assert worse[name]["gap_db"] > limits[name] > metrics[name]["gap_db"], name
+        line = next(row for row in result.stdout.splitlines() if f"{name}.gap_db" in row)
+        assert "REGRESSED" in line, result.stdout
