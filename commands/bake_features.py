@@ -157,6 +157,12 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                             f"overflow float32", spec)
     log(f"read {hand}: {len(data.hands)} hand(s), {n_frames} frame(s); "
         f"{len(envs)} env map(s)", quiet)
+    for env, spec in zip(env_maps, envs):   # a file finer than the grid loses detail: say so
+        if not spec.startswith("builtin:") and env.width * env.height > env_w * env_h:
+            size = (f"{env.width}x{env.height}" if env.layout == "latlong"
+                    else f"cube {env.width}x{env.width}x6")
+            log(f"note: {spec} ({size}) is reduced to the --env-res grid {env_w}x{env_h} "
+                f"(area-weighted, power kept); a larger --env-res keeps more detail", quiet)
 
     from relight_cli.bake import PoseFeatures
 

@@ -11,7 +11,8 @@ from relight_cli.clitools import (FiniteFloat, check_output, log, no_clobber_opt
 
 
 @click.command("camera", short_help="Make cameras (look-at, orbit, dome) or import them (COLMAP, nerfstudio).")
-@click.option("-o", "--output", required=True, help="Camera JSON ('-' for stdout).")
+@click.option("-o", "--output", default="-", metavar="FILE.json|-",
+              help="Camera JSON [default: '-', stdout].")
 @click.option("--eye", default=None, metavar="X,Y,Z",
               help="Look-at: the camera centre (metres, world).")
 @click.option("--target", default=None, metavar="X,Y,Z",
@@ -55,7 +56,8 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
             name, source, select, drop_distortion, no_clobber, quiet):
     """Write cameras as relight/camera JSON (formats/camera.md): OpenCV pinhole
     K, world→camera R, t, width, height, name.  One camera is a JSON object,
-    several a rig ({"cameras": [...]}).
+    several a rig ({"cameras": [...]}).  The JSON goes to stdout unless -o FILE
+    is given.
 
     \b
     Make them:
@@ -76,8 +78,11 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
       a nerfstudio / instant-ngp transforms.json: one camera per frame, named by
         its file_path, in file order
       a relight camera JSON (a rig to --select from) or capture.json (its rig)
-      an EXR render: its worldToCamera and worldToNDC header attributes
+      an EXR render or capture image: its worldToCamera and worldToNDC header
+        attributes, named as relight recorded it (relight.camera)
       '-': any of the JSON ones on stdin
+    Imported cameras keep their names: COLMAP image names, nerfstudio file_paths,
+    the names of a relight rig or capture, the name in a relight EXR's header.
     COLMAP and nerfstudio put the centre of the top-left pixel at (0.5, 0.5),
     relight at (0, 0): the principal point moves by -0.5 pixel.  nerfstudio's
     camera→world OpenGL poses (y up, looking down -z) become OpenCV's world→camera.
@@ -91,7 +96,8 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
       relight camera --dome 40 --radius 1 --elevation -20 --size 128x128 -o dome.json
       relight camera --from sparse/0 -o colmap_cams.json
       relight camera --from capture/capture.json --select cam000 -o cam000.json
-      cat transforms.json | relight camera --from - -o - | jq '.cameras | length'
+      relight camera --from render.exr
+      cat transforms.json | relight camera --from - | jq '.cameras | length'
     """
     from relight_cli import cameras as C
     from relight_cli.errors import UsageProblem
@@ -223,15 +229,16 @@ def _import(path: str, drop_distortion: bool):
         return (I.read_colmap_model(path, drop_distortion),
                 {"colmap_cameras": cameras_path, "colmap_images": images_path}, "colmap")
     if lower.endswith(".exr"):
-        from relight_cli.formats.camera import camera_from_openexr
+        from relight_cli.formats.camera import camera_from_openexr, openexr_camera_name
         from relight_cli.formats.exr import read_exr
         image = read_exr(check_input(path))
         if not all(k in image.attributes for k in ("worldToCamera", "worldToNDC")):
             raise DataError("no worldToCamera and worldToNDC header attributes: not a camera "
                             "render", path)
+        name = openexr_camera_name(image.attributes.get("relight.camera"))
         camera = camera_from_openexr(image.attributes["worldToCamera"],
                                      image.attributes["worldToNDC"], image.width, image.height,
-                                     path)
+                                     path, name)
         return [camera], {"render": path}, "openexr"
     raise UsageProblem("--from takes a COLMAP text model (folder, cameras.txt or images.txt), "
                        "a .json (transforms.json, cameras, capture; '-' for stdin) or an EXR "

@@ -49,9 +49,19 @@ def _finite_or_fail(pixels, path):
 
 def _read_rgb(path: str):
     """[H, W, C] float32 colour channels (R, G, B when named so; alpha dropped) and their names."""
+    pixels, names, _ = _read_rgb_alpha(path)
+    return pixels, names
+
+
+def _read_rgb_alpha(path: str):
+    """(colour channels and their names as :func:`_read_rgb`, the [H, W] float32 alpha
+    channel or None): alpha is the channel named ``A`` beside colour channels, as
+    OpenImageIO names the alpha of EXR, PNG and TIFF files.  Per-hand coverage
+    (``hand0.A``) and a one-channel image are not alpha."""
     from relight_cli.formats.image import read_image
     check_input(path)
     pixels, names = read_image(path)
+    alpha = pixels[..., names.index("A")] if "A" in names and len(names) > 1 else None
     if all(c in names for c in "RGB"):
         idx = [names.index(c) for c in "RGB"]
         pixels, names = pixels[..., idx], ["R", "G", "B"]
@@ -59,7 +69,23 @@ def _read_rgb(path: str):
         pixels, names = pixels[..., :3], names[:3]
     elif pixels.shape[-1] == 2:  # grey + alpha
         pixels, names = pixels[..., :1], names[:1]
-    return _finite_or_fail(pixels, path), [n.split(".")[-1] or f"c{i}" for i, n in enumerate(names)]
+    return (_finite_or_fail(pixels, path),
+            [n.split(".")[-1] or f"c{i}" for i, n in enumerate(names)], alpha)
+
+
+def _alpha_mask(alpha, path: str):
+    """[H, W] bool foreground (alpha > 0.5) of a ground truth's alpha channel."""
+    import numpy as np
+
+    from relight_cli.errors import DataError
+    if not np.isfinite(alpha).all():
+        raise DataError("the alpha channel holds NaN or Inf values (score every pixel with "
+                        "--whole-image)", path)
+    mask = alpha > 0.5
+    if not mask.any():
+        raise DataError("the alpha channel selects no pixels (foreground is alpha > 0.5); "
+                        "score every pixel with --whole-image", path)
+    return mask
 
 
 def _read_single(path: str):
@@ -124,8 +150,10 @@ def _write(output, jsonl, record, rows):
     return dumps
 
 
-def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None):
-    """Metrics record from per-pair results [(name, pred, gt, mask, result_dict)]."""
+def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None,
+                  batch_details=None):
+    """Metrics record from per-pair results [(name, pred, gt, mask, result_dict)];
+    ``batch_details``: the ``details`` of a record of several pairs."""
     from relight_cli.formats.metrics_json import FORMAT, VERSION, _encode_tree, make_record
     from relight_cli.metrics.batch import aggregate
     from relight_cli.provenance import provenance
@@ -156,7 +184,7 @@ def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None
     agg = aggregate(flat, percentiles)
     means = {k: v["mean"] for k, v in agg.items()}
     return make_record(kind, means, prov["inputs"], settings, prov, aggregate=agg,
-                       pairs=len(results)), rows
+                       pairs=len(results), details=batch_details), rows
 
 
 # ------------------------------------------------------------------ image
@@ -166,7 +194,10 @@ def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None
 @click.argument("pred", metavar="PRED")
 @click.argument("gt", metavar="GT")
 @click.option("--mask", default=None,
-              help="Foreground mask (> 0.5 = foreground): one file, or a folder/glob matched by name.")
+              help="Foreground mask (> 0.5 = foreground): one file, or a folder/glob matched by "
+                   "name [default: the ground truth's alpha channel, when it has one].")
+@click.option("--whole-image", "whole_image", is_flag=True,
+              help="Score every pixel, also where the ground truth's alpha is background.")
 @click.option("--space", type=click.Choice(["linear", "srgb", "display"]), default="linear",
               show_default=True,
               help="linear: HDR values as stored; srgb: both tone-mapped (Reinhard + sRGB) with "
@@ -188,16 +219,24 @@ def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None
 @_percentiles
 @no_clobber_option
 @quiet_option
-def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpips, lpips_weights,
-                  output, jsonl, percentiles, no_clobber, quiet):
+def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_size, use_lpips,
+                  lpips_weights, output, jsonl, percentiles, no_clobber, quiet):
     """Compare predicted images PRED with ground truth GT.
 
     PRED and GT are two image files (EXR, or anything OpenImageIO reads), or two
     folders / glob patterns whose files are matched by name without extension.
     Many pairs give per-pair rows (--jsonl) and mean, median and percentiles.
 
+    Scores are taken inside a mask by default: --mask FILE, else the ground
+    truth's alpha channel (> 0.5 = foreground; a capture image's A is its hand
+    mask, a render's A its coverage).  A ground truth without alpha is scored
+    whole; --whole-image scores every pixel in any case.  The record says which:
+    details.region is "mask" or "image", details.pixels the pixels scored.
+
     \b
     Examples:
+      relight metrics image render.exr gt.exr -o m.json            # inside gt.exr's alpha
+      relight metrics image render.exr gt.exr --whole-image -o m.json
       relight metrics image render.exr gt.exr --mask fg.png -o m.json
       relight metrics image out/ gt/ --space srgb --jsonl rows.jsonl -o m.json
       relight metrics image 'out/*.exr' gt/ -o -
@@ -208,6 +247,8 @@ def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpi
 
     _check_outputs(output, jsonl, no_clobber)
     qs = parse_percentiles(percentiles)
+    if whole_image and mask is not None:
+        raise UsageProblem("--whole-image scores every pixel; it cannot go with --mask")
     if win_size < 3 or win_size % 2 == 0:
         raise UsageProblem(f"--win-size must be odd and at least 3, got {win_size}")
     if exposure is not None and space != "srgb":
@@ -235,19 +276,32 @@ def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpi
     results = []
     for name, p_path, g_path in (pairs if len(pairs) < 2 else
                                  _progress(pairs, "image pairs", quiet)):
-        g, names = _read_rgb(g_path)
+        g, names, alpha = _read_rgb_alpha(g_path)
         p, _ = _read_rgb(p_path)
         _same_size(p.shape, g.shape, p_path)
         if p.shape[-1] != g.shape[-1]:
             from relight_cli.errors import DataError
             raise DataError(f"has {p.shape[-1]} channel(s), the ground truth has {g.shape[-1]}",
                             p_path)
-        region = None if masks[name] is None else _read_mask(masks[name], g.shape)
+        region, mask_source = None, None
+        if masks[name] is not None:
+            region, mask_source = _read_mask(masks[name], g.shape), "file"
+        elif alpha is not None and not whole_image:
+            region, mask_source = _alpha_mask(alpha, g_path), "alpha"
         ps, gs, natural, used_exposure = M.to_space(p, g, space, region, exposure)
         try:
             result = M.image_metrics(ps, gs, region, data_range or natural, win_size, names)
         except ValueError as exc:
+            if mask_source == "alpha":
+                exc = ValueError(f"ground truth's alpha: {exc} (or score every pixel with "
+                                 f"--whole-image)")
             raise _engine_error(exc, masks[name] or g_path) from None
+        where = {"region": "image" if region is None else "mask"}
+        if mask_source is not None:
+            where["mask_source"] = mask_source
+        where.update(pixels=result.pop("pixels"), image_pixels=int(g.shape[0] * g.shape[1]))
+        result = {"metrics": result.pop("metrics"), "per_channel": result.pop("per_channel"),
+                  **where, **result}
         if lpips_net is not None:
             from relight_cli.metrics.lpips import lpips_distance
             value = lpips_distance(lpips_net, ps, gs, result["data_range"], region)
@@ -257,10 +311,27 @@ def image_command(pred, gt, mask, space, exposure, data_range, win_size, use_lpi
         results.append((name, p_path, g_path, masks[name], result))
     settings = {"space": space, "exposure": exposure, "data_range": data_range,
                 "win_size": win_size, "lpips": bool(use_lpips), "mask": mask is not None,
-                "percentiles": qs}
-    record, rows = _batch_record("image", results, len(pairs) > 1 or _is_multi(pred), settings, qs)
+                "whole_image": bool(whole_image), "percentiles": qs}
+    masked = sum(r[4]["region"] == "mask" for r in results)
+    regions = {"region": "mask" if masked == len(results) else "image" if masked == 0 else "mixed",
+               "masked_pairs": masked}
+    record, rows = _batch_record("image", results, len(pairs) > 1 or _is_multi(pred), settings, qs,
+                                 batch_details=regions)
     _write(output, jsonl, record, rows)
-    log(f"{len(results)} pair(s) compared", quiet)
+    log(f"{len(results)} pair(s) compared, {_region_note(results)}", quiet)
+
+
+def _region_note(results) -> str:
+    """Where `metrics image` scored, in words: the mask's source and size, or every pixel."""
+    sources = {"alpha": "the ground truth's alpha", "file": "--mask"}
+    if len(results) == 1:
+        r = results[0][4]
+        if r["region"] == "image":
+            return f"every pixel ({r['pixels']})"
+        return (f"inside {sources[r['mask_source']]} ({r['pixels']} of {r['image_pixels']} "
+                f"pixels{'; --whole-image scores all' if r['mask_source'] == 'alpha' else ''})")
+    masked = sum(r[4]["region"] == "mask" for r in results)
+    return f"{masked} inside a mask, {len(results) - masked} over every pixel"
 
 
 def _is_multi(spec):

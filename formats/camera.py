@@ -4,7 +4,8 @@ A camera is ``{"K": 3×3, "R": 3×3, "t": [3], "width": W, "height": H}`` with
 x_cam = R·x_world + t (world→camera), pixel = K·x_cam / z (x right, y down,
 z forward); the centre of the top-left pixel is (0, 0).  A JSON list of such
 objects (or ``{"cameras": [...]}``) is a rig.  Also here: the camera as OpenEXR's
-standard header matrices ``worldToCamera`` and ``worldToNDC`` and back.
+standard header matrices ``worldToCamera`` and ``worldToNDC`` and back, with its
+name from relight's ``relight.camera`` attribute.
 """
 
 from __future__ import annotations
@@ -227,6 +228,30 @@ def openexr_matrices(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
     # would be stored transposed).
     return (np.ascontiguousarray(to_camera.T, np.float32),
             np.ascontiguousarray(to_ndc.T, np.float32))
+
+
+def openexr_camera_name(value) -> str:
+    """The camera's name recorded by relight in an EXR's ``relight.camera`` attribute.
+
+    A render (formats/render_exr.md) stores the whole camera as a JSON object string,
+    whose ``name`` is taken; a capture image (formats/capture.md) stores the name
+    itself.  ``''`` when the attribute is absent (``None``), names nothing, or is a JSON
+    object that cannot be read: the name is a label, the header matrices are the camera.
+    """
+    if value is None:
+        return ""
+    if isinstance(value, dict):
+        obj = value
+    else:
+        text = str(value)
+        if not text.lstrip().startswith("{"):
+            return text.strip()
+        try:
+            obj = json.loads(text)
+        except ValueError:
+            return ""
+    name = obj.get("name", "") if isinstance(obj, dict) else ""
+    return name if isinstance(name, str) else ""
 
 
 def camera_from_openexr(world_to_camera, world_to_ndc, width: int, height: int,
