@@ -12,15 +12,23 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
 @click.argument("input", metavar="IN")
 @click.option("-o", "--output", required=True, help="Probe JSON ('-' for stdout).")
 @click.option("--degree", default="auto", show_default=True,
-              help="SH degree N (0-8), or 'auto': the smallest degree whose cosine-convolved "
-                   "irradiance is within --tolerance of degree --max-degree's.")
+              help="SH degree N (0-8), or 'auto': the smallest degree whose irradiance is within "
+                   "--tolerance of a direct quadrature of IN and whose radiance rings no deeper "
+                   "than --max-negativity (see formats/sh_probe_json.md).")
 @click.option("--ridge", type=FiniteFloat(0), default=0.0, show_default=True,
               help="Ridge weight λ of the least-squares fit (paper Eq. 7).")
-@click.option("--tolerance", type=FiniteFloat(0, 1, min_open=True, max_open=True), default=0.01,
-              show_default=True,
-              help="For --degree auto: allowed relative RMS irradiance error (over all normals).")
+@click.option("--tolerance", type=FiniteFloat(0, 1, min_open=True, max_open=True),
+              default=0.03, show_default=True,
+              help="For --degree auto: allowed relative RMS irradiance error against a direct "
+                   "quadrature of IN (over 1024 normals); at 0.03 Poly Haven HDRIs without "
+                   "small bright lights take degree 2 (1-2.4 % error).")
+@click.option("--max-negativity", type=FiniteFloat(0), default=2.0, show_default=True,
+              help="For --degree auto: deepest negative radiance (ringing) allowed, in units of "
+                   "the probe's mean radiance; 2 is the dip of a lone point light at degree 1-2. "
+                   "When no degree within it meets --tolerance, the most accurate one is taken "
+                   "and the log says so.")
 @click.option("--max-degree", type=click.IntRange(1, 12), default=8, show_default=True,
-              help="For --degree auto: the high reference degree.")
+              help="For --degree auto: the highest degree tried.")
 @click.option("--at", "at", default=None, metavar="X,Y,Z",
               help="Probe position (metres, world) for a Gaussian scene IN (.ply).")
 @click.option("--face-size", type=SquareSize(4, 1024), default=64, show_default=True,
@@ -33,8 +41,8 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
                 "env map it was fitted to, on one exposure).")
 @no_clobber_option
 @quiet_option
-def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, near, nonfinite,
-            preview, no_clobber, quiet):
+def command(input, output, degree, ridge, tolerance, max_negativity, max_degree, at, face_size,
+            near, nonfinite, preview, no_clobber, quiet):
     """Fit radiance L(ω) ≈ Σ c_k Y_k(ω) by solid-angle-weighted ridge least squares.
 
     IN is an environment map (EXR lat-long or cube, .hdr, builtin:sky|studio|
@@ -97,14 +105,13 @@ def command(input, output, degree, ridge, tolerance, max_degree, at, face_size, 
 
     extra = {}
     if fixed is None:
-        choice = P.choose_degree(samples, tolerance, ridge, max_degree)
+        choice = P.choose_degree(samples, tolerance, ridge, max_degree, max_negativity)
         chosen = choice.degree
         coefficients = choice.coefficients
-        extra["degree_search"] = {"tolerance": tolerance, "reference_degree": choice.reference_degree,
-                                  "irradiance_errors": {str(d): e for d, e in choice.errors.items()}}
-        settings.update(tolerance=tolerance, max_degree=max_degree)
-        log(f"auto degree: {chosen} (irradiance error {choice.errors[chosen]:.2e} vs degree "
-            f"{max_degree}, tolerance {tolerance})", quiet)
+        extra["degree_search"] = P.degree_search_record(choice)
+        settings.update(tolerance=tolerance, max_negativity=max_negativity, max_degree=max_degree)
+        for line in P.degree_search_log(choice):
+            log(line, quiet)
     else:
         chosen = fixed
         coefficients = P.fit_probe(samples, chosen, ridge)

@@ -206,7 +206,7 @@ def test_cli_env_in_process(run_cli, tmp_path):
     r = run_cli("sh-probe", "builtin:uniform", "-o", out, "-q")
     assert r.exit_code == 0, r.output
     p = read_probe(str(out))
-    assert p.degree == 0 and p.extra["degree_search"]["reference_degree"] == 8
+    assert p.degree == 0 and p.extra["degree_search"]["max_degree"] == 8
     np.testing.assert_allclose(p.coefficients[0], math.sqrt(4 * math.pi), rtol=1e-12)
     assert p.provenance["format"] == "relight/sh-probe" and "sh-probe" in p.provenance["command"]
 
