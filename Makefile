@@ -96,21 +96,24 @@ demo: install
 	$(RELIGHT) dgsm-build builtin:hand --translate 0,0.25,0 --receivers builtin:room --lights demo/lights.json \
 		--size 512 -o demo/shadows.exr --occluders-out demo/hand_gaussians.ply --receivers-out demo/room.ply \
 		--preview demo/shadows.png
-	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/sky_probe.json --receivers demo/room.ply \
+	# the room's own light at the hand (paper Sec. 3.4: a probe fitted to the scene's cube faces there),
+	# so the inserted hand (and the donut below) are lit as the room is
+	$(RELIGHT) sh-probe demo/room.ply --at 0,0.3,0.02 --degree auto -o demo/room_probe.json --preview demo/room_probe.png
+	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --receivers demo/room.ply \
 		--camera demo/room_cam.json -o demo/room_before.exr --preview demo/room_before.png
-	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/sky_probe.json --dgsm demo/shadows.exr \
+	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --dgsm demo/shadows.exr \
 		--receivers demo/room.ply --camera demo/room_cam.json -o demo/room_after.exr --preview demo/room_after.png
 	# the real donut (if ../shared/data is here) inserted beside the hand: fitted to 15 cm, laid flat
-	# on the floor; one deep Gaussian shadow map per object, relit by the sky probe without/with shadows
+	# on the floor; one deep Gaussian shadow map per object, relit by the room's probe without/with shadows
 	if [ -f $(SHARED)/gaussians/donut-fused.ply ]; then \
 	  printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [-0.45, 1.2, -0.25], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}\n' > demo/scene_lights.json && \
 	  $(RELIGHT) camera --eye 0.6,0.5,0.65 --target 0.08,0.15,0.05 --fov 50 --size 400x300 -o demo/scene_cam.json && \
 	  $(RELIGHT) dgsm-build 'builtin:hand:translate=0,0.25,0' '$(DONUT)' \
 	    --receivers builtin:room --lights demo/scene_lights.json --size 512 -o demo/scene_shadows.exr \
 	    --preview demo/scene_shadows.png --preview-camera demo/scene_cam.json && \
-	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/sky_probe.json \
+	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/room_probe.json \
 	    --receivers demo/room.ply --camera demo/scene_cam.json -o demo/scene_before.exr --preview demo/scene_before.png && \
-	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/sky_probe.json \
+	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/room_probe.json \
 	    --dgsm demo/scene_shadows.exr --receivers demo/room.ply --camera demo/scene_cam.json \
 	    -o demo/scene_after.exr --preview demo/scene_after.png; \
 	fi

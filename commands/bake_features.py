@@ -170,6 +170,7 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     if camera is not None:
         inputs["camera"] = camera
     rasters = {}
+    charts = None
     for fr in progress(frames, desc="frames", quiet=quiet or len(frames) == 1):
         pose = PoseFeatures(data, fr, settings, (env_h, env_w), (tex_h, tex_w), mesh, rasters,
                             source=hand)
@@ -225,11 +226,15 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                 log(f"wrote {npz_path}", quiet)
             if png_path is not None:
                 from relight_cli.formats.image import write_png
-                from relight_cli.preview import feature_sheet
+                from relight_cli.preview import feature_sheet, uv_charts
+                if charts is None:     # which texels are palm, back, fingers (pose independent)
+                    charts = uv_charts(getattr(data, mesh), data.label_names, data.joint_names,
+                                       (tex_h, tex_w))
                 write_png(png_path, feature_sheet(
                     maps_per_env[k], f"bake-features {hand}, frame {fr}, env {envs[k]} "
                                      f"({env_w}x{env_h} directions), view "
-                                     + ",".join(f"{float(x):.2f}" for x in viewer)))
+                                     + ",".join(f"{float(x):.2f}" for x in viewer),
+                    charts=charts))
                 log(f"wrote {png_path}", quiet)
         log(f"frame {fr}: {baker.stats.rays_traced} rays, "
             + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()), quiet)

@@ -124,7 +124,10 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
                                                                         if exr_out else "")))
         else:
             from relight_cli.formats.image import write_preview
-            write_preview(preview, result.radiance)
+            write_preview(preview, result.radiance,
+                          label=f"lat-long map {result.width}x{result.height}, radiance",
+                          note="+Y up, +Z in the middle",
+                          title=f"envmap {input}" + (f" -> {exr_out}" if exr_out else ""))
         log(f"wrote {preview}", quiet)
     if show_info:
         from relight_cli.provenance import write_text_atomic

@@ -165,12 +165,16 @@ def command(output, template, pose, frames, keypoints, keypoints_format, hand_ch
                       "provenance": provenance("relight/fit-report", 1, inputs, settings)}
         write_text_atomic(report, dumps_json(report_obj))
     if preview is not None:
+        import os
+
         from relight_cli.formats.image import write_preview
         from relight_cli.hand.scene import posed_meshes, preview_camera, render_preview
         meshes = posed_meshes(hand, 0, "fine")
         camera = preview_camera(meshes, *size)
         image = render_preview(meshes, camera)
-        write_preview(preview, image, exposure=2.0)
+        write_preview(preview, image, exposure=2.0,
+                      label=f"{os.path.basename(output)}, frame 0: {len(hand.hands)} hand(s)",
+                      note="fine mesh, shaded")
         log(f"wrote {preview}", quiet)
 
 

@@ -16,6 +16,14 @@ so a sheet read alone says what it is.  Exposure modes (:func:`expose`):
 * ``reinhard``: :func:`relight_cli.tonemap.tonemap` (Reinhard's global operator,
   key 0.18), for environment maps whose sun would clip under ``auto``.
 
+Every preview is labelled and readable: a single picture (a render, a
+lat-long map: :func:`picture`, :func:`render_picture`) is enlarged by an
+integer factor (nearest neighbour, texels stay square) until its short side is
+at least ``MIN_PICTURE`` (256) pixels, under a caption band naming what it
+shows and how it was exposed; a sheet's tiles are enlarged to at least
+``MIN_TILE`` (160) pixels each.  Names can also be drawn *inside* a tile
+(:attr:`Tile.marks`: the UV charts of a feature sheet, :func:`uv_charts`).
+
 NaN/Inf values are drawn magenta and counted in the note; texels outside a
 display mask are slate grey.  Sheets are deterministic: the text is
 Pillow's built-in font (no system fonts, no time stamps) and PNGs are written
@@ -27,7 +35,8 @@ Shapes: images are [H, W, 3] float64 display values in [0, 1] (row 0 at the top)
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
@@ -40,6 +49,9 @@ LABEL_SIZE = 13                     # pixels; legible at 100 % on any screen
 TITLE_SIZE = 14
 MIN_TILE = 160                      # tiles are upscaled (nearest) to at least this many pixels
 MAX_TILE = 1024
+MAX_FACTOR = 8                      # … by at most this factor (a sheet's tiles)
+MIN_PICTURE = 256                   # a single picture's short side, at least (pixels) …
+MAX_PICTURE_FACTOR = 64             # … by at most this factor (long side ≤ 2 MAX_TILE)
 PAD = 6
 MODES = ("auto", "unit", "signed", "reinhard")
 MAX_FACE = 192                      # a cube cross is at most 4 × 192 pixels wide
@@ -48,11 +60,18 @@ MAX_FACE = 192                      # a cube cross is at most 4 × 192 pixels wi
 @dataclass
 class Tile:
     """One cell of a sheet: ``image`` [H, W, 3] display values in [0, 1], a label
-    (first line, e.g. the layer name) and a note (second line, e.g. the exposure)."""
+    (first line, e.g. the layer name) and a note (second line, e.g. the exposure).
+
+    ``marks``: names drawn inside the picture after it is enlarged, each
+    ``(x, y, text, vertical)`` with (x, y) the centre of the text in the
+    image's own pixel units (column, row; 0.5 = the centre of the first
+    pixel) and ``vertical`` True to run the text bottom to top (narrow charts).
+    """
 
     image: np.ndarray
     label: str
     note: str = ""
+    marks: list = field(default_factory=list)
 
 
 def expose(values, mode: str = "auto", mask=None, region=None, white: float | None = None,
@@ -169,6 +188,22 @@ def _fit(text: str, font, width: int) -> str:
     return text + "..."
 
 
+def _wrap(text: str, font, width: int, lines: int) -> list[str]:
+    """``text`` (printable) on at most ``lines`` lines of ``width`` pixels, broken at
+    spaces; a line that still does not fit (the last one takes the rest) ends in '...'."""
+    words = _printable(text).split(" ") if text else []
+    out: list[str] = []
+    while words and len(out) < lines:
+        k = 1
+        while k < len(words) and font.getlength(" ".join(words[:k + 1])) <= width:
+            k += 1
+        if len(out) == lines - 1:
+            k = len(words)
+        out.append(_fit(" ".join(words[:k]), font, width))
+        words = words[k:]
+    return out
+
+
 def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
     if factor == 1:
         return image
@@ -179,16 +214,29 @@ def _to_bytes(display: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(np.asarray(display, np.float64) * 255.0), 0, 255).astype(np.uint8)
 
 
+def zoom(shape, min_tile: int = MIN_TILE, max_factor: int = MAX_FACTOR,
+         max_side: int = MAX_TILE) -> int:
+    """The integer factor a picture of ``shape`` (H, W, …) is enlarged by: the
+    smallest that brings its short side to ``min_tile`` pixels, at most
+    ``max_factor`` and keeping its long side within ``max_side`` (never < 1)."""
+    small, large = min(shape[:2]), max(shape[:2])
+    return max(1, min(math.ceil(min_tile / max(small, 1)), max_factor,
+                      max_side // max(large, 1)))
+
+
 def sheet(rows: list[list[Tile]], title: str = "", min_tile: int = MIN_TILE,
-          columns: int | None = None) -> np.ndarray:
-    """Tiles laid out row by row, each under its two-line label band; ``title``
-    (may hold newlines) in a band across the top.  → display [H, W, 3] in [0, 1].
+          columns: int | None = None, max_factor: int = MAX_FACTOR,
+          max_side: int = MAX_TILE, note_lines: int = 1) -> np.ndarray:
+    """Tiles laid out row by row, each under its label band (the label, then the
+    note on up to ``note_lines`` lines, wrapped at spaces); ``title`` (may hold
+    newlines) in a band across the top.  → display [H, W, 3] in [0, 1].
     A row longer than ``columns`` wraps onto the next lines.
 
     Each tile is upscaled by an integer factor (nearest, so texels stay crisp)
-    until its short side reaches ``min_tile`` pixels (its long side at most
-    ``MAX_TILE``).  Cells are as large as the largest tile; labels too long for
-    their cell are cut with an ellipsis.
+    until its short side reaches ``min_tile`` pixels (at most ``max_factor`` ×,
+    its long side at most ``max_side``: :func:`zoom`).  Cells are as large as
+    the largest tile; labels too long for their cell are cut with an ellipsis.
+    A tile's :attr:`Tile.marks` are drawn on it after the enlargement.
     """
     from PIL import Image, ImageDraw
 
@@ -198,15 +246,15 @@ def sheet(rows: list[list[Tile]], title: str = "", min_tile: int = MIN_TILE,
     tiles = [t for r in rows for t in r]
     if not tiles:
         raise ValueError("a sheet needs at least one tile")
+
     def factor(t):
-        small, large = min(t.image.shape[:2]), max(t.image.shape[:2])
-        return max(1, min(math.ceil(min_tile / max(small, 1)), 8, MAX_TILE // max(large, 1)))
+        return zoom(t.image.shape, min_tile, max_factor, max_side)
 
     cell_w = max(t.image.shape[1] * factor(t) for t in tiles)
     cell_h = max(t.image.shape[0] * factor(t) for t in tiles)
     font, title_font = _font(LABEL_SIZE), _font(TITLE_SIZE)
     line = LABEL_SIZE + 4
-    band = 2 * line + 4
+    band = (1 + note_lines) * line + 4
     columns = max(len(r) for r in rows)
     width = PAD + columns * (cell_w + PAD)
     title_lines = title.splitlines() if title else []
@@ -225,14 +273,31 @@ def sheet(rows: list[list[Tile]], title: str = "", min_tile: int = MIN_TILE,
             draw.rectangle([x0, y0, x0 + cell_w - 1, y0 + band - 3], fill=(40, 40, 40))
             draw.text((x0 + 4, y0 + 2), _fit(t.label, font, cell_w - 8), fill=(255, 255, 255),
                       font=font)
-            if t.note:
-                draw.text((x0 + 4, y0 + 2 + line), _fit(t.note, font, cell_w - 8),
-                          fill=(190, 190, 190), font=font)
-            pixels = _to_bytes(_upscale(np.asarray(t.image), factor(t)))
+            for j, text in enumerate(_wrap(t.note, font, cell_w - 8, note_lines)):
+                draw.text((x0 + 4, y0 + 2 + (1 + j) * line), text, fill=(190, 190, 190),
+                          font=font)
+            k = factor(t)
+            pixels = _to_bytes(_upscale(np.asarray(t.image), k))
             h, w = pixels.shape[:2]
-            canvas.paste(Image.fromarray(np.ascontiguousarray(pixels), "RGB"),
-                         (x0 + (cell_w - w) // 2, y0 + band))
+            left = x0 + (cell_w - w) // 2
+            canvas.paste(Image.fromarray(np.ascontiguousarray(pixels), "RGB"), (left, y0 + band))
+            for x, y, text, vertical in t.marks:
+                _draw_mark(canvas, left + x * k, y0 + band + y * k, text, vertical, font)
     return np.asarray(canvas, np.float64) / 255.0
+
+
+def _draw_mark(canvas, cx: float, cy: float, text: str, vertical: bool, font) -> None:
+    """``text`` in white on a dark box centred on (cx, cy) of ``canvas`` (PIL image),
+    turned to run bottom to top when ``vertical``."""
+    from PIL import Image, ImageDraw
+    text = _printable(text)
+    left, top, right, bottom = font.getbbox(text)
+    w, h = int(right - left) + 6, int(bottom - top) + 4
+    label = Image.new("RGB", (w, h), (20, 20, 20))
+    ImageDraw.Draw(label).text((3 - left, 2 - top), text, fill=(255, 255, 255), font=font)
+    if vertical:
+        label = label.transpose(Image.Transpose.ROTATE_90)
+    canvas.paste(label, (int(round(cx - label.width / 2)), int(round(cy - label.height / 2))))
 
 
 def draw_labels(display: np.ndarray, labels: list[tuple[int, int, str]]) -> np.ndarray:
@@ -254,6 +319,88 @@ def write_sheet(path: str, rows: list[list[Tile]], title: str = "") -> None:
     """:func:`sheet` written as a PNG, atomically."""
     from relight_cli.formats.image import write_png
     write_png(path, sheet(rows, title))
+
+
+# ------------------------------------------------------------------ single pictures
+
+
+def picture(display, label: str, note: str = "", title: str = "", marks=()) -> np.ndarray:
+    """One picture (display [H, W, 3] in [0, 1]) as a preview: enlarged by an integer
+    factor (nearest) until its short side is at least ``MIN_PICTURE`` pixels (at most
+    ``MAX_PICTURE_FACTOR`` ×, long side at most 2048), under a caption band whose first
+    line is ``label`` (what it shows) and then ``note`` (its exposure; the picture's
+    own size and enlargement are added), wrapped onto up to three lines.
+    → display [H', W', 3] in [0, 1] (:func:`picture_box` finds the picture in it)."""
+    display = np.asarray(display, np.float64)
+    note, lines, _ = _picture_layout(display.shape, note)
+    return sheet([[Tile(display, label, note, list(marks))]], title, min_tile=MIN_PICTURE,
+                 max_factor=MAX_PICTURE_FACTOR, max_side=2 * MAX_TILE, note_lines=lines)
+
+
+def _picture_layout(shape, note: str) -> tuple[str, int, int]:
+    """(the full note, its number of lines, the enlargement) of :func:`picture`."""
+    k = zoom(shape, MIN_PICTURE, MAX_PICTURE_FACTOR, 2 * MAX_TILE)
+    h, w = shape[:2]
+    note = ", ".join(filter(None, (note, f"{w}x{h} px" + (f" shown {k}x (nearest)"
+                                                           if k > 1 else ""))))
+    return note, len(_wrap(note, _font(LABEL_SIZE), w * k - 8, 3)), k
+
+
+def picture_box(preview_shape, height: int, width: int) -> tuple[int, int, int]:
+    """Where :func:`picture` put a [height, width] picture in a preview of
+    ``preview_shape`` (H', W', …): (left, top, factor); the rows above ``top`` are the
+    caption band (and the title)."""
+    k = zoom((height, width), MIN_PICTURE, MAX_PICTURE_FACTOR, 2 * MAX_TILE)
+    return PAD, int(preview_shape[0]) - PAD - height * k, k
+
+
+def reinhard_scale(rgb, key: float = 0.18) -> float:
+    """The scale :func:`relight_cli.tonemap.tonemap` applies before Reinhard's curve
+    when no exposure is given: ``key`` over the log-average of the positive luminance."""
+    v = np.clip(np.nan_to_num(np.asarray(rgb, np.float64), nan=0.0, posinf=0.0, neginf=0.0),
+                0, None)
+    lum = v @ LUMA
+    positive = lum[lum > 0]
+    log_avg = float(np.exp(np.mean(np.log(positive + 1e-9)))) if positive.size else 1.0
+    return key / max(log_avg, 1e-12)
+
+
+def render_picture(linear_rgb, label: str, exposure: float | None = None, note: str = "",
+                   title: str = "") -> np.ndarray:
+    """Linear radiance [H, W, 3] tone-mapped (Reinhard's global operator, then sRGB:
+    :func:`relight_cli.tonemap.tonemap`) as a :func:`picture`; the caption's note says
+    the operator and the scale it used (``exposure``, or key 0.18 over the
+    log-average luminance)."""
+    from relight_cli.tonemap import tonemap
+    rgb = np.asarray(linear_rgb, np.float64)
+    if rgb.ndim == 2:
+        rgb = rgb[..., None]
+    if rgb.shape[-1] == 1:
+        rgb = np.repeat(rgb, 3, axis=-1)
+    rgb = rgb[..., :3]
+    return picture(tonemap(rgb, exposure), label, render_note(rgb, exposure, note), title)
+
+
+def render_note(linear_rgb, exposure: float | None = None, note: str = "") -> str:
+    """The caption note of :func:`render_picture`: the tone mapping and its scale,
+    the count of NaN/Inf pixels (shown black), then ``note``."""
+    rgb = np.asarray(linear_rgb, np.float64)
+    if exposure is None:
+        how = f"Reinhard, key 0.18 (scale {reinhard_scale(rgb):.3g})"
+    else:
+        how = f"Reinhard, fixed exposure {exposure:g}"
+    bad = int((~np.isfinite(rgb)).any(axis=-1).sum())
+    if bad:
+        how += f", {bad} NaN/Inf (black)"
+    return ", ".join(filter(None, (how, note)))
+
+
+def default_label(path: str) -> str:
+    """A caption for a picture written to ``path`` by a caller that gave none:
+    the file's name and what it holds (linear radiance, tone-mapped)."""
+    name = os.path.basename(str(path))
+    stem = name[:-4] if name.lower().endswith(".png") else name
+    return f"{stem}: linear radiance" if stem else "linear radiance"
 
 
 # ------------------------------------------------------------------ environment maps and probes
@@ -391,12 +538,127 @@ def _layer_order(name: str) -> tuple:
     return rank, name
 
 
-def feature_sheet(layers: dict, title: str = "") -> np.ndarray:
+FINGER_NAMES = ("thumb", "index", "middle", "ring", "pinky")
+# display colours of the named UV regions (outside the charts: OUTSIDE)
+CHART_COLOURS = {"palm": (0.91, 0.62, 0.35), "back": (0.58, 0.42, 0.74),
+                 "palm + back": (0.75, 0.52, 0.55), "thumb": (0.86, 0.36, 0.36),
+                 "index": (0.42, 0.72, 0.40), "middle": (0.36, 0.56, 0.88),
+                 "ring": (0.87, 0.80, 0.34), "pinky": (0.36, 0.78, 0.78)}
+
+
+def _joint_group(name: str) -> str:
+    """A joint's part of the hand: 'palm' (the wrist and the metacarpals of the four
+    fingers, the bones inside the palm), else its finger ('thumb', 'index', …)."""
+    base = name.split("-")[0]
+    if name == "wrist" or (name.endswith("metacarpal") and base != "thumb"):
+        return "palm"
+    return base if base in FINGER_NAMES else "palm"
+
+
+def uv_charts(mesh, label_names, joint_names, shape) -> tuple[np.ndarray, list[str]]:
+    """Which part of the hand each texel of a [H, W] UV map shows.
+
+    ``mesh``: a HandMesh (uv, faces_uv, faces, weights, optional per-vertex
+    ``labels`` indexing ``label_names``); ``joint_names``: the skeleton's
+    (WebXR names).  → (region [H, W] int, −1 outside the charts; names).
+
+    Charts are the connected pieces of the UV layout (faces sharing UV
+    vertices; the built-in hand has six: the palm tube and five fingers).  A
+    chart is named by the skinning weights of its vertices summed per part of
+    the hand, the wrist and the four finger metacarpals counting as the palm
+    (:func:`_joint_group`): the part with the most weight names it ('thumb',
+    'index', 'middle', 'ring', 'pinky' or the palm).  The palm chart wraps
+    round the hand, so it is split by the model's per-vertex region labels
+    (hand.npz ``labels``: 'palm' and 'dorsum', shown as 'back'), each face by
+    the majority of its corners; a hand without region labels (a glTF import)
+    shows that chart as 'palm + back'.  Texels are assigned as the features
+    are (:func:`relight_cli.uvraster.rasterize_uv`, same resolution), so the
+    regions lie exactly on the feature maps' charts.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from relight_cli.uvraster import rasterize_uv
+    faces_uv = np.asarray(mesh.faces_uv, np.int64)
+    faces = np.asarray(mesh.faces, np.int64)
+    nf, nt = len(faces_uv), len(mesh.uv)
+    graph = coo_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), nf + faces_uv.ravel())),
+                       shape=(nf + nt, nf + nt))
+    _, component = connected_components(graph, directed=False)
+    chart = np.unique(component[:nf], return_inverse=True)[1]
+    groups = np.array([_joint_group(n) for n in joint_names])
+    weights = np.asarray(mesh.weights, np.float64)
+    names = ["palm", *FINGER_NAMES]
+    per_group = np.stack([weights[:, groups == g].sum(axis=1) for g in names], axis=1)  # [V, 6]
+    labels = getattr(mesh, "labels", None)
+    label_names = list(label_names or [])
+    split = (labels is not None and "palm" in label_names and "dorsum" in label_names)
+    if split:
+        corner = np.asarray(labels, np.int64)[faces]                                  # [F, 3]
+        counts = np.stack([(corner == k).sum(axis=1) for k in range(len(label_names))], axis=1)
+        face_label = np.array(label_names)[counts.argmax(axis=1)]
+    regions: list[str] = []
+    face_region = np.empty(nf, np.int64)
+
+    def region_id(name):
+        if name not in regions:
+            regions.append(name)
+        return regions.index(name)
+
+    for c in range(chart.max() + 1):
+        where = np.flatnonzero(chart == c)
+        part = names[int(per_group[np.unique(faces[where])].sum(axis=0).argmax())]
+        if part != "palm":
+            face_region[where] = region_id(part)
+        elif split:
+            back = face_label[where] == "dorsum"
+            face_region[where[~back]] = region_id("palm")
+            if back.any():
+                face_region[where[back]] = region_id("back")
+        else:
+            face_region[where] = region_id("palm + back")
+    raster = rasterize_uv(np.asarray(mesh.uv, np.float64), faces_uv, tuple(shape))
+    region = np.where(raster.face >= 0, face_region[np.maximum(raster.face, 0)], -1)
+    return region, regions
+
+
+def chart_tile(region: np.ndarray, names: list[str], label: str = "UV charts",
+               note: str = "") -> Tile:
+    """A tile naming the hand's UV charts (:func:`uv_charts`): each region in its
+    colour, its name drawn at its most interior texel (along a tall narrow chart,
+    bottom to top); outside the charts slate grey."""
+    from scipy import ndimage
+    region = np.asarray(region)
+    image = np.empty(region.shape + (3,))
+    image[...] = OUTSIDE
+    marks = []
+    for k, name in enumerate(names):
+        inside = region == k
+        if not inside.any():
+            continue
+        image[inside] = CHART_COLOURS.get(name, (0.7, 0.7, 0.7))
+        pieces, n = ndimage.label(inside)
+        largest = 1 + int(np.argmax(ndimage.sum(inside, pieces, range(1, n + 1))))
+        piece = pieces == largest
+        depth = ndimage.distance_transform_edt(np.pad(piece, 1))[1:-1, 1:-1]
+        y, x = np.unravel_index(int(np.argmax(depth)), depth.shape)
+        rows, cols = np.flatnonzero(piece.any(axis=1)), np.flatnonzero(piece.any(axis=0))
+        tall = (rows[-1] - rows[0] + 1) > 1.5 * (cols[-1] - cols[0] + 1)
+        marks.append((x + 0.5, y + 0.5, name, bool(tall)))
+    return Tile(image, label, note, marks)
+
+
+def feature_sheet(layers: dict, title: str = "", charts=None) -> np.ndarray:
     """bake-features' layers (``relight/features`` names) as a sheet: one row per
     hand, one tile per layer.  Radiometric layers (diffuse, phong<α>, ggx) are
     ``auto``-exposed inside the UV charts (each has its own scale: the env's
     units times its lobe's normalization); visibility and mask are fractions,
-    ``unit``.  Texels outside the charts (dilation fill) are greyed out."""
+    ``unit``.  Texels outside the charts (dilation fill) are greyed out.
+
+    ``charts``: (region [H, W], names) from :func:`uv_charts` at the layers'
+    size (every hand of a scene shares its model's UV layout): a last tile per
+    hand names the charts (palm, back, each finger), so the layers' blobs can be
+    read by where they lie."""
     hands: dict[str, list[str]] = {}
     for name in layers:
         prefix = name.rsplit(".", 1)[0] if "." in name else ""
@@ -412,6 +674,9 @@ def feature_sheet(layers: dict, title: str = "") -> np.ndarray:
             fraction = base in ("visibility", "mask")
             row.append(tile(value, name, "unit" if fraction else "auto",
                             mask=None if base == "mask" else mask))
+        if charts is not None:
+            row.append(chart_tile(charts[0], charts[1], f"{prefix}.charts" if prefix
+                                  else "UV charts", "skinning + region labels"))
         rows.append(row)
     longest = max(len(r) for r in rows)
     return sheet(rows, title, columns=math.ceil(longest / math.ceil(longest / 5)))

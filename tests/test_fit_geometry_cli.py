@@ -51,7 +51,10 @@ def test_named_pose_with_preview(run_cli, tmp_path):
     np.testing.assert_allclose(hand.poses[0], P.named_pose("fist"))
     assert len(hand.coarse.vertices) == len(builtin_hand().coarse.vertices)
     from relight_cli.formats.image import read_image
+    from relight_cli.preview import picture_box
     img, _ = read_image(str(png))
+    x0, y0, k = picture_box(img.shape, 80, 96)          # the 96x80 render under its caption
+    img = img[y0:y0 + 80 * k:k, x0:x0 + 96 * k:k]
     assert img.shape[:2] == (80, 96)
     # The hand covers part of the frame and is lit: not a uniform image.
     assert img.std() > 0.05 and (img.max(-1) > 0.3).mean() > 0.05

@@ -941,6 +941,7 @@ def test_png_preview_is_reinhard_then_srgb(tmp_path):
     colour's luminance), then sRGB, 8 bits; a fixed exposure (fit-geometry's) replaces
     the key's scale.  One level of tolerance: the 8-bit quantisation."""
     from relight_cli.formats.image import read_image, write_preview
+    from relight_cli.preview import picture_box
     rng = np.random.default_rng(4)
     radiance = np.exp(rng.normal(0, 2, (12, 10, 3))).astype(np.float32)  # positive, HDR
     rgb = radiance.astype(np.float64)
@@ -948,6 +949,8 @@ def test_png_preview_is_reinhard_then_srgb(tmp_path):
     for exposure, scale in ((None, 0.18 / np.exp(np.mean(np.log(lum)))), (2.0, 2.0)):
         write_preview(str(tmp_path / "p.png"), radiance, exposure=exposure)
         shown, _ = read_image(str(tmp_path / "p.png"))
+        x0, y0, k = picture_box(shown.shape, 12, 10)     # the picture under its caption
+        shown = shown[y0:y0 + 12 * k:k, x0:x0 + 10 * k:k]
         scaled = scale * lum
         expected = _srgb(rgb * (scaled / (1 + scaled) / lum)[..., None])
         assert np.abs(shown - expected).max() <= 1 / 255 + 1e-6, exposure

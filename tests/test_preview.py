@@ -267,7 +267,8 @@ def test_bake_features_contact_sheet(tmp_path):
                "-o", tmp_path / "f.exr", "--preview", png, "-q")
     assert r.exit_code == 0, r.output
     image = read_png(png)
-    # 7 layers (diffuse, phong16/32/64, ggx, visibility, mask) on 4 + 3 tiles, 16 px → 128 px
+    # 7 layers (diffuse, phong16/32/64, ggx, visibility, mask) + the UV charts on 4 + 4 tiles,
+    # 16 px → 128 px
     assert image.shape[:2][::-1] == grid_size(4, 2, 128, 128)
     # every layer's band carries text
     band = 2 * (PV.LABEL_SIZE + 4)
@@ -284,8 +285,8 @@ def test_bake_features_two_hands_get_a_row_each(tmp_path):
     r = invoke("bake-features", "builtin:two:fist", "builtin:sky", *SMALL,
                "-o", tmp_path / "f.exr", "--preview", png, "-q")
     assert r.exit_code == 0, r.output
-    # per hand: diffuse, phong16/32/64, visibility, mask → 6 tiles, 3 a line, 2 lines each
-    assert read_png(png).shape[:2][::-1] == grid_size(3, 4, 128, 128)
+    # per hand: diffuse, phong16/32/64, visibility, mask, charts → 7 tiles, 4 a line, 2 lines each
+    assert read_png(png).shape[:2][::-1] == grid_size(4, 4, 128, 128)
 
 
 def test_envmap_cube_preview_is_a_cross(tmp_path):
