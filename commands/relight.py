@@ -99,6 +99,13 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
                    "1/r².")
 @click.option("--frame", "hand_frame", type=int, default=None,
               help="[hand] Frame of HAND to render [default: 0].")
+@click.option("--frames", "hand_frames", default=None, metavar="all|A:B[:S]",
+              help="[hand] Render a sequence in one process: every frame of HAND (all) or "
+                   "the frames A, A+S, … before B (a Python slice). -o (and --preview) is a "
+                   "pattern holding {frame}, e.g. 'out/frame_{frame:04d}.exr'. The model, "
+                   "materials and env map are prepared once; each frame's pixels equal its "
+                   "single --frame call's (without --camera each frame is framed on its own "
+                   "pose, as that call frames it).")
 @click.option("--mesh", "hand_mesh", type=click.Choice(["fine", "coarse"]), default=None,
               help="[hand] Mesh rendered (and shadowing) [default: fine].")
 @click.option("--env-res", "env_res", default=None, metavar="WxH",
@@ -134,7 +141,7 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
 def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
             shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals,
             camera, background, model, checkpoint, device, hand_size,
-            hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa,
+            hand_lights, hand_frame, hand_frames, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
             preview, splits, eval_samples, seed, no_clobber, quiet):
     """Relight IN under new lighting.
@@ -225,7 +232,8 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     if gaussian_in:
         hand_only = {"ENV": env, "--model": model, "--checkpoint": checkpoint or None,
                      "--device": device, "--size": hand_size,
-                     "--lights": hand_lights, "--frame": hand_frame, "--mesh": hand_mesh,
+                     "--lights": hand_lights, "--frame": hand_frame,
+                     "--frames": hand_frames, "--mesh": hand_mesh,
                      "--env-res": env_res, "--tex-res": tex_res, "--aa": aa,
                      "--no-shadows": no_shadows or None, "--no-specular": no_specular or None,
                      "--no-sss": no_sss or None, "--sss-scale": sss_scale,
@@ -460,10 +468,12 @@ def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, camera_path, foo
 
 
 def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers, receivers_out,
-                  model, camera, hand_size, hand_lights, hand_frame, hand_mesh, env_res,
-                  tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map,
-                  roughness_map, aov, background, preview, seed, no_clobber, quiet, **_):
-    """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image."""
+                  model, camera, hand_size, hand_lights, hand_frame, hand_frames, hand_mesh,
+                  env_res, tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce,
+                  albedo_map, roughness_map, aov, background, preview, seed, no_clobber, quiet,
+                  **_):
+    """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image(s)
+    (one per frame with --frames; relight_cli.jobs.relight_hand renders them)."""
     import time
 
     from relight_cli.errors import DataError, UsageProblem
@@ -485,6 +495,7 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
         return _relight_hand_learned(**locals())
     width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, camera,
                                                             hand_size, hand_frame, env_res)
+    _sequence_patterns(hand_frame, hand_frames, output, preview)
     tex = 256 if tex_res is None else tex_res
     if not 8 <= tex <= 4096:
         raise UsageProblem(f"--tex-res must be in [8, 4096], got {tex}")
@@ -508,8 +519,9 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
             if not 0 < rough_value <= 1:
                 raise UsageProblem(f"--roughness must be in (0, 1], got {roughness_map}")
     bg = parse_vector(background, 3, "--background", minimum=0)
-    check_output(output, no_clobber, kind="exr")
-    check_output(preview, no_clobber, kind="png", what="--preview")
+    if hand_frames is None:
+        check_output(output, no_clobber, kind="exr")
+        check_output(preview, no_clobber, kind="png", what="--preview")
     for path, role in ((camera, "--camera"), (hand_lights, "--lights"), (albedo_map, None)):
         if path is not None:
             check_input(path, stdin=role)
@@ -517,16 +529,15 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     # ---- inputs (data errors)
     start = time.perf_counter()
     from relight_cli.commands.bake_features import _load_hand, _read_roughness_map
-    from relight_cli.hand.scene import preview_camera
+    from relight_cli.jobs import relight_hand as J
     from relight_cli.render import appearance as A
-    from relight_cli.render.shading import HandRenderer, PointLights, RenderSettings
+    from relight_cli.render.shading import PointLights, RenderSettings
     from relight_cli.provenance import provenance
 
     from ._inputs import load_envmap
 
     data = _load_hand(input)
-    if frame >= data.n_frames:
-        raise UsageProblem(f"--frame {frame} is out of range: {input} has {data.n_frames} frame(s)")
+    frames = _frames(hand_frames, frame, data, input, output, preview, no_clobber)
     envmap = load_envmap(env) if env is not None else None
     lights = None
     if hand_lights is not None:
@@ -544,36 +555,19 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
     if roughness_map is not None and rough_value is None:
         rough = _read_roughness_map(roughness_map)
     mesh_name = hand_mesh or "fine"
-    from relight_cli.bake import pose_scene
-    meshes = pose_scene(data, frame, mesh_name, input)
-    if camera is not None:
-        from relight_cli.formats.camera import read_camera
-        view = read_camera(camera)
-    else:
-        view = preview_camera(meshes, width, height)
+    view_of = _view_of(camera, width, height)
     try:
         materials = A.hand_materials(data, mesh_name, max(tex, 256), seed, albedo, rough)
     except ValueError as exc:
         raise DataError(str(exc), albedo_map or roughness_map) from None
-    log(f"read {input}: {len(meshes)} hand(s), frame {frame}; "
-        f"{'env ' + env if env else 'no env'}, {0 if lights is None else len(lights)} point "
-        f"light(s)", quiet)
+    log(f"read {input}: {len(data.hands)} hand(s), "
+        f"{_frames_text(frames)}; {'env ' + env if env else 'no env'}, "
+        f"{0 if lights is None else len(lights)} point light(s)", quiet)
 
     # ---- render
     settings = RenderSettings(tex_res=tex, aa=samples_axis, shadows=not no_shadows,
                               specular=not no_specular, sss=not no_sss, sss_scale=scale,
                               env_res=(env_h, env_w), bounce=bounce)
-    renderer = HandRenderer(meshes, materials, settings)
-    lighting = renderer.light(lights, envmap)
-    result = renderer.render(view, lighting, background=bg)
-    channels = {"R": result.image[..., 0], "G": result.image[..., 1], "B": result.image[..., 2],
-                "A": result.mask}
-    if "normal" in aovs:
-        channels.update({f"normal.{c}": result.normal[..., i] for i, c in enumerate("XYZ")})
-    if "uv" in aovs:
-        channels.update({"uv.U": result.uv[..., 0], "uv.V": result.uv[..., 1]})
-    if "depth" in aovs:
-        channels["depth.Z"] = result.depth
     inputs = {"hand": input}
     if env is not None:
         inputs["env"] = env
@@ -582,25 +576,31 @@ def _relight_hand(input, env, output, checkpoint, device, probe, dgsm, receivers
             inputs[role] = path
     if roughness_map is not None and rough_value is None:
         inputs["roughness"] = roughness_map
-    record = provenance("relight/render", 1, inputs, {
-        "model": model, "frame": frame, "mesh": mesh_name, "env_res": [env_h, env_w],
-        "tex_res": tex, "aa": samples_axis, "shadows": not no_shadows,
-        "specular": not no_specular, "sss": not no_sss, "sss_scale": scale, "bounce": bounce,
-        "roughness": roughness_map, "seed": seed, "background": list(bg)})
-    seconds = {**renderer.stats, **lighting.stats, **result.stats}
     from relight_cli.formats.exr import write_exr
-    write_exr(output, channels, attributes={
-        "relight.model": model, "relight.camera": view.to_json()}, provenance=record, camera=view)
-    if preview is not None:
-        from relight_cli.formats.image import write_preview
-        write_preview(preview, result.image)
-    log(f"wrote {output} ({view.width}x{view.height}, {time.perf_counter() - start:.2f} s: "
-        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
+    renders = J.physical(data, frames, view_of, materials, settings, lights, envmap, bg,
+                         mesh_name, aovs, input)
+    with _frame_bar(frames, hand_frames, quiet) as (step, done):
+        for r in renders:
+            record = provenance("relight/render", 1, inputs, {
+                "model": model, "frame": r.frame, "mesh": mesh_name, "env_res": [env_h, env_w],
+                "tex_res": tex, "aa": samples_axis, "shadows": not no_shadows,
+                "specular": not no_specular, "sss": not no_sss, "sss_scale": scale,
+                "bounce": bounce, "roughness": roughness_map, "seed": seed,
+                "background": list(bg)})
+            path, png = _frame_outputs(hand_frames, output, preview, r.frame)
+            write_exr(path, r.channels, attributes={
+                "relight.model": model, "relight.camera": r.view.to_json()}, provenance=record,
+                camera=r.view)
+            if png is not None:
+                from relight_cli.formats.image import write_preview
+                write_preview(png, r.rgb)
+            step(r)
+    _log_written(done, output, hand_frames, start, quiet)
 
 
 def _relight_hand_learned(input, env, output, checkpoint, device, model, camera, hand_size,
-                          hand_lights, hand_frame, hand_mesh, env_res, tex_res, aa, no_shadows,
-                          no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
+                          hand_lights, hand_frame, hand_frames, hand_mesh, env_res, tex_res, aa,
+                          no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
                           background, preview, no_clobber, quiet, **_):
     """Hand mode with a learned model: the teacher's per-light textures summed (Eq. 2)."""
     import time
@@ -630,11 +630,13 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
                            "--model teacher for point lights)")
     width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, camera,
                                                             hand_size, hand_frame, env_res)
+    _sequence_patterns(hand_frame, hand_frames, output, preview)
     if aa is not None and not 1 <= aa <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
     bg = parse_vector(background, 3, "--background")
-    check_output(output, no_clobber, kind="exr")
-    check_output(preview, no_clobber, kind="png", what="--preview")
+    if hand_frames is None:
+        check_output(output, no_clobber, kind="exr")
+        check_output(preview, no_clobber, kind="png", what="--preview")
     for path, role in ((camera, "--camera"), (hand_lights, "--lights")):
         if path is not None:
             check_input(path, stdin=role)
@@ -644,16 +646,14 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
     # ---- inputs (data errors)
     start = time.perf_counter()
     from relight_cli.commands.bake_features import _load_hand
-    from relight_cli.hand.scene import preview_camera
-    from relight_cli.neural import teacher as T
+    from relight_cli.jobs import relight_hand as J
     from relight_cli.neural.train import resolve_device
 
     from ._inputs import load_envmap
 
     torch_device = resolve_device(device or "auto")
     data = _load_hand(input)
-    if frame >= data.n_frames:
-        raise UsageProblem(f"--frame {frame} is out of range: {input} has {data.n_frames} frame(s)")
+    frames = _frames(hand_frames, frame, data, input, output, preview, no_clobber)
     if model == "student":
         from relight_cli.formats.checkpoint import read_checkpoint
         from relight_cli.neural.distill import student_from_checkpoint
@@ -689,63 +689,64 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
     if hand_lights is not None:
         from relight_cli.formats.lights_json import read_lights
         lights = read_lights(hand_lights)
-    from relight_cli.bake import pose_scene
-    meshes = pose_scene(data, frame, "fine", input)
-    if camera is not None:
-        from relight_cli.formats.camera import read_camera
-        view = read_camera(camera)
-    else:
-        view = preview_camera(meshes, width, height)
+    view_of = _view_of(camera, width, height)
     samples_axis = ((config.aa or 2) if model == "teacher" else 2) if aa is None else aa
+    from relight_cli.features import discretize_env
     if model == "student":
-        return _write_student_render(**locals())
+        if env_res is None:
+            env_h, env_w = config.env_res            # the student's own grid
+        if (env_h, env_w) != tuple(config.env_res):
+            raise UsageProblem(f"the student was trained on a {config.env_res[1]}x"
+                               f"{config.env_res[0]} (WxH) env grid; --env-res must match")
+        renders = J.student(data, frames, view_of, net, config,
+                            discretize_env(envmap, env_h, env_w), samples_axis, bg, torch_device,
+                            input)
+        inputs = {"hand": input, "checkpoint": checkpoint[0], "env": env, "camera": camera}
+        settings = {"model": model, "student": config.student, "mesh": "fine",
+                    "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
+                    "specular": config.specular, "visibility": config.visibility,
+                    "checkpoint_step": int(ckpt["step"]), "background": list(bg)}
+        return _write_frames(renders, frames, hand_frames, output, preview, model, inputs,
+                             settings, start, quiet, passes=False)
 
     # ---- render: one pass per light / direction and hand (teacher; linear: one per
     # lighting and hand), hand k by its own model, visibility against every hand
     from relight_cli.clitools import progress
-    from relight_cli.features import discretize_env
-    from relight_cli.neural.geometry import PoseTexels
-    from relight_cli.render.gbuffer import render_gbuffer
-
-    timing = T.Timing()
-    t0 = time.perf_counter()
-    texels = EV.scene_texels(per_hand, lambda n, vis: PoseTexels(meshes, n, shadows=vis))
-    gbuffer = render_gbuffer(meshes, view, samples_axis, scene=texels[0].renderer.scene)
-    timing.add("geometry", time.perf_counter() - t0)
-    passes = []       # (per-hand LightInputs, per-hand [L, 3] weights)
-    t0 = time.perf_counter()
-    if lights is not None:
-        intensity = np.asarray(lights.colors * lights.intensities[:, None], np.float64)
-        passes.append(([EV.point_inputs(m, texels[k], k, lights.positions)
-                        for k, m in enumerate(per_hand)], [intensity] * len(per_hand)))
-    if envmap is not None:
-        denv = discretize_env(envmap, env_h, env_w)
-        pairs = [EV.env_inputs(m, texels[k], k, denv) for k, m in enumerate(per_hand)]
-        passes.append(([li for li, _ in pairs], [w for _, w in pairs]))
-    timing.add("visibility", time.perf_counter() - t0)
-    total = sum(len(w) for _, weights in passes for w in weights)
-    poses = np.stack([inst.poses[frame] for inst in data.hands])
-    image = None
-    with progress(total=total, desc=f"relight ({model} passes)", quiet=quiet) as bar:
-        for light_inputs, weights in passes:
-            part = EV.render_scene(per_hand, texels, gbuffer, poses, light_inputs, weights,
-                                   torch_device, progress=bar.update, timing=timing)
-            image = part if image is None else image + part
-    rgb = image.cpu().numpy().astype(np.float32)
-    mask = gbuffer.mask
-    # passes are composited over black; the background fills the uncovered sample fraction
+    denv = discretize_env(envmap, env_h, env_w) if envmap is not None else None
     inputs = {"hand": input, "env": env, "camera": camera, "lights": hand_lights}
     inputs.update(_checkpoint_roles(checkpoint))
-    _write_learned(output, preview, rgb, mask, bg, model, view, inputs, {
-        "model": model, "teacher": config.model, "frame": frame, "mesh": "fine",
-        "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
-        "visibility": config.visibility, "falloff": config.falloff,
-        "checkpoints": [{"hand": k, "checkpoint": m.name, "model": m.model_name,
-                         "sides": m.sides, "step": m.step} for k, m in enumerate(per_hand)],
-        "background": list(bg)})
-    log(f"wrote {output} ({view.width}x{view.height}, {total} pass(es), "
-        f"{time.perf_counter() - start:.2f} s: "
-        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in timing.seconds.items()) + ")", quiet)
+    settings = {"model": model, "teacher": config.model, "mesh": "fine",
+                "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
+                "visibility": config.visibility, "falloff": config.falloff,
+                "checkpoints": [{"hand": k, "checkpoint": m.name, "model": m.model_name,
+                                 "sides": m.sides, "step": m.step}
+                                for k, m in enumerate(per_hand)],
+                "background": list(bg)}
+    if hand_frames is not None:          # a sequence: a bar over its frames
+        renders = J.learned(data, frames, view_of, per_hand, samples_axis, lights, denv, bg,
+                            torch_device, input)
+        return _write_frames(renders, frames, hand_frames, output, preview, model, inputs,
+                             settings, start, quiet, passes=True)
+    lit = 0 if denv is None else int(np.count_nonzero(denv.lit))
+    total = (lit + (0 if lights is None else len(lights.positions))) * len(data.hands)
+    with progress(total=total, desc=f"relight ({model} passes)", quiet=quiet) as bar:
+        renders = J.learned(data, frames, view_of, per_hand, samples_axis, lights, denv, bg,
+                            torch_device, input, progress=bar.update)
+        _write_frames(renders, frames, hand_frames, output, preview, model, inputs, settings,
+                      start, quiet, passes=True)
+
+
+def _write_frames(renders, frames, hand_frames, output, preview, model, inputs, settings,
+                  start, quiet, passes: bool) -> None:
+    """Write each FrameRender of a learned model (EXR R, G, B, A with provenance recording
+    its frame; the PNG preview), then the closing log line."""
+    with _frame_bar(frames, hand_frames, quiet) as (step, done):
+        for r in renders:
+            path, png = _frame_outputs(hand_frames, output, preview, r.frame)
+            _write_learned(path, png, r.rgb, r.channels["A"], model, r.view, inputs,
+                           {**settings, "frame": r.frame})
+            step(r)
+    _log_written(done, output, hand_frames, start, quiet, passes=passes)
 
 
 def _load_hand_models(paths, kind: str, device) -> list:
@@ -878,21 +879,19 @@ _VIEW_OPTIONS = {"probe": "--probe", "dgsm": "--dgsm", "receivers": "--receivers
                  "objects": "--object", "receivers_out": "--receivers-out",
                  "shadow_matte": "--shadow-matte", "camera": "--camera",
                  "hand_size": "--size", "hand_lights": "--lights",
-                 "hand_frame": "--frame", "hand_mesh": "--mesh", "tex_res": "--tex-res",
+                 "hand_frame": "--frame", "hand_frames": "--frames", "hand_mesh": "--mesh",
+                 "tex_res": "--tex-res",
                  "no_shadows": "--no-shadows", "no_specular": "--no-specular",
                  "no_sss": "--no-sss", "sss_scale": "--sss-scale", "bounce": "--bounce",
                  "albedo_map": "--albedo", "roughness_map": "--roughness", "aov": "--aov",
                  "preview": "--preview"}
 
 
-def _write_learned(output, preview, rgb, mask, bg, model, camera, inputs, settings):
-    """A learned model's render: passes composited over black, the background filling the
-    uncovered sample fraction; EXR (R, G, B, A) with provenance, and the PNG preview."""
-    import numpy as np
-
+def _write_learned(output, preview, rgb, mask, model, camera, inputs, settings):
+    """A learned model's render (over its background: relight_cli.jobs.relight_hand): EXR
+    (R, G, B, A) with provenance, and the PNG preview."""
     from relight_cli.formats.exr import write_exr
     from relight_cli.provenance import provenance
-    rgb = rgb + np.asarray(bg, np.float32)[None, None] * (1 - mask[..., None])
     channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
     record = provenance("relight/render", 1, {k: v for k, v in inputs.items() if v is not None},
                         settings)
@@ -904,56 +903,127 @@ def _write_learned(output, preview, rgb, mask, bg, model, camera, inputs, settin
         write_preview(preview, rgb)
 
 
-def _write_student_render(net, config, ckpt, data, frame, meshes, view, envmap, env_h, env_w,
-                          env_res, samples_axis, torch_device, bg, input, env, checkpoint, camera,
-                          output, preview, quiet, start, model, **_):
-    """The student: bake-features' texel maps of the pose (visibility traced once) under the
-    env map, one forward pass, the textures rendered through the G-buffer."""
+def _sequence_patterns(hand_frame, hand_frames, output, preview) -> None:
+    """--frames' usage checks that need no input: not with --frame, and -o (and
+    --preview) patterns that name each frame's file ({frame}, Python format syntax)."""
+    from relight_cli.errors import UsageProblem
+    if hand_frames is None:
+        return
+    if hand_frame is not None:
+        raise UsageProblem("--frame renders one frame, --frames a sequence: give one of them")
+    for what, pattern in (("-o", output), ("--preview", preview)):
+        if pattern is None:
+            continue
+        if pattern == "-":
+            raise UsageProblem(f"{what} of a sequence is a file pattern, not stdout")
+        if "{frame" not in pattern:
+            raise UsageProblem(f"with --frames, {what} must hold {{frame}} (e.g. "
+                               f"'out/frame_{{frame:04d}}.exr'): one file per frame", pattern)
+        try:
+            first, second = pattern.format(frame=0), pattern.format(frame=1)
+        except (KeyError, IndexError, ValueError) as exc:
+            raise UsageProblem(f"{what} pattern {pattern!r} does not format with frame=N "
+                               f"({exc})") from None
+        if first == second:
+            raise UsageProblem(f"{what} pattern {pattern!r} gives every frame the same file")
+
+
+def _frames(hand_frames, frame, data, source, output, preview, no_clobber) -> list:
+    """The frames to render (``--frames`` or the one ``--frame``), and with --frames every
+    frame's output checked as -o / --preview are (before any work)."""
+    from relight_cli.errors import UsageProblem
+    if hand_frames is None:
+        if frame >= data.n_frames:
+            raise UsageProblem(f"--frame {frame} is out of range: {source} has {data.n_frames} "
+                               f"frame(s)")
+        return [frame]
+    from relight_cli.jobs.relight_hand import select_frames
+    try:
+        frames = select_frames(hand_frames, data.n_frames)
+    except ValueError as exc:
+        raise UsageProblem(str(exc)) from None
+    for what, pattern, kind in (("-o", output, "exr"), ("--preview", preview, "png")):
+        if pattern is None:
+            continue
+        paths = [pattern.format(frame=f) for f in frames]
+        if len(set(paths)) != len(paths):
+            raise UsageProblem(f"{what} pattern {pattern!r} gives two frames the same file")
+        for path in paths:
+            check_output(path, no_clobber, kind=kind, what=what)
+    return frames
+
+
+def _frame_outputs(hand_frames, output, preview, frame) -> tuple:
+    """(EXR path, PNG path or None) of one frame."""
+    if hand_frames is None:
+        return output, preview
+    return output.format(frame=frame), (None if preview is None else preview.format(frame=frame))
+
+
+def _view_of(camera, width, height):
+    """(frame, posed meshes) → Camera: ``camera`` read once, or each frame framed by the
+    default camera of ``width`` × ``height``."""
+    from relight_cli.hand.scene import preview_camera
+    if camera is not None:
+        from relight_cli.formats.camera import read_camera
+        view = read_camera(camera)
+        return lambda frame, meshes: view
+    return lambda frame, meshes: preview_camera(meshes, width, height)
+
+
+def _frames_text(frames) -> str:
+    if len(frames) == 1:
+        return f"frame {frames[0]}"
+    return f"{len(frames)} frames ({frames[0]}…{frames[-1]})"
+
+
+class _frame_bar:
+    """A progress bar over a sequence's frames (frames/s); nothing for one frame.
+    Yields (step(render), done list of the renders' FrameRender)."""
+
+    def __init__(self, frames, hand_frames, quiet):
+        self.frames, self.sequence, self.quiet = frames, hand_frames is not None, quiet
+        self.done, self.bar = [], None
+
+    def __enter__(self):
+        if self.sequence:
+            from relight_cli.clitools import progress
+            self.bar = progress(total=len(self.frames), desc="relight (frames)", unit="frame",
+                                quiet=self.quiet).__enter__()
+
+        def step(render):
+            render.rgb = None          # the pixels are written; keep the timings only
+            render.channels = None
+            self.done.append(render)
+            if self.bar is not None:
+                self.bar.update(1)
+        return step, self.done
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+        return False
+
+
+def _log_written(done, output, hand_frames, start, quiet, passes: bool = False) -> None:
+    """The closing log line: the single frame's stage times, or a sequence's frames/s and
+    median time per stage."""
     import time
 
     import numpy as np
-
-    from relight_cli.features import discretize_env
-    from relight_cli.neural import distill as D
-    from relight_cli.neural.teacher import composite
-    from relight_cli.render.gbuffer import render_gbuffer
-
-    if env_res is None:
-        env_h, env_w = config.env_res            # the student's own grid
-    if (env_h, env_w) != tuple(config.env_res):
-        from relight_cli.errors import UsageProblem
-        raise UsageProblem(f"the student was trained on a {config.env_res[1]}x"
-                           f"{config.env_res[0]} (WxH) env grid; --env-res must match")
-    seconds = {}
-    t0 = time.perf_counter()
-    features = D.StudentFeatures(config)
-    pose = features.pose(data, frame, key=0)
-    gbuffer = render_gbuffer(meshes, view, samples_axis)
-    seconds["geometry"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    denv = discretize_env(envmap, env_h, env_w)
-    maps = features.maps(pose, denv, view.center)
-    seconds["features"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    import torch
-    with torch.no_grad():
-        textures = D.student_forward(net, config, maps, D.hand_poses(data, frame), denv,
-                                     D.wrist_rotations(data, frame), torch_device)
-        seconds["decoder"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        image = composite(textures, gbuffer)
-    seconds["composite"] = time.perf_counter() - t0
-    rgb = image.cpu().numpy().astype(np.float32)
-    mask = gbuffer.mask
-    _write_learned(output, preview, rgb, mask, bg, model, view,
-                   {"hand": input, "checkpoint": checkpoint[0], "env": env,
-                    "camera": camera}, {
-                       "model": model, "student": config.student, "frame": frame, "mesh": "fine",
-                       "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
-                       "specular": config.specular, "visibility": config.visibility,
-                       "checkpoint_step": int(ckpt["step"]), "background": list(bg)})
-    log(f"wrote {output} ({view.width}x{view.height}, {time.perf_counter() - start:.2f} s: "
-        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in seconds.items()) + ")", quiet)
+    wall = time.perf_counter() - start
+    if hand_frames is None:
+        r = done[0]
+        log(f"wrote {output} ({r.view.width}x{r.view.height}, "
+            + (f"{r.passes} pass(es), " if passes else "") + f"{wall:.2f} s: "
+            + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in r.seconds.items()) + ")", quiet)
+        return
+    stages = list(dict.fromkeys(k for r in done for k in r.seconds))
+    median = {k: float(np.median([r.seconds.get(k, 0.0) for r in done])) for k in stages}
+    rendered = sum(sum(r.seconds.values()) for r in done)
+    log(f"wrote {len(done)} frames to {output} ({wall:.1f} s in all, "
+        f"{len(done) / max(rendered, 1e-9):.2f} frames/s rendering; median per frame: "
+        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in median.items()) + ")", quiet)
 
 
 def _hand_view_options(env, hand_lights, output, camera, hand_size, hand_frame, env_res):

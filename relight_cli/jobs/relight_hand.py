@@ -1,0 +1,194 @@
+"""Relight a hand's frames: the hand modes of ``relight relight`` as engine jobs.
+
+Each job is a generator over the selected frames of one hand recording (a
+:class:`~relight_cli.hand.model.HandData`, one or two hands): what does not depend on
+the pose is prepared once (materials, the discretized env map, loaded models, the UV
+rasterizations of the student's features), and each frame is posed, framed, traced and
+rendered exactly as a single-frame call renders it, so a sequence's pixels equal those
+of one call per frame.  Each yields a :class:`FrameRender`; writing is the caller's.
+
+    physical(...)   Lambert + GGX + SSS with embree shadows (``--model physical``)
+    learned(...)    the OLAT teacher / GGX baseline or URHand's linear model, hand k by
+                    its own model, visibility traced against every hand
+    student(...)    RelightableHands' student: texel features under the env map, one pass
+
+``view_of(frame, meshes)`` gives each frame's camera (a fixed camera, or the default
+camera framing that frame's posed hands).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class FrameRender:
+    """One rendered frame: ``channels`` (name → [H, W] float32: R, G, B, A and AOVs for
+    the physical renderer; R, G, B, A for learned models, A the coverage mask),
+    ``rgb`` [H, W, 3] (over the background), the ``view`` camera, the per-stage
+    ``seconds`` and the frame-specific ``settings`` the provenance records."""
+
+    frame: int
+    channels: dict
+    rgb: np.ndarray
+    view: object
+    seconds: dict = field(default_factory=dict)
+    passes: int = 0
+
+
+def physical(data, frames, view_of, materials, settings, lights=None, envmap=None,
+             background=(0.0, 0.0, 0.0), mesh: str = "fine", aovs=(), source: str = ""):
+    """``--model physical`` over ``frames``: yields a :class:`FrameRender` per frame.
+
+    Args:
+        data: HandData.  frames: frame indices.  view_of: (frame, posed meshes) → Camera.
+        materials: :func:`relight_cli.render.appearance.hand_materials` (pose independent).
+        settings: :class:`relight_cli.render.shading.RenderSettings`.
+        lights: PointLights or None.  envmap: EnvMap or None.
+        background: RGB behind the hand.  mesh: ``fine`` or ``coarse``.
+        aovs: any of ``normal``, ``uv``, ``depth``.  source: the hand's name in errors.
+    """
+    from relight_cli.bake import pose_scene
+    from relight_cli.render.shading import HandRenderer
+
+    for frame in frames:
+        meshes = pose_scene(data, frame, mesh, source)
+        view = view_of(frame, meshes)
+        renderer = HandRenderer(meshes, materials, settings)
+        lighting = renderer.light(lights, envmap)
+        result = renderer.render(view, lighting, background=background)
+        channels = {"R": result.image[..., 0], "G": result.image[..., 1],
+                    "B": result.image[..., 2], "A": result.mask}
+        if "normal" in aovs:
+            channels.update({f"normal.{c}": result.normal[..., i] for i, c in enumerate("XYZ")})
+        if "uv" in aovs:
+            channels.update({"uv.U": result.uv[..., 0], "uv.V": result.uv[..., 1]})
+        if "depth" in aovs:
+            channels["depth.Z"] = result.depth
+        yield FrameRender(frame, channels, result.image, view,
+                          {**renderer.stats, **lighting.stats, **result.stats})
+
+
+def learned(data, frames, view_of, per_hand, samples_axis: int, lights=None, denv=None,
+            background=(0.0, 0.0, 0.0), device="cpu", source: str = "", progress=None):
+    """``--model teacher|linear`` over ``frames``: hand k by ``per_hand[k]`` (a
+    :class:`~relight_cli.neural.evaluate.HandModel`), one network pass per light or
+    env direction and hand (teacher; linear: one per lighting and hand), visibility
+    traced against every hand; passes composited over black, the background filling
+    the uncovered sample fraction.
+
+    Args:
+        lights: a read relight/lights record (positions, colors, intensities) or None.
+        denv: the env map discretized on the model's grid
+            (:func:`relight_cli.features.discretize_env`) or None.
+        progress: callable(n) per pass done (for a bar), or None.
+    """
+    from relight_cli.bake import pose_scene
+    from relight_cli.neural import evaluate as EV
+    from relight_cli.neural import teacher as T
+    from relight_cli.neural.geometry import PoseTexels
+    from relight_cli.render.gbuffer import render_gbuffer
+
+    intensity = None
+    if lights is not None:
+        intensity = np.asarray(lights.colors * lights.intensities[:, None], np.float64)
+    for frame in frames:
+        timing = T.Timing()
+        t0 = time.perf_counter()
+        meshes = pose_scene(data, frame, "fine", source)
+        view = view_of(frame, meshes)
+        texels = EV.scene_texels(per_hand, lambda n, vis: PoseTexels(meshes, n, shadows=vis))
+        gbuffer = render_gbuffer(meshes, view, samples_axis, scene=texels[0].renderer.scene)
+        timing.add("geometry", time.perf_counter() - t0)
+        passes = []       # (per-hand LightInputs, per-hand [L, 3] weights)
+        t0 = time.perf_counter()
+        if lights is not None:
+            passes.append(([EV.point_inputs(m, texels[k], k, lights.positions)
+                            for k, m in enumerate(per_hand)], [intensity] * len(per_hand)))
+        if denv is not None:
+            pairs = [EV.env_inputs(m, texels[k], k, denv) for k, m in enumerate(per_hand)]
+            passes.append(([li for li, _ in pairs], [w for _, w in pairs]))
+        timing.add("visibility", time.perf_counter() - t0)
+        poses = np.stack([inst.poses[frame] for inst in data.hands])
+        image = None
+        for light_inputs, weights in passes:
+            part = EV.render_scene(per_hand, texels, gbuffer, poses, light_inputs, weights,
+                                   device, progress=progress, timing=timing)
+            image = part if image is None else image + part
+        rgb, mask = _over_background(image.cpu().numpy().astype(np.float32), gbuffer.mask,
+                                     background)
+        yield FrameRender(frame, _rgba(rgb, mask), rgb, view, dict(timing.seconds),
+                          sum(len(w) for _, weights in passes for w in weights))
+
+
+def student(data, frames, view_of, net, config, denv, samples_axis: int,
+            background=(0.0, 0.0, 0.0), device="cpu", source: str = ""):
+    """``--model student`` over ``frames``: bake-features' texel maps of each pose
+    (visibility traced once per pose; the UV rasterizations shared by every pose) under
+    ``denv`` (the env map on the student's own grid), one forward pass, the textures
+    rendered through the frame's G-buffer."""
+    import torch
+
+    from relight_cli.bake import pose_scene
+    from relight_cli.neural import distill as D
+    from relight_cli.neural.teacher import composite
+    from relight_cli.render.gbuffer import render_gbuffer
+
+    features = D.StudentFeatures(config, cache=1)
+    for frame in frames:
+        seconds = {}
+        t0 = time.perf_counter()
+        meshes = pose_scene(data, frame, "fine", source)
+        view = view_of(frame, meshes)
+        pose = features.pose(data, frame, key=frame)
+        gbuffer = render_gbuffer(meshes, view, samples_axis)
+        seconds["geometry"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        maps = features.maps(pose, denv, view.center)
+        seconds["features"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            textures = D.student_forward(net, config, maps, D.hand_poses(data, frame), denv,
+                                         D.wrist_rotations(data, frame), device)
+            seconds["decoder"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            image = composite(textures, gbuffer)
+        seconds["composite"] = time.perf_counter() - t0
+        rgb, mask = _over_background(image.cpu().numpy().astype(np.float32), gbuffer.mask,
+                                     background)
+        yield FrameRender(frame, _rgba(rgb, mask), rgb, view, seconds, 1)
+
+
+def _over_background(rgb: np.ndarray, mask: np.ndarray, background) -> tuple:
+    return rgb + np.asarray(background, np.float32)[None, None] * (1 - mask[..., None]), mask
+
+
+def _rgba(rgb: np.ndarray, mask: np.ndarray) -> dict:
+    return {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
+
+
+def select_frames(spec: str | None, n_frames: int) -> list:
+    """Frame indices of ``--frames`` (``all``, ``A:B`` or ``A:B:S``, B exclusive and
+    clipped to the recording, as a Python slice) against a recording of ``n_frames``;
+    ValueError on a malformed or empty selection."""
+    text = (spec or "").strip()
+    if text == "all":
+        return list(range(n_frames))
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise ValueError(f"--frames takes all, A:B or A:B:S, got {spec!r}")
+    try:
+        values = [int(p) if p.strip() else None for p in parts]
+    except ValueError:
+        raise ValueError(f"--frames takes integers (all, A:B or A:B:S), got {spec!r}") from None
+    if any(v is not None and v < 0 for v in values):
+        raise ValueError(f"--frames takes frame indices ≥ 0, got {spec!r}")
+    if len(values) == 3 and (values[2] is None or values[2] < 1):
+        raise ValueError(f"--frames step must be ≥ 1, got {spec!r}")
+    frames = list(range(n_frames))[slice(*values)]
+    if not frames:
+        raise ValueError(f"--frames {spec} selects no frame of a recording of {n_frames}")
+    return frames

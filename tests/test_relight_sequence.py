@@ -1,0 +1,140 @@
+"""``relight HAND ENV --frames``: a motion rendered in one process, every frame's pixels
+equal to its single ``--frame`` call's, for the physical renderer and every learned model."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+
+from conftest import run_relight  # noqa: E402
+
+CAPTURE_ARGS = ["--cameras", "2", "--leds", "8", "--group", "2", "--frames", "6", "--size",
+                "24", "--tex-res", "32", "--aa", "1", "--eval-poses", "0", "--eval-cameras", "1",
+                "-q"]
+TEACHER = {"tex_res": 16, "encoder": [4, 4, 4], "decoder": [8, 8, 8], "pose_channels": [4, 4],
+           "val_samples": 1, "aa": 1}
+STUDENT = {"tex_res": 16, "decoder": [8, 8, 8, 8, 8, 8, 8], "pose_channels": [4, 8],
+           "val_samples": 1, "env_res": [4, 8]}
+LINEAR = {"tex_res": 16, "val_samples": 1}
+VIEW = ["--size", "20x16", "--env-res", "8x4"]
+
+
+def _invoke(*args):
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    """A small capture and one-iteration checkpoints of each learned model (their
+    renders need not be good: the test compares a sequence with single-frame calls)."""
+    root = tmp_path_factory.mktemp("sequence")
+    for name, cfg in (("teacher", TEACHER), ("student", STUDENT), ("linear", LINEAR)):
+        (root / f"{name}.json").write_text(json.dumps(cfg))
+    for args in (["synth-capture", "-o", root / "cap", *CAPTURE_ARGS],
+                 ["train-teacher", root / "cap", "--config", root / "teacher.json", "--iters",
+                  "1", "-q", "-o", root / "teacher.pt"],
+                 ["train-teacher", root / "cap", "--model", "linear", "--config",
+                  root / "linear.json", "--iters", "1", "-q", "-o", root / "linear.pt"],
+                 ["distill", root / "teacher.pt", root / "cap", "--envs", "builtin:sky",
+                  "--envs", "builtin:studio", "--config", root / "student.json", "--iters", "1",
+                  "-q", "-o", root / "student.pt"]):
+        r = _invoke(*args)
+        assert r.exit_code == 0, r.output
+    return root
+
+
+def _pixels(path):
+    from relight_cli.formats.exr import read_exr
+    image = read_exr(str(path))
+    return image.channels, image.attributes
+
+
+MODELS = {"physical": ["--tex-res", "32"], "teacher": [], "linear": [], "student": []}
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_sequence_pixels_equal_single_frame_calls(models, tmp_path, model):
+    extra = list(MODELS[model])
+    if model != "physical":
+        extra += ["--checkpoint", models / f"{model}.pt"]
+    view = VIEW if model != "student" else VIEW[:2]       # the student has its own grid
+    hand = models / "cap" / "hand.npz"
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    r = _invoke("relight", hand, "builtin:sky", "--model", model, *extra, *view,
+                "--frames", "1:6:2", "-o", seq / "f_{frame:02d}.exr",
+                "--preview", seq / "f_{frame:02d}.png")
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in seq.iterdir()) == [
+        "f_01.exr", "f_01.png", "f_03.exr", "f_03.png", "f_05.exr", "f_05.png"]
+    assert "3 frames" in r.output and "frames/s" in r.output
+    for frame in (1, 5):
+        single = tmp_path / f"single_{frame}.exr"
+        r = _invoke("relight", hand, "builtin:sky", "--model", model, *extra, *view,
+                    "--frame", frame, "-o", single, "-q")
+        assert r.exit_code == 0, r.output
+        a, ha = _pixels(seq / f"f_{frame:02d}.exr")
+        b, hb = _pixels(single)
+        assert set(a) == set(b) and set(a) >= {"R", "G", "B", "A"}
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=f"{model} {name}")
+        assert ha["relight.camera"] == hb["relight.camera"]
+
+
+def test_sequence_subprocess_and_all_frames(models, tmp_path):
+    out = tmp_path / "all"
+    out.mkdir()
+    r = run_relight("relight", str(models / "cap" / "hand.npz"), "builtin:studio", *VIEW,
+                    "--tex-res", "32", "--frames", "all", "-o", str(out / "{frame}.exr"))
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in out.iterdir()) == [f"{i}.exr" for i in range(6)]
+    assert "wrote 6 frames" in r.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--frames", "0:2", "--frame", "1", "-o", "{frame}.exr"], "--frame renders one frame"),
+    (["--frames", "0:2", "-o", "out.exr"], "must hold {frame}"),
+    (["--frames", "0:2", "-o", "{frame:q}.exr"], "does not format"),
+    (["--frames", "0:2", "-o", "{frame}.exr", "--preview", "same.png"], "must hold {frame}"),
+    (["--frames", "4:2", "-o", "{frame}.exr"], "selects no frame"),
+    (["--frames", "0:9:0", "-o", "{frame}.exr"], "step must be"),
+    (["--frames", "x", "-o", "{frame}.exr"], "takes all, A:B or A:B:S"),
+    (["--frames", "-1:2", "-o", "{frame}.exr"], "≥ 0"),
+])
+def test_sequence_bad_usage(models, tmp_path, args, message):
+    hand = models / "cap" / "hand.npz"
+    r = _invoke("relight", hand, "builtin:sky", *VIEW, *[a.replace("{frame", str(tmp_path / "{frame"))
+                                                        if a.endswith((".exr", ".png")) else a
+                                                        for a in args])
+    assert r.exit_code == 2, r.output
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("relight relight: error: "), r.output
+    assert message in lines[0], lines[0]
+    assert not list(tmp_path.iterdir())
+
+
+def test_sequence_refuses_an_existing_frame_with_no_clobber(models, tmp_path):
+    (tmp_path / "3.exr").write_bytes(b"keep")
+    r = _invoke("relight", models / "cap" / "hand.npz", "builtin:sky", *VIEW, "--tex-res", "32",
+                "--frames", "0:6", "--no-clobber", "-o", tmp_path / "{frame}.exr")
+    assert r.exit_code == 2, r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["3.exr"]
+    assert (tmp_path / "3.exr").read_bytes() == b"keep"
+
+
+def test_select_frames():
+    from relight_cli.jobs.relight_hand import select_frames
+    assert select_frames("all", 4) == [0, 1, 2, 3]
+    assert select_frames("1:3", 4) == [1, 2]
+    assert select_frames("0:10:3", 8) == [0, 3, 6]
+    assert select_frames(":2", 5) == [0, 1] and select_frames("3:", 5) == [3, 4]
+    for bad in ("5:9", "a:b", "1", "1:2:0"):
+        with pytest.raises(ValueError):
+            select_frames(bad, 5)
