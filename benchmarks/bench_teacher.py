@@ -163,12 +163,18 @@ def train_variant(folder: Path, variant: str, iters: int) -> dict:
             "curve": curve}
 
 
-def throughput(folder: Path, widths: str, tex: int, iters: int, threads: int) -> dict:
+def throughput(folder: Path, widths: str, tex: int, iters: int, threads: int,
+               channels_last: bool | None = None) -> dict:
+    """Training throughput of preset ``widths`` at ``tex``² (``channels_last``: the
+    preset's memory format unless given)."""
     from relight_cli.neural.config import resolve_config
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.train import fit
-    cfg = resolve_config(widths, None, {"tex_res": tex, "iters": iters, "val_samples": 1,
-                                        "lambda_vgg": 0.0, "val_every": 0, "save_every": 0})
+    values = {"tex_res": tex, "iters": iters, "val_samples": 1, "lambda_vgg": 0.0,
+              "val_every": 0, "save_every": 0}
+    if channels_last is not None:
+        values["channels_last"] = channels_last
+    cfg = resolve_config(widths, None, values)
     from relight_cli.neural.train import batch_indices
     data = CaptureData(str(folder), cfg.tex_res, cfg.aa, cfg.visibility, cfg.falloff, cfg.holdout)
     items = data.splits()["train"]
@@ -183,7 +189,8 @@ def throughput(folder: Path, widths: str, tex: int, iters: int, threads: int) ->
     seconds = sum(t for t, _, _ in timed)
     flops = sum(f for _, f, _ in timed)
     forward = sum(f for _, _, f in timed)
-    return {"preset": widths, "tex_res": tex, "iterations": len(task.steps),
+    return {"preset": widths, "tex_res": tex, "channels_last": cfg.channels_last,
+            "iterations": len(task.steps),
             "iterations_timed": len(timed), "first_iteration_s": task.steps[0][0],
             "sec_per_it": seconds / len(timed), "its": len(timed) / seconds,
             "gflop_per_it": flops / len(timed) / 1e9,
@@ -266,7 +273,8 @@ def markdown(report: dict, quick: bool) -> list[str]:
              "|---|---|---|---|---|---|---|---|---|---|"]
     for t in report["throughput"]:
         ok = B.consistent(t["gflops"], peak) and t["threads"] == threads
-        lines.append(f"| {t['preset']} | {t['tex_res']}² | {t['iterations']} "
+        label = t["preset"] + (" (channels_last)" if t.get("channels_last") else "")
+        lines.append(f"| {label} | {t['tex_res']}² | {t['iterations']} "
                      f"({t['iterations_timed']}) | {t['sec_per_it']:.3f} | {t['its']:.2f} | "
                      f"{t['forward_gflop_per_it']:.2f} | {t['gflop_per_it']:.2f} | "
                      f"{B.rate_cell(t['gflops'], peak, t['threads'], threads)} | "
@@ -353,6 +361,11 @@ def main():
                                            5 if args.quick else 20, threads),
                                 throughput(captures["single"], "paper", 128, 2 if args.quick
                                            else 3, threads)]
+        # the cpu preset (64², untied biases) in both memory formats: what channels_last
+        # buys in the same run
+        for nhwc in (False, True):
+            report["throughput"].append(throughput(captures["single"], "cpu", 64,
+                                                   5 if args.quick else 20, threads, nhwc))
         if not args.quick:
             report["throughput"].append(throughput(captures["single"], "paper", 256, 2, threads))
         stage("throughput")
