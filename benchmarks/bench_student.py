@@ -64,6 +64,7 @@ def frame_stages(hand, preset: str, compile_decoder: bool = True) -> dict:
     from relight_cli.hand.scene import posed_meshes, preview_camera
     from relight_cli.neural import distill as D
     from relight_cli.neural.config import STUDENT_PRESETS, StudentConfig, resolve_config
+    from relight_cli.neural.student import build_student
     from relight_cli.neural.teacher import composite
     from relight_cli.render.gbuffer import render_gbuffer
 
@@ -72,7 +73,7 @@ def frame_stages(hand, preset: str, compile_decoder: bool = True) -> dict:
     meshes = posed_meshes(hand, 0, "fine")
     cam = preview_camera(meshes, 256, 256)
     pose_dim = (hand.n_joints - 1) * 3
-    net = D.build_student(cfg, 12, pose_dim).eval()
+    net = build_student(cfg, 12, pose_dim).eval()
     out = {}
     features = D.StudentFeatures(cfg)
     t0 = time.perf_counter()
@@ -102,7 +103,7 @@ def frame_stages(hand, preset: str, compile_decoder: bool = True) -> dict:
         flops = counted.forward
         out["decoder"] = best_of(lambda: decode(net, inp))
         variants = {"eager": out["decoder"]}
-        cl = D.build_student(cfg, 12, pose_dim).eval().to(memory_format=torch.channels_last)
+        cl = build_student(cfg, 12, pose_dim).eval().to(memory_format=torch.channels_last)
         inp_cl = inp.contiguous(memory_format=torch.channels_last)
         variants["channels_last"] = best_of(lambda: decode(cl, inp_cl))
         if not compile_decoder:

@@ -572,7 +572,7 @@ class Study:
         from relight_cli.features import discretize_env
         from relight_cli.formats.checkpoint import read_checkpoint
         from relight_cli.neural import distill as D
-        from relight_cli.neural.train import model_from_checkpoint
+        from relight_cli.neural.checkpoints import teacher_model
 
         specs = self.envs["train"] + self.envs["eval"]
         key = ("envs", tuple(config.env_res))
@@ -584,7 +584,7 @@ class Study:
         # the teacher's per-direction textures are shared by every student of this teacher
         key, data, targets = self._targets
         if key != teacher_row["key"]:
-            teacher, tconfig, mean = model_from_checkpoint(
+            teacher, tconfig, mean = teacher_model(
                 read_checkpoint(teacher_row["checkpoint"], kind="teacher"))
             data = self.data(folder, tconfig)
             targets = D.TeacherTargets(teacher, tconfig, data, envs[0], None, config.cache_mb,

@@ -107,7 +107,8 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     from relight_cli.neural.config import (STUDENT_PRESETS, StudentConfig, resolve_config,
                                            resume_config)
     from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.train import fit, model_from_checkpoint, resolve_device
+    from relight_cli.neural.checkpoints import teacher_model
+    from relight_cli.neural.train import fit, resolve_device
     from relight_cli.provenance import file_sha256, outside_transaction, provenance
 
     from ._inputs import load_envmap
@@ -131,7 +132,7 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     # ---- inputs (data errors)
     tck = read_checkpoint(teacher, kind="teacher")
     try:
-        teacher_net, tconfig, mean_texture = model_from_checkpoint(tck, torch_device)
+        teacher_net, tconfig, mean_texture = teacher_model(tck, torch_device)
     except (ValueError, UsageProblem) as exc:
         raise DataError(getattr(exc, "message", str(exc)), teacher) from None
     data = CaptureData(capture, tconfig.tex_res, tconfig.aa, tconfig.visibility, tconfig.falloff,

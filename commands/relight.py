@@ -656,11 +656,11 @@ def _relight_hand_learned(input, env, output, checkpoint, device, model, camera,
     frames = _frames(hand_frames, frame, data, input, output, preview, no_clobber)
     if model == "student":
         from relight_cli.formats.checkpoint import read_checkpoint
-        from relight_cli.neural.distill import student_from_checkpoint
+        from relight_cli.neural.checkpoints import student_model
         from relight_cli.neural.geometry import uv_layout_digest
         ckpt = read_checkpoint(checkpoint[0], kind=model)
         try:
-            net, config = student_from_checkpoint(ckpt, torch_device)
+            net, config = student_model(ckpt, torch_device)
         except (ValueError, UsageProblem) as exc:
             raise DataError(getattr(exc, "message", str(exc)), checkpoint[0]) from None
         if (data.n_joints - 1) * 3 != int(ckpt["pose_dim"]):

@@ -12,6 +12,7 @@ torch = pytest.importorskip("torch")
 
 from relight_cli.errors import UsageProblem  # noqa: E402
 from relight_cli.neural import linear as LM  # noqa: E402
+from relight_cli.neural.checkpoints import linear_model  # noqa: E402
 from relight_cli.neural import shading_features as SF  # noqa: E402
 from test_neural_teacher import _ddp_pair, _plane, capture_dir  # noqa: E402,F401
 
@@ -154,7 +155,7 @@ def test_light_path_is_exactly_linear(light_path, linear_ckpt):
     model (Eq. 4); the LeakyReLU ablation is not linear."""
     from relight_cli.formats.checkpoint import read_checkpoint
     if light_path == "linear":
-        model, cfg, mean = LM.model_from_checkpoint(read_checkpoint(str(linear_ckpt)))
+        model, cfg, mean = linear_model(read_checkpoint(str(linear_ckpt)))
     else:
         model, cfg = _model(light_path="nonlinear", residual=False)
         mean = torch.rand(1, 3, 16, 16) * 0.3
@@ -304,7 +305,7 @@ def _train(data, **overrides):
     from relight_cli.neural.linear_train import train
     cfg = LM.LinearConfig.from_dict({**TRAIN, **overrides})
     result = train(data, cfg, torch.device("cpu"), show_progress=False)
-    model, _, tex = LM.model_from_checkpoint(result.checkpoint)
+    model, _, tex = linear_model(result.checkpoint)
     return model, tex, result
 
 

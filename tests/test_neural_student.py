@@ -10,6 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from relight_cli.errors import DataError  # noqa: E402
+from relight_cli.neural.checkpoints import student_model  # noqa: E402
 
 CAPTURE_ARGS = ["--cameras", "2", "--leds", "8", "--group", "2", "--frames", "6", "--size",
                 "24", "--tex-res", "32", "--aa", "1", "--eval-poses", "1", "--eval-cameras", "1",
@@ -126,7 +127,7 @@ def test_pseudo_ground_truth_equals_teacher_render(setup, tmp_path):
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.distill import TeacherTargets
     from relight_cli.neural.teacher import env_light_inputs, render_lights
-    from relight_cli.neural.train import model_from_checkpoint
+    from relight_cli.neural.checkpoints import teacher_model as model_from_checkpoint
 
     net, cfg, mean = model_from_checkpoint(read_checkpoint(str(setup / "teacher.pt")))
     data = CaptureData(str(setup / "cap"), cfg.tex_res, cfg.aa)
@@ -164,7 +165,8 @@ def test_distillation_lowers_the_loss(setup):
     from relight_cli.neural import distill as D
     from relight_cli.neural.config import StudentConfig
     from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.train import fit, model_from_checkpoint
+    from relight_cli.neural.checkpoints import teacher_model as model_from_checkpoint
+    from relight_cli.neural.train import fit
 
     net, tcfg, mean = model_from_checkpoint(read_checkpoint(str(setup / "teacher.pt")))
     data = CaptureData(str(setup / "cap"), tcfg.tex_res, tcfg.aa)
@@ -185,7 +187,7 @@ def test_distillation_lowers_the_loss(setup):
     torch.manual_seed(0)
     before = loss_of(task.build("cpu"))
     result = fit(task, cfg, torch.device("cpu"), show_progress=False)
-    trained, _ = D.student_from_checkpoint(result.checkpoint)
+    trained, _ = student_model(result.checkpoint)
     after = loss_of(trained)
     assert after < 0.5 * before, (before, after)
     assert "vs_teacher" in result.metrics and "vs_ground_truth" in result.metrics
@@ -248,7 +250,7 @@ def test_student_is_scale_equivariant(setup, tmp_path):
     from relight_cli.hand.scene import posed_meshes, preview_camera
 
     ckpt = _distill(setup, tmp_path / "s.pt", "--iters", "2")
-    net, cfg = D.student_from_checkpoint(read_checkpoint(str(ckpt), kind="student"))
+    net, cfg = student_model(read_checkpoint(str(ckpt), kind="student"))
     hand = builtin_hand("right", "fist")
     feats = D.StudentFeatures(cfg)
     pose = feats.pose(hand, 0)

@@ -331,7 +331,8 @@ def learned(capture_dir):
     """(data, config, Lambert baseline's held-out scores, trained teacher's, frozen one's)."""
     from relight_cli.neural.evaluate import fit_lambert_baseline
     from relight_cli.neural.models import build_model
-    from relight_cli.neural.train import model_from_checkpoint, train
+    from relight_cli.neural.checkpoints import teacher_model as model_from_checkpoint
+    from relight_cli.neural.train import train
 
     cfg = resolve_config("tiny", None, LEARN)
     data = _data(capture_dir, cfg.tex_res)
@@ -372,7 +373,8 @@ def test_ceiling_is_the_stage_shader_through_the_same_compositing(capture_dir):
     scores = {}
     for n in (16, 64, 256):
         data = _data(capture_dir, n)
-        ceiling = data.ceiling()
+        from relight_cli.neural.ceiling import ceiling_of
+        ceiling = ceiling_of(data)
         assert ceiling.available
         item = data.splits()["heldout"][0]
         sample = data.sample(*item)
@@ -522,7 +524,7 @@ def _train_small(capture_dir, small_config, tmp_path, run_cli, name="t.pt", extr
 
 def test_checkpoint_round_trip_and_refusals(capture_dir, small_config, tmp_path, run_cli):
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
-    from relight_cli.neural.train import model_from_checkpoint
+    from relight_cli.neural.checkpoints import teacher_model as model_from_checkpoint
 
     path = _train_small(capture_dir, small_config, tmp_path, run_cli)
     ck = read_checkpoint(str(path), kind="teacher")

@@ -238,6 +238,6 @@ def test_one_capture_writes_no_subject_fields(made, tmp_path):
     ck = torch.load(tmp_path / "a.pt", weights_only=True)
     assert list(ck["extra"]) == ["uv_layout", "hands", "mean_texture"]
     from relight_cli.formats.checkpoint import read_checkpoint
-    from relight_cli.neural.linear import subjects_from_checkpoint
+    from relight_cli.neural.checkpoints import subjects_from_checkpoint
     subjects = subjects_from_checkpoint(read_checkpoint(str(tmp_path / "a.pt")))
     assert [(k, s) for k, s, _ in subjects] == [(_key(made / "a"), None)]

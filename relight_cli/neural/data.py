@@ -222,13 +222,6 @@ class CaptureData:
         self.train_fully_lit_frames = [f for f in self.fully_lit_frames
                                        if cut is None or (f.time, f.index) < cut]
 
-    def ceiling(self):
-        """The capture's :class:`~relight_cli.neural.evaluate.Ceiling` (made once)."""
-        if getattr(self, "_ceiling", None) is None:
-            from .evaluate import Ceiling
-            self._ceiling = Ceiling(self)
-        return self._ceiling
-
     # ---------------------------------------------------------------- identity
 
     @property

@@ -41,6 +41,7 @@ from relight_cli.errors import DataError
 from .data import LRU, CaptureData, assemble_inputs
 from .losses import masked_mse, neg_weight, negativity
 from .models import pose_vector
+from .student import build_student
 from .teacher import composite
 
 
@@ -340,19 +341,6 @@ class StudentFeatures:
         return np.stack(out).astype(np.float32)
 
 
-def build_student(config, feature_channels: int, pose_dim: int):
-    from .student import DRAMNet, StudentNet
-    h, w = config.env_res
-    if config.student == "dram":
-        net = DRAMNet(h * w * 3, config.decoder, pose_dim, config.pose_channels, config.dram_code,
-                      config.lambda_s, config.lambda_b, config.tex_res)
-    else:
-        net = StudentNet(feature_channels, config.decoder, pose_dim, config.pose_channels,
-                         config.lambda_s, config.lambda_b,
-                         config.tex_res if getattr(config, "untied_bias", False) else 0)
-    return net
-
-
 def student_forward(net, config, feats: np.ndarray, poses: np.ndarray, denv, wrists, device,
                     return_raw: bool = False):
     """Normalized forward pass: (per-hand textures [3, N, N] in radiance, raw, scale s)."""
@@ -526,8 +514,9 @@ def evaluate_student(task: StudentTask, model, device) -> dict:
         renders = splits["env"]
         pick = np.unique(np.linspace(0, len(renders) - 1, min(len(renders), cfg.val_samples))
                          .round().astype(int))
-        from .evaluate import attach_ceiling
-        ceiling = data.ceiling()
+        from .scores import attach_ceiling
+        from .ceiling import ceiling_of
+        ceiling = ceiling_of(data)
         rows, best = [], []
         for i in pick:
             pose, env_name, camera, gt, mask = data.env_target(renders[i][1])
@@ -549,22 +538,3 @@ def evaluate_student(task: StudentTask, model, device) -> dict:
     return out
 
 
-def student_from_checkpoint(checkpoint: dict, device="cpu"):
-    """(model in eval mode, StudentConfig) from a read student checkpoint dict.
-    The weights are compared with the module the configuration builds before it is
-    allocated.  Raises ValueError on missing, extra or mis-shaped tensors."""
-    import json
-
-    from .config import StudentConfig
-    from .train import build_checked
-    raw = checkpoint["config"]
-    config = StudentConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
-                                     "checkpoint config")
-    channels = 3 * (1 + (len(config.shininess) if config.specular else 0))
-    pose_dim = checkpoint["pose_dim"]
-    if isinstance(pose_dim, bool) or not isinstance(pose_dim, int) or not 3 <= pose_dim <= 300:
-        raise ValueError(f"checkpoint pose_dim must be (joints − 1) × 3 ≤ 300, got "
-                         f"{pose_dim!r}"[:120])
-    model = build_checked(lambda: build_student(config, channels, pose_dim),
-                          checkpoint["weights"])
-    return model.to(device).eval(), config

@@ -29,6 +29,9 @@ import torch
 
 from relight_cli.errors import DataError
 
+from .ceiling import Ceiling, ceiling_of  # noqa: F401
+from .scores import _win, attach_ceiling, hand_names, mean_scores, score, spread  # noqa: F401
+
 from .data import LRU
 from .teacher import Timing, composite, hand_texture
 
@@ -90,17 +93,13 @@ def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel
     """A :class:`HandModel` from a read checkpoint (``formats.checkpoint.read_checkpoint``)
     of kind ``teacher`` or ``linear``.  Raises ValueError for a checkpoint that does not
     build (the caller names the file)."""
+    from .checkpoints import load, subjects_from_checkpoint
     kind = checkpoint["kind"]
-    if kind == "teacher":
-        from .train import model_from_checkpoint
-        net, config, mean = model_from_checkpoint(checkpoint, device)
-    elif kind == "linear":
-        from .linear import model_from_checkpoint, subjects_from_checkpoint
-        net, config, mean = model_from_checkpoint(checkpoint, device)
-        subjects = subjects_from_checkpoint(checkpoint, device)
-    else:
+    if kind not in ("teacher", "linear"):
         raise ValueError(f"a {kind!r} checkpoint is not a per-hand model (use a teacher or "
                          f"linear checkpoint)")
+    net, config, mean = load(checkpoint, device)
+    subjects = subjects_from_checkpoint(checkpoint, device) if kind == "linear" else []
     extra = checkpoint.get("extra", {})
     hands = extra.get("hands") or []
     if isinstance(hands, str):
@@ -112,7 +111,7 @@ def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel
     return HandModel(kind, net, config, mean, sides, layouts, str(checkpoint["capture_key"]),
                      int(checkpoint["pose_dim"]), name, int(checkpoint["step"]),
                      str(extra.get("uv_layout") or ""),
-                     subjects if kind == "linear" else [])
+                     subjects)
 
 
 def assign_models(models: list, sides: list) -> list:
@@ -252,59 +251,6 @@ def render_scene(models: list, texels: list, gbuffer, poses, light_inputs: list,
     return composite(textures, gbuffer, background)
 
 
-def spread(n_items: int, count: int | None) -> np.ndarray:
-    """Indices of at most ``count`` evenly spaced items of ``n_items`` (None: all)."""
-    count = n_items if count is None else min(n_items, count)
-    return np.unique(np.linspace(0, n_items - 1, count).round().astype(int))
-
-
-def _win(image) -> int:
-    return min(7, (min(image.shape[:2]) // 2) * 2 - 1)
-
-
-def score(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, hand_masks=None,
-          names=None) -> dict:
-    """{mse, psnr, ssim, mae} inside ``mask`` > 0.5 and, per hand, {name: {...}} inside
-    ``hand_masks[k]`` > 0.5 (the image's data range, so per-hand PSNR/SSIM compare with
-    the whole); {} when the mask is empty."""
-    from relight_cli.metrics.image import image_metrics
-    region = mask > 0.5
-    if not region.any():
-        return {}
-    values = gt[region]
-    data_range = float(values.max() - values.min()) or 1.0
-    out = dict(image_metrics(pred, gt, region, data_range, _win(gt))["metrics"])
-    for k, name in enumerate(names or []):
-        own = hand_masks[k] > 0.5
-        if own.any():
-            out[name] = image_metrics(pred, gt, own, data_range, _win(gt))["metrics"]
-    return out
-
-
-def hand_names(sides: list) -> list:
-    """Names of a scene's hands in scores: their handedness, or hand0, hand1 … when two
-    hands share one."""
-    return list(sides) if len(set(sides)) == len(sides) else [f"hand{k}" for k in
-                                                            range(len(sides))]
-
-
-def mean_scores(rows: list) -> dict:
-    """Means of per-sample score dicts (nested per-hand dicts averaged over the samples
-    where that hand is visible), with their sample counts."""
-    out = {}
-    flat = [r for r in rows if r]
-    if not flat:
-        return out
-    keys = [k for k in flat[0] if not isinstance(flat[0][k], dict)]
-    for key in keys:
-        out[key] = float(np.mean([r[key] for r in flat]))
-    out["samples"] = len(flat)
-    nested = dict.fromkeys(k for r in flat for k, v in r.items() if isinstance(v, dict))
-    for name in nested:
-        out[name] = mean_scores([r[name] for r in flat if name in r])
-    return out
-
-
 class LambertBaseline(torch.nn.Module):
     """The strongest non-learned teacher we test learned models against.
 
@@ -352,89 +298,6 @@ def fit_lambert_baseline(data, items: list, max_items: int = 24) -> LambertBasel
             den += (x * x).sum(0)
     base.scale.copy_(torch.from_numpy(num / np.maximum(den, 1e-30)).float())
     return base
-
-
-class Ceiling:
-    """The perfect-texture score of a capture's samples: a learned model's ceiling.
-
-    For a synthetic capture (its capture.json records every stage setting,
-    :func:`relight_cli.render.capture.stage_settings`), the stage's own shader is evaluated
-    at the N×N texel centres of the model's texture (:class:`~relight_cli.render.capture.
-    StageShader`), and that texture goes through the model's own compositing
-    (:func:`~relight_cli.neural.teacher.composite` on the same camera G-buffer, i.e. the
-    same pixel sampling) and the same :func:`score`: what a texture of that resolution
-    scores when it holds the exact answer at its texel centres.  It is not a strict
-    bound — a texture fitted through the bilinear lookup (pre-filtered) can beat point
-    samples by a fraction of a dB — but a model far below it has not learned what its
-    resolution allows.  Real captures have no ceiling (:attr:`available` False).
-
-    Args:
-        data: the :class:`~relight_cli.neural.data.CaptureData` (its hand, eval hand,
-            lights and env maps).
-    """
-
-    def __init__(self, data):
-        from relight_cli.render.capture import StageShader, stage_settings
-        from relight_cli.render.shading import PointLights
-
-        self.data = data
-        settings = stage_settings(data.capture.settings)
-        self.shader = None
-        if settings is not None:
-            lights = PointLights(np.asarray(data.capture.light_positions, np.float64),
-                                 np.asarray(data.capture.light_intensity, np.float64))
-            self.shader = StageShader(data.hand, settings, lights)
-        self._lighting = LRU(2)
-        self._scores = {}
-
-    @property
-    def available(self) -> bool:
-        return self.shader is not None
-
-    def _lit(self, pose: int, held_out: bool, lights_on=None, env_name=None):
-        def make():
-            renderer = self.shader.renderer(self.data.meshes(pose, held_out))
-            if env_name is not None:
-                return renderer, renderer.light(env=self.data.env_map(env_name))
-            return renderer, renderer.light(self.shader.lights.subset(list(lights_on)))
-        key = (held_out, pose, env_name, None if lights_on is None else tuple(lights_on))
-        return self._lighting.get_or(key, make)
-
-    def predict(self, item, texels: list, gbuffer) -> np.ndarray:
-        """[H, W, 3] image of the perfect textures of ``item`` (a capture (frame, camera)
-        or an ``("env", render record)``), hand k's at the texel centres of ``texels[k]``
-        (a PoseTexels of the scene at that hand model's N), through ``gbuffer``."""
-        if item[0] == "env":
-            render = item[1]
-            renderer, lighting = self._lit(int(render["pose"]), True, env_name=render["env"])
-        else:
-            frame = self.data.frame(item[0])
-            renderer, lighting = self._lit(frame.pose, False, lights_on=frame.lights_on)
-        surfaces = [texels[k].surfaces[k] for k in range(len(texels))]
-        radiance = self.shader.texel_radiance(renderer, lighting, surfaces, gbuffer.eye)
-        textures = [torch.from_numpy(texels[k].to_maps(k, radiance[k].astype(np.float32)))
-                    for k in range(len(texels))]
-        return composite(textures, gbuffer).numpy()
-
-    def score(self, item, texels: list, gbuffer, gt, mask, hand_masks=None,
-              names=None) -> dict:
-        """:func:`score` of :meth:`predict` (cached per item, texture sizes and sampling)."""
-        ident = ("env", item[1]["image"]) if item[0] == "env" else tuple(item)
-        key = (ident, tuple(t.tex_res for t in texels), gbuffer.spp, gbuffer.width)
-        if key not in self._scores:
-            pred = self.predict(item, texels, gbuffer)
-            self._scores[key] = score(pred, gt, mask, hand_masks, names)
-        return self._scores[key]
-
-
-def attach_ceiling(scores: dict, ceiling_rows: list) -> dict:
-    """Add ``ceiling`` (the mean perfect-texture scores of the same samples) and
-    ``gap_to_ceiling`` (ceiling PSNR − model PSNR, dB) to one split's ``scores``."""
-    ceiling = mean_scores([r for r in ceiling_rows if r])
-    if scores and ceiling and "psnr" in scores:
-        scores["ceiling"] = ceiling
-        scores["gap_to_ceiling"] = float(ceiling["psnr"] - scores["psnr"])
-    return scores
 
 
 class CaptureEvaluator:

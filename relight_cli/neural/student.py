@@ -208,3 +208,17 @@ class DRAMNet(nn.Module):
     def _film(self, h, i, cond):
         scale, shift = self.film[i](cond).chunk(2, dim=1)
         return h * (1 + scale[..., None, None]) + shift[..., None, None]
+
+
+def build_student(config, feature_channels: int, pose_dim: int):
+    """The module a StudentConfig describes: :class:`StudentNet` on ``feature_channels``
+    texel features, or :class:`DRAMNet` (``student: dram``)."""
+    h, w = config.env_res
+    if config.student == "dram":
+        net = DRAMNet(h * w * 3, config.decoder, pose_dim, config.pose_channels, config.dram_code,
+                      config.lambda_s, config.lambda_b, config.tex_res)
+    else:
+        net = StudentNet(feature_channels, config.decoder, pose_dim, config.pose_channels,
+                         config.lambda_s, config.lambda_b,
+                         config.tex_res if getattr(config, "untied_bias", False) else 0)
+    return net

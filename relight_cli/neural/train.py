@@ -42,6 +42,7 @@ from .data import CaptureData
 from .losses import masked_mse, neg_weight, negativity
 from .models import build_model
 from .teacher import env_light_inputs, render_lights, render_sample
+from .weights import build_checked, check_weights, load_weights  # noqa: F401
 
 
 @dataclass
@@ -148,7 +149,7 @@ def sample_loss(model, data: CaptureData, item, config: TeacherConfig, step: int
 
 
 def _metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
-    from .evaluate import score
+    from .scores import score
     return score(pred, gt, mask)
 
 
@@ -175,12 +176,13 @@ def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, p
     env)`` → the prediction of an ``eval/`` env render (held-out hand)."""
     from relight_cli.features import discretize_env
 
-    from .evaluate import attach_ceiling, mean_scores, spread
+    from .scores import attach_ceiling, mean_scores, spread
     model.eval()
     out = {}
     all_splits = data.splits()
     names = splits or [s for s in ("heldout", "fully_lit", "env") if all_splits.get(s)]
-    ceiling = data.ceiling()
+    from .ceiling import ceiling_of
+    ceiling = ceiling_of(data)
     with torch.no_grad():
         for name in names:
             items = all_splits.get(name) or []
@@ -444,50 +446,6 @@ def _summary(record: dict) -> str:
     return "; ".join(parts)
 
 
-def check_weights(expected: dict, weights: dict, what: str = "checkpoint") -> None:
-    """Compare a state dict with a module's (``expected``: its ``state_dict()``, on any
-    device, meta included): the same names, and each tensor of the same shape and dtype.
-    ValueError naming the first difference; no tensor's values are touched."""
-    if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor)
-                                                for v in weights.values()):
-        raise ValueError(f"{what} weights must map names to tensors")
-    missing = [k for k in expected if k not in weights]
-    if missing:
-        raise ValueError(f"{what} lacks tensor {missing[0]} ({len(missing)} missing)")
-    unexpected = [k for k in weights if k not in expected]
-    if unexpected:
-        raise ValueError(f"{what} has unexpected tensor {str(unexpected[0])[:80]}")
-    for k, v in expected.items():
-        if tuple(weights[k].shape) != tuple(v.shape):
-            shape = tuple(weights[k].shape)
-            text = str(shape) if len(str(shape)) <= 60 else str(shape)[:57] + "..."
-            raise ValueError(f"{what} tensor {k} has shape {text}, the model expects "
-                             f"{tuple(v.shape)}")
-        if weights[k].dtype != v.dtype:
-            raise ValueError(f"{what} tensor {k} is {weights[k].dtype}, the model expects "
-                             f"{v.dtype}")
-
-
-def load_weights(model, weights: dict) -> None:
-    """Load a state dict, refusing missing, unexpected, mis-shaped or mis-typed tensors
-    (ValueError) before any value is copied."""
-    check_weights(model.state_dict(), weights)
-    model.load_state_dict(weights)
-
-
-def build_checked(build, weights: dict):
-    """``build()``'s module with ``weights`` loaded — built for real only once the weights
-    match the module it makes on the meta device (no memory): a configuration read from
-    a file cannot make us allocate a model its file does not hold.  ValueError on a
-    mismatch (the caller names the file)."""
-    with torch.device("meta"):
-        probe = build()
-    check_weights(probe.state_dict(), weights)
-    model = build()
-    model.load_state_dict(weights)
-    return model
-
-
 def check_resume_weights(build_meta, resume: dict) -> None:
     """A resumed checkpoint's weights against the module its task builds (on the meta
     device); DataError naming the checkpoint."""
@@ -604,27 +562,3 @@ def restore_state(task, model, optimizer, resume: dict, device) -> int:
     return step
 
 
-def model_from_checkpoint(checkpoint: dict, device="cpu"):
-    """(model in eval mode, config, mean texture or None) from a read checkpoint dict
-    (:func:`relight_cli.formats.checkpoint.read_checkpoint`).  The weights are compared
-    with the module the configuration builds before it is allocated; ValueError (the
-    caller names the file) on missing, extra or mis-shaped tensors or a missing or
-    mis-shaped mean texture."""
-    raw = checkpoint["config"]
-    config = TeacherConfig.from_dict(json.loads(raw) if isinstance(raw, str) else raw,
-                                     "checkpoint config")
-    pose_dim = checkpoint["pose_dim"]
-    if isinstance(pose_dim, bool) or not isinstance(pose_dim, int) or not 3 <= pose_dim <= 300:
-        raise ValueError(f"checkpoint pose_dim must be (joints − 1) × 3 ≤ 300, got "
-                         f"{pose_dim!r}"[:120])
-    model = build_checked(lambda: build_model(config, pose_dim), checkpoint["weights"])
-    model.to(device).eval()
-    mean = checkpoint.get("extra", {}).get("mean_texture")
-    if config.model == "ggx" and mean is None:
-        raise ValueError("a ggx checkpoint needs its mean texture (extra.mean_texture)")
-    if mean is not None:
-        n = config.tex_res
-        if not isinstance(mean, torch.Tensor) or mean.ndim != 4 or mean.dtype != torch.float32 \
-                or not 1 <= mean.shape[0] <= 4 or tuple(mean.shape[1:]) != (3, n, n):
-            raise ValueError(f"extra.mean_texture must be float32 [1..4, 3, {n}, {n}]")
-    return model, config, (None if mean is None else mean.to(device))

@@ -1,0 +1,94 @@
+"""The ceiling of a learned model: the perfect texture at its resolution, scored through the
+same compositing, pixel sampling and metrics as the model (DESIGN.md "How a learned model
+is judged").  :func:`ceiling_of` gives a capture's, made once per CaptureData.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .data import LRU
+from .scores import score
+from .teacher import composite
+
+
+def ceiling_of(data) -> "Ceiling":
+    """``data``'s :class:`Ceiling` (a CaptureData; made once and kept on it)."""
+    made = data.__dict__.get("_ceiling")
+    if made is None:
+        made = data.__dict__["_ceiling"] = Ceiling(data)
+    return made
+
+
+class Ceiling:
+    """The perfect-texture score of a capture's samples: a learned model's ceiling.
+
+    For a synthetic capture (its capture.json records every stage setting,
+    :func:`relight_cli.render.capture.stage_settings`), the stage's own shader is evaluated
+    at the N×N texel centres of the model's texture (:class:`~relight_cli.render.capture.
+    StageShader`), and that texture goes through the model's own compositing
+    (:func:`~relight_cli.neural.teacher.composite` on the same camera G-buffer, i.e. the
+    same pixel sampling) and the same :func:`score`: what a texture of that resolution
+    scores when it holds the exact answer at its texel centres.  It is not a strict
+    bound — a texture fitted through the bilinear lookup (pre-filtered) can beat point
+    samples by a fraction of a dB — but a model far below it has not learned what its
+    resolution allows.  Real captures have no ceiling (:attr:`available` False).
+
+    Args:
+        data: the :class:`~relight_cli.neural.data.CaptureData` (its hand, eval hand,
+            lights and env maps).
+    """
+
+    def __init__(self, data):
+        from relight_cli.render.capture import StageShader, stage_settings
+        from relight_cli.render.shading import PointLights
+
+        self.data = data
+        settings = stage_settings(data.capture.settings)
+        self.shader = None
+        if settings is not None:
+            lights = PointLights(np.asarray(data.capture.light_positions, np.float64),
+                                 np.asarray(data.capture.light_intensity, np.float64))
+            self.shader = StageShader(data.hand, settings, lights)
+        self._lighting = LRU(2)
+        self._scores = {}
+
+    @property
+    def available(self) -> bool:
+        return self.shader is not None
+
+    def _lit(self, pose: int, held_out: bool, lights_on=None, env_name=None):
+        def make():
+            renderer = self.shader.renderer(self.data.meshes(pose, held_out))
+            if env_name is not None:
+                return renderer, renderer.light(env=self.data.env_map(env_name))
+            return renderer, renderer.light(self.shader.lights.subset(list(lights_on)))
+        key = (held_out, pose, env_name, None if lights_on is None else tuple(lights_on))
+        return self._lighting.get_or(key, make)
+
+    def predict(self, item, texels: list, gbuffer) -> np.ndarray:
+        """[H, W, 3] image of the perfect textures of ``item`` (a capture (frame, camera)
+        or an ``("env", render record)``), hand k's at the texel centres of ``texels[k]``
+        (a PoseTexels of the scene at that hand model's N), through ``gbuffer``."""
+        if item[0] == "env":
+            render = item[1]
+            renderer, lighting = self._lit(int(render["pose"]), True, env_name=render["env"])
+        else:
+            frame = self.data.frame(item[0])
+            renderer, lighting = self._lit(frame.pose, False, lights_on=frame.lights_on)
+        surfaces = [texels[k].surfaces[k] for k in range(len(texels))]
+        radiance = self.shader.texel_radiance(renderer, lighting, surfaces, gbuffer.eye)
+        textures = [torch.from_numpy(texels[k].to_maps(k, radiance[k].astype(np.float32)))
+                    for k in range(len(texels))]
+        return composite(textures, gbuffer).numpy()
+
+    def score(self, item, texels: list, gbuffer, gt, mask, hand_masks=None,
+              names=None) -> dict:
+        """:func:`score` of :meth:`predict` (cached per item, texture sizes and sampling)."""
+        ident = ("env", item[1]["image"]) if item[0] == "env" else tuple(item)
+        key = (ident, tuple(t.tex_res for t in texels), gbuffer.spp, gbuffer.width)
+        if key not in self._scores:
+            pred = self.predict(item, texels, gbuffer)
+            self._scores[key] = score(pred, gt, mask, hand_masks, names)
+        return self._scores[key]
