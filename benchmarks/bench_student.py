@@ -106,6 +106,23 @@ def frame_stages(hand, preset: str, compile_decoder: bool = True) -> dict:
         cl = build_student(cfg, 12, pose_dim).eval().to(memory_format=torch.channels_last)
         inp_cl = inp.contiguous(memory_format=torch.channels_last)
         variants["channels_last"] = best_of(lambda: decode(cl, inp_cl))
+        # bfloat16 autocast: timed, and its error against the float32 decoder in dB (PSNR
+        # with the float32 output's peak as the range: untrained weights give a nearly flat
+        # texture, whose own min-max range would exaggerate any error), so speed is never
+        # bought without saying the cost
+        reference = decode(net, inp).float()
+
+        def bf16(h):
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                return decode(net, h)
+        try:
+            variants["bfloat16"] = best_of(lambda: bf16(inp))
+            err = float(((bf16(inp).float() - reference) ** 2).mean())
+            span = float(reference.abs().max()) or 1.0
+            out["bfloat16_psnr_db"] = (10 * np.log10(span ** 2 / err) if err > 0
+                                       else float("inf"))
+        except RuntimeError as exc:     # a CPU without bf16 kernels: report, do not fail
+            variants["bfloat16"] = f"unavailable ({type(exc).__name__})"
         if not compile_decoder:
             variants["compile"] = "skipped (--quick)"
         else:
@@ -117,7 +134,7 @@ def frame_stages(hand, preset: str, compile_decoder: bool = True) -> dict:
     gb = render_gbuffer(meshes, cam, 1)
     tex = [torch.rand(3, cfg.tex_res, cfg.tex_res) for _ in range(n_hands)]
     out["rendering"] = best_of(lambda: composite(tex, gb))
-    numeric = [v for v in variants.values() if isinstance(v, float)]
+    numeric = [v for k, v in variants.items() if isinstance(v, float) and k != "bfloat16"]
     best = min(numeric)
     out.update({"hands": n_hands, "preset": preset, "decoder_gflop": flops / 1e9,
                 "decoder_best_seconds": best, "decoder_gflops_achieved": flops / 1e9 / best,
@@ -232,8 +249,13 @@ def markdown(report: dict, quick: bool) -> list[str]:
               "## Decoder", "",
               "GFLOP/frame: forward convs of the timed decoder (2 per multiply-add, every hand; "
               "the joint features are timed and counted apart).  Best of 5 runs each.", "",
+              "bfloat16: autocast; its error is the PSNR of its output against the float32 "
+              "decoder's (the float32 output's peak as the range; untrained weights, so a "
+              "trained decoder's error may differ): the fastest variant counts as 'best' only "
+              "among the float32 ones.", "",
               "| preset | hands | GFLOP/frame | eager ms | channels_last ms | compile ms | "
-              "best GFLOP/s | × FLOP floor |", "|---|---|---|---|---|---|---|---|"]
+              "bfloat16 ms (PSNR vs fp32) | best fp32 GFLOP/s | × FLOP floor |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for s in report["stages"]:
         v = s["decoder_variants"]
         fmt = lambda x: f"{1e3 * x:.1f}" if isinstance(x, float) else str(x)  # noqa: E731
@@ -242,6 +264,9 @@ def markdown(report: dict, quick: bool) -> list[str]:
         ok = B.consistent(s["decoder_gflops_achieved"], peak) and s["threads"] == threads
         lines.append(f"| {s['preset']} | {s['hands']} | {s['decoder_gflop']:.3f} | "
                      f"{fmt(v['eager'])} | {fmt(v['channels_last'])} | {fmt(v['compile'])} | "
+                     f"{fmt(v.get('bfloat16', '—'))}"
+                     + (f" ({s['bfloat16_psnr_db']:.1f} dB)" if "bfloat16_psnr_db" in s else "")
+                     + " | "
                      f"{B.rate_cell(s['decoder_gflops_achieved'], peak, s['threads'], threads)} | "
                      f"{ratio:.2f}{'' if ok else ' (inconsistent)'} |")
     f = report["new_pose_features"]
