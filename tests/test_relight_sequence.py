@@ -75,7 +75,7 @@ def test_sequence_pixels_equal_single_frame_calls(models, tmp_path, model):
     assert sorted(p.name for p in seq.iterdir()) == [
         "f_01.exr", "f_01.png", "f_03.exr", "f_03.png", "f_05.exr", "f_05.png"]
     assert "3 frames" in r.output and "frames/s" in r.output
-    for frame in (1, 5):
+    for frame in (5,):          # the last of the three: every cache has been reused
         single = tmp_path / f"single_{frame}.exr"
         r = _invoke("relight", hand, "builtin:sky", "--model", model, *extra, *view,
                     "--frame", frame, "-o", single, "-q")
