@@ -39,15 +39,14 @@ demo: install
 	$(RELIGHT) fit-geometry --pose fist -o demo/hand.npz --preview demo/hand.png
 	$(RELIGHT) fit-geometry --pose relaxed --two-hands -o demo/hands2.npz --preview demo/hands2.png
 	# real hand motion (if ../shared/data is here): a Leap Motion pinch, every 10th frame fitted, the
-	# frames between filled by slerp; rendered open (frame 0), closing (100) and pinched (180), palm side
+	# frames between filled by slerp; rendered open (frame 0), closing (90) and pinched (180), palm side,
+	# in one process (--frames A:B:S: the model, BVH and caches are built once)
 	if [ -f $(SHARED)/hands/leap/pinch.json ]; then \
 	  $(RELIGHT) fit-geometry --keypoints $(SHARED)/hands/leap/pinch.json --frame-range 0:300:10 \
 	    --interpolate -o demo/leap_hand.npz --report demo/leap_fit.json && \
 	  $(RELIGHT) camera --eye -0.2,0.0,-0.2 --target 0.03,0.16,0.03 --fov 35 --size 256x256 -o demo/leap_cam.json && \
-	  for k in 0 100 180; do \
-	    $(RELIGHT) relight demo/leap_hand.npz builtin:studio --model physical --camera demo/leap_cam.json \
-	      --frame $$k -o demo/leap_hand_$$k.exr --preview demo/leap_hand_$$k.png || exit 1; \
-	  done; \
+	  $(RELIGHT) relight demo/leap_hand.npz builtin:studio --model physical --camera demo/leap_cam.json \
+	    --frames 0:181:90 -o 'demo/leap_hand_{frame}.exr' --preview 'demo/leap_hand_{frame}.png'; \
 	fi
 	# texel-aligned, visibility-aware shading features under two environments (visibility traced once)
 	$(RELIGHT) bake-features demo/hand.npz builtin:sky builtin:studio -o 'demo/feats_{env}.exr' \

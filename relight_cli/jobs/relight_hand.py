@@ -52,13 +52,21 @@ def physical(data, frames, view_of, materials, settings, lights=None, envmap=Non
         aovs: any of ``normal``, ``uv``, ``depth``.  source: the hand's name in errors.
     """
     from relight_cli.bake import pose_scene
+    from relight_cli.features import discretize_env
     from relight_cli.render.shading import HandRenderer
+    from relight_cli.uvraster import rasterize_uv
 
+    # pose independent, so made once: the env map on the renderer's direction grid and
+    # each mesh's UV rasterization (the same arrays a single-frame call makes)
+    denv = None if envmap is None else discretize_env(envmap, *settings.env_res)
+    rasters = None
     for frame in frames:
         meshes = pose_scene(data, frame, mesh, source)
+        if rasters is None:
+            rasters = [rasterize_uv(m.uv, m.faces_uv, settings.tex_res) for m in meshes]
         view = view_of(frame, meshes)
-        renderer = HandRenderer(meshes, materials, settings)
-        lighting = renderer.light(lights, envmap)
+        renderer = HandRenderer(meshes, materials, settings, rasters)
+        lighting = renderer.light(lights, denv)
         result = renderer.render(view, lighting, background=background)
         channels = {"R": result.image[..., 0], "G": result.image[..., 1],
                     "B": result.image[..., 2], "A": result.mask}
@@ -92,15 +100,25 @@ def learned(data, frames, view_of, per_hand, samples_axis: int, lights=None, den
     from relight_cli.neural.geometry import PoseTexels
     from relight_cli.render.gbuffer import render_gbuffer
 
+    from relight_cli.uvraster import rasterize_uv
+
     intensity = None
     if lights is not None:
         intensity = np.asarray(lights.colors * lights.intensities[:, None], np.float64)
+    rasters = {}      # (mesh k, tex_res) → UV rasterization: pose independent, made once
     for frame in frames:
         timing = T.Timing()
         t0 = time.perf_counter()
         meshes = pose_scene(data, frame, "fine", source)
         view = view_of(frame, meshes)
-        texels = EV.scene_texels(per_hand, lambda n, vis: PoseTexels(meshes, n, shadows=vis))
+
+        def make(n, vis):
+            for k, m in enumerate(meshes):
+                if (k, n) not in rasters:
+                    rasters[k, n] = rasterize_uv(m.uv, m.faces_uv, n)
+            return PoseTexels(meshes, n, [rasters[k, n] for k in range(len(meshes))],
+                              shadows=vis)
+        texels = EV.scene_texels(per_hand, make)
         gbuffer = render_gbuffer(meshes, view, samples_axis, scene=texels[0].renderer.scene)
         timing.add("geometry", time.perf_counter() - t0)
         passes = []       # (per-hand LightInputs, per-hand [L, 3] weights)
