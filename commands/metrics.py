@@ -214,13 +214,16 @@ def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None
               help="Also compute LPIPS (needs --lpips-weights; weights are never downloaded).")
 @click.option("--lpips-weights", "lpips_weights", default=None,
               help="Local LPIPS (AlexNet) state dict, see formats/metrics_json.md.")
+@click.option("--preview", default=None, metavar="PNG",
+              help="One pair only: also write a labelled PNG of the prediction and the ground "
+                   "truth on one exposure, and their |difference|, with the scores.")
 @_output
 @_jsonl
 @_percentiles
 @no_clobber_option
 @quiet_option
 def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_size, use_lpips,
-                  lpips_weights, output, jsonl, percentiles, no_clobber, quiet):
+                  lpips_weights, preview, output, jsonl, percentiles, no_clobber, quiet):
     """Compare predicted images PRED with ground truth GT.
 
     PRED and GT are two image files (EXR, or anything OpenImageIO reads), or two
@@ -246,6 +249,7 @@ def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_
     from relight_cli.metrics.batch import match_masks, match_pairs, parse_percentiles
 
     _check_outputs(output, jsonl, no_clobber)
+    check_output(preview, no_clobber, kind="png", what="--preview")
     qs = parse_percentiles(percentiles)
     if whole_image and mask is not None:
         raise UsageProblem("--whole-image scores every pixel; it cannot go with --mask")
@@ -267,6 +271,8 @@ def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_
     pairs, extra = match_pairs(pred, gt)
     if extra:
         log(f"note: {len(extra)} ground-truth file(s) have no prediction and are ignored", quiet)
+    if preview is not None and len(pairs) != 1:
+        raise UsageProblem(f"--preview shows one pair; PRED and GT matched {len(pairs)}")
     masks = match_masks(mask, [n for n, _, _ in pairs])
     for _, p_path, g_path in pairs:   # every input registered before the first comparison:
         check_input(g_path)           # an output that is one of them is refused first
@@ -309,6 +315,7 @@ def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_
         if used_exposure is not None:
             result["exposure"] = used_exposure
         results.append((name, p_path, g_path, masks[name], result))
+        shown = (p, g, region)
     settings = {"space": space, "exposure": exposure, "data_range": data_range,
                 "win_size": win_size, "lpips": bool(use_lpips), "mask": mask is not None,
                 "whole_image": bool(whole_image), "percentiles": qs}
@@ -319,6 +326,43 @@ def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_
                                  batch_details=regions)
     _write(output, jsonl, record, rows)
     log(f"{len(results)} pair(s) compared, {_region_note(results)}", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        write_png(preview, _comparison_sheet(*shown, results[0], space))
+        log(f"wrote {preview}", quiet)
+
+
+def _comparison_sheet(pred, gt, region, pair, space):
+    """:func:`comparison_tiles` as a sheet titled with the scores (in ``space``) and
+    where they were taken."""
+    import os
+
+    from relight_cli.preview import sheet
+
+    name, p_path, g_path, _, result = pair
+    m = result["metrics"]
+    tiles = comparison_tiles(pred, gt, region, os.path.basename(p_path),
+                             os.path.basename(g_path))
+    where = ("inside the mask" if result["region"] == "mask" else "every pixel") + \
+        f" ({result['pixels']} px)"
+    scores = ", ".join(f"{k.upper()} {m[k]:.4g}" for k in ("psnr", "ssim", "mae") if k in m)
+    return sheet([tiles], f"metrics image ({space}): {scores}, {where}")
+
+
+def comparison_tiles(pred, gt, region, pred_name="", gt_name=""):
+    """[prediction, ground truth, |difference|] preview tiles of ``metrics image --preview``:
+    the pair as stored, on the ground truth's exposure (its 99th percentile inside
+    ``region``), the difference on its own."""
+    import numpy as np
+
+    from relight_cli.preview import expose, tile
+
+    colour = (lambda x: x[..., :3]) if gt.shape[-1] >= 3 else (lambda x: x[..., :1])
+    _, _, white = expose(colour(gt), "auto", region=region)
+    return [tile(colour(pred), f"prediction: {pred_name}", region=region, white=white),
+            tile(colour(gt), f"ground truth: {gt_name}", region=region, white=white),
+            tile(np.abs(colour(pred) - colour(gt)), "|prediction − ground truth|",
+                 region=region, note="own exposure")]
 
 
 def _region_note(results) -> str:

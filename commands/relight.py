@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_output, log,
-                                  no_clobber_option, parse_vector, quiet_option, renamed_option,
-                                  seed_option)
+from relight_cli.clitools import (FiniteFloat, ShadowStrength, SquareSize, check_input,
+                                  check_output, log, no_clobber_option, parse_vector,
+                                  quiet_option, renamed_option, seed_option)
 
 
 @click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows), or a hand.")
@@ -45,14 +45,24 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
                    "the Gaussian's mean and covariance exactly (no sampling noise).")
 @click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
               help="Monte Carlo samples per receiver for --footprint mc.")
-@click.option("--shadow-strength", type=FiniteFloat(0, 1), default=1.0, show_default=True,
+@click.option("--shadow-strength", type=ShadowStrength(), default="auto", show_default=True,
               help="[Gaussians] Direct share s of a receiver's colour: colour × ((1 − s) + "
-                   "s·Σ w_l T_l / Σ w_l) per channel; 1 treats the whole colour as direct light.")
+                   "s·Σ w_l T_l / Σ w_l) per channel.  A number in [0, 1] for every receiver (1, "
+                   "the paper's reading: the whole colour is direct light, a full shadow is "
+                   "black), or auto: per receiver, the share of its light the DGSM's lights "
+                   "deliver against the probe's irradiance, E_d / (E_d + E_probe).")
 @click.option("--light-weights", type=click.Choice(["intensity", "irradiance", "equal"]),
-              default="intensity", show_default=True,
+              default=None,
               help="[Gaussians] Each light's share w_l of the direct light (paper Sec. 3.3): "
                    "intensity × colour (from the DGSM), also × |n·ω|/r² at each receiver "
-                   "(irradiance), or equal (the plain mean T of older versions).")
+                   "(irradiance), or equal (the plain mean T of older versions).  Default: "
+                   "irradiance with --shadow-strength auto (so the shadow is exactly each "
+                   "light's irradiance times its T), else intensity.")
+@click.option("--direct-light", is_flag=True,
+              help="[Gaussians] With --dgsm: the DGSM's point lights also light IN and the "
+                   "objects directly, albedo × Σ I_l C_l max(n·ω_l, 0)/(π r_l²) added to the "
+                   "probe's shading (ours: the paper lights avatars by the probe only), each "
+                   "light's term shadowed by the other objects.")
 @click.option("--shadow-matte", type=click.Choice(["dgsm", "mesh"]), default=None,
               help="[Gaussians] With --camera: the receivers-only shadow matte of the paper's "
                    "protocol (Sec. 4.2): receivers coloured by shadow strength 1 − Σw_l V_l/Σw_l, "
@@ -139,8 +149,8 @@ from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_ou
 @no_clobber_option
 @quiet_option
 def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
-            shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals,
-            camera, background, model, checkpoint, device, hand_size,
+            shadow_strength, light_weights, direct_light, shadow_matte, lobe, intensity, t_max,
+            normals, camera, background, model, checkpoint, device, hand_size,
             hand_lights, hand_frame, hand_frames, hand_mesh, env_res, tex_res, aa,
             no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
             preview, splits, eval_samples, seed, no_clobber, quiet):
@@ -251,8 +261,8 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
 
 def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers_out, footprint,
                        samples,
-                       shadow_strength, light_weights, shadow_matte, lobe, intensity, t_max, normals, camera, background,
-                       preview, seed, no_clobber, quiet, **_):
+                       shadow_strength, light_weights, direct_light, shadow_matte, lobe, intensity,
+                       t_max, normals, camera, background, preview, seed, no_clobber, quiet, **_):
     import math
     import time
 
@@ -271,6 +281,8 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
                            "sh-probe)")
     if dgsm is not None and receivers is None:
         raise UsageProblem("--dgsm shadows receivers: give --receivers SCENE.ply")
+    if direct_light and dgsm is None:
+        raise UsageProblem("--direct-light takes its lights from --dgsm SHADOWS.exr")
     if receivers_out is not None and receivers is None:
         raise UsageProblem("--receivers-out needs --receivers")
     if preview is not None and camera is None:
@@ -301,27 +313,44 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
     start = time.perf_counter()
     if shadow_matte is not None:
         return _shadow_matte(shadow_matte, specs, parsed, output, dgsm, receivers, camera,
-                             footprint, samples, light_weights, background, preview, seed, quiet,
-                             start)
+                             footprint, samples, light_weights or "intensity", background,
+                             preview, seed, quiet, start)
     sh_probe = read_probe(probe)
-    relit_objects = []
+    shadow_map = _read_dgsm(dgsm) if dgsm is not None else None
+    auto = shadow_strength == "auto"
+    if auto and shadow_map is not None and shadow_map.intensities is None:
+        log("note: this shadow map (DGSM version 1) stores no light intensities, so "
+            "--shadow-strength auto cannot weigh them against the probe: s = 1", quiet)
+        auto, shadow_strength = False, 1.0
+    if light_weights is None:
+        light_weights = "irradiance" if auto else "intensity"
+    relit_objects, object_direct = [], []
     for spec, (source, placement) in zip(specs, parsed):
         avatar = load_placed(source, placement, spec)
         log(f"read {spec}: {len(avatar)} Gaussians", quiet)
         try:
-            relit_objects.append(TF.relight_gaussians(
-                avatar, sh_probe.coefficients, q=lobe, intensity=intensity,
-                t_max=math.inf if t_max is None else t_max, normal_method=normals))
+            n = TF.estimate_normals(avatar, normals)
         except ValueError as exc:  # e.g. --normals stored on a file without normals
             raise DataError(str(exc), source) from None
-    log(f"probe degree {sh_probe.degree}", quiet)
+        direct = None       # [L, N, 3] each light's irradiance (--direct-light)
+        extra = None
+        if direct_light:
+            direct = TF.direct_irradiance(shadow_map.intensities, shadow_map.colors,
+                                          shadow_map.lights, avatar.means, n, one_sided=True)
+            extra = direct.sum(axis=0) / math.pi
+        object_direct.append(direct)
+        relit_objects.append(TF.relight_gaussians(
+            avatar, sh_probe.coefficients, q=lobe, intensity=intensity,
+            t_max=math.inf if t_max is None else t_max, normals=n, extra=extra))
+    log(f"probe degree {sh_probe.degree}" + (", objects lit by the shadow map's "
+                                              f"{len(shadow_map.lights)} light(s) too"
+                                              if direct_light else ""), quiet)
 
     scene = None
     if receivers is not None:
         scene = load_gaussians(receivers)   # PLY, mesh or builtin:
         log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
-    if dgsm is not None:
-        shadow_map = _read_dgsm(dgsm)
+    if shadow_map is not None:
         from relight_cli.gaussians.dgsm import sample_transmittance
         weights_used = _weights_mode(light_weights, shadow_map, quiet)
 
@@ -330,7 +359,19 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
 
         T = sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
                                  footprint=footprint, samples=samples, seed=seed)   # [L, M]
-        factor = TF.shadow_factor(T, weights_for(scene), shadow_strength)          # [M, 3]
+        strength = shadow_strength
+        receiver_normals = None
+        if auto:        # per receiver: the lights' share of its light against the probe's
+            receiver_normals = TF.facing_lights(scene.means, TF.estimate_normals(scene, "axis"),
+                                                shadow_map.lights)
+            e_direct = TF.direct_irradiance(shadow_map.intensities, shadow_map.colors,
+                                            shadow_map.lights, scene.means,
+                                            receiver_normals).sum(axis=0)
+            strength = TF.direct_share(e_direct, sh_probe.coefficients, receiver_normals)
+            log(f"direct share of the receivers' light (auto): median "
+                f"{float(np.median(strength)):.2f}, range {float(strength.min()):.2f}–"
+                f"{float(strength.max()):.2f}", quiet)
+        factor = TF.shadow_factor(T, weights_for(scene, receiver_normals), strength)  # [M, 3]
         scene = TF.attenuate(scene, factor)
         log(f"shadowed receivers: mean factor {factor.mean():.3f}, "
             f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of {len(factor)} "
@@ -342,10 +383,20 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
                                 f"object(s) were given (IN + --object, in dgsm-build's order)",
                                 dgsm)
             for j, obj in enumerate(relit_objects):
+                if auto and object_direct[j] is None:
+                    continue    # lit by the probe only: the lights' shadows do not reach it
                 T = sample_transmittance(shadow_map.others(j), obj.means, obj.scales,
                                          obj.rotations, footprint=footprint, samples=samples,
                                          seed=seed)
-                factor = TF.shadow_factor(T, weights_for(obj, obj.normals), shadow_strength)
+                if auto:        # colour ρ(S + D): direct share D/(S + D), weights D_l (exact)
+                    d = object_direct[j].sum(axis=0) / math.pi
+                    probe_part = np.clip(TF.shading(sh_probe.coefficients, obj.normals, lobe),
+                                         0.0, None)
+                    total = probe_part + d
+                    share = np.where(total > 0, d / np.where(total > 0, total, 1), 0.0)
+                    factor = TF.shadow_factor(T, object_direct[j], share)
+                else:
+                    factor = TF.shadow_factor(T, weights_for(obj, obj.normals), shadow_strength)
                 relit_objects[j] = TF.attenuate(obj, factor)
                 log(f"shadowed object {j} by the others: mean factor {factor.mean():.3f}, "
                     f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of "
@@ -365,7 +416,8 @@ def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers
         inputs["dgsm"] = dgsm
     settings = {"lobe": lobe, "intensity": intensity, "t_max": t_max, "normals": normals,
                 "footprint": footprint, "samples": samples, "seed": seed,
-                "shadow_strength": shadow_strength, "objects": specs}
+                "shadow_strength": shadow_strength, "direct_light": direct_light,
+                "objects": specs}
     if dgsm is not None:
         # which opacity mapping made the shadow map, and how its lights were weighted
         settings.update(dgsm_mapping=shadow_map.mapping, dgsm_kappa=shadow_map.kappa,

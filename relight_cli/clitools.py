@@ -89,6 +89,17 @@ class FiniteFloat(click.FloatRange):
         return f"{lo}{'<' if self.min_open else '<='}x{'<' if self.max_open else '<='}{hi}"
 
 
+class ShadowStrength(click.ParamType):
+    """``auto`` or a finite number in [0, 1] (``relight --shadow-strength``)."""
+
+    name = "auto|s"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and value.strip().lower() == "auto":
+            return "auto"
+        return FiniteFloat(0, 1).convert(value, param, ctx)
+
+
 class SquareSize(click.ParamType):
     """A square size option: ``N`` or ``NxN`` → N; a non-square ``WxH`` is a usage error
     (the thing it sizes is square), so every size option takes the same syntax."""

@@ -162,3 +162,33 @@ def test_console_script_default_is_masked(pair):
 def test_help_says_the_default_region(run_cli):
     text = run_cli("metrics", "image", "--help").output
     assert "--whole-image" in text and "alpha" in text and "details.region" in text
+
+
+def test_preview_shows_prediction_ground_truth_and_error(run_cli, pair):
+    """--preview: one labelled PNG, prediction and ground truth on the ground truth's exposure
+    (equal where the pair is equal), the error tile black where they agree and bright inside."""
+    from PIL import Image
+    d, pred, gt, mask = pair
+    r = run_cli("metrics", "image", d / "pred.exr", d / "gt.exr", "-o", d / "m.json",
+                "--preview", d / "p.png")
+    assert r.exit_code == 0, r.output
+    sheet_px = np.asarray(Image.open(d / "p.png").convert("RGB"), np.float64) / 255
+    assert sheet_px.shape[0] > 3 * H and sheet_px.shape[1] > 3 * W * 3
+    # the tiles: prediction and ground truth on one exposure, so equal where the pair is
+    # (outside the rectangle); the error tile black there and lit inside
+    from relight_cli.commands.metrics import comparison_tiles
+    shown_pred, shown_gt, err = comparison_tiles(pred, gt, mask)
+    np.testing.assert_array_equal(shown_pred.image[~mask], shown_gt.image[~mask])
+    assert np.abs(shown_pred.image[mask] - shown_gt.image[mask]).max() > 0.05
+    assert err.image[~mask].max() == 0 and np.median(err.image[mask]) > 0.1
+    assert shown_pred.note.split(",")[0] == shown_gt.note == "white = " + shown_gt.note[8:]
+    # one pair only; nothing written on a refusal
+    (d / "a").mkdir()
+    (d / "b").mkdir()
+    for k in range(2):
+        _exr(d / "a" / f"{k}.exr", pred)
+        _exr(d / "b" / f"{k}.exr", gt)
+    r = run_cli("metrics", "image", d / "a", d / "b", "-o", d / "m2.json", "--preview",
+                d / "p2.png")
+    assert r.exit_code == 2 and "--preview shows one pair" in r.output
+    assert not (d / "p2.png").exists() and not (d / "m2.json").exists()

@@ -276,7 +276,8 @@ def test_cli_two_placed_occluders_shadow_room_and_each_other(run_cli, files):
     assert len(read_gaussians(str(files / "occ.ply"))) == 300
     r = run_cli("relight", upper, "--object", lower, "--probe", files / "p.json", "--dgsm",
                 files / "s.exr", "--receivers", files / "floor.ply", "--receivers-out",
-                files / "floor-out.ply", "--footprint", "centre", "-o", files / "relit.ply", "-q")
+                files / "floor-out.ply", "--footprint", "centre", "--shadow-strength", "1",
+                "-o", files / "relit.ply", "-q")
     assert r.exit_code == 0, r.output
     relit = read_gaussians(str(files / "relit.ply"))
     top, bottom = relit.subset(np.arange(150)), relit.subset(np.arange(150, 300))
@@ -287,6 +288,23 @@ def test_cli_two_placed_occluders_shadow_room_and_each_other(run_cli, files):
     assert bottom.colors()[:, 0].mean() < 0.45
     floor_out = read_gaussians(str(files / "floor-out.ply"))
     assert floor_out.colors()[:, 0].min() < 0.3                   # both cast onto the floor
+    # --direct-light (auto strength): albedo × (probe + Σ_l E_l T_l / π), E_l = I max(n·ω, 0)/r²,
+    # T_l through the OTHER object only: each light's term shadowed, exactly
+    r = run_cli("relight", upper, "--object", lower, "--probe", files / "p.json", "--dgsm",
+                files / "s.exr", "--receivers", files / "floor.ply", "--footprint", "centre",
+                "--direct-light", "-o", files / "lit.ply", "-q")
+    assert r.exit_code == 0, r.output
+    lit = read_gaussians(str(files / "lit.ply"))
+    for j, rows in enumerate((np.arange(150), np.arange(150, 300))):
+        g = lit.subset(rows)
+        v = np.array([0.1, 2.5, 0.2]) - g.means
+        dist = np.linalg.norm(v, axis=1)
+        e = 5.0 * np.maximum((v * g.normals).sum(axis=1) / dist, 0) / dist ** 2
+        T = D.sample_transmittance(m.others(j), g.means, g.scales, g.rotations,
+                                   footprint="centre")[0]
+        np.testing.assert_allclose(g.colors()[:, 0], 0.6 * (1 + e * T / math.pi), rtol=2e-5,
+                                   atol=1e-6)
+    assert np.mean(T) < 0.5                 # the lower blob does sit in the upper one's shadow
     # a render of everything, and a mismatch between objects and groups
     r = run_cli("relight", upper, "--object", lower, "--probe", files / "p.json", "--dgsm",
                 files / "s.exr", "--receivers", files / "floor.ply", "--camera",

@@ -342,7 +342,8 @@ def _ball_over_floor(tmp_path, lights, grid, intensities=None):
     nx, nz, half = grid
     xs, zs = np.meshgrid(np.linspace(-half, half, nx), np.linspace(-1, 1, nz))
     m = xs.size
-    floor = Gaussians(np.column_stack([xs.ravel(), np.zeros(m), zs.ravel()]), np.full((m, 3), 0.05),
+    floor = Gaussians(np.column_stack([xs.ravel(), np.zeros(m), zs.ravel()]),
+                      np.tile([0.05, 0.002, 0.05], (m, 1)),           # flat splats, normal ±y
                       np.tile([1.0, 0, 0, 0], (m, 1)), np.full(m, 0.9),
                       rgb_to_sh_dc(np.full((m, 3), 0.6))[:, None, :], 0)
     shadow = build_dgsm(ball, np.asarray(lights, float), floor.means, size=(32, 32), bins=16,
@@ -365,8 +366,8 @@ def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
     shadow, floor = _ball_over_floor(tmp_path, [[0.0, 2.5, 0.0]], (15, 15, 1.0))
     r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
                 tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
-                tmp_path / "floor-shadowed.ply", "--footprint", "centre", "-o", tmp_path / "o.ply",
-                "-q")
+                tmp_path / "floor-shadowed.ply", "--footprint", "centre", "--shadow-strength", "1",
+                "-o", tmp_path / "o.ply", "-q")
     assert r.exit_code == 0, r.output
     out = read_gaussians(str(tmp_path / "floor-shadowed.ply"))
     ratio = out.colors()[:, 0] / floor.colors()[:, 0]
@@ -393,11 +394,88 @@ def test_cli_dgsm_weights_lights_by_intensity(run_cli, tmp_path):
         r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
                     tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
                     tmp_path / f"f-{mode}.ply", "--footprint", "centre", "--light-weights", mode,
-                    "-o", tmp_path / "o.ply", "-q")
+                    "--shadow-strength", "1", "-o", tmp_path / "o.ply", "-q")
         assert r.exit_code == 0, r.output
         ratio = read_gaussians(str(tmp_path / f"f-{mode}.ply")).colors() / floor.colors()
         np.testing.assert_allclose(ratio, np.repeat(want[:, None], 3, axis=1), atol=1e-5)
     assert T.min(axis=1).max() < 0.2          # both lights really cast a shadow on the floor
+
+
+def test_auto_strength_is_the_lights_share_against_the_probe(run_cli, tmp_path):
+    """--shadow-strength auto (the default): a receiver's shadow takes away the lights' share
+    of its light, E_d/(E_d + E_probe), E_d = I cosθ/r² of the light, E_probe = π·L for a
+    uniform probe of radiance L (= 1 here): closed form against the CLI's receivers."""
+    pytest.importorskip("relight_cli.formats.dgsm_exr")
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    light = np.array([0.0, 2.5, 0.0])
+    shadow, floor = _ball_over_floor(tmp_path, [light], (15, 15, 1.0), intensities=[25.0])
+    r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                tmp_path / "f.ply", "--footprint", "centre", "-o", tmp_path / "o.ply", "-q")
+    assert r.exit_code == 0, r.output
+    ratio = read_gaussians(str(tmp_path / "f.ply")).colors()[:, 0] / floor.colors()[:, 0]
+    v = light - floor.means
+    r2 = (v * v).sum(axis=1)
+    e_direct = 25.0 * (v[:, 1] / np.sqrt(r2)) / r2         # floor normal +y, towards the light
+    s = e_direct / (e_direct + math.pi)
+    T = sample_transmittance(shadow, floor.means, footprint="centre")[0]
+    np.testing.assert_allclose(ratio, 1 - s * (1 - T), atol=1e-5)
+    centre = np.argmin(np.linalg.norm(floor.means, axis=1))
+    assert T[centre] < 0.05 and 0.3 < ratio[centre] < 0.6      # grey, not black: the probe's light
+    settings = read_gaussians(str(tmp_path / "f.ply")).provenance["settings"]
+    assert settings["shadow_strength"] == "auto" and settings["light_weights"] == "irradiance"
+
+
+def test_direct_light_share_shadows_each_lights_term_exactly():
+    """An object lit by the probe (S) and by point lights (D_l): the direct share D/(S + D) with
+    weights D_l turns shadow_factor into (S + Σ D_l T_l)/(S + D): each light's term times its T."""
+    rng = np.random.default_rng(3)
+    S = rng.uniform(0, 2, (50, 3))
+    D = rng.uniform(0, 1, (3, 50, 3)) * (rng.uniform(size=(3, 50, 1)) > 0.3)
+    T = rng.uniform(0, 1, (3, 50))
+    share = D.sum(0) / (S + D.sum(0))
+    f = TF.shadow_factor(T, D, share)
+    np.testing.assert_allclose((S + D.sum(0)) * f, S + (D * T[:, :, None]).sum(0), rtol=1e-12)
+    # direct_share itself: E_d/(E_d + π S(n)); zero where nothing lights the receiver
+    c = np.zeros((1, 3))
+    c[0] = 2.0 * math.sqrt(4 * math.pi)                    # uniform radiance 2
+    e = np.array([[1.0, 2.0, 0.0], [0.0, 0.0, 0.0]])
+    n = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    np.testing.assert_allclose(TF.direct_share(e, c, n), e / (e + 2 * math.pi))
+    assert TF.direct_share(np.zeros((1, 3)), np.zeros((1, 3)), n[:1]).tolist() == [[0, 0, 0]]
+    # normals turned towards the lights; flat splats have no inherent side
+    turned = TF.facing_lights(np.zeros((2, 3)), [[0, -1.0, 0], [0, 1.0, 0]], [[0, 3.0, 0]])
+    np.testing.assert_array_equal(turned, [[0, 1.0, 0], [0, 1.0, 0]])
+
+
+def test_cli_direct_light_lights_objects_one_sided(run_cli, tmp_path):
+    """--direct-light: an object's colour is its albedo × (probe shading + Σ I max(n·ω, 0)/(π r²))
+    (normals stored, radial): the side facing the light brightens, the far side keeps the probe's."""
+    pytest.importorskip("relight_cli.formats.dgsm_exr")
+    light = np.array([0.0, 2.5, 0.0])
+    _ball_over_floor(tmp_path, [light], (5, 5, 1.0), intensities=[4.0])
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    obj = Gaussians(d * 0.1 + [0.5, 0.3, 0.0], np.tile([0.02, 0.02, 0.002], (300, 1)),
+                    np.tile([1.0, 0, 0, 0], (300, 1)), np.full(300, 0.9),
+                    rgb_to_sh_dc(np.full((300, 3), 0.4))[:, None, :], 0, d.copy())
+    write_gaussians(str(tmp_path / "obj.ply"), obj)
+    r = run_cli("relight", tmp_path / "obj.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--direct-light",
+                "-o", tmp_path / "o.ply", "-q")
+    assert r.exit_code == 0, r.output
+    got = read_gaussians(str(tmp_path / "o.ply")).colors()[:, 0]
+    v = light - obj.means
+    dist = np.linalg.norm(v, axis=1)
+    cos = np.maximum((v * d).sum(axis=1) / dist, 0)
+    np.testing.assert_allclose(got, 0.4 * (1.0 + 4.0 * cos / (math.pi * dist ** 2)), rtol=1e-5)
+    r = run_cli("relight", tmp_path / "obj.ply", "--probe", tmp_path / "p.json",
+                "--direct-light", "-o", tmp_path / "x.ply", "-q")
+    assert r.exit_code == 2 and "--direct-light takes its lights from --dgsm" in r.output
+    r = run_cli("relight", tmp_path / "obj.ply", "--probe", tmp_path / "p.json",
+                "--shadow-strength", "most", "-o", tmp_path / "x.ply", "-q")
+    assert r.exit_code == 2 and "--shadow-strength" in r.output
 
 
 # ------------------------------------------------------------------ light estimation (Sec. 3.1)

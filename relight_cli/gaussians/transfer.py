@@ -27,11 +27,28 @@ explain, never shadowed):
 
     c = (1 − s)·c  +  s·c,        s·c = Σ_l s·c·w_l,c / Σ_k w_k,c,
 
-with s the direct share (``--shadow-strength``, default 1: the whole captured
-colour is direct light) and w_l,c light l's share of the direct light in
-channel c.  Each light's part is multiplied by that light's transmittance T_l:
+with s the direct share (``--shadow-strength``) and w_l,c light l's share of
+the direct light in channel c.  Each light's part is multiplied by that light's
+transmittance T_l:
 
     c'_c = c_c · [(1 − s) + s · Σ_l w_l,c T_l / Σ_l w_l,c]      (per channel).
+
+The paper's reading is s = 1 (the whole captured colour is direct light, so a
+full shadow is black).  ``--shadow-strength auto`` (this toolkit's default,
+:func:`direct_share`) estimates s per receiver and channel as the share of its
+light that the DGSM's point lights deliver, against the SH probe's light:
+
+    s_c = E_d,c / (E_d,c + E_p,c),   E_d,c = Σ_l I_l C_l,c |n·ω_l| / r_l²,
+    E_p,c = π · S_c(n)  (Eq. 9 with q = 1: the probe's irradiance),
+
+n the receiver's normal turned towards the lights.  Both are in the units of
+the lights file and the probe, so the estimate is as good as their agreement;
+a receiver neither lights (E_d = 0) keeps its colour.  The same formula gives
+an inserted object its shadow from the others when the lights also light it
+directly (``relight --direct-light``, :func:`direct_irradiance`): its colour
+ρ·(S + D) with D = Σ_l I_l C_l max(n·ω_l, 0)/(π r_l²) has direct share D/(S + D),
+and (1 − s) + s·Σ D_l T_l / D = (S + Σ D_l T_l)/(S + D): each light's term
+times its transmittance, exactly.
 
 Weights (:func:`direct_light_weights`, ``--light-weights``):
 
@@ -152,7 +169,8 @@ def estimate_normals(g: Gaussians, method: str = "auto", neighbours: int = 16) -
 
 def relight_gaussians(g: Gaussians, probe_coefficients: np.ndarray, q: float = 1.0,
                       intensity: float = 1.0, t_max: float = float("inf"),
-                      normals: np.ndarray | None = None, normal_method: str = "auto") -> Gaussians:
+                      normals: np.ndarray | None = None, normal_method: str = "auto",
+                      extra: np.ndarray | None = None) -> Gaussians:
     """Eq. 9–10: a copy of ``g`` whose colours are the captured albedo times the probe's shading.
 
     Args:
@@ -162,6 +180,8 @@ def relight_gaussians(g: Gaussians, probe_coefficients: np.ndarray, q: float = 1
         intensity: γ, global multiplier.
         t_max: clip of the shading factor (per channel).
         normals: [N, 3] unit normals; estimated with ``normal_method`` when None.
+        extra: [N, 3] shading added to S before the clip (``relight --direct-light``:
+            the point lights' Σ E_l/π), or None.
 
     Returns:
         New Gaussians: DC = the relit colour, higher bands scaled per channel
@@ -170,7 +190,10 @@ def relight_gaussians(g: Gaussians, probe_coefficients: np.ndarray, q: float = 1
     """
     if normals is None:
         normals = estimate_normals(g, normal_method)
-    factor = intensity * np.clip(shading(probe_coefficients, normals, q), 0.0, t_max)   # [N, 3]
+    s = shading(probe_coefficients, normals, q)
+    if extra is not None:
+        s = np.clip(s, 0.0, None) + extra
+    factor = intensity * np.clip(s, 0.0, t_max)                                         # [N, 3]
     albedo = g.colors()
     sh = g.sh * factor[:, None, :]
     sh[:, 0, :] = rgb_to_sh_dc(albedo * factor)
@@ -201,17 +224,54 @@ def direct_light_weights(mode: str, intensities=None, colors=None, lights=None, 
     n = next(len(x) for x in (intensities, colors, lights, range(n_lights or 0)) if x is not None)
     if mode == "equal":
         return np.ones((n, 1, 3))
+    if mode == "irradiance":
+        return direct_irradiance(intensities, colors, lights, points, normals)
     i = np.ones(n) if intensities is None else np.asarray(intensities, np.float64).reshape(n)
     c = np.ones((n, 3)) if colors is None else np.asarray(colors, np.float64).reshape(n, 3)
-    w = (i[:, None] * c)[:, None, :]                                     # [L, 1, 3]
-    if mode == "intensity":
-        return w
+    return (i[:, None] * c)[:, None, :]                                  # [L, 1, 3]
+
+
+def facing_lights(points, normals, lights) -> np.ndarray:
+    """[M, 3] ``normals`` flipped where needed to face the side the lights [L, 3] shine
+    from (Σ_l n·(p_l − x)/|p_l − x|³ ≥ 0): a flat splat's axis has no inherent side."""
+    n = np.asarray(normals, np.float64).copy()
+    v = np.asarray(lights, np.float64)[:, None, :] - np.asarray(points, np.float64)[None]
+    r = np.linalg.norm(v, axis=2)
+    pull = (np.einsum("lmi,mi->lm", v, n) / np.maximum(r, 1e-12) ** 3).sum(0)
+    n[pull < 0] *= -1
+    return n
+
+
+def direct_irradiance(intensities, colors, lights, points, normals, one_sided=False) -> np.ndarray:
+    """[L, M, 3] E_l,c = I_l C_l,c cos / r_l² of point lights [L, 3] at receivers
+    ``points`` [M, 3] with unit ``normals``: cos = |n·ω_l| (two-sided), or max(n·ω_l, 0)
+    (``one_sided``, for outward-normal objects)."""
+    n = len(lights)
+    i = np.ones(n) if intensities is None else np.asarray(intensities, np.float64).reshape(n)
+    c = np.ones((n, 3)) if colors is None else np.asarray(colors, np.float64).reshape(n, 3)
     v = np.asarray(lights, np.float64).reshape(n, 1, 3) - np.asarray(points, np.float64)[None]
-    r2 = (v * v).sum(axis=2)                                             # [L, M]
+    r2 = (v * v).sum(axis=2)
     r = np.sqrt(r2)
-    cos = np.abs(np.einsum("lmi,mi->lm", v, np.asarray(normals, np.float64))) / np.where(r > 0, r, 1)
+    dot = np.einsum("lmi,mi->lm", v, np.asarray(normals, np.float64)) / np.where(r > 0, r, 1)
+    cos = np.maximum(dot, 0.0) if one_sided else np.abs(dot)
     geometry = np.where(r2 > 0, cos / np.where(r2 > 0, r2, 1), 0.0)
-    return w * geometry[:, :, None]
+    return (i[:, None] * c)[:, None, :] * geometry[:, :, None]
+
+
+def direct_share(direct: np.ndarray, probe_coefficients: np.ndarray, normals) -> np.ndarray:
+    """[M, 3] s = E_d / (E_d + E_p) (module doc; ``--shadow-strength auto``).
+
+    Args:
+        direct: [M, 3] E_d, the lights' irradiance at each receiver (summed
+            :func:`direct_irradiance`).
+        probe_coefficients: [(d+1)², 3] SH radiance of the probe.
+        normals: [M, 3] unit normals facing the lights (:func:`facing_lights`).
+    Returns:
+        s in [0, 1]; 0 where neither the lights nor the probe light the receiver.
+    """
+    e_probe = math.pi * np.clip(shading(probe_coefficients, normals, 1.0), 0.0, None)
+    total = direct + e_probe
+    return np.where(total > 0, direct / np.where(total > 0, total, 1), 0.0)
 
 
 def effective_light_weights(mode: str, intensities) -> str:
