@@ -1234,22 +1234,22 @@ def main(argv=None):
         forwarded = _without_option(sys.argv[1:] if argv is None else list(argv), "--workers")
         helpers = [subprocess.Popen([sys.executable, str(Path(__file__).resolve()), *forwarded,
                                      "--worker"]) for _ in range(args.workers - 1)]
-    records = {}
     for name in names:
-        records[name] = study.table(TABLES[name], seeds)
+        record = study.table(TABLES[name], seeds)
         print(f"{name}: done after {(time.perf_counter() - t0) / 60:.1f} min", file=sys.stderr,
               flush=True)
-    for helper in helpers:
-        helper.wait()
-    if args.worker:
-        return
-    wall = time.perf_counter() - t0
-    for name, record in records.items():
-        record.update({"command": command, "machine": where, "wall_seconds": round(wall, 1),
+        if args.worker:
+            continue
+        # each table is written as soon as it is complete, so a study spread over sessions
+        # commits its finished tables (wall_seconds: this run's time up to that table)
+        record.update({"command": command, "machine": where,
+                       "wall_seconds": round(time.perf_counter() - t0, 1),
                        "scale": args.scale, "settings": study.settings, "envs": study.envs,
                        "captures": {h: study.capture_info[h] for h in study.captures}})
         write_table(TABLES[name], record, results)
         print((results / f"study_{name}.md").read_text())
+    for helper in helpers:
+        helper.wait()
 
 
 if __name__ == "__main__":
