@@ -568,7 +568,7 @@ class Study:
         return _final_splits(base, score, splits, curve)(data, config)
 
     def _student_task(self, folder, config, teacher_row):
-        from relight_cli.commands._inputs import load_envmap
+        from relight_cli.inputs import load_envmap
         from relight_cli.features import discretize_env
         from relight_cli.formats.checkpoint import read_checkpoint
         from relight_cli.neural import distill as D

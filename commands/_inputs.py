@@ -1,14 +1,8 @@
-"""Input loading shared by commands (heavy imports happen only when called)."""
+"""The input loaders moved to :mod:`relight_cli.inputs` (the engine), so that no
+command imports another.  This re-export only keeps a study process started before
+the move (benchmarks/study_hands.py imports it lazily) running; nothing in the tree
+imports it, and it goes once no such process is left."""
 
 from __future__ import annotations
 
-
-def load_envmap(spec: str, nonfinite: str = "error"):
-    """An EnvMap from a file path or a ``builtin:NAME`` (see relight_cli.builtin_envs)."""
-    if spec.startswith("builtin:"):
-        from relight_cli.builtin_envs import builtin_envmap
-        return builtin_envmap(spec)
-    from relight_cli.clitools import check_input
-    from relight_cli.formats.envmap import read_envmap
-    check_input(spec)
-    return read_envmap(spec, nonfinite=nonfinite)
+from relight_cli.inputs import load_envmap  # noqa: F401

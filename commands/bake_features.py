@@ -72,7 +72,7 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
                                                   write_vertex_features)
     from relight_cli.provenance import provenance
 
-    from ._inputs import load_envmap
+    from relight_cli.inputs import load_envmap, load_hand, read_roughness_map
 
     # ---- options (usage errors, before any work)
     from relight_cli.clitools import parse_env_res
@@ -112,7 +112,7 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
         _check_pattern(pattern)
 
     # ---- inputs (data errors)
-    data = _load_hand(hand)
+    data = load_hand(hand)
     n_frames = data.n_frames
     if frames_all:
         frames = list(range(n_frames))
@@ -144,7 +144,7 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     env_maps = []
     for spec in envs:
         env_maps.append(load_envmap(spec))
-    rough_map = None if rough_value is not None else _read_roughness_map(roughness)
+    rough_map = None if rough_value is not None else read_roughness_map(roughness)
     t0 = time.perf_counter()
     discrete = [F.discretize_env(e, env_h, env_w) for e in env_maps]
     env_seconds = time.perf_counter() - t0
@@ -269,43 +269,6 @@ def _env_name(spec: str) -> str:
         return spec.split(":", 1)[1]
     base = os.path.basename(spec)
     return base.split(".", 1)[0] or base
-
-
-def _load_hand(spec: str):
-    """HandData from a hand.npz or builtin:right|left|two[:POSE]."""
-    from relight_cli.errors import UsageProblem
-    if spec.startswith("builtin:"):
-        from relight_cli.hand.model import builtin_hand
-        from relight_cli.hand.poses import POSE_NAMES
-        parts = spec.split(":")[1:]
-        which = parts[0] if parts else "right"
-        pose = parts[1] if len(parts) > 1 else "relaxed"
-        if which not in ("right", "left", "two") or len(parts) > 2 or pose not in POSE_NAMES:
-            raise UsageProblem(f"unknown built-in hand {spec!r}; use builtin:right|left|two"
-                               f"[:POSE] with POSE one of {', '.join(POSE_NAMES)}")
-        if which == "two":
-            from relight_cli.hand.scene import two_hands
-            return two_hands(builtin_hand("right", pose))
-        return builtin_hand(which, pose)
-    from relight_cli.clitools import check_input
-    from relight_cli.formats.hand_npz import read_hand
-    check_input(spec)
-    return read_hand(spec)
-
-
-def _read_roughness_map(path: str):
-    import numpy as np
-
-    from relight_cli.errors import DataError
-    from relight_cli.formats.exr import read_exr
-    image = read_exr(path)
-    name = next((c for c in ("Y", "R", "roughness.Y") if c in image.channels), None)
-    if name is None:
-        raise DataError("roughness map needs a Y or R channel", path)
-    values = image.channels[name].astype(np.float64)
-    if not np.isfinite(values).all() or values.min() <= 0 or values.max() > 1:
-        raise DataError("roughness map values must be finite and in (0, 1]", path)
-    return values
 
 
 def _sample_uv_map(image, pm):

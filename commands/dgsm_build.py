@@ -134,6 +134,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     from relight_cli.formats.lights_json import Lights, read_lights, write_lights
     from relight_cli.gaussians import dgsm as D
     from relight_cli.gaussians import transmittance as TR
+    from relight_cli.inputs import load_placed, parse_occluder
     from relight_cli.provenance import provenance
 
     start = time.perf_counter()
@@ -329,38 +330,3 @@ def _lights_inside(mix, positions, threshold: float = 1.0):
 
 def _fmt(v) -> str:
     return "(" + ", ".join(f"{float(x):.3g}" for x in v) + ")"
-
-
-def parse_occluder(spec: str, what: str):
-    """``SOURCE[:PLACEMENT]`` → (source, Placement); a bad spec is a usage error (exit 2)."""
-    from relight_cli.errors import UsageProblem
-    from relight_cli.gaussians.placement import USAGE, parse_spec
-    try:
-        return parse_spec(spec)
-    except ValueError as exc:
-        raise UsageProblem(f"bad {what} placement: {exc}; expected {USAGE}", spec) from None
-
-
-def load_placed(source: str, placement, spec: str, offset=None):
-    """Load Gaussians (PLY, mesh or builtin:) and apply the placement, then ``offset`` [3]."""
-    import numpy as np
-
-    from relight_cli.errors import DataError
-    from relight_cli.gaussians.from_mesh import load_gaussians
-    from relight_cli.gaussians.placement import place
-
-    g = load_gaussians(source, frame=getattr(placement, "frame", None))
-    if len(g) == 0:
-        raise DataError("no Gaussians", source)
-    try:
-        g = place(g, placement)
-    except ValueError as exc:
-        raise DataError(f"cannot place it: {exc}", spec) from None
-    if offset is not None:
-        g.means = g.means + np.asarray(offset, np.float64)
-    # Beyond ~1000 km the float32 PLY/EXR outputs lose the millimetres (or overflow).
-    reach = max(float(np.abs(g.means).max()), float(np.abs(g.scales).max()))
-    if not reach <= 1e6:
-        raise DataError(f"placed Gaussians reach {reach:.3g} m from the origin (more than "
-                        f"1e6 m); check the placement's scale and translate", spec)
-    return g

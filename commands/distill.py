@@ -111,7 +111,7 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     from relight_cli.neural.train import fit, resolve_device
     from relight_cli.provenance import file_sha256, outside_transaction, provenance
 
-    from ._inputs import load_envmap
+    from relight_cli.inputs import load_envmap
 
     if env_res is not None:
         from relight_cli.clitools import parse_env_res

@@ -53,7 +53,7 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
     from relight_cli.formats.envmap import FORMAT, VERSION, write_envmap
     from relight_cli.provenance import provenance
 
-    from ._inputs import load_envmap
+    from relight_cli.inputs import load_envmap
 
     if output is None and preview is None and not show_info:
         raise UsageProblem("nothing to do: give -o OUT, --preview PNG or --info")
@@ -123,7 +123,7 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
             write_png(preview, cross_sheet(result, f"envmap {input}" + (f" -> {exr_out}"
                                                                         if exr_out else "")))
         else:
-            from relight_cli.formats.image import write_preview
+            from relight_cli.preview import write_preview
             write_preview(preview, result.radiance,
                           label=f"lat-long map {result.width}x{result.height}, radiance",
                           note="+Y up, +Z in the middle",

@@ -167,7 +167,7 @@ def command(output, template, pose, frames, keypoints, keypoints_format, hand_ch
     if preview is not None:
         import os
 
-        from relight_cli.formats.image import write_preview
+        from relight_cli.preview import write_preview
         from relight_cli.hand.scene import posed_meshes, preview_camera, render_preview
         meshes = posed_meshes(hand, 0, "fine")
         camera = preview_camera(meshes, *size)

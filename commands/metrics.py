@@ -408,7 +408,7 @@ def _avatar_roi(roi, avatar_spec, camera_path, radius, quiet):
     """--roi-avatar: the avatar-centric pixel box (relight_cli.gaussians.shadow_matte.avatar_roi)."""
     import math
 
-    from relight_cli.commands.dgsm_build import load_placed, parse_occluder
+    from relight_cli.inputs import load_placed, parse_occluder
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.camera import read_camera
     from relight_cli.gaussians.shadow_matte import avatar_roi

@@ -97,7 +97,7 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
                                                                quiet=quiet))
         settings.update(at=list(position), face_size=face_size, near=near)
     else:
-        from ._inputs import load_envmap
+        from relight_cli.inputs import load_envmap
         env = load_envmap(input, nonfinite=nonfinite)
         log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
         samples = P.env_samples(env)

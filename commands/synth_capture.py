@@ -94,8 +94,7 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
     from relight_cli.render.capture import (FrameRenderer, StageSettings, hand_motion,
                                             plan_capture, stage_envmap, two_hand_record)
 
-    from .bake_features import _load_hand
-    from ._inputs import load_envmap
+    from relight_cli.inputs import load_envmap, load_hand
 
     # ---- usage checks before any work
     lights = leds
@@ -143,7 +142,7 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
         existing = C.read_capture(index_path)
 
     # ---- inputs (data errors)
-    data = _load_hand(hand)
+    data = load_hand(hand)
     # each env map is resampled once (exactly, power preserving) to the stage's working
     # grid: what eval/envs/ stores and the ground truth integrates
     envs = [stage_envmap(load_envmap(spec), env_res) for spec in env_specs]

@@ -67,10 +67,9 @@ _DTYPES = ("float32", "float64", "float16", "bfloat16", "uint8", "int8", "int16"
 
 def config_class(kind: str):
     """The configuration dataclass of a checkpoint kind."""
+    from .model_config import LinearConfig, StudentConfig, TeacherConfig
     if kind == "linear":
-        from relight_cli.neural.linear import LinearConfig
         return LinearConfig
-    from relight_cli.neural.config import StudentConfig, TeacherConfig
     return StudentConfig if kind == "student" else TeacherConfig
 
 
@@ -250,7 +249,7 @@ def _json_field(text: str, name: str, kind: type, path: str):
 def _config(obj: dict, path: str):
     """The checkpoint's configuration, validated by its kind's class (DataError)."""
     from relight_cli.errors import UsageProblem
-    from relight_cli.neural.config import check_field_types
+    from .model_config import check_field_types
     cls = config_class(obj["kind"])
     try:
         check_field_types(cls, obj["config"], "checkpoint config")

@@ -2,14 +2,17 @@
 
 One EXR per build: for light i and bin k the channel ``light{i}.t{k:03d}`` holds
 T at the bin centre t_k = (k + ½)·t_max_i / K over the H×W direction atlas.
-The geometry (atlas mapping, lookup) lives in ``relight_cli.gaussians.dgsm``;
-this module reads, validates and writes.
+The table is a :class:`DGSM` (arrays and their metadata); building it and the
+geometry (atlas mapping, lookup) live in ``relight_cli.gaussians.dgsm``, the
+opacity mappings in ``relight_cli.gaussians.transmittance``; this module holds,
+reads, validates and writes it.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -17,6 +20,10 @@ from relight_cli.errors import DataError
 
 FORMAT = "relight/dgsm"
 VERSION = 2
+LAYOUTS = ("octahedral", "cube")
+# the opacity→absorption mappings (relight_cli.gaussians.transmittance implements them)
+MAPPINGS = ("avg", "simple", "mass", "diag", "peak")
+DEFAULT_MAPPING = "avg"
 # Version 1 wrote the mapping now called "peak" as "eq5"; its "simple", "mass"
 # and "diag" were direction-dependent definitions that version 2 replaced by the
 # paper's (Sec. 4.4 B), so they read back under a "v1-" label.
@@ -27,6 +34,78 @@ TEXEL_MAPPING = ("octahedral: column x -> u = 2(x+0.5)/W - 1, row y (top 0) -> v
                  "(x,z)/|w|_1; cube: OpenEXR ImfEnvmap cube, faces +X -X +Y -Y +Z -Z stacked")
 
 
+@dataclass
+class DGSM:
+    """A built shadow map for L lights.
+
+    Attributes:
+        transmittance: [L, K, H, W] float32 T at bin centres t_k (1 outside the ROI).
+        lights: [L, 3] light positions, metres, world.
+        t_max: [L] radial extent per light, metres; bin k centre = (k + ½) t_max / K.
+        layout: "octahedral" or "cube".
+        mapping: opacity→absorption mapping used; kappa: its κ.
+        roi: per light, a dict with the texel bbox ``pixels`` [x0, y0, x1, y1]
+            (inclusive), ``bins`` [k0, k1] (inclusive; [0, −1] when empty),
+            ``centroid`` [3], ``radius`` (m or None), ``height`` [lo, hi],
+            ``receivers`` (count in the ROI), ``texels`` (count computed).
+        build_seconds: wall time of :func:`relight_cli.gaussians.dgsm.build_dgsm`.
+        stats: counters (pairs tested/kept, Gaussians after culling ...).
+        groups: None, or [J, L, K, H, W] float32 per-occluder-group tables (from
+            :func:`relight_cli.gaussians.dgsm.build_dgsm_groups`); then
+            ``transmittance`` is their product (optical depths add over disjoint sets
+            of Gaussians).
+        group_names: J labels of the groups (e.g. the occluder specs).
+        intensities: [L] the lights' intensities (relight/lights ``intensity``),
+            or None when unknown (DGSM version 1 files); weights each light's
+            share of a receiver's direct light (paper Sec. 3.3).
+        colors: [L, 3] the lights' linear RGB colours, or None when unknown.
+    """
+
+    transmittance: np.ndarray
+    lights: np.ndarray
+    t_max: np.ndarray
+    layout: str = "octahedral"
+    mapping: str = DEFAULT_MAPPING
+    kappa: float = 1.0
+    roi: list = field(default_factory=list)
+    build_seconds: float = 0.0
+    stats: dict = field(default_factory=dict)
+    groups: np.ndarray | None = None
+    group_names: list = field(default_factory=list)
+    intensities: np.ndarray | None = None
+    colors: np.ndarray | None = None
+
+    def others(self, group: int) -> "DGSM":
+        """The shadow map of every group except ``group`` (what that group receives).
+
+        Its own table is left out because a Gaussian looked up in the table of
+        its own object would be shadowed by itself (half its own optical depth).
+        """
+        if self.groups is None:
+            raise ValueError("this shadow map has no occluder groups")
+        rest = [j for j in range(len(self.groups)) if j != group]
+        table = (np.prod(self.groups[rest], axis=0, dtype=np.float32) if rest
+                 else np.ones_like(self.transmittance))
+        return DGSM(table, self.lights, self.t_max, self.layout, self.mapping, self.kappa,
+                    self.roi, self.build_seconds, self.stats, intensities=self.intensities,
+                    colors=self.colors)
+
+    @property
+    def bins(self) -> int:
+        return self.transmittance.shape[1]
+
+    @property
+    def height(self) -> int:
+        return self.transmittance.shape[2]
+
+    @property
+    def width(self) -> int:
+        return self.transmittance.shape[3]
+
+
+# ------------------------------------------------------------------ the file
+
+
 def channel_name(light: int, k: int, group: int | None = None) -> str:
     """``light{i}.t{k:03d}`` (the product over groups), or ``group{j}.light{i}.t{k:03d}``."""
     name = f"light{light}.t{k:03d}"
@@ -34,7 +113,7 @@ def channel_name(light: int, k: int, group: int | None = None) -> str:
 
 
 def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = False) -> None:
-    """Write a :class:`relight_cli.gaussians.dgsm.DGSM` atomically."""
+    """Write a :class:`DGSM` atomically."""
     from relight_cli.formats.exr import write_exr
 
     table = np.asarray(dgsm.transmittance)
@@ -97,10 +176,8 @@ def _json_attr(image, key, path):
 
 
 def read_dgsm(path: str):
-    """Read and validate a DGSM EXR → :class:`relight_cli.gaussians.dgsm.DGSM`."""
+    """Read and validate a DGSM EXR → :class:`DGSM`."""
     from relight_cli.formats.exr import check_format, read_exr
-    from relight_cli.gaussians.dgsm import DGSM, LAYOUTS
-    from relight_cli.gaussians.transmittance import MAPPINGS
 
     image = read_exr(path)
     version = check_format(image, FORMAT, VERSION)

@@ -1,7 +1,8 @@
-"""Images: linear radiance EXR (see exr.py) and tone-mapped 8-bit PNG previews.
+"""Images: 8-bit PNG writing and reading of any image OpenImageIO reads.
 
-PNG is only ever a preview; data stays in EXR.  Reading of arbitrary image
-formats (masks, ground truth) goes through OpenImageIO.
+PNG is only ever a preview (tone mapping and captions: relight_cli.preview); data
+stays in EXR (see exr.py).  Reading of arbitrary image formats (masks, ground
+truth) goes through OpenImageIO.
 """
 
 from __future__ import annotations
@@ -38,17 +39,6 @@ def write_png(path: str, display: np.ndarray) -> None:
             raise write_failure(RuntimeError(msg or "PNG writer failed"), tmp, path)
         if not out.close():
             raise write_failure(RuntimeError(out.geterror() or "PNG writer failed"), tmp, path)
-
-
-def write_preview(path: str, linear_rgb: np.ndarray, exposure: float | None = None,
-                  label: str | None = None, note: str = "", title: str = "") -> None:
-    """Tone-map linear radiance [H, W, 3] (Reinhard + sRGB) and write it as a PNG
-    preview: enlarged to a readable size under a caption band (formats/preview.md).
-    ``label`` says what it shows (default: the PNG's name and "linear radiance");
-    the note gets the tone mapping and its scale after ``note``."""
-    from relight_cli.preview import default_label, render_picture
-    write_png(path, render_picture(linear_rgb, default_label(path) if label is None else label,
-                                   exposure, note, title))
 
 
 def read_image(path: str) -> tuple[np.ndarray, list[str]]:

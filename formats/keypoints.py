@@ -9,33 +9,15 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
 
 import numpy as np
 
 from relight_cli.errors import DataError
 
+from .joints import Keypoints   # defined there, shared with leap.py
+
 FORMAT = "relight/keypoints"
 VERSION = 1
-
-
-@dataclass
-class Keypoints:
-    """Attributes:
-        positions: [N, J, 3] float64 metres, world.
-        confidence: [N, J] float64 in [0, 1]; 0 marks a missing joint.
-        frames: [N] int64 frame numbers (strictly increasing; default 0..N−1).
-        joint_names: J names if the file gave them, else None.
-        side: "left"/"right" when the file says which hand it tracks (Leap), else None.
-        source: what the reader found, for the fit report (e.g. the Leap hand), else None.
-    """
-
-    positions: np.ndarray
-    confidence: np.ndarray
-    frames: np.ndarray
-    joint_names: list[str] | None = None
-    side: str | None = None
-    source: dict | None = None
 
 
 def keypoints_from_array(a, path: str, n_joints: int = 25, frames=None,

@@ -19,14 +19,14 @@ import numpy as np
 from relight_cli.errors import DataError
 
 from ._common import is_int, is_number
-from .keypoints import Keypoints
+from .joints import JOINT_NAMES, N_JOINTS, Keypoints
 
 FORMAT = "leap"
 FINGER_NAMES = ("thumb", "index", "middle", "ring", "pinky")
 MM_TO_M = 1e-3
 
 # Leap field of a pointable (finger type 0 thumb … 4 pinky) → WebXR joint index
-# (relight_cli.hand.model.JOINT_NAMES).  The thumb has no row for
+# (joints.JOINT_NAMES).  The thumb has no row for
 # carpPosition: Leap models the thumb with a zero-length metacarpal, so its
 # carpPosition equals its mcpPosition, which is the thumb's carpometacarpal
 # joint (the base of the anatomical metacarpal = WebXR thumb-metacarpal).
@@ -40,7 +40,6 @@ POINTABLE_JOINTS: dict[int, dict[str, int]] = {
 }
 # Hand field → joint: the wrist (the arm bone's distal end) in protocols that send it.
 HAND_JOINTS = {"wrist": 0}
-N_JOINTS = 25
 
 
 def looks_like_leap(obj) -> bool:
@@ -194,7 +193,6 @@ def leap_keypoints(obj, path: str, hand=None) -> Keypoints:
                         f"of it, only tools, or no position fields)", path)
     keep = [i for i, ok in zip(keep, measured) if ok]
     positions, confidence = positions[measured] * MM_TO_M, confidence[measured]
-    from relight_cli.hand.model import JOINT_NAMES
     source = {"format": FORMAT, "hand": side, "hand_ids": ids, "recorded_frames": len(frames),
               "frames_without_hand": len(frames) - len(keep),
               "never_observed_joints": [JOINT_NAMES[j] for j in range(N_JOINTS)

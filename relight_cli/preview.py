@@ -403,6 +403,17 @@ def default_label(path: str) -> str:
     return f"{stem}: linear radiance" if stem else "linear radiance"
 
 
+def write_preview(path: str, linear_rgb: np.ndarray, exposure: float | None = None,
+                  label: str | None = None, note: str = "", title: str = "") -> None:
+    """Tone-map linear radiance [H, W, 3] (Reinhard + sRGB) and write it as a PNG
+    preview: enlarged to a readable size under a caption band (formats/preview.md).
+    ``label`` says what it shows (default: the PNG's name and "linear radiance");
+    the note gets the tone mapping and its scale after ``note``."""
+    from relight_cli.formats.image import write_png
+    write_png(path, render_picture(linear_rgb, default_label(path) if label is None else label,
+                                   exposure, note, title))
+
+
 # ------------------------------------------------------------------ environment maps and probes
 
 # Horizontal cross (4 × 3 faces) and vertical cross (3 × 4): per face its cell

@@ -708,11 +708,11 @@ def test_output_is_renamed_into_place(data, tmp_path):
 
 def test_failed_second_output_leaves_the_first_unwritten(data, tmp_path, monkeypatch):
     """envmap stages its EXR, then its preview fails: no new EXR, the old one untouched."""
-    from relight_cli.formats import image as image_module
+    from relight_cli import preview as preview_module
 
     def fail(path, *args, **kwargs):
         raise OutputError("cannot write: simulated", path)
-    monkeypatch.setattr(image_module, "write_preview", fail)
+    monkeypatch.setattr(preview_module, "write_preview", fail)
     (tmp_path / "e.exr").write_bytes(b"old")
     _run_inproc_fail(["envmap", data / "sky.exr", "-o", tmp_path / "e.exr", "--preview",
                       tmp_path / "e.png", "-q"], 1, "simulated")
@@ -940,8 +940,8 @@ def test_png_preview_is_reinhard_then_srgb(tmp_path):
     Eq. 1-3 (key 0.18 over the log-average luminance, then L / (1 + L) applied to the
     colour's luminance), then sRGB, 8 bits; a fixed exposure (fit-geometry's) replaces
     the key's scale.  One level of tolerance: the 8-bit quantisation."""
-    from relight_cli.formats.image import read_image, write_preview
-    from relight_cli.preview import picture_box
+    from relight_cli.formats.image import read_image
+    from relight_cli.preview import picture_box, write_preview
     rng = np.random.default_rng(4)
     radiance = np.exp(rng.normal(0, 2, (12, 10, 3))).astype(np.float32)  # positive, HDR
     rgb = radiance.astype(np.float64)

@@ -34,7 +34,7 @@ def _read(path) -> np.ndarray:
 
 
 def test_a_tiny_render_is_enlarged_and_captioned(tmp_path, drawn):
-    from relight_cli.formats.image import write_preview
+    from relight_cli.preview import write_preview
     rng = np.random.default_rng(0)
     radiance = rng.random((6, 9, 3)).astype(np.float32) * 4
     write_preview(str(tmp_path / "tiny.png"), radiance)

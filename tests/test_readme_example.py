@@ -39,7 +39,7 @@ def test_readme_example_runs_as_written(tmp_path):
     from relight_cli.formats.camera import read_camera
     from relight_cli.formats.exr import read_exr
     from relight_cli.gaussians.placement import parse_spec
-    from relight_cli.commands.dgsm_build import load_placed
+    from relight_cli.inputs import load_placed
     from relight_cli.gaussians.placement import robust_bounds
 
     clone = tmp_path / "clone"

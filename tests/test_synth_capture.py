@@ -520,7 +520,7 @@ def test_polyhaven_eval_env(run_cli, tmp_path, shared):
     """A real 1k Poly Haven HDR as a held-out env map: stored in eval/envs/ at the working
     grid with its power, and the evaluation renders lit by it."""
     from relight_cli import envmap as E
-    from relight_cli.commands._inputs import load_envmap
+    from relight_cli.inputs import load_envmap
     from relight_cli.formats.envmap import read_envmap
     hdr = shared("envmaps", "polyhaven", "lebombo_1k.hdr")
     out = tmp_path / "cap"

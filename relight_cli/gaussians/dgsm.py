@@ -41,87 +41,19 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
+from relight_cli.formats.dgsm_exr import DGSM, LAYOUTS   # the table lives with its file format
+
 from . import transmittance as TR
 
-LAYOUTS = ("octahedral", "cube")
 BACKENDS = ("auto", "numpy", "torch")
 TORCH_AUTO_PAIRS = 8_000_000          # pairs of one light: torch pays for its import
 TORCH_AUTO_PAIRS_IMPORTED = 1_000_000  # pairs of one light when torch is already loaded
 FOOTPRINTS = ("centre", "stencil", "mc")
 _ERF_WINDOW = 6.5          # |u| beyond which erf(u) = ±1 to < 1e-19 (erfc(6.5) ≈ 4e-20)
 _STENCIL_H = math.sqrt(3.5)  # 7 equal weights: mean and covariance of the Gaussian exact
-
-
-@dataclass
-class DGSM:
-    """A built shadow map for L lights.
-
-    Attributes:
-        transmittance: [L, K, H, W] float32 T at bin centres t_k (1 outside the ROI).
-        lights: [L, 3] light positions, metres, world.
-        t_max: [L] radial extent per light, metres; bin k centre = (k + ½) t_max / K.
-        layout: "octahedral" or "cube".
-        mapping: opacity→absorption mapping used; kappa: its κ.
-        roi: per light, a dict with the texel bbox ``pixels`` [x0, y0, x1, y1]
-            (inclusive), ``bins`` [k0, k1] (inclusive; [0, −1] when empty),
-            ``centroid`` [3], ``radius`` (m or None), ``height`` [lo, hi],
-            ``receivers`` (count in the ROI), ``texels`` (count computed).
-        build_seconds: wall time of :func:`build_dgsm`.
-        stats: counters (pairs tested/kept, Gaussians after culling ...).
-        groups: None, or [J, L, K, H, W] float32 per-occluder-group tables (from
-            :func:`build_dgsm_groups`); then ``transmittance`` is their product
-            (optical depths add over disjoint sets of Gaussians).
-        group_names: J labels of the groups (e.g. the occluder specs).
-        intensities: [L] the lights' intensities (relight/lights ``intensity``),
-            or None when unknown (DGSM version 1 files); weights each light's
-            share of a receiver's direct light (paper Sec. 3.3).
-        colors: [L, 3] the lights' linear RGB colours, or None when unknown.
-    """
-
-    transmittance: np.ndarray
-    lights: np.ndarray
-    t_max: np.ndarray
-    layout: str = "octahedral"
-    mapping: str = TR.DEFAULT_MAPPING
-    kappa: float = 1.0
-    roi: list = field(default_factory=list)
-    build_seconds: float = 0.0
-    stats: dict = field(default_factory=dict)
-    groups: np.ndarray | None = None
-    group_names: list = field(default_factory=list)
-    intensities: np.ndarray | None = None
-    colors: np.ndarray | None = None
-
-    def others(self, group: int) -> "DGSM":
-        """The shadow map of every group except ``group`` (what that group receives).
-
-        Its own table is left out because a Gaussian looked up in the table of
-        its own object would be shadowed by itself (half its own optical depth).
-        """
-        if self.groups is None:
-            raise ValueError("this shadow map has no occluder groups")
-        rest = [j for j in range(len(self.groups)) if j != group]
-        table = (np.prod(self.groups[rest], axis=0, dtype=np.float32) if rest
-                 else np.ones_like(self.transmittance))
-        return DGSM(table, self.lights, self.t_max, self.layout, self.mapping, self.kappa,
-                    self.roi, self.build_seconds, self.stats, intensities=self.intensities,
-                    colors=self.colors)
-
-    @property
-    def bins(self) -> int:
-        return self.transmittance.shape[1]
-
-    @property
-    def height(self) -> int:
-        return self.transmittance.shape[2]
-
-    @property
-    def width(self) -> int:
-        return self.transmittance.shape[3]
 
 
 # ------------------------------------------------------------------ atlas geometry

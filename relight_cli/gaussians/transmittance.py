@@ -89,8 +89,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MAPPINGS = ("avg", "simple", "mass", "diag", "peak")
-DEFAULT_MAPPING = "avg"
+# the mapping names, which DGSM files record (their format defines the vocabulary)
+from relight_cli.formats.dgsm_exr import DEFAULT_MAPPING, MAPPINGS
 # names of DGSM version 1 files: "eq5" was what is now "peak"; version 1's
 # "simple", "mass" and "diag" were other (direction-dependent) definitions.
 LEGACY_MAPPINGS = {"eq5": "peak"}

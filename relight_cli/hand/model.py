@@ -22,17 +22,9 @@ import math
 
 import numpy as np
 
-FINGERS = ("index", "middle", "ring", "pinky")
-
-JOINT_NAMES: tuple[str, ...] = (
-    "wrist",
-    "thumb-metacarpal", "thumb-phalanx-proximal", "thumb-phalanx-distal", "thumb-tip",
-    *[f"{f}-finger-{b}" for f in FINGERS
-      for b in ("metacarpal", "phalanx-proximal", "phalanx-intermediate", "phalanx-distal", "tip")],
-)
-PARENTS = np.array([-1, 0, 1, 2, 3, 0, 5, 6, 7, 8, 0, 10, 11, 12, 13,
-                    0, 15, 16, 17, 18, 0, 20, 21, 22, 23], np.int64)
-N_JOINTS = 25
+from .skeleton import (FINGER_SPECS, FINGERS, JOINT_NAMES, N_JOINTS, PARENTS,
+                       THUMB_LENGTHS, THUMB_META_DIR, THUMB_PHAL_DIR, THUMB_RADII, rest_skeleton,
+                       unit)
 
 LABEL_NAMES = ("palm", "dorsum", "finger", "nail", "crease")
 PALM, DORSUM, FINGER, NAIL, CREASE = range(5)
@@ -44,53 +36,12 @@ _PALM_GRID = (40, 22)
 _CREASE_DEPTH = 0.0004   # metres; palmar flexion creases on the fine mesh only
 _CREASE_WIDTH = 0.0007   # metres (Gaussian sigma along the finger)
 
-# Finger geometry (right hand): CMC (metacarpal joint), MCP, splay direction,
-# phalanx lengths (proximal, intermediate, distal-to-tip), radii at MCP, PIP, DIP, tip.
-_FINGER_SPECS = {
-    "index":  dict(cmc=(0.013, 0.022, 0.0), mcp=(0.025, 0.090, 0.0), dir=(0.09, 1.0, 0.0),
-                   lengths=(0.040, 0.024, 0.020), radii=(0.0097, 0.0088, 0.0078, 0.0069)),
-    "middle": dict(cmc=(0.003, 0.024, 0.0), mcp=(0.006, 0.095, 0.0), dir=(0.02, 1.0, 0.0),
-                   lengths=(0.044, 0.027, 0.021), radii=(0.0099, 0.0090, 0.0080, 0.0071)),
-    "ring":   dict(cmc=(-0.007, 0.023, 0.0), mcp=(-0.013, 0.090, 0.0), dir=(-0.06, 1.0, 0.0),
-                   lengths=(0.041, 0.026, 0.020), radii=(0.0093, 0.0085, 0.0076, 0.0067)),
-    "pinky":  dict(cmc=(-0.016, 0.020, 0.0), mcp=(-0.031, 0.079, 0.0), dir=(-0.16, 1.0, 0.0),
-                   lengths=(0.032, 0.020, 0.018), radii=(0.0083, 0.0075, 0.0068, 0.0061)),
-}
-_THUMB_CMC = np.array([0.019, 0.017, 0.006])
-_THUMB_META_DIR = np.array([0.52, 0.78, 0.34])
-_THUMB_PHAL_DIR = np.array([0.40, 0.87, 0.30])
-_THUMB_LENGTHS = (0.046, 0.034, 0.029)
-_THUMB_RADII = (0.0125, 0.0112, 0.0102, 0.0090)   # CMC (thenar), MCP, IP, tip
 # Palm: knots along y (metres) of half-width, half-thickness, centre x, centre z.
 _PALM_Y = np.array([-0.030, 0.000, 0.030, 0.060, 0.086])
 _PALM_A = np.array([0.027, 0.029, 0.037, 0.040, 0.041])
 _PALM_B = np.array([0.019, 0.0175, 0.0155, 0.0140, 0.0125])
 _PALM_CX = np.array([0.001, 0.002, 0.000, -0.002, -0.003])
 _PALM_CZ = np.array([0.000, 0.000, 0.001, 0.001, 0.000])
-
-
-def _unit(v):
-    v = np.asarray(v, np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def rest_skeleton() -> np.ndarray:
-    """[25, 3] rest joint positions of the right hand, metres."""
-    J = np.zeros((N_JOINTS, 3))
-    d0, d1 = _unit(_THUMB_META_DIR), _unit(_THUMB_PHAL_DIR)
-    J[1] = _THUMB_CMC
-    J[2] = J[1] + _THUMB_LENGTHS[0] * d0
-    J[3] = J[2] + _THUMB_LENGTHS[1] * d1
-    J[4] = J[3] + _THUMB_LENGTHS[2] * d1
-    for k, f in enumerate(FINGERS):
-        spec = _FINGER_SPECS[f]
-        base = 5 + 5 * k
-        d = _unit(spec["dir"])
-        J[base] = spec["cmc"]
-        J[base + 1] = spec["mcp"]
-        for i, length in enumerate(spec["lengths"]):
-            J[base + 2 + i] = J[base + 1 + i] + length * d
-    return J
 
 
 # ----------------------------------------------------------------------------- tubes
@@ -126,7 +77,7 @@ class _Tube:
     def _tangent(self, s, delta=0.004):
         lo = np.clip(s - delta, 0, self.length)
         hi = np.clip(s + delta, 0, self.length)
-        return _unit(self._center(hi) - self._center(lo))
+        return unit(self._center(hi) - self._center(lo))
 
     def body_coordinates(self, t):
         """Meridian t [R] → (body s [R], axial offset past the body end [R], radial scale [R])."""
@@ -148,7 +99,7 @@ class _Tube:
         """(centre [R, 3], tangent, e1 lateral, e2 = e1 × tangent) at body coordinates s [R]."""
         c = self._center(s)
         T = self._tangent(s)
-        e1 = _unit(self.lateral - (T @ self.lateral)[:, None] * T)
+        e1 = unit(self.lateral - (T @ self.lateral)[:, None] * T)
         e2 = np.cross(e1, T)
         return c, T, e1, e2
 
@@ -183,7 +134,7 @@ class _Tube:
         pos = (centre[:, None, :]
                + (radial * a)[:, None, None] * fx[..., None] * e1[:, None, :]
                + (radial * b)[:, None, None] * fz[..., None] * e2[:, None, :])
-        out_dir = _unit(fx[..., None] * b[:, None, None] * e1[:, None, :]
+        out_dir = unit(fx[..., None] * b[:, None, None] * e1[:, None, :]
                         + fz[..., None] * a[:, None, None] * e2[:, None, :] + 1e-12)
         c_ends, T_ends, _, _ = self.frames(np.array([0.0, self.length]))
         pole0 = c_ends[0] - self.cap0 * T_ends[0]
@@ -251,9 +202,9 @@ def _chain_weights(s, knots, joints, half_widths):
 def _finger_parts(J):
     parts = []
     for k, f in enumerate(FINGERS):
-        spec = _FINGER_SPECS[f]
+        spec = FINGER_SPECS[f]
         base = 5 + 5 * k
-        d = _unit(spec["dir"])
+        d = unit(spec["dir"])
         r_mcp, r_pip, r_dip, r_tip = spec["radii"]
         start = J[base + 1] - 0.024 * d
         end = J[base + 4] - 0.9 * r_tip * d
@@ -273,8 +224,8 @@ def _finger_parts(J):
 
 
 def _thumb_part(J):
-    d0, d1 = _unit(_THUMB_META_DIR), _unit(_THUMB_PHAL_DIR)
-    r_cmc, r_mcp, r_ip, r_tip = _THUMB_RADII
+    d0, d1 = unit(THUMB_META_DIR), unit(THUMB_PHAL_DIR)
+    r_cmc, r_mcp, r_ip, r_tip = THUMB_RADII
     start = J[1] - 0.012 * d0
     end = J[4] - 0.9 * r_tip * d1
     pts = [start, J[1], 0.5 * (J[1] + J[2]), J[2], 0.5 * (J[2] + J[3]), J[3], end]
@@ -282,14 +233,14 @@ def _thumb_part(J):
                       0.5 * (r_mcp + r_ip) * 0.96, r_ip * 1.02, r_tip])
     # The thumb is turned ~90° about its axis relative to the fingers: its nail
     # faces sideways, so its lateral (flexion) axis lies mostly along the palm normal.
-    palmar = _unit(np.array([-0.75, 0.0, 0.65]))
+    palmar = unit(np.array([-0.75, 0.0, 0.65]))
     lateral = np.cross(d1, palmar)
     tube = _Tube(pts, radii, 0.88 * radii, lateral, 2.2, cap0=0.8 * r_cmc, cap1=0.9 * r_tip + 0.001)
     knots_s = tube.s_knots[[1, 3, 5]]
     return dict(name="thumb", tube=tube, grid=_FINGER_GRID, kind="finger",
                 joints=[0, 1, 2, 3], knots=knots_s, blend=[0.012, 0.55 * r_mcp, 0.55 * r_ip],
                 crease_s=[knots_s[1], knots_s[2]],
-                nail_from=knots_s[2] + 0.35 * _THUMB_LENGTHS[2])
+                nail_from=knots_s[2] + 0.35 * THUMB_LENGTHS[2])
 
 
 def _palm_part():

@@ -21,7 +21,7 @@ import functools
 
 import numpy as np
 
-from .model import FINGERS, JOINT_NAMES, N_JOINTS, PARENTS
+from .skeleton import FINGERS, JOINT_NAMES, N_JOINTS, PARENTS, rest_skeleton, unit
 
 POSE_NAMES = ("open", "relaxed", "fist", "point", "pinch", "ok", "spread", "claw")
 
@@ -64,11 +64,6 @@ def joint_limits() -> np.ndarray:
     return out
 
 
-def _unit(v):
-    v = np.asarray(v, np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def joint_axes(rest_joints: np.ndarray, side: str = "right", parents=PARENTS) -> np.ndarray:
     """[J, 3, 3] rows (flexion axis, abduction axis, twist axis) per joint in the rest frame.
 
@@ -79,9 +74,9 @@ def joint_axes(rest_joints: np.ndarray, side: str = "right", parents=PARENTS) ->
     s = 1.0 if side == "right" else -1.0
     wrist = J[0]
     index_mcp, pinky_mcp = J[6], J[21]
-    n = s * _unit(np.cross(index_mcp - wrist, pinky_mcp - wrist))       # palm normal
-    to_pinky = _unit(pinky_mcp - index_mcp)
-    n_thumb = _unit(0.65 * n + 0.75 * to_pinky)
+    n = s * unit(np.cross(index_mcp - wrist, pinky_mcp - wrist))       # palm normal
+    to_pinky = unit(pinky_mcp - index_mcp)
+    n_thumb = unit(0.65 * n + 0.75 * to_pinky)
     children = {}
     for j in range(1, len(J)):
         children.setdefault(int(parents[j]), j)
@@ -93,11 +88,11 @@ def joint_axes(rest_joints: np.ndarray, side: str = "right", parents=PARENTS) ->
             continue
         if j == 0:
             child = 11  # wrist → middle MCP direction
-            d = _unit(J[child] - J[0])
+            d = unit(J[child] - J[0])
         else:
-            d = _unit(J[child] - J[j])
+            d = unit(J[child] - J[j])
         normal = n_thumb if JOINT_NAMES[j].startswith("thumb") else n
-        n_perp = _unit(normal - (normal @ d) * d)
+        n_perp = unit(normal - (normal @ d) * d)
         axes[j] = [np.cross(d, n_perp), s * n_perp, s * d]
     return axes
 
@@ -191,7 +186,6 @@ def _angles_table(name: str) -> np.ndarray:
 
 @functools.lru_cache(maxsize=None)
 def _named_right(name: str) -> np.ndarray:
-    from .model import rest_skeleton
     return pose_from_angles(_angles_table(name), joint_axes(rest_skeleton(), "right"))
 
 
@@ -221,8 +215,6 @@ def random_poses(n: int, seed: int = 0, side: str = "right", rest_joints=None,
     abduction and twist are uniform in the inner 60% of their limits.
     ``global_rotation`` adds a uniformly random wrist rotation.
     """
-    from .model import rest_skeleton
-
     rng = np.random.default_rng(seed)
     rest = rest_skeleton() if rest_joints is None else np.asarray(rest_joints)
     if rest_joints is None and side == "left":

@@ -142,12 +142,40 @@ def learned(data, frames, view_of, per_hand, samples_axis: int, lights=None, den
                           sum(len(w) for _, weights in passes for w in weights))
 
 
+PRECISIONS = ("auto", "float32", "bfloat16")
+
+
+def decoder_precision(precision: str, device) -> str:
+    """``--precision`` as it runs: ``auto`` is bfloat16 on a CPU whose oneDNN has native
+    bfloat16 kernels (AVX512-BF16 / AMX: 2.1× faster than float32 at the paper's widths
+    and 54–57 dB from it, benchmarks/results/student.md), float32 elsewhere (CUDA, and
+    CPUs that would only emulate bfloat16)."""
+    import torch
+
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if precision != "auto":
+        return precision
+    if str(device).startswith("cpu") and torch.backends.mkldnn.is_available() \
+            and torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        return "bfloat16"
+    return "float32"
+
+
 def student(data, frames, view_of, net, config, denv, samples_axis: int,
-            background=(0.0, 0.0, 0.0), device="cpu", source: str = ""):
+            background=(0.0, 0.0, 0.0), device="cpu", source: str = "",
+            precision: str = "float32"):
     """``--model student`` over ``frames``: bake-features' texel maps of each pose
     (visibility traced once per pose; the UV rasterizations shared by every pose) under
     ``denv`` (the env map on the student's own grid), one forward pass, the textures
-    rendered through the frame's G-buffer."""
+    rendered through the frame's G-buffer.
+
+    ``precision``: the decoder's arithmetic, ``float32`` or ``bfloat16`` (autocast; the
+    textures come back as float32), both with channels_last weights (the fastest float32
+    layout on CPU, benchmarks/results/student.md); see :func:`decoder_precision`.
+    """
+    import contextlib
+
     import torch
 
     from relight_cli.bake import pose_scene
@@ -155,6 +183,12 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
     from relight_cli.neural.teacher import composite
     from relight_cli.render.gbuffer import render_gbuffer
 
+    if precision not in ("float32", "bfloat16"):
+        raise ValueError(f"precision must be float32 or bfloat16, got {precision!r}")
+    net = net.to(memory_format=torch.channels_last)
+    kind = "cuda" if str(device).startswith("cuda") else "cpu"
+    autocast = (lambda: torch.autocast(kind, dtype=torch.bfloat16)) if precision == "bfloat16" \
+        else contextlib.nullcontext
     features = D.StudentFeatures(config, cache=1)
     for frame in frames:
         seconds = {}
@@ -169,8 +203,10 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
         seconds["features"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         with torch.no_grad():
-            textures = D.student_forward(net, config, maps, D.hand_poses(data, frame), denv,
-                                         D.wrist_rotations(data, frame), device)
+            with autocast():
+                textures = D.student_forward(net, config, maps, D.hand_poses(data, frame), denv,
+                                             D.wrist_rotations(data, frame), device)
+            textures = [t.float() for t in textures]
             seconds["decoder"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             image = composite(textures, gbuffer)

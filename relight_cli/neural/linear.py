@@ -65,191 +65,21 @@ units, converted in the loss (:func:`~relight_cli.neural.linear_train.reg_weight
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from relight_cli.errors import UsageProblem
+from relight_cli.formats.model_config import LinearConfig   # re-exported: the config's home
 
 from .config import PAPER_UNIT
 from .models import UNet, pose_vector
 from .shading_features import map_to_texels, refined_normals, shading_features, texels_to_map
 
-LIGHT_PATHS = ("linear", "nonlinear", "mlp")
 HOLISTIC_RES = (16, 32)
-FEATURES = ("pbr", "phong")
-REG_LAYERS = ("encoder", "all")
-
-
-@dataclass
-class LinearConfig:
-    """How URHand's model (``train-teacher --model linear``) is built and trained.
-
-    Attributes:
-        model: always ``linear`` (the checkpoint's kind and model).
-        tex_res: N of the N×N UV maps.
-        encoder, decoder, pose_channels: F_G's U-Net widths per level and pose encoder
-            (supp. 8.2: six levels of 64).
-        light_decoder: F_l's decoder widths, bottleneck first, 8 entries ending in 4
-            (supp. 8.3: 128, 256, 128, 128, 64, 32, 16, 4); F_nl has the same widths.
-        light_levels: upsampling layers of the decoder (the bottleneck is N / 2^levels;
-            paper 6: 1024 → 16², the 128×16×16 of supp. 10.2).
-        light_path: ``linear``, ``nonlinear`` (Table 2's non-linear ablation) or ``mlp``
-            (Table 2's holistic MLP-based linear model of [64], supp. 10.2).
-        features: ``pbr`` (Eq. 10–15) or ``phong`` (Table 3).
-        specular, visibility, refiner: Table 3's ablations when False.
-        fresnel: ``schlick`` (relight_cli.brdf) or ``sg`` (Eq. 13 as printed).
-        shininess: Phong exponent of ``features=phong``.
-        displacement_mm: δd range (Eq. 2: 3 mm).
-        sigma_t: σ_T of Eq. 6 in the paper's 8-bit units (64; × PAPER_UNIT in ours).
-        residual: ours: g, b start from C^d, C^s/σ_T (see the module docstring).
-        iters, batch, lr, lr_final, lr_drop: Adam; lr drops to lr_final at iteration
-            lr_drop (the paper's multistep 1e-4 → 3e-5; an iteration, not a fraction, so a
-            run extended by ``--resume --iters`` keeps its schedule).
-        lambda_img, lambda_pb: Eq. 7's L1 weights of the neural and physical renders.
-        lambda_vgg: perceptual loss (only with local weights; the paper's is EfficientNet).
-        lambda_reg: Eq. 9's L1 weight on the light path's intermediate maps, in the paper's
-            units (0.01); the loss converts it to ours (× PAPER_UNIT × feature_scale, see
-            :func:`~relight_cli.neural.linear_train.reg_weight`).
-        reg_layers: which maps Eq. 9 penalizes: ``encoder`` (the default: F_l-enc, as Eq. 9
-            writes and the authors' code does) or ``all`` (every encoder and decoder map,
-            a literal reading of "all layers in the linear branch"; it lets the loss zero
-            the modulated decoder and so the whole learned light path).
-        linearity_loss: weight of Eq. 17 (0: off); applied every ``linearity_every`` steps.
-        lambda_gan: Eq. 8's lighting-aware hinge adversarial loss (paper 0.01; 0: off,
-            the tiny default: seconds matter more than sharpness there).
-        gan_conditioned: the discriminator sees the Phong lighting prompt {A, S} (False:
-            supp. 10.2's w/o light-aware L_GAN).  gan_width: its first conv width.
-        aa, holdout, val_every, val_samples, save_every, cache_poses, seed: as for the
-            teacher (:class:`~relight_cli.neural.config.TeacherConfig`).
-        env_res: [H, W] env-map discretization of validation renders.
-    """
-
-    model: str = "linear"
-    tex_res: int = 32
-    encoder: tuple = (16, 16, 16)
-    decoder: tuple = (16, 16, 16)
-    pose_channels: tuple = (8, 16)
-    light_decoder: tuple = (16, 32, 16, 16, 8, 8, 8, 4)
-    light_levels: int = 3
-    light_path: str = "linear"
-    features: str = "pbr"
-    specular: bool = True
-    visibility: bool = True
-    refiner: bool = True
-    fresnel: str = "schlick"
-    shininess: float = 32.0
-    displacement_mm: float = 3.0
-    sigma_t: float = 64.0
-    residual: bool = True
-    iters: int = 150
-    batch: int = 2
-    lr: float = 2e-3
-    lr_final: float = 6e-4
-    lr_drop: int = 100
-    lambda_img: float = 1.0
-    lambda_pb: float = 1.0
-    lambda_vgg: float = 1.0
-    lambda_reg: float = 0.01
-    reg_layers: str = "encoder"
-    linearity_loss: float = 0.0
-    linearity_every: int = 1
-    lambda_gan: float = 0.0
-    gan_conditioned: bool = True
-    gan_width: int = 16
-    aa: int = 0
-    holdout: float = 0.25
-    val_every: int = 0
-    val_samples: int = 8
-    save_every: int = 0
-    cache_poses: int = 64
-    seed: int = 0
-    env_res: tuple = (16, 32)
-
-    @property
-    def falloff(self) -> str:
-        """1/r² is part of the features (Eq. 10), never learned."""
-        return "analytic"
-
-    def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, values: dict, where: str = "config") -> "LinearConfig":
-        from .config import check_field_types
-        check_field_types(cls, values, where)
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise UsageProblem(f"unknown {where} field(s): {', '.join(unknown)}")
-        base = asdict(cls())
-        base.update(values)
-        base = {k: tuple(v) if isinstance(v, list) else v for k, v in base.items()}
-        cfg = cls(**base)
-        cfg.validate(where)
-        return cfg
-
-    def validate(self, where: str = "config") -> None:
-        """Raise UsageProblem naming the first impossible field."""
-        def is_int(v):
-            return isinstance(v, int) and not isinstance(v, bool)
-
-        def is_num(v):
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-        choices = {"model": ("linear",), "light_path": LIGHT_PATHS, "features": FEATURES,
-                   "fresnel": ("schlick", "sg"), "reg_layers": REG_LAYERS}
-        ints = {"tex_res": (8, 4096), "light_levels": (0, 7), "iters": (1, 10 ** 9),
-                "lr_drop": (0, 10 ** 9),
-                "batch": (1, 4096), "linearity_every": (1, 10 ** 9), "gan_width": (1, 4096), "aa": (0, 8),
-                "val_every": (0, 10 ** 9), "val_samples": (1, 100000), "save_every": (0, 10 ** 9),
-                "cache_poses": (1, 100000), "seed": (0, 2 ** 63 - 1)}
-        numbers = {"lr": (0, 10, True), "lr_final": (0, 10, True), "shininess": (0, 1e4, True),
-                   "displacement_mm": (0, 100, False), "sigma_t": (0, 1e6, True),
-                   "holdout": (0, 0.9, False)}
-        for name in ("lambda_img", "lambda_pb", "lambda_vgg", "lambda_reg", "linearity_loss",
-                     "lambda_gan"):
-            numbers[name] = (0, 1e6, False)
-        for name, allowed in choices.items():
-            if getattr(self, name) not in allowed:
-                raise UsageProblem(f"{where}: {name} must be one of {', '.join(allowed)}, got "
-                                   f"{getattr(self, name)!r}")
-        for name, (lo, hi) in ints.items():
-            v = getattr(self, name)
-            if not is_int(v) or not lo <= v <= hi:
-                raise UsageProblem(f"{where}: {name} must be an integer in [{lo}, {hi}], got {v!r}")
-        for name, (lo, hi, open_lo) in numbers.items():
-            v = getattr(self, name)
-            if not is_num(v) or v < lo or v > hi or (open_lo and v == lo):
-                raise UsageProblem(f"{where}: {name} must be a finite number in "
-                                   f"{'(' if open_lo else '['}{lo}, {hi}], got {v!r}")
-        for name in ("specular", "visibility", "refiner", "residual", "gan_conditioned"):
-            if not isinstance(getattr(self, name), bool):
-                raise UsageProblem(f"{where}: {name} must be true or false")
-        for name in ("encoder", "decoder", "pose_channels", "light_decoder", "env_res"):
-            v = getattr(self, name)
-            if not v or not all(is_int(c) and 1 <= c <= 4096 for c in v):
-                raise UsageProblem(f"{where}: {name} must be a list of sizes in [1, 4096], "
-                                   f"got {v!r}")
-        if len(self.decoder) != len(self.encoder):
-            raise UsageProblem(f"{where}: decoder must have as many widths as the encoder")
-        if len(self.pose_channels) != 2 or len(self.env_res) != 2:
-            raise UsageProblem(f"{where}: pose_channels and env_res hold two numbers each")
-        if len(self.light_decoder) != 8 or self.light_decoder[-1] != 4:
-            raise UsageProblem(f"{where}: light_decoder holds 8 widths ending in 4 (gain 3, "
-                               f"bias 1; supp. 8.3), got {list(self.light_decoder)}")
-        step = 2 ** max(len(self.encoder) - 1, self.light_levels)
-        if self.tex_res % step:
-            raise UsageProblem(f"{where}: tex_res must be divisible by {step} (the U-Net and "
-                               f"light-path levels), got {self.tex_res}")
-        if self.linearity_loss > 0 and self.light_path == "linear":
-            raise UsageProblem(f"{where}: linearity_loss (Eq. 17) constrains the non-linear "
-                               f"light path; the linear one is linear by construction")
 
 
 PRESETS = {
