@@ -328,7 +328,7 @@ def make_job(kind: str, hand, cam, models: dict, envmap, quick: bool):
         denv = discretize_env(envmap, *m["config"].env_res)
         prep = time.perf_counter() - t0
         return (lambda frames: J.student(hand, frames, view_of, m["net"], m["config"], denv, 2,
-                                         bg, "cpu", "bench")), prep
+                                         bg, "cpu", "bench", "float32")), prep
     m = models[kind]
     per_hand = [m["model"]] * len(hand.hands)
     denv = discretize_env(envmap, *env_grid(quick))
@@ -601,11 +601,14 @@ def markdown(report: dict) -> list:
     lines = ["# Sequences: per-frame cost of relighting a real hand motion (one process)", "",
              B.run_description(report["command"], report["quick"], report["wall_seconds"]), "",
              B.machine_line(m), "",
-             f"**Timings are upper bounds.** The machine ({m['cpus']} cores) was shared with "
-             f"two long training jobs (niced) during the run: load average "
-             f"{report['load_start']} at the start, {report['load_end']} at the end "
-             f"(1, 5, 15 min); this run was niced too. torch ran on {m.get('torch_threads')} "
-             f"thread(s); ray tracing on {trace_threads()}.", "",
+             f"**Load.** Load average {report['load_start']} at the start, "
+             f"{report['load_end']} at the end (1, 5, 15 min) on {m['cpus']} cores: above the "
+             f"core count other jobs shared the machine and the timings are upper bounds. "
+             f"torch ran on {m.get('torch_threads')} thread(s); ray tracing on "
+             f"{trace_threads()}.  The student's decoder runs in float32 with channels_last "
+             f"weights (`relight --precision float32`); the CLI's default `auto` picks "
+             f"bfloat16 on CPUs with native bf16, about 2× faster at the paper's widths "
+             f"(benchmarks/results/student.md).", "",
              "**The learned models are untrained** (random initialization, built at the papers' "
              "widths through the Python API, written with `make_checkpoint` and loaded back by "
              "the CLI's loaders): their costs are what the architectures cost; their images "

@@ -403,8 +403,10 @@ def test_no_training_frame_inside_the_held_out_segment(capture_dir):
     assert any((f.time, f.index) > start for f in data.fully_lit_frames)
 
 
-@pytest.mark.parametrize("variant", [{}, {"lr_schedule": "cosine", "lr_final": 1e-4,
-                                      "channels_last": True}], ids=["constant", "cosine-nhwc"])
+# one variant (the cosine schedule's state and the NHWC layout are the harder resume; a
+# constant learning rate is the special case it contains), to keep make test in budget
+@pytest.mark.parametrize("variant", [{"lr_schedule": "cosine", "lr_final": 1e-4,
+                                      "channels_last": True}], ids=["cosine-nhwc"])
 def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli, variant):
     full, half, resumed = tmp_path / "full.pt", tmp_path / "half.pt", tmp_path / "resumed.pt"
     config = tmp_path / "config.json"

@@ -50,10 +50,15 @@ def test_readme_example_runs_as_written(tmp_path):
     assert r.returncode == 0, r.stderr[-4000:]
     ex = clone / "example"
 
-    # the learned models were scored against the capture's ground truth
-    for model in ("teacher", "student", "linear"):
-        scores = json.loads((ex / f"eval_{model}.json").read_text())["metrics"]
-        assert np.isfinite(scores["psnr"]) and scores["psnr"] > 10, (model, scores)
+    # the learned models were scored inside the hand mask against the capture's ground
+    # truth, and learned: 150 tiny iterations scored 20.5 / 19.4 / 25.2 dB (teacher, student,
+    # linear); untrained, the teacher scores about 11 dB and the student about 14
+    for model, least in (("teacher", 17.0), ("student", 16.0), ("linear", 22.0)):
+        record = json.loads((ex / f"eval_{model}.json").read_text())
+        scores = record["metrics"]
+        assert record["details"]["region"] == "mask", record["details"]
+        assert np.isfinite(scores["psnr"]) and scores["psnr"] > least, (model, scores)
+        assert (ex / f"eval_{model}.png").stat().st_size > 1000     # the comparison sheet
 
     # a camera above the floor, looking down at the scene
     cam = read_camera(str(ex / "room_cam.json"))
