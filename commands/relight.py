@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, ShadowStrength, SquareSize, check_input,
-                                  check_output, log, no_clobber_option, parse_vector,
-                                  quiet_option, renamed_option, seed_option)
+from relight_cli.clitools import (FiniteFloat, ModeGroupedCommand, ShadowStrength, SquareSize,
+                                  check_input, check_output, log, no_clobber_option,
+                                  parse_vector, quiet_option, renamed_option, seed_option)
 
 
-@click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows), or a hand.")
+@click.command("relight", cls=ModeGroupedCommand,
+               short_help="Relight Gaussians with an SH probe (+ DGSM shadows), or a hand.")
 @click.argument("input", metavar="IN")
 @click.argument("env", metavar="[ENV]", required=False, default=None)
 @click.option("-o", "--output", required=True,
@@ -44,7 +45,7 @@ from relight_cli.clitools import (FiniteFloat, ShadowStrength, SquareSize, check
                    "is mc (Sec. 3.3); stencil is ours: 7 deterministic lookups that reproduce "
                    "the Gaussian's mean and covariance exactly (no sampling noise).")
 @click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
-              help="Monte Carlo samples per receiver for --footprint mc.")
+              help="[Gaussians] Monte Carlo samples per receiver for --footprint mc.")
 @click.option("--shadow-strength", type=ShadowStrength(), default="auto", show_default=True,
               help="[Gaussians] Direct share s of a receiver's colour: colour × ((1 − s) + "
                    "s·Σ w_l T_l / Σ w_l) per channel.  A number in [0, 1] for every receiver (1, "

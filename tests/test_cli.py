@@ -147,3 +147,25 @@ def test_progress_lines_of_a_real_command_name_it(run_cli, tmp_path):
 def test_group_options_quiet_and_debug_in_help(run_cli):
     r = run_cli("--help")
     assert "--quiet" in r.output and "--debug" in r.output and "WxH" in r.output
+
+
+def test_relight_help_groups_options_by_mode():
+    """`relight relight --help` lists each mode's options in its own section (a hand user
+    does not read 30 Gaussian options), the common ones first; every option appears once."""
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+    out = CliRunner().invoke(cli, ["relight", "--help"]).output
+    titles = ["Options:", "Gaussian options", "Hand options", "Capture options"]
+    starts = [out.index(t) for t in titles]
+    assert starts == sorted(starts), starts
+    sections = dict(zip(titles, [out[a:b] for a, b in zip(starts, starts[1:] + [len(out)])]))
+    assert "--output" in sections["Options:"] and "--camera" in sections["Options:"]
+    for flag in ("--probe", "--dgsm", "--shadow-strength", "--direct-light", "--samples"):
+        assert flag in sections["Gaussian options"], flag
+    for flag in ("--model", "--checkpoint", "--precision", "--frames", "--env-res"):
+        assert f"  {flag}" in sections["Hand options"], flag
+    assert "--splits" in sections["Capture options"]
+    assert "  --probe" not in sections["Hand options"] and "  --model" not in sections["Gaussian options"]
+    flags = [line.split()[0] for line in out[starts[0]:].splitlines() if line.startswith("  --")]
+    assert len(flags) == len(set(flags))
