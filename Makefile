@@ -103,7 +103,8 @@ demo: install
 	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --dgsm demo/shadows.exr \
 		--receivers demo/room.ply --camera demo/room_cam.json -o demo/room_after.exr --preview demo/room_after.png
 	# the real donut (if ../shared/data is here) inserted beside the hand: fitted to 15 cm, laid flat
-	# on the floor; one deep Gaussian shadow map per object, relit by the room's probe without/with shadows
+	# on the floor; one deep Gaussian shadow map per object, relit by the room's probe without/with shadows,
+	# then with the lamp lighting the objects too (--direct-light; the shadows take the lamp's share, auto)
 	if [ -f $(SHARED)/gaussians/donut-fused.ply ]; then \
 	  printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [-0.45, 1.2, -0.25], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}\n' > demo/scene_lights.json && \
 	  $(RELIGHT) camera --eye 0.6,0.5,0.65 --target 0.08,0.15,0.05 --fov 50 --size 400x300 -o demo/scene_cam.json && \
@@ -114,7 +115,10 @@ demo: install
 	    --receivers demo/room.ply --camera demo/scene_cam.json -o demo/scene_before.exr --preview demo/scene_before.png && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/room_probe.json \
 	    --dgsm demo/scene_shadows.exr --receivers demo/room.ply --camera demo/scene_cam.json \
-	    -o demo/scene_after.exr --preview demo/scene_after.png; \
+	    -o demo/scene_after.exr --preview demo/scene_after.png && \
+	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/room_probe.json \
+	    --dgsm demo/scene_shadows.exr --receivers demo/room.ply --camera demo/scene_cam.json \
+	    --direct-light -o demo/scene_lamp.exr --preview demo/scene_lamp.png; \
 	fi
 	# the real robot (if ../shared/data is here) beside the hand in the room, with a lamp added (a
 	# compact bright cluster of Gaussians): the light estimated from the scene (auto:1, paper
@@ -144,7 +148,8 @@ demo: install
 	$(RELIGHT) envmap builtin:sky --to cube --size 32 -o demo/sky_cube.exr
 	$(RELIGHT) envmap demo/sky_cube.exr --to latlong --size 128x64 -o demo/sky_back.exr
 	$(RELIGHT) envmap builtin:sky --to latlong --size 128x64 -o demo/sky_direct.exr
-	$(RELIGHT) metrics image demo/sky_back.exr demo/sky_direct.exr --space srgb -o demo/metrics_envmap.json
+	$(RELIGHT) metrics image demo/sky_back.exr demo/sky_direct.exr --space srgb -o demo/metrics_envmap.json \
+		--preview demo/metrics_envmap.png
 	# the real donut (if ../shared/data is here) relit by two probes
 	if [ -f $(SHARED)/gaussians/donut-fused.ply ]; then \
 	  $(RELIGHT) camera --eye 0,0.25,0.3 --target 0,0,0.03 --fov 45 --size 256x192 -o demo/donut_cam.json && \

@@ -192,3 +192,12 @@ def test_preview_shows_prediction_ground_truth_and_error(run_cli, pair):
                 d / "p2.png")
     assert r.exit_code == 2 and "--preview shows one pair" in r.output
     assert not (d / "p2.png").exists() and not (d / "m2.json").exists()
+    # --preview onto -o or onto an input: a usage error, nothing written, the input untouched
+    before = (d / "gt.exr").read_bytes()
+    for target, message in ((d / "m3.json", "two outputs go to one file"),
+                            (d / "gt.exr", "name it .png")):
+        r = run_cli("metrics", "image", d / "pred.exr", d / "gt.exr", "-o", d / "m3.json",
+                    "--preview", target)
+        assert r.exit_code == 2 and message in r.output, r.output
+        assert not (d / "m3.json").exists()
+    assert (d / "gt.exr").read_bytes() == before
