@@ -75,8 +75,8 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     from relight_cli.inputs import load_envmap, load_hand, read_roughness_map
 
     # ---- options (usage errors, before any work)
-    from relight_cli.clitools import parse_env_res
-    env_w, env_h = parse_env_res(env_res)
+    from relight_cli.inputs import env_grid
+    env_h, env_w = env_grid(env_res)
     from relight_cli.clitools import parse_size
     tex_w, tex_h = parse_size(texture_res, "--res", maximum=8192)
     try:

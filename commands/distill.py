@@ -114,9 +114,8 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     from relight_cli.inputs import load_envmap
 
     if env_res is not None:
-        from relight_cli.clitools import parse_env_res
-        env_w, env_h = parse_env_res(env_res)
-        env_res = (env_h, env_w)                     # the config stores (H, W)
+        from relight_cli.inputs import env_grid
+        env_res = tuple(env_grid(env_res))           # the config stores (H, W)
     overrides = {"student": student, "iters": iters, "seed": seed, "env_res": env_res,
                  "specular": False if no_specular else None,
                  "visibility": False if no_visibility else None}

@@ -752,8 +752,9 @@ def _relight_hand_learned(input, env, output, checkpoint, device, precision, mod
         if env_res is None:
             env_h, env_w = config.env_res            # the student's own grid
         if (env_h, env_w) != tuple(config.env_res):
-            raise UsageProblem(f"the student was trained on a {config.env_res[1]}x"
-                               f"{config.env_res[0]} (WxH) env grid; --env-res must match")
+            from relight_cli.envmap import EnvGrid
+            raise UsageProblem(f"the student was trained on a {EnvGrid(*config.env_res)} (WxH) "
+                               f"env grid; --env-res must match")
         used = J.decoder_precision(precision or "auto", torch_device)
         log(f"student decoder: {used} (--precision {precision or 'auto'})", quiet)
         renders = J.student(data, frames, view_of, net, config,
@@ -881,9 +882,8 @@ def _relight_capture(input, env, output, checkpoint, device, model, aa, env_res,
         raise UsageProblem(f"--eval-samples must be ≥ 1, got {eval_samples}")
     if aa is not None and not 1 <= aa <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
-    from relight_cli.clitools import parse_env_res
-    grid_w, grid_h = parse_env_res(env_res or "32x16")
-    grid = (grid_h, grid_w)
+    from relight_cli.inputs import env_grid
+    grid = env_grid(env_res or "32x16")
     from relight_cli.formats.capture import index_path
     index = index_path(input)   # names a folder without capture.json and a capture.json that is a folder
     folder = os.path.dirname(index) or "."
@@ -1102,8 +1102,8 @@ def _hand_view_options(env, hand_lights, output, camera, hand_size, hand_frame, 
     frame = 0 if hand_frame is None else hand_frame
     if frame < 0:
         raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
-    from relight_cli.clitools import parse_env_res
-    env_w, env_h = parse_env_res(env_res or "32x16")
+    from relight_cli.inputs import env_grid
+    env_h, env_w = env_grid(env_res or "32x16")
     return width, height, frame, env_h, env_w
 
 

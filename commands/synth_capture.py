@@ -120,9 +120,8 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
                  .split(".", 1)[0] for e in env_specs]
     if len(set(env_names)) != len(env_names):
         raise UsageProblem("two --eval-envs maps have the same name")
-    from relight_cli.clitools import parse_env_res
-    env_w, env_h = parse_env_res(eval_env_res, "--eval-env-res")
-    env_res = (env_h, env_w)
+    from relight_cli.inputs import env_grid
+    env_res = env_grid(eval_env_res, "--eval-env-res")
     if output in ("", "-"):
         raise UsageProblem("-o is the capture FOLDER; give a folder name", repr(output))
     if no_clobber and os.path.lexists(output):

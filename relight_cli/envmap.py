@@ -20,12 +20,31 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
 from relight_cli.formats.envmap import EnvMap
 
 # ---------------------------------------------------------------- lat-long
+
+
+class EnvGrid(NamedTuple):
+    """A lat-long direction grid, the one place its two orders meet: the engine indexes
+    it (height, width) like the arrays it shapes, so ``EnvGrid`` *is* that tuple
+    (``discretize_env(env, *grid)``, ``config.env_res = grid``), while users write it
+    ``WxH``, width first like every size (``str(grid)``, :meth:`from_text` via
+    :func:`relight_cli.inputs.env_grid`)."""
+
+    height: int
+    width: int
+
+    @classmethod
+    def from_wh(cls, width: int, height: int) -> "EnvGrid":
+        return cls(int(height), int(width))
+
+    def __str__(self) -> str:
+        return f"{self.width}x{self.height}"
 
 
 def _latlong_edges(height: int, width: int):

@@ -1,4 +1,5 @@
-"""Inputs the commands share: an env map, a hand, a roughness map, placed Gaussians.
+"""Inputs the commands share: an env map, a hand, a roughness map, placed Gaussians,
+an env-map grid.
 
 Each loader takes what a user types (a path, ``builtin:NAME``, ``SOURCE[:PLACEMENT]``)
 and returns the engine's object, with the toolkit's one-line errors (a bad spec is a
@@ -7,6 +8,14 @@ when a loader is called (the commands import this module inside their callbacks)
 """
 
 from __future__ import annotations
+
+
+def env_grid(text: str, what: str = "--env-res"):
+    """A ``WxH`` lat-long grid option → :class:`relight_cli.envmap.EnvGrid` ((height,
+    width) to the engine); usage errors as :func:`relight_cli.clitools.parse_env_res`."""
+    from relight_cli.clitools import parse_env_res
+    from relight_cli.envmap import EnvGrid
+    return EnvGrid.from_wh(*parse_env_res(text, what))
 
 
 def load_envmap(spec: str, nonfinite: str = "error"):

@@ -236,3 +236,16 @@ def test_roughness_map_and_camera_match_scalar_and_eye(tmp_path):
     write_exr(str(bad), {"Y": np.full((8, 8), 1.5, np.float32)})
     assert "badrough.exr" in _bad(tmp_path, "builtin:right", "builtin:sky", "--specular", "ggx",
                                   "--roughness", bad, code=1)
+
+
+def test_env_grid_is_the_one_place_width_and_height_meet():
+    """``--env-res WxH`` → EnvGrid, the engine's (height, width) tuple; printed WxH again."""
+    from relight_cli.envmap import EnvGrid
+    from relight_cli.errors import UsageProblem
+    from relight_cli.inputs import env_grid
+    grid = env_grid("32x16")
+    assert isinstance(grid, EnvGrid) and tuple(grid) == (16, 32)
+    assert (grid.width, grid.height) == (32, 16) and str(grid) == "32x16"
+    assert EnvGrid.from_wh(64, 32) == (32, 64)
+    with pytest.raises(UsageProblem, match="did you mean 32x16"):
+        env_grid("16x32")
