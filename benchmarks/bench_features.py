@@ -34,9 +34,12 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common as B  # noqa: E402
 
 from relight_cli import features as F
+from relight_cli.envmap import DiscreteEnv, discretize_env
+from relight_cli.geometry import Receivers, reflect, scene_diagonal, view_directions
 from relight_cli.hand.model import builtin_hand
 from relight_cli.hand.scene import posed_meshes, preview_camera
 from relight_cli.raytrace import RayScene
+from relight_cli.visibility import VisibilityCache, trace_threads
 from relight_cli.uvraster import rasterize_uv
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -68,20 +71,20 @@ def texel_samples(mesh, res: int, count: int, seed: int):
 
 def reference(fine, points, normals, env, eye, settings, env_res):
     """Brute-force reference at arbitrary receivers: every needed pair traced, fine env."""
-    d = F.discretize_env(env, *env_res)
+    d = discretize_env(env, *env_res)
     scene = RayScene([(m.vertices, m.faces) for m in fine])
-    receivers = F.Receivers(points, normals, np.ones(len(points), bool))
-    offset = 1e-4 * F.scene_diagonal([(fine[0].vertices, fine[0].faces)])
-    cache = F.VisibilityCache(scene, receivers, d.directions, offset)
-    view = F.view_directions(points, eye)
+    receivers = Receivers(points, normals, np.ones(len(points), bool))
+    offset = 1e-4 * scene_diagonal([(fine[0].vertices, fine[0].faces)])
+    cache = VisibilityCache(scene, receivers, d.directions, offset)
+    view = view_directions(points, eye)
     out = {name: [] for name in NAMES}
     t0 = time.perf_counter()
     step = 64  # receivers per chunk: bounds the [n, M] masks at M = 131072
     for s in range(0, len(points), step):
         sl = slice(s, s + step)
-        sub = F.Receivers(points[sl], normals[sl], receivers.defined[sl])
-        c = F.VisibilityCache(scene, sub, d.directions, offset)
-        need = F.needed_pairs(sub, F.reflect(view[sl], sub.normals), d.directions, d.lit, settings)
+        sub = Receivers(points[sl], normals[sl], receivers.defined[sl])
+        c = VisibilityCache(scene, sub, d.directions, offset)
+        need = F.needed_pairs(sub, reflect(view[sl], sub.normals), d.directions, d.lit, settings)
         c.require(need)
         feats = F.shade(sub, view[sl], [d], c.visible, settings)[0]
         for name in NAMES:
@@ -137,11 +140,11 @@ def speed_study(env, coarse, eye, settings, rounds: int) -> dict:
     (rays are identical, so that is the ratio of rays per second).
     """
     from concurrent.futures import ThreadPoolExecutor
-    threads = F.trace_threads()
-    env16 = F.discretize_env(env, 16, 32)
+    threads = trace_threads()
+    env16 = discretize_env(env, 16, 32)
     meshes = [F.PoseMesh(m.vertices, m.faces, m.normals, m.name) for m in coarse]
-    extra_envs = [F.DiscreteEnv(env16.directions, env16.solid_angle,
-                                env16.radiance * (1 + 0.1 * k) + k, 16, 32, f"v{k}")
+    extra_envs = [DiscreteEnv(env16.directions, env16.solid_angle,
+                              env16.radiance * (1 + 0.1 * k) + k, 16, 32, f"v{k}")
                   for k in range(1, 5)]
     probe = F.FeatureBaker(meshes, settings, env_res=(16, 32), threads=1)
     probe.bake([env16], eye)

@@ -97,7 +97,7 @@ def render_cost(folder: Path, preset: str, tex: int) -> list:
     """Per-frame render seconds of an untrained model (timing only) for one capture
     frame's LED group and for builtin:sky at 16×32."""
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.neural import teacher as T
     from relight_cli.neural.linear import URHandModel, resolve_config
     from relight_cli.neural.linear_train import render_lights

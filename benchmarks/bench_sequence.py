@@ -285,11 +285,11 @@ def probe_targets(kind: str) -> list:
     attribute is the one they call), the linear model's shading features and the
     learned jobs' compositing (inside *network* / outside every stage), the physical
     renderer's env visibility rays (inside *direct* and *shade*)."""
-    from relight_cli import features as F
+    from relight_cli.visibility import VisibilityCache
     from relight_cli.neural import evaluate as EV
     from relight_cli.render import gbuffer as G
     if kind == "physical":
-        return [(F.VisibilityCache, "require", "trace")]
+        return [(VisibilityCache, "require", "trace")]
     targets = [(G, "render_gbuffer", "gbuffer")]
     if kind == "linear":
         from relight_cli.neural import linear as L
@@ -307,7 +307,7 @@ def make_job(kind: str, hand, cam, models: dict, envmap, quick: bool):
     """(frames → generator of FrameRender, preparation seconds): what the CLI prepares
     once per sequence (materials, the discretized env map) is prepared here.  Env grid:
     the CLI's default 32×16 (quick: 16×8) except the student's own."""
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.jobs import relight_hand as J
 
     view_of = lambda frame, meshes: cam  # noqa: E731  a fixed camera
@@ -464,7 +464,7 @@ def same_rays_embree(pf, repeat: int = 3) -> dict:
     """Raw embree on exactly the rays one frame's student bake traced (its visibility
     cache's traced pairs: lifted receiver → grid direction), one call, best of
     ``repeat``; against the bake's own rays per trace thread-second."""
-    from relight_cli.features import trace_threads
+    from relight_cli.visibility import trace_threads
     cache = pf.baker.cache
     rows, cols = np.nonzero(cache.traced)
     origins = cache.ray_origins()[rows].astype(np.float64)
@@ -503,7 +503,7 @@ def thread_check(kind: str, factory, frames: list, threads: int) -> dict:
 def pose_independent_costs(hand, envmap, texes, grid) -> dict:
     """Work the jobs repeat every frame although it does not depend on the pose: the UV
     rasterization of the fine mesh at each texture size, the env map's discretization."""
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.uvraster import rasterize_uv
     mesh = hand.mesh("fine")
     out = {}
@@ -595,7 +595,7 @@ ABSENT = {"physical": ("decoder", "untimed")}
 
 
 def markdown(report: dict) -> list:
-    from relight_cli.features import trace_threads
+    from relight_cli.visibility import trace_threads
     m = report["machine"]
     a = report["args"]
     lines = ["# Sequences: per-frame cost of relighting a real hand motion (one process)", "",

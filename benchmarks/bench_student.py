@@ -60,7 +60,7 @@ def best_of(fn, repeat=5):
 
 def frame_stages(hand, preset: str, compile_decoder: bool = True) -> dict:
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.hand.scene import posed_meshes, preview_camera
     from relight_cli.neural import distill as D
     from relight_cli.neural.config import STUDENT_PRESETS, StudentConfig, resolve_config
@@ -146,12 +146,13 @@ def frame_stages(hand, preset: str, compile_decoder: bool = True) -> dict:
 def new_pose_features(hand) -> dict:
     """Paper defaults; rays traced vs naive, and vs raw embree on the same rays."""
     from relight_cli import features as F
+    from relight_cli.envmap import discretize_env
     from relight_cli.bake import PoseFeatures
     from relight_cli.builtin_envs import builtin_envmap
     from relight_cli.raytrace import RayScene
 
     settings = F.FeatureSettings(shininess=(16.0, 32.0, 64.0), specular="phong", visibility=True)
-    env = F.discretize_env(builtin_envmap("builtin:sky"), 16, 32)
+    env = discretize_env(builtin_envmap("builtin:sky"), 16, 32)
     eye = np.array([0.0, 0.1, 1.0])
     times = []
     for _ in range(3):
@@ -178,48 +179,69 @@ def new_pose_features(hand) -> dict:
 
 
 def quality(iters: int, work: Path) -> tuple:
+    """Student, w/o specular, w/o visibility and DRAM distilled from one teacher, through
+    the jobs of ``relight train-teacher`` and ``relight distill``
+    (:mod:`relight_cli.jobs.train_teacher`, :mod:`relight_cli.jobs.distill`) with the
+    commands' defaults: ({row: {"metrics", "seconds"}}, {"train": envs, "eval": envs})."""
     from click.testing import CliRunner
 
     from relight_cli.cli import cli
+    from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
+    from relight_cli.formats.metrics_json import make_record
+    from relight_cli.inputs import load_envmap
+    from relight_cli.jobs import distill as JD
+    from relight_cli.jobs import train_teacher as JT
+    from relight_cli.neural.data import CaptureData
+    from relight_cli.neural.train import resolve_device
+    from relight_cli.provenance import file_sha256
 
-    def run(*args):
-        r = CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-        assert r.exit_code == 0, r.output
+    def capture_data(config):
+        return CaptureData(str(cap), config.tex_res, config.aa, config.visibility,
+                           config.falloff, config.holdout, config.cache_poses)
+
+    def scores(result) -> dict:
+        # as the commands' --metrics-out records them (relight/metrics, kind validation)
+        return make_record("validation", {k: v for k, v in result.metrics.items()
+                                          if k != "step"}, {}, {}, {})["metrics"]
 
     cap = work / "cap"
-    run("synth-capture", "-o", cap, "--cameras", "4", "--leds", "32", "--group", "4",
+    r = CliRunner().invoke(cli, [str(a) for a in (
+        "synth-capture", "-o", cap, "--cameras", "4", "--leds", "32", "--group", "4",
         "--frames", "16", "--size", "64", "--tex-res", "128", "--aa", "1", "--eval-poses", "2",
-        "--eval-cameras", "2", "--eval-envs", "builtin:sky,builtin:studio", "-q")
-    run("train-teacher", cap, "-o", work / "teacher.pt", "--iters", str(2 * iters), "-q",
-        "--metrics-out", work / "t.json")
-    teacher = json.loads((work / "t.json").read_text())["metrics"]
-    envs = ["--envs", "builtin:sky", "--envs", "builtin:studio", "--envs", "builtin:uniform"]
+        "--eval-cameras", "2", "--eval-envs", "builtin:sky,builtin:studio", "-q")],
+        catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    device = resolve_device("auto")
+    config = JT.configure(None, "tiny", None, {"iters": 2 * iters})
+    trained = JT.run(capture_data(config), JT.Options(config, "tiny", device, progress=False))
+    teacher = scores(trained.result)
+    write_checkpoint(str(work / "teacher.pt"), trained.result.checkpoint)
+    tck = JD.load_teacher(read_checkpoint(str(work / "teacher.pt"), kind="teacher"), device,
+                          file_sha256(str(work / "teacher.pt")))
+    train = ["builtin:sky", "builtin:studio", "builtin:uniform"]
     shared = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "envmaps" / "polyhaven"
     hdris = sorted(shared.glob("*.hdr")) if shared.is_dir() else []
     # a fixed split: the last two real HDRIs are never trained on (else sky + studio)
-    held = hdris[-2:] if len(hdris) >= 3 else []
-    for path in hdris[:-2] if held else hdris:
-        envs += ["--envs", str(path)]
-    for path in held:
-        envs += ["--eval-envs", str(path)]
+    held = [str(p) for p in hdris[-2:]] if len(hdris) >= 3 else []
+    train += [str(p) for p in (hdris[:-2] if held else hdris)]
+    envs = {(s.split(":", 1)[1] if s.startswith("builtin:") else
+             Path(s).name.split(".", 1)[0] or Path(s).name): load_envmap(s) for s in train + held}
     rows = {}
-    for name, extra in (("student", []), ("w/o specular", ["--no-specular"]),
-                        ("w/o visibility", ["--no-visibility"]), ("DRAM", ["--student", "dram"])):
+    for name, extra in (("student", {}), ("w/o specular", {"specular": False}),
+                        ("w/o visibility", {"visibility": False}), ("DRAM", {"student": "dram"})):
         t0 = time.perf_counter()
-        run("distill", work / "teacher.pt", cap, *envs, "--iters", str(iters), "-q",
-            "-o", work / "s.pt", "--metrics-out", work / "s.json", *extra)
-        record = json.loads((work / "s.json").read_text())
-        rows[name] = {"metrics": record["metrics"], "seconds": time.perf_counter() - t0}
+        config = JD.configure("tiny", None, {"iters": iters, **extra})
+        distilled = JD.run(tck, capture_data(tck.config), envs,
+                           JD.Options(config, "tiny", device, n_eval=len(held), progress=False))
+        rows[name] = {"metrics": scores(distilled.result), "seconds": time.perf_counter() - t0}
     rows["(teacher, vs ground truth)"] = {"metrics": {"vs_ground_truth": teacher.get("env", {})},
                                           "seconds": 0.0}
-    names = {"train": [e for flag, e in zip(envs[::2], envs[1::2]) if flag == "--envs"],
-             "eval": [e for flag, e in zip(envs[::2], envs[1::2]) if flag == "--eval-envs"]}
-    return rows, {k: [Path(e).name if os.path.isabs(e) else e for e in v]
-                  for k, v in names.items()}
+    return rows, {"train": [Path(e).name if os.path.isabs(e) else e for e in train],
+                  "eval": [Path(e).name if os.path.isabs(e) else e for e in held]}
 
 
 def markdown(report: dict, quick: bool) -> list[str]:
-    from relight_cli.features import trace_threads
+    from relight_cli.visibility import trace_threads
     m = report["machine"]
     peak, threads = m["peak_gflops"], m["torch_threads"]
     lines = ["# Student: per-frame cost and quality", "",

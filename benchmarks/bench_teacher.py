@@ -201,7 +201,7 @@ def throughput(folder: Path, widths: str, tex: int, iters: int, threads: int,
 
 def env_render_cost(folder: Path, widths: str, tex: int) -> dict:
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.neural import teacher as T
     from relight_cli.neural.config import resolve_config
     from relight_cli.neural.data import CaptureData

@@ -569,7 +569,7 @@ class Study:
 
     def _student_task(self, folder, config, teacher_row):
         from relight_cli.inputs import load_envmap
-        from relight_cli.features import discretize_env
+        from relight_cli.envmap import discretize_env
         from relight_cli.formats.checkpoint import read_checkpoint
         from relight_cli.neural import distill as D
         from relight_cli.neural.checkpoints import teacher_model

@@ -7,8 +7,8 @@ train subject, 2) unseen segments from an unseen subject"), and on fully lit fra
 trained subject (novel illumination).  Here a subject is a synthetic skin
 (``synth-capture --skin-seed``): K captures share one motion (``--seed``), so the held-out
 poses are the same poses for every subject and the two columns differ only in identity.
-One linear model (``train-teacher --model linear CAPTURE...``, through the engine's API:
-:class:`relight_cli.neural.linear_train.LinearTask` with one CaptureData per subject) is
+One linear model (``train-teacher --model linear CAPTURE...``, through its job:
+:func:`relight_cli.jobs.train_teacher.run` with one CaptureData per subject) is
 trained on the training subjects and scored (:mod:`relight_cli.neural.evaluate`, which
 conditions it on each capture's subject: a trained subject's stored T̄, the unseen
 subject's own T̄ computed from its capture) on
@@ -147,7 +147,6 @@ class Study:
     def train(self, skins: list, seed: int, iters: int | None = None) -> dict:
         """One linear model on the subjects ``skins`` (or its cached record): {"key",
         "checkpoint", "curve", "final", "seconds", "iters"}."""
-        import torch
         folders = [self.capture(s) for s in skins]
         config = self.config(seed, iters)
         spec = {"v": CACHE_VERSION, "captures": [self.captures[s]["key"] for s in skins],
@@ -159,23 +158,22 @@ class Study:
         if cached.is_file() and ckpt.is_file():
             return json.loads(cached.read_text())
         from relight_cli.formats.checkpoint import write_checkpoint
+        from relight_cli.jobs import train_teacher as J
         from relight_cli.neural.data import CaptureData
-        from relight_cli.neural.linear_train import LinearTask
-        from relight_cli.neural.train import fit
         from relight_cli.provenance import provenance
         self.log(f"train linear on skins {', '.join(map(str, skins))}, seed {seed}: "
                  f"{config.iters} iterations")
         datas = [CaptureData(str(f), config.tex_res, config.aa, config.visibility,
                              config.falloff, config.holdout, max(config.cache_poses, 256))
                  for f in folders]
-        config.aa = datas[0].aa
         inputs = {"capture": datas[0].index_path,
                   **{f"capture.{i}": d.index_path for i, d in enumerate(datas[1:], 1)}}
-        record = provenance("relight/checkpoint", 1, inputs, {"preset": "tiny",
-                                                               **config.to_dict()})
         t0 = time.perf_counter()
-        result = fit(LinearTask(datas, config), config, torch.device("cpu"),
-                     provenance=record, show_progress=False)
+        # train-teacher --model linear CAPTURE... as its job (config.aa: the captures')
+        trained = J.run(datas, J.Options(config, "tiny", "cpu", progress=False),
+                        provenance=lambda settings: provenance("relight/checkpoint", 1, inputs,
+                                                               settings))
+        result, config = trained.result, trained.config
         seconds = time.perf_counter() - t0
         write_checkpoint(str(ckpt), result.checkpoint)
         curve = [[h["step"], h.get("heldout", {}).get("psnr"),

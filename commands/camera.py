@@ -99,7 +99,7 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
       relight camera --from render.exr
       cat transforms.json | relight camera --from - | jq '.cameras | length'
     """
-    from relight_cli import cameras as C
+    from relight_cli import cameras as CAM
     from relight_cli.errors import UsageProblem
     from relight_cli.formats.camera import FORMAT, VERSION, write_cameras
     from relight_cli.provenance import provenance
@@ -155,8 +155,8 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
             position = parse_vector(eye, 3, "--eye")
             up_vector = parse_vector(up, 3, "--up") if up is not None else (0.0, 1.0, 0.0)
             try:
-                cameras = [C.look_at(position, centre, up_vector, fov_deg, width, height,
-                                     name or "")]
+                cameras = [CAM.look_at(position, centre, up_vector, fov_deg, width, height,
+                                       name or "")]
             except ValueError as exc:
                 raise UsageProblem(f"--eye, --target, --up: {exc}") from None
             settings.update(mode="look-at", eye=list(position), up=list(up_vector))
@@ -165,12 +165,12 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
             start = 0.0 if azimuth is None else azimuth
             prefix = "cam" if name is None else name
             if orbit is not None:
-                cameras = C.orbit(orbit, radius, elevations, centre, start, fov_deg, width,
-                                  height, prefix)
+                cameras = CAM.orbit(orbit, radius, elevations, centre, start, fov_deg, width,
+                                    height, prefix)
                 settings.update(mode="orbit", n=orbit)
             else:
-                cameras = C.dome(dome, radius, elevations[0], centre, start, fov_deg, width,
-                                 height, prefix)
+                cameras = CAM.dome(dome, radius, elevations[0], centre, start, fov_deg, width,
+                                   height, prefix)
                 settings.update(mode="dome", n=dome)
             settings.update(radius=radius, elevation=elevations, azimuth=start)
     else:
@@ -178,7 +178,7 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
         settings.update(mode="import", source=kind, drop_distortion=drop_distortion)
     if names is not None:
         try:
-            cameras = C.select(cameras, names)
+            cameras = CAM.select(cameras, names)
         except KeyError as exc:
             listed = ", ".join(c.name or "''" for c in cameras[:6])
             raise UsageProblem(f"--select: no camera named {exc.args[0]!r} (cameras: {listed}"
@@ -212,21 +212,21 @@ def _import(path: str, drop_distortion: bool):
 
     from relight_cli.clitools import check_input
     from relight_cli.errors import DataError, UsageProblem
-    from relight_cli.formats import camera_imports as I
+    from relight_cli.formats import camera_imports as CI
 
     lower = path.lower()
     if path == "-" or lower.endswith(".json"):
         from relight_cli.formats._common import read_json
         obj = read_json(check_input(path, stdin="--from"))
-        cameras, kind = I.cameras_from_any_json(obj, path, drop_distortion)
+        cameras, kind = CI.cameras_from_any_json(obj, path, drop_distortion)
         return cameras, {"source": path}, kind
     if os.path.isdir(path) or os.path.basename(lower) in ("cameras.txt", "images.txt"):
         if not os.path.exists(path):
             raise DataError("no such file", path)
-        cameras_path, images_path = I.colmap_model_files(path)
+        cameras_path, images_path = CI.colmap_model_files(path)
         for p in (cameras_path, images_path):
             check_input(p)
-        return (I.read_colmap_model(path, drop_distortion),
+        return (CI.read_colmap_model(path, drop_distortion),
                 {"colmap_cameras": cameras_path, "colmap_images": images_path}, "colmap")
     if lower.endswith(".exr"):
         from relight_cli.formats.camera import camera_from_openexr, openexr_camera_name

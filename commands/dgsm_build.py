@@ -1,11 +1,14 @@
-"""``relight dgsm-build``: Deep Gaussian Shadow Maps of occluder Gaussians for point lights."""
+"""``relight dgsm-build``: Deep Gaussian Shadow Maps of occluder Gaussians for point lights.
+
+The build is :func:`relight_cli.jobs.dgsm_build.build`; this module loads the inputs and
+writes the outputs."""
 
 from __future__ import annotations
 
 import click
 
 from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  parse_size, preview_option, progress, quiet_option, seed_option)
+                                  parse_size, preview_option, quiet_option, seed_option)
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
@@ -119,23 +122,9 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     """
     import time
 
-    import numpy as np
-
-    from relight_cli.errors import DataError, UsageProblem
-    from relight_cli.formats.dgsm_exr import FORMAT, VERSION, write_dgsm
     from relight_cli.clitools import parse_vector
-    from relight_cli.formats.gaussians_ply import FORMAT as GFORMAT
-    from relight_cli.formats.gaussians_ply import VERSION as GVERSION
-    from relight_cli.formats.gaussians_ply import write_gaussians
-    from relight_cli.formats.gaussians_ply import concatenate
-    from relight_cli.gaussians.from_mesh import load_gaussians
-    from relight_cli.formats.lights_json import FORMAT as LFORMAT
-    from relight_cli.formats.lights_json import VERSION as LVERSION
-    from relight_cli.formats.lights_json import Lights, read_lights, write_lights
-    from relight_cli.gaussians import dgsm as D
-    from relight_cli.gaussians import transmittance as TR
-    from relight_cli.inputs import load_placed, parse_occluder
-    from relight_cli.provenance import provenance
+    from relight_cli.errors import UsageProblem
+    from relight_cli.jobs.dgsm_build import DgsmOptions, build
 
     start = time.perf_counter()
     check_output(output, no_clobber, kind="exr")
@@ -145,7 +134,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     check_output(preview, no_clobber, kind="png", what="--preview")
     if preview_camera is not None and preview is None:
         raise UsageProblem("--preview-camera needs --preview PNG")
-    offset = None if translate is None else np.array(parse_vector(translate, 3, "--translate"))
+    offset = None if translate is None else parse_vector(translate, 3, "--translate")
     w, h = parse_size(size, "--size", minimum=2, maximum=4096)
     if receivers is None and t_max is None:
         raise UsageProblem("give --receivers SCENE.ply (or --t-max for a receiver-free build)")
@@ -153,81 +142,16 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     if auto_k is not None and receivers is None:
         raise UsageProblem("--lights auto:K estimates lights from the scene: give --receivers")
 
-    parsed = [parse_occluder(spec, "OCCLUDER") for spec in occluders]
-    if receivers is not None:
-        check_input(receivers)
-    objects = []
-    for spec, (source, placement) in zip(occluders, parsed):
-        check_input(source)
-        objects.append(load_placed(source, placement, spec, offset))
-    occ = objects[0] if len(objects) == 1 else concatenate(objects)
-    scene = None
-    if receivers is not None:
-        check_input(receivers)
-        scene = load_gaussians(receivers)
-
-    view = None
-    if preview_camera is not None:
-        from relight_cli.formats.camera import read_camera
-        view = read_camera(check_input(preview_camera))
-    if auto_k is None:
-        check_input(lights_spec, stdin="--lights")
-        lights = read_lights(lights_spec)
-    else:
-        lights = _estimate_lights(scene, auto_k, lights_spec, occ, estimator)
-    # Logged once every input has been read: a bad input gets one line only.
-    if scene is not None:
-        log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
-    for spec, obj in zip(occluders, objects):
-        log(f"read {spec}: {len(obj)} occluder Gaussians", quiet)
-    log(f"{len(lights)} light(s)", quiet)
-
-    if mapping != TR.canonical_mapping(mapping):
-        log(f"note: --mapping {mapping} is the old name of {TR.canonical_mapping(mapping)}", quiet)
-    mapping = TR.canonical_mapping(mapping)
-    mix = TR.from_gaussians(occ, mapping, kappa)
-    inside = _lights_inside(mix, lights.positions)
-    for li, gi, m in inside:
-        message = (f"light {li} at {_fmt(lights.positions[li])} lies inside occluder Gaussian "
-                   f"{gi} (Mahalanobis distance {m:.2f} < 1)")
-        if not allow_light_inside:
-            raise DataError(message, lights_spec if auto_k is None else ", ".join(occluders),
-                            hint="move the light, or pass --allow-light-inside")
-        log(f"warning: {message}; its shadows are dominated by that Gaussian", quiet)
-
-    recv_points = None
-    if scene is not None:
-        pts, _ = D.footprint_samples(scene.means, scene.scales, scene.rotations, footprint,
-                                     samples, seed)
-        recv_points = pts.reshape(-1, 3)
-        if not np.isfinite(recv_points).all():
-            raise DataError("receiver positions hold NaN/Inf", receivers)
-
-    options = dict(size=(h, w), bins=bins, layout=atlas, t_max=t_max, roi=roi,
-                   roi_radius=roi_radius, cull=cull, cull_tolerance=cull_tolerance,
-                   intensities=lights.intensities, colors=lights.colors)
-    if len(objects) == 1:
-        bar = (lambda it, total: progress(it, total=total, desc="lights", quiet=quiet))
-        shadow_map = D.build_dgsm(mix, lights.positions, recv_points, progress=bar, **options)
-    else:
-        # each object receives the others' shadows: its footprint samples join their ROIs
-        group_points = [D.footprint_samples(o.means, o.scales, o.rotations, footprint, samples,
-                                            seed)[0].reshape(-1, 3) for o in objects]
-        bar = (lambda it, total: progress(it, total=total, desc="occluders", quiet=quiet))
-        shadow_map = D.build_dgsm_groups(
-            [TR.from_gaussians(o, mapping, kappa) for o in objects], lights.positions,
-            recv_points, group_points, names=list(occluders), progress=bar, **options)
-    for li, info in enumerate(shadow_map.roi):
-        if scene is not None and roi and info["receivers"] == 0:
-            log(f"warning: light {li}: no receivers in the ROI (none can be shadowed by the "
-                f"occluders); its table is all ones", quiet)
-        else:
-            log(f"light {li}: {info['texels']} texels, bins {info['bins'][0]}..{info['bins'][1]}, "
-                f"t_max {shadow_map.t_max[li]:.3f} m, min T "
-                f"{float(shadow_map.transmittance[li].min()):.3f}", quiet)
-    st = shadow_map.stats
-    log(f"built in {shadow_map.build_seconds:.3f} s ({st['pairs_kept']} ray/Gaussian pairs kept "
-        f"of {st['pairs_tested']} tested), opacity mapping {mapping} (κ = {kappa:g})", quiet)
+    parsed, objects, scene, view, lights = _load(occluders, receivers, offset, lights_spec,
+                                                 auto_k, preview_camera)
+    options = DgsmOptions(size=(h, w), bins=bins, atlas=atlas, mapping=mapping, kappa=kappa,
+                          t_max=t_max, roi=roi, roi_radius=roi_radius, cull=cull,
+                          cull_tolerance=cull_tolerance, footprint=footprint, samples=samples,
+                          seed=seed, allow_light_inside=allow_light_inside, estimator=estimator,
+                          preview=preview is not None, camera=view)
+    result = build(objects, lights if auto_k is None else auto_k, options, scene,
+                   names=occluders, receivers_name=receivers, lights_name=lights_spec,
+                   log=lambda message: log(message, quiet), quiet=quiet)
 
     inputs = {"occluders": parsed[0][0]} if len(occluders) == 1 else {
         f"occluder{j}": source for j, (source, _) in enumerate(parsed)}
@@ -235,36 +159,80 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         inputs["receivers"] = receivers
     if auto_k is None:
         inputs["lights"] = lights_spec
-    settings = {"size": [h, w], "bins": bins, "atlas": atlas, "mapping": mapping, "kappa": kappa,
-                "t_max": t_max, "roi": roi, "roi_radius": roi_radius, "cull": cull,
-                "cull_tolerance": cull_tolerance, "footprint": footprint, "samples": samples,
-                "seed": seed, "lights": lights_spec, "half": half, "translate": translate,
+    settings = {**result.settings, "lights": lights_spec, "half": half, "translate": translate,
                 "estimator": estimator if auto_k is not None else None,
                 "occluders": list(occluders)}
-    write_dgsm(output, shadow_map, provenance(FORMAT, VERSION, inputs, settings), half=half)
+    _write(result, scene, inputs, settings, output, half, occluders_out, receivers_out,
+           lights_out, preview, quiet, start)
+
+
+def _load(occluders, receivers, offset, lights_spec, auto_k, preview_camera):
+    """(parsed OCCLUDER specs, placed occluder objects, receiver Gaussians or None, the
+    preview camera or None, the read lights or None for auto:K), in the order whose first
+    bad input is reported."""
+    import numpy as np
+
+    from relight_cli.formats.lights_json import read_lights
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    from relight_cli.inputs import load_placed, parse_occluder
+
+    offset = None if offset is None else np.array(offset)
+    parsed = [parse_occluder(spec, "OCCLUDER") for spec in occluders]
+    if receivers is not None:
+        check_input(receivers)
+    objects = []
+    for spec, (source, placement) in zip(occluders, parsed):
+        check_input(source)
+        objects.append(load_placed(source, placement, spec, offset))
+    scene = None
+    if receivers is not None:
+        check_input(receivers)
+        scene = load_gaussians(receivers)
+    view = None
+    if preview_camera is not None:
+        from relight_cli.formats.camera import read_camera
+        view = read_camera(check_input(preview_camera))
+    lights = None
+    if auto_k is None:
+        check_input(lights_spec, stdin="--lights")
+        lights = read_lights(lights_spec)
+    return parsed, objects, scene, view, lights
+
+
+def _write(result, scene, inputs, settings, output, half, occluders_out, receivers_out,
+           lights_out, preview, quiet, start):
+    """Every output of the build, each with its provenance."""
+    import time
+
+    from relight_cli.formats.dgsm_exr import FORMAT, VERSION, write_dgsm
+    from relight_cli.formats.gaussians_ply import FORMAT as GFORMAT
+    from relight_cli.formats.gaussians_ply import VERSION as GVERSION
+    from relight_cli.formats.gaussians_ply import write_gaussians
+    from relight_cli.formats.lights_json import FORMAT as LFORMAT
+    from relight_cli.formats.lights_json import VERSION as LVERSION
+    from relight_cli.formats.lights_json import Lights, write_lights
+    from relight_cli.provenance import provenance
+
+    write_dgsm(output, result.shadow_map, provenance(FORMAT, VERSION, inputs, settings), half=half)
     log(f"wrote {output} ({time.perf_counter() - start:.2f} s)", quiet)
     if occluders_out is not None:
-        write_gaussians(occluders_out, occ, provenance(GFORMAT, GVERSION, inputs,
-                                                       {"translate": translate,
-                                                        "occluders": list(occluders)}))
+        write_gaussians(occluders_out, result.occluders, provenance(
+            GFORMAT, GVERSION, inputs, {"translate": settings["translate"],
+                                        "occluders": settings["occluders"]}))
         log(f"wrote {occluders_out}", quiet)
     if receivers_out is not None and scene is not None:
         write_gaussians(receivers_out, scene, provenance(GFORMAT, GVERSION,
-                                                         {"receivers": receivers}, {}))
+                                                         {"receivers": inputs["receivers"]}, {}))
         log(f"wrote {receivers_out}", quiet)
     if lights_out is not None:
+        lights = result.lights
         write_lights(lights_out, Lights(lights.positions, lights.colors, lights.intensities,
                                         lights.names, lights.extra),
                      provenance(LFORMAT, LVERSION, inputs, settings))
         log(f"wrote {lights_out}", quiet)
     if preview is not None:
         from relight_cli.formats.image import write_png
-        from relight_cli.preview import dgsm_sheet
-        title = (f"dgsm-build: {len(lights)} light(s), {atlas} atlas {w}x{h}, {bins} bins, "
-                 f"mapping {mapping}\noccluders: {' '.join(occluders)}"
-                 + (f"\nreceivers: {receivers}" if receivers else ""))
-        image, _ = dgsm_sheet(shadow_map, occ, scene, view, footprint, samples, seed, title)
-        write_png(preview, image)
+        write_png(preview, result.preview)
         log(f"wrote {preview}", quiet)
 
 
@@ -279,54 +247,3 @@ def _parse_auto(spec: str):
     if not 1 <= k <= 64:
         raise UsageProblem(f"--lights auto:K needs 1 ≤ K ≤ 64, got {k}")
     return k
-
-
-def _estimate_lights(scene, k, spec, character=None, variant="paper"):
-    """auto:K through relight_cli.gaussians.lights (the light-estimation module), if present."""
-    import importlib
-
-    import numpy as np
-
-    from relight_cli.errors import UsageProblem
-    from relight_cli.formats.lights_json import Lights
-    try:
-        module = importlib.import_module("relight_cli.gaussians.lights")
-    except ImportError:
-        module = None
-    estimator = getattr(module, "estimate_lights", None) if module is not None else None
-    if estimator is None:
-        raise UsageProblem("--lights auto:K is not available in this build (no light estimator "
-                           "in relight_cli.gaussians.lights); give a lights JSON file", spec)
-    try:
-        result = estimator(scene, k, character=character, variant=variant)   # deterministic
-    except ValueError as exc:
-        from relight_cli.errors import DataError
-        raise DataError(f"light estimation failed: {exc}", spec) from None
-    if isinstance(result, Lights):
-        return result
-    if hasattr(result, "positions"):
-        return Lights(result.positions, getattr(result, "colors", None),
-                      getattr(result, "intensities", None),
-                      extra={"estimator": "relight_cli.gaussians.lights.estimate_lights",
-                             "variant": variant, "count": int(k),
-                             "character": "the occluders (alpha-weighted centroid)"})
-    return Lights(np.asarray(result, np.float64).reshape(-1, 3))
-
-
-def _lights_inside(mix, positions, threshold: float = 1.0):
-    """[(light, gaussian, mahalanobis)] for lights within 1σ of an occluder Gaussian."""
-    import numpy as np
-    found = []
-    for li, p in enumerate(np.asarray(positions, np.float64)):
-        rel = (p - mix.means) / mix.scale_max[:, None]
-        local = np.einsum("nji,nj->ni", mix.rotation, rel)
-        m2 = (local ** 2 / mix.var).sum(axis=1)
-        m2 = np.where(mix.alpha > 0, m2, np.inf)
-        j = int(np.argmin(m2))
-        if m2[j] < threshold ** 2:
-            found.append((li, j, float(np.sqrt(m2[j]))))
-    return found
-
-
-def _fmt(v) -> str:
-    return "(" + ", ".join(f"{float(x):.3g}" for x in v) + ")"

@@ -72,27 +72,21 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     import os
 
     from relight_cli.clitools import check_input
-    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.errors import UsageProblem
 
-    from ._learned import check_outputs, write_validation
+    from . import _learned as L
 
     # ---- usage checks before any work
     if iters is not None and iters < 1:
         raise UsageProblem(f"--iters must be ≥ 1, got {iters}")
-    if not os.path.isdir(capture):
-        raise DataError("CAPTURE must be a capture folder (with capture.json)", capture)
-    if os.path.isfile(os.path.join(capture, "capture.json")):
-        check_input(os.path.join(capture, "capture.json"))
+    L.check_capture(capture, index_ok=False)
     check_input(teacher)
-    for path, role in ((config_file, "--config"), (vgg_weights, None), (resume, None)):
-        if path is not None:
-            check_input(path, stdin=role)
-    train_specs = _expand_envs(env_specs)
-    held_specs = _expand_envs(eval_specs)
+    L.check_inputs(config_file, vgg_weights, resume)
+    train_specs, held_specs = _expand_envs(env_specs), _expand_envs(eval_specs)
     specs = train_specs + held_specs
     for spec in specs:
         check_input(spec)
-    check_outputs(output, metrics_out, no_clobber)
+    L.check_outputs(output, metrics_out, no_clobber)
     if cache_dir is not None and os.path.exists(cache_dir) and not os.path.isdir(cache_dir):
         raise UsageProblem("--cache must be a folder", cache_dir)
     names = [_env_name(s) for s in specs]
@@ -101,110 +95,42 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
 
     import torch  # noqa: F401
 
-    from relight_cli.features import discretize_env
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
-    from relight_cli.neural import distill as D
-    from relight_cli.neural.config import (STUDENT_PRESETS, StudentConfig, resolve_config,
-                                           resume_config)
-    from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.checkpoints import teacher_model
-    from relight_cli.neural.train import fit, resolve_device
-    from relight_cli.provenance import file_sha256, outside_transaction, provenance
+    from relight_cli.inputs import env_grid, load_envmap
+    from relight_cli.jobs import distill as job
+    from relight_cli.neural.train import resolve_device
+    from relight_cli.provenance import file_sha256, provenance
 
-    from relight_cli.inputs import load_envmap
-
-    if env_res is not None:
-        from relight_cli.inputs import env_grid
-        env_res = tuple(env_grid(env_res))           # the config stores (H, W)
-    overrides = {"student": student, "iters": iters, "seed": seed, "env_res": env_res,
-                 "specular": False if no_specular else None,
-                 "visibility": False if no_visibility else None}
-    ckpt = None
-    if resume is not None:
-        ckpt = read_checkpoint(resume, kind="student")
-        config = resume_config(ckpt, StudentConfig, overrides, config_file, iters, resume)
-    else:
-        config = resolve_config(preset, config_file, overrides, presets=STUDENT_PRESETS,
-                                config_class=StudentConfig)
+    env_res = None if env_res is None else tuple(env_grid(env_res))   # the config's (H, W)
+    ckpt = read_checkpoint(resume, kind="student") if resume is not None else None
+    config = job.configure(preset, config_file, {
+        "student": student, "iters": iters, "seed": seed, "env_res": env_res,
+        "specular": False if no_specular else None,
+        "visibility": False if no_visibility else None}, ckpt, resume)
     torch_device = resolve_device(device)
-
     # ---- inputs (data errors)
-    tck = read_checkpoint(teacher, kind="teacher")
-    try:
-        teacher_net, tconfig, mean_texture = teacher_model(tck, torch_device)
-    except (ValueError, UsageProblem) as exc:
-        raise DataError(getattr(exc, "message", str(exc)), teacher) from None
-    data = CaptureData(capture, tconfig.tex_res, tconfig.aa, tconfig.visibility, tconfig.falloff,
-                       tconfig.holdout, tconfig.cache_poses)
-    if tck["capture_key"] != data.key:
-        log(f"note: the teacher was trained on another capture (key {tck['capture_key']}); "
-            f"distilling on this one", quiet)
-    if ckpt is not None and ckpt["capture_key"] != data.key:
-        raise DataError("checkpoint was distilled on another capture", resume)
-    if (data.hand.n_joints - 1) * 3 != int(tck["pose_dim"]):
-        raise DataError("the capture's hand does not match the teacher's joints", teacher)
-    envs = []
-    for spec in specs:
-        env = load_envmap(spec)
-        envs.append(discretize_env(env, *config.env_res))
-    if held_specs:
-        train_idx = list(range(len(train_specs)))
-        eval_idx = list(range(len(train_specs), len(specs)))
-    else:
-        train_idx, eval_idx = D.split_envs(names, config.env_holdout, config.seed,
-                                           ", ".join(env_specs))
-    if ckpt is not None:
-        import json
-        saved = json.loads(ckpt.get("extra", {}).get("envs", "{}") or "{}")
-        if saved and saved.get("train") != [names[i] for i in train_idx]:
-            raise UsageProblem("--resume needs the same --envs as the run it continues")
-    grid = envs[0]
-    teacher_digest = file_sha256(teacher)
-    targets = D.TeacherTargets(teacher_net, tconfig, data, grid, cache_dir, config.cache_mb,
-                               torch_device, mean_texture, identity=teacher_digest)
-    vgg = None
-    if vgg_weights is not None:
-        from relight_cli.neural.losses import load_vgg
-        vgg = load_vgg(vgg_weights).to(torch_device)
-    elif ckpt is None:
-        config.lambda_vgg = 0.0
-    task = D.StudentTask(data, config, targets, envs, train_idx, eval_idx, names, vgg,
-                         teacher_digest)
+    tck = job.load_teacher(read_checkpoint(teacher, kind="teacher"), torch_device,
+                           file_sha256(teacher), teacher)
+    data = L.read_captures([capture], tck.config)[0]
+    envs = {name: load_envmap(spec) for name, spec in zip(names, specs)}
+    vgg = L.read_vgg(vgg_weights, torch_device)
     rank = int(os.environ.get("RANK", "0"))
     quiet = quiet or rank != 0
-    log(f"read {capture}: {len(task.items)} (pose, camera) pairs; {len(train_idx)} training and "
-        f"{len(eval_idx)} evaluation env map(s); student {config.student}, {config.tex_res}² "
-        f"features, {config.iters} iterations on {torch_device}; pseudo ground truth "
-        f"{_texture_mb(data, tconfig, grid):.1f} MB per pose and camera", quiet)
-    inputs = {"teacher": teacher, "capture": data.index_path}
-    for k, spec in enumerate(specs):
-        inputs[f"env{k}"] = spec
-    for role, path in (("vgg_weights", vgg_weights), ("resume", resume), ("config", config_file)):
-        if path is not None:
-            inputs[role] = path
-    record = provenance("relight/checkpoint", 1, inputs, {"preset": preset, **config.to_dict()})
-
-    def save(checkpoint):
-        with outside_transaction():
-            write_checkpoint(output, checkpoint)
-
-    from relight_cli.neural.train import _summary
-    result = fit(task, config, torch_device, resume=ckpt, provenance=record,
-                 save=save if rank == 0 else None, show_progress=not quiet,
-                 log=lambda m: log(m, quiet))
+    inputs = {"teacher": teacher, "capture": data.index_path,
+              **{f"env{k}": spec for k, spec in enumerate(specs)},
+              **L.file_inputs(vgg_weights, resume, config_file)}
+    options = job.Options(config, preset, torch_device, vgg, ckpt, resume, progress=not quiet,
+                          n_eval=len(held_specs), cache_dir=cache_dir)
+    trained = job.run(tck, data, envs, options,
+                      provenance=lambda s: provenance("relight/checkpoint", 1, inputs, s),
+                      save=L.saver(output) if rank == 0 else None, log=lambda m: log(m, quiet),
+                      names={"capture": capture, "teacher": teacher, "envs": ", ".join(env_specs)})
     if rank != 0:
         return
-    write_checkpoint(output, result.checkpoint)
-    write_validation(metrics_out, result, {"teacher": teacher, "capture": data.index_path},
-                     config, record)
-    its = result.steps_run / result.seconds if result.seconds > 0 else float("inf")
-    log(f"wrote {output}: {result.steps_run} step(s) in {result.seconds:.1f} s ({its:.2f} it/s); "
-        f"{targets.computed} teacher texture set(s) computed; "
-        + _summary(result.history[-1] if result.history else {"step": config.iters}), quiet)
-
-
-def _texture_mb(data, tconfig, grid) -> float:
-    return data.n_hands * len(grid.directions) * 3 * tconfig.tex_res ** 2 * 4 / 2 ** 20
+    write_checkpoint(output, trained.result.checkpoint)
+    L.write_validation(metrics_out, trained.result, {"teacher": teacher, "capture":
+                       data.index_path}, trained.config, trained.record)
+    log(f"wrote {output}: " + job.summary(trained), quiet)
 
 
 def _env_name(spec: str) -> str:

@@ -2,7 +2,8 @@
 
 Subcommands ``image``, ``shadow``, ``lighting`` write a ``relight/metrics`` JSON
 record (spec: formats/metrics_json.md); ``compare`` checks one against a baseline
-and exits with :data:`EXIT_REGRESSION` when something regressed.
+and exits with :data:`EXIT_REGRESSION` when something regressed.  The scoring is
+:mod:`relight_cli.jobs.metrics`; this module reads the files and writes the records.
 """
 
 from __future__ import annotations
@@ -108,17 +109,11 @@ def _read_single(path: str):
     return rgb.astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
 
 
-def _same_size(shape, reference, path, what="ground truth"):
-    from relight_cli.errors import DataError
-    if tuple(shape[:2]) != tuple(reference[:2]):
-        raise DataError(f"size {shape[1]}x{shape[0]} differs from the {what}'s "
-                        f"{reference[1]}x{reference[0]}", path)
-
-
 def _read_mask(path: str, shape):
     from relight_cli.errors import DataError
+    from relight_cli.jobs.metrics import same_size
     values = _read_single(path)
-    _same_size(values.shape, shape, path)
+    same_size(values.shape, shape, path)
     mask = values > 0.5
     if not mask.any():
         raise DataError("mask selects no pixels (foreground is where the mask is > 0.5)", path)
@@ -134,57 +129,17 @@ def _check_outputs(output, jsonl, no_clobber):
             raise UsageProblem("--jsonl - and -o - would both write to stdout; give one a file name")
 
 
-def _engine_error(exc: ValueError, path):
-    from relight_cli.errors import DataError
-    return DataError(str(exc), path)
-
-
-def _write(output, jsonl, record, rows):
-    from relight_cli.formats.metrics_json import dumps, write_metrics
-    from relight_cli.provenance import write_text_atomic
+def _write_scores(output, jsonl, scores):
+    """The record of a :class:`relight_cli.jobs.metrics.Scores` (with its provenance) and,
+    with --jsonl, one JSON row per pair."""
+    from relight_cli.formats.metrics_json import FORMAT, VERSION, write_metrics
+    from relight_cli.provenance import provenance, write_text_atomic
+    record, rows = scores.record(provenance(FORMAT, VERSION, scores.inputs(), scores.settings))
     if jsonl is not None:
         import json
         write_text_atomic(jsonl, "".join(json.dumps(r, allow_nan=False, ensure_ascii=False) + "\n"
                                          for r in rows))
     write_metrics(output, record)
-    return dumps
-
-
-def _batch_record(kind, results, pairs, settings, percentiles, extra_inputs=None,
-                  batch_details=None):
-    """Metrics record from per-pair results [(name, pred, gt, mask, result_dict)];
-    ``batch_details``: the ``details`` of a record of several pairs."""
-    from relight_cli.formats.metrics_json import FORMAT, VERSION, _encode_tree, make_record
-    from relight_cli.metrics.batch import aggregate
-    from relight_cli.provenance import provenance
-
-    single = len(results) == 1 and not pairs
-    inputs = {}
-    for name, pred, gt, mask, _ in results:
-        prefix = "" if single else f"{name}:"
-        inputs[f"{prefix}pred"] = pred
-        inputs[f"{prefix}gt"] = gt
-        if mask is not None:
-            inputs[f"{prefix}mask"] = mask
-    inputs.update(extra_inputs or {})
-    prov = provenance(FORMAT, VERSION, inputs, settings)
-    rows = []
-    for name, pred, gt, mask, result in results:
-        row = {"name": name, "pred": pred, "gt": gt}
-        if mask is not None:
-            row["mask"] = mask
-        row.update(result)
-        rows.append(_encode_tree(row))
-    if single:
-        result = results[0][4]
-        details = {k: v for k, v in result.items() if k not in ("metrics", "per_channel")}
-        return make_record(kind, result["metrics"], prov["inputs"], settings, prov,
-                           per_channel=result.get("per_channel"), details=details or None), rows
-    flat = [r[4]["metrics"] for r in results]
-    agg = aggregate(flat, percentiles)
-    means = {k: v["mean"] for k, v in agg.items()}
-    return make_record(kind, means, prov["inputs"], settings, prov, aggregate=agg,
-                       pairs=len(results), details=batch_details), rows
 
 
 # ------------------------------------------------------------------ image
@@ -245,7 +200,7 @@ def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_
       relight metrics image 'out/*.exr' gt/ -o -
     """
     from relight_cli.errors import UsageProblem
-    from relight_cli.metrics import image as M
+    from relight_cli.jobs.metrics import ImageOptions, image
     from relight_cli.metrics.batch import match_masks, match_pairs, parse_percentiles
 
     _check_outputs(output, jsonl, no_clobber)
@@ -279,14 +234,32 @@ def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_
         check_input(p_path)
     for mask_path in filter(None, masks.values()):
         check_input(mask_path)
-    results = []
+    options = ImageOptions(space=space, exposure=exposure, data_range=data_range,
+                           win_size=win_size, mask=mask is not None, whole_image=whole_image,
+                           percentiles=qs, preview=preview is not None)
+    scores = image(_image_pairs(pairs, masks, whole_image, quiet), options, lpips_net,
+                   multi=len(pairs) > 1 or _is_multi(pred))
+    _write_scores(output, jsonl, scores)
+    log(f"{len(scores.results)} pair(s) compared, {scores.note}", quiet)
+    if preview is not None:
+        from relight_cli.formats.image import write_png
+        write_png(preview, scores.preview)
+        log(f"wrote {preview}", quiet)
+
+
+def _image_pairs(pairs, masks, whole_image, quiet):
+    """Each matched pair read as a :class:`relight_cli.jobs.metrics.ImagePair` (one at a
+    time, so a batch holds one pair in memory): same size and channels, its region from
+    the pair's --mask file, else the ground truth's alpha unless --whole-image."""
+    from relight_cli.errors import DataError
+    from relight_cli.jobs.metrics import ImagePair, same_size
+
     for name, p_path, g_path in (pairs if len(pairs) < 2 else
                                  _progress(pairs, "image pairs", quiet)):
         g, names, alpha = _read_rgb_alpha(g_path)
         p, _ = _read_rgb(p_path)
-        _same_size(p.shape, g.shape, p_path)
+        same_size(p.shape, g.shape, p_path)
         if p.shape[-1] != g.shape[-1]:
-            from relight_cli.errors import DataError
             raise DataError(f"has {p.shape[-1]} channel(s), the ground truth has {g.shape[-1]}",
                             p_path)
         region, mask_source = None, None
@@ -294,88 +267,14 @@ def image_command(pred, gt, mask, whole_image, space, exposure, data_range, win_
             region, mask_source = _read_mask(masks[name], g.shape), "file"
         elif alpha is not None and not whole_image:
             region, mask_source = _alpha_mask(alpha, g_path), "alpha"
-        ps, gs, natural, used_exposure = M.to_space(p, g, space, region, exposure)
-        try:
-            result = M.image_metrics(ps, gs, region, data_range or natural, win_size, names)
-        except ValueError as exc:
-            if mask_source == "alpha":
-                exc = ValueError(f"ground truth's alpha: {exc} (or score every pixel with "
-                                 f"--whole-image)")
-            raise _engine_error(exc, masks[name] or g_path) from None
-        where = {"region": "image" if region is None else "mask"}
-        if mask_source is not None:
-            where["mask_source"] = mask_source
-        where.update(pixels=result.pop("pixels"), image_pixels=int(g.shape[0] * g.shape[1]))
-        result = {"metrics": result.pop("metrics"), "per_channel": result.pop("per_channel"),
-                  **where, **result}
-        if lpips_net is not None:
-            from relight_cli.metrics.lpips import lpips_distance
-            value = lpips_distance(lpips_net, ps, gs, result["data_range"], region)
-            result["metrics"]["lpips"] = value
-        if used_exposure is not None:
-            result["exposure"] = used_exposure
-        results.append((name, p_path, g_path, masks[name], result))
-        shown = (p, g, region)
-    settings = {"space": space, "exposure": exposure, "data_range": data_range,
-                "win_size": win_size, "lpips": bool(use_lpips), "mask": mask is not None,
-                "whole_image": bool(whole_image), "percentiles": qs}
-    masked = sum(r[4]["region"] == "mask" for r in results)
-    regions = {"region": "mask" if masked == len(results) else "image" if masked == 0 else "mixed",
-               "masked_pairs": masked}
-    record, rows = _batch_record("image", results, len(pairs) > 1 or _is_multi(pred), settings, qs,
-                                 batch_details=regions)
-    _write(output, jsonl, record, rows)
-    log(f"{len(results)} pair(s) compared, {_region_note(results)}", quiet)
-    if preview is not None:
-        from relight_cli.formats.image import write_png
-        write_png(preview, _comparison_sheet(*shown, results[0], space))
-        log(f"wrote {preview}", quiet)
-
-
-def _comparison_sheet(pred, gt, region, pair, space):
-    """:func:`comparison_tiles` as a sheet titled with the scores (in ``space``) and
-    where they were taken."""
-    import os
-
-    from relight_cli.preview import sheet
-
-    name, p_path, g_path, _, result = pair
-    m = result["metrics"]
-    tiles = comparison_tiles(pred, gt, region, os.path.basename(p_path),
-                             os.path.basename(g_path))
-    where = ("inside the mask" if result["region"] == "mask" else "every pixel") + \
-        f" ({result['pixels']} px)"
-    scores = ", ".join(f"{k.upper()} {m[k]:.4g}" for k in ("psnr", "ssim", "mae") if k in m)
-    return sheet([tiles], f"metrics image ({space}): {scores}, {where}")
+        yield ImagePair(name, p, g, names, region, mask_source, p_path, g_path, masks[name])
 
 
 def comparison_tiles(pred, gt, region, pred_name="", gt_name=""):
-    """[prediction, ground truth, |difference|] preview tiles of ``metrics image --preview``:
-    the pair as stored, on the ground truth's exposure (its 99th percentile inside
-    ``region``), the difference on its own."""
-    import numpy as np
-
-    from relight_cli.preview import expose, tile
-
-    colour = (lambda x: x[..., :3]) if gt.shape[-1] >= 3 else (lambda x: x[..., :1])
-    _, _, white = expose(colour(gt), "auto", region=region)
-    return [tile(colour(pred), f"prediction: {pred_name}", region=region, white=white),
-            tile(colour(gt), f"ground truth: {gt_name}", region=region, white=white),
-            tile(np.abs(colour(pred) - colour(gt)), "|prediction − ground truth|",
-                 region=region, note="own exposure")]
-
-
-def _region_note(results) -> str:
-    """Where `metrics image` scored, in words: the mask's source and size, or every pixel."""
-    sources = {"alpha": "the ground truth's alpha", "file": "--mask"}
-    if len(results) == 1:
-        r = results[0][4]
-        if r["region"] == "image":
-            return f"every pixel ({r['pixels']})"
-        return (f"inside {sources[r['mask_source']]} ({r['pixels']} of {r['image_pixels']} "
-                f"pixels{'; --whole-image scores all' if r['mask_source'] == 'alpha' else ''})")
-    masked = sum(r[4]["region"] == "mask" for r in results)
-    return f"{masked} inside a mask, {len(results) - masked} over every pixel"
+    """``metrics image --preview``'s tiles; kept here for importers: the job's
+    :func:`relight_cli.jobs.metrics.comparison_tiles`."""
+    from relight_cli.jobs.metrics import comparison_tiles as tiles
+    return tiles(pred, gt, region, pred_name, gt_name)
 
 
 def _is_multi(spec):
@@ -468,9 +367,9 @@ def shadow_command(pred, gt, roi, roi_avatar, roi_camera, roi_radius, threshold,
     Example:
       relight metrics shadow shadow.exr pseudo_gt.png --threshold 0.1 -o s.json
     """
-    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.errors import UsageProblem
+    from relight_cli.jobs.metrics import ShadowOptions, shadow
     from relight_cli.metrics.batch import match_pairs, parse_percentiles
-    from relight_cli.metrics.shadow import shadow_metrics
 
     _check_outputs(output, jsonl, no_clobber)
     qs = parse_percentiles(percentiles)
@@ -482,7 +381,19 @@ def shadow_command(pred, gt, roi, roi_avatar, roi_camera, roi_radius, threshold,
     pairs, extra = match_pairs(pred, gt)
     if extra:
         log(f"note: {len(extra)} ground-truth file(s) have no prediction and are ignored", quiet)
-    results = []
+    options = ShadowOptions(threshold=threshold, tolerance=tolerance, roi=roi_box, matte=matte,
+                            percentiles=qs, roi_avatar=roi_avatar, roi_radius=roi_radius)
+    scores = shadow(_shadow_pairs(pairs, quiet), options, multi=len(pairs) > 1 or _is_multi(pred))
+    _write_scores(output, jsonl, scores)
+    log(f"{len(scores.results)} pair(s) scored", quiet)
+
+
+def _shadow_pairs(pairs, quiet):
+    """Each matched pair of mattes read as a :class:`relight_cli.jobs.metrics.ShadowPair`
+    (one at a time); a matte outside [0, 1] (beyond rounding) is bad data."""
+    from relight_cli.errors import DataError
+    from relight_cli.jobs.metrics import ShadowPair
+
     for name, p_path, g_path in (pairs if len(pairs) < 2 else
                                  _progress(pairs, "shadow pairs", quiet)):
         mattes = []
@@ -491,20 +402,8 @@ def shadow_command(pred, gt, roi, roi_avatar, roi_camera, roi_radius, threshold,
             if values.min() < -1e-3 or values.max() > 1 + 1e-3:
                 raise DataError(f"matte values must lie in [0, 1], found "
                                 f"[{values.min():.4g}, {values.max():.4g}]", path)
-            values = values.clip(0, 1)
-            mattes.append(1 - values if matte == "visibility" else values)
-        _same_size(mattes[0].shape, mattes[1].shape, p_path)
-        try:
-            result = shadow_metrics(mattes[0], mattes[1], threshold, tolerance, roi_box)
-        except ValueError as exc:
-            raise UsageProblem(str(exc), g_path) from None
-        results.append((name, p_path, g_path, None, result))
-    settings = {"threshold": threshold, "tolerance": tolerance, "roi": list(roi_box) if roi_box else None,
-                "matte": matte, "percentiles": qs, "roi_avatar": roi_avatar,
-                "roi_radius": roi_radius if roi_avatar else None}
-    record, rows = _batch_record("shadow", results, len(pairs) > 1 or _is_multi(pred), settings, qs)
-    _write(output, jsonl, record, rows)
-    log(f"{len(results)} pair(s) scored", quiet)
+            mattes.append(values)
+        yield ShadowPair(name, mattes[0], mattes[1], p_path, g_path)
 
 
 # ------------------------------------------------------------------ lighting
@@ -552,8 +451,8 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     """
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.gaussians_ply import read_gaussians
-    from relight_cli.formats.metrics_json import FORMAT, VERSION, make_record
-    from relight_cli.metrics.lighting import lighting_metrics
+    from relight_cli.formats.metrics_json import FORMAT, VERSION, write_metrics
+    from relight_cli.jobs.metrics import LightingOptions, lighting
     from relight_cli.provenance import provenance
 
     check_output(output, no_clobber, kind="json")
@@ -575,9 +474,10 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
     for path, before, after in zip(relits, orig, relit or []):
         if len(after) != len(before):  # a relit avatar is the same Gaussians, recoloured
             raise DataError(f"has {len(after)} Gaussians, its --avatar has {len(before)}", path)
+    options = LightingOptions(radius=radius, neighbours=neighbours,
+                              ply_normals=normal_source == "ply", max_points=max_points, seed=seed)
     try:
-        result = lighting_metrics(scene_g, orig, relit, radius, neighbours,
-                                  normal_source == "ply", max_points, seed)
+        scores = lighting(scene_g, orig, relit, options)
     except ValueError as exc:
         raise DataError(str(exc), avatars[0] if "avatar" in str(exc) else scene) from None
     inputs = {"scene": scene}
@@ -585,16 +485,7 @@ def lighting_command(scene, avatars, relits, radius, neighbours, normal_source, 
         inputs[f"avatar:{i}"] = path
     for i, path in enumerate(relits):
         inputs[f"relit:{i}"] = path
-    settings = {"radius": radius, "neighbours": neighbours, "normals": normal_source,
-                "max_points": max_points, "seed": seed, "sh_order": 3, "sh_coefficients": 16,
-                "variant_sh_coefficients": 9, "huber": 1.345, "trim": 0.05,
-                "scale_fix": "|c|_2 = 1, c_00 > 0",
-                "albedo_ridge": 1.0, "factorization_iterations": 6}
-    prov = provenance(FORMAT, VERSION, inputs, settings)
-    record = make_record("lighting", result["metrics"], prov["inputs"], settings, prov,
-                         frames=result["frames"])
-    from relight_cli.formats.metrics_json import write_metrics
-    write_metrics(output, record)
+    write_metrics(output, scores.record(provenance(FORMAT, VERSION, inputs, scores.settings)))
     log(f"{len(avatars)} frame(s) scored", quiet)
 
 
@@ -667,9 +558,9 @@ def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, output
           --better my_score=higher
       relight metrics image a.exr b.exr -o - | relight metrics compare - base.json -o cmp.json
     """
-    from relight_cli.errors import DataError, UsageProblem
-    from relight_cli.formats.metrics_json import decode_value, flatten, read_metrics
-    from relight_cli.metrics.compare import compare_metrics, format_table
+    from relight_cli.errors import UsageProblem
+    from relight_cli.formats.metrics_json import read_metrics
+    from relight_cli.jobs.metrics import compare
 
     if as_json:
         if output not in (None, "-"):
@@ -683,28 +574,14 @@ def compare_command(ctx, new, baseline, rtol, atol, better, only_changed, output
         raise UsageProblem("--better needs METRIC=higher|lower|either")
     check_input(new, stdin="NEW.json")
     check_input(baseline, stdin="BASELINE.json")
-    new_record = read_metrics(new)
-    base_record = read_metrics(baseline)
-    if new_record.get("kind") != base_record.get("kind"):
-        raise DataError(f"kind {new_record.get('kind')!r} differs from the baseline's "
-                        f"{base_record.get('kind')!r}", new)
-    new_leaves = [(k, decode_value(v)) for k, v in flatten(new_record["metrics"])]
-    base_leaves = [(k, decode_value(v)) for k, v in flatten(base_record["metrics"])]
-    from relight_cli.metrics.compare import unknown_names
-    keys = [k for k, _ in new_leaves + base_leaves]
-    for flag, options in (("--rtol", rtols), ("--atol", atols), ("--better", directions)):
-        unknown = unknown_names(options, keys)
-        if unknown:
-            raise UsageProblem(f"{flag} names no metric of these records: {', '.join(unknown)}",
-                               baseline)
-    rows = compare_metrics(new_leaves, base_leaves, rtols, atols, directions)
-    regressed = any(r.regressed for r in rows)
+    result = compare(read_metrics(new), read_metrics(baseline), rtols, atols, directions,
+                     new_name=new, baseline_name=baseline)
     if output is not None:
-        _write_comparison(output, new_record.get("kind"), rows, regressed, new, baseline,
+        _write_comparison(output, result.kind, result.rows, result.regressed, new, baseline,
                           {"rtol": list(rtol), "atol": list(atol), "better": list(better)})
-    if not quiet or regressed:
-        click.echo(format_table(rows, only_changed=only_changed), nl=False, err=output == "-")
-    if regressed:
+    if not quiet or result.regressed:
+        click.echo(result.table(only_changed=only_changed), nl=False, err=output == "-")
+    if result.regressed:
         click.echo(f"relight metrics compare: regression against {baseline} "
                    f"(exit {EXIT_REGRESSION})", err=True)
         ctx.exit(EXIT_REGRESSION)

@@ -3,13 +3,17 @@
 The first input decides the mode: a Gaussians PLY (``.ply``) is relit with an
 SH probe and optionally shadowed with a DGSM (paper Sec. 3.4); a hand
 (``.npz`` or ``builtin:right|left|two[:POSE]``) is rendered under an env map
-and/or point lights from a camera.  Each
-mode is one function below; options that belong to one mode are refused in
-the other.  Hand mode ``--model physical`` is the physically based renderer of
-``relight_cli.render`` (URHand's physical-only baseline).
+and/or point lights from a camera; a capture folder is scored.  Each mode is
+one function below (options → usage checks → inputs → one job → writers); the
+options that belong to one mode are declared once (_MODE_OPTIONS) and refused
+in the others.  The work is relight_cli.jobs': relight_gaussians, relight_hand
+(``--model physical`` is relight_cli.render's physically based renderer,
+URHand's physical-only baseline) and score_capture.
 """
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import click
 
@@ -153,12 +157,7 @@ from relight_cli.clitools import (FiniteFloat, ModeGroupedCommand, ShadowStrengt
 @seed_option
 @no_clobber_option
 @quiet_option
-def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, footprint, samples,
-            shadow_strength, light_weights, direct_light, shadow_matte, lobe, intensity, t_max,
-            normals, camera, background, model, checkpoint, device, precision, hand_size,
-            hand_lights, hand_frame, hand_frames, hand_mesh, env_res, tex_res, aa,
-            no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
-            preview, splits, eval_samples, seed, no_clobber, quiet):
+def command(**options):
     """Relight IN under new lighting.
 
     \b
@@ -225,588 +224,509 @@ def command(input, env, output, probe, dgsm, receivers, objects, receivers_out, 
     """
     from relight_cli.errors import UsageProblem
 
-    from relight_cli.gaussians.placement import split_spec
+    a = SimpleNamespace(**options)
+    mode = _mode(a)
+    _refuse_other_modes(mode, options, a.input)
+    if mode == "?":
+        raise UsageProblem("IN must be a Gaussians .ply (or a mesh, builtin:hand|room|sphere) or "
+                           "a hand .npz (or builtin:right|left|two); cannot tell what this is",
+                           a.input)
+    if mode == "h":
+        raise UsageProblem(f"--model {a.model!r} is not available; use physical, teacher, "
+                           f"student or linear")
+    {"c": _capture, "g": _gaussians, "p": _hand_physical, "l": _hand_learned,
+     "s": _hand_learned}[mode](a)
 
-    capture_only = {"--splits": splits, "--eval-samples": eval_samples}
-    if _is_capture(input):
-        return _relight_capture(**locals())
-    given = [k for k, v in capture_only.items() if v is not None]
-    if given:
-        raise UsageProblem(f"{', '.join(given)} only apply to a capture (IN = CAPTURE/)")
-    lower = split_spec(input)[0].lower()
-    gaussian_in = (lower.endswith((".ply", ".obj", ".glb", ".gltf", ".stl", ".off"))
-                   or lower in ("builtin:hand", "builtin:room", "builtin:sphere"))
+
+# ------------------------------------------------------------------------- the modes' options
+
+# Mode-only options, declared once: parameter → (flag, the modes that take it).  Modes:
+# g Gaussians, p hand --model physical, l hand --model teacher|linear, s hand --model
+# student, c capture.  Options missing here (--output, --background, --seed, ...) are
+# common, and so are those whose default cannot be told from a given value (--footprint,
+# --samples, --shadow-strength, --lobe, --intensity, --normals: Gaussian options that a
+# hand or capture ignores).
+_MODE_OPTIONS = {
+    "env": ("ENV", "pls"),
+    "probe": ("--probe", "g"), "dgsm": ("--dgsm", "g"), "receivers": ("--receivers", "g"),
+    "objects": ("--object", "g"), "receivers_out": ("--receivers-out", "g"),
+    "light_weights": ("--light-weights", "gplsc"),   # ignored by a hand or capture, as before
+    "direct_light": ("--direct-light", "gpls"),      # ignored by a hand, as before
+    "shadow_matte": ("--shadow-matte", "g"),
+    "t_max": ("--shading-clip", "gplsc"),            # ignored by a hand or capture, as before
+    "camera": ("--camera", "gpls"),
+    "model": ("--model", "plsc"), "checkpoint": ("--checkpoint", "lsc"),
+    "device": ("--device", "lsc"), "precision": ("--precision", "s"),
+    "hand_size": ("--size", "pls"), "hand_lights": ("--lights", "pls"),
+    "hand_frame": ("--frame", "pls"), "hand_frames": ("--frames", "pls"),
+    "hand_mesh": ("--mesh", "p"), "env_res": ("--env-res", "plsc"),
+    "tex_res": ("--tex-res", "p"), "aa": ("--aa", "plsc"),
+    "no_shadows": ("--no-shadows", "p"), "no_specular": ("--no-specular", "p"),
+    "no_sss": ("--no-sss", "p"), "sss_scale": ("--sss-scale", "p"), "bounce": ("--bounce", "p"),
+    "albedo_map": ("--albedo", "p"), "roughness_map": ("--roughness", "p"),
+    "aov": ("--aov", "p"), "preview": ("--preview", "gpls"),
+    "splits": ("--splits", "c"), "eval_samples": ("--eval-samples", "c"),
+}
+
+# How a run refuses the options of other modes, in the order checked: (the run modes
+# this row applies to — h: a hand whose --model is unknown, ?: an IN of no mode —,
+# which refused options it names (parameter, their modes), the error; the error names
+# IN where the row says "IN").
+_REFUSALS = (
+    ("c", lambda n, m: True, "{} do not apply to a capture (IN = CAPTURE/ renders the "
+                             "capture's own cameras, lights and env maps)"),
+    ("gplsh?", lambda n, m: m == "c", "{} only apply to a capture (IN = CAPTURE/)"),
+    ("plsh?", lambda n, m: n == "objects",
+     "--object inserts Gaussian objects beside IN = AVATAR.ply (or a mesh, "
+     "builtin:hand|room|sphere); it does not apply to a hand .npz", "IN"),
+    ("plsh", lambda n, m: m == "g", "{} only apply to Gaussians (IN = AVATAR.ply)"),
+    ("g", lambda n, m: True, "{} only apply to a hand (IN = HAND.npz)"),
+    ("p", lambda n, m: n in ("checkpoint", "device"),
+     "--checkpoint and --device belong to a learned --model (teacher, student, linear)"),
+    ("pl", lambda n, m: n == "precision",
+     "--precision sets the student's decoder: it needs --model student"),
+    ("ls", lambda n, m: True, "{} only apply to --model physical (a learned model has its "
+                              "own texture, materials and shadows)"),
+)
+
+_HAND_MODELS = {"physical": "p", "teacher": "l", "linear": "l", "student": "s"}
+_GAUSSIAN_FILES = (".ply", ".obj", ".glb", ".gltf", ".stl", ".off")
+
+
+def _mode(a) -> str:
+    """The run's mode (a letter of _MODE_OPTIONS; h: a hand of an unknown --model, ?: an
+    IN that is none of them)."""
+    from relight_cli.gaussians.placement import split_spec
+    if _is_capture(a.input):
+        return "c"
+    lower = split_spec(a.input)[0].lower()
+    if lower.endswith(_GAUSSIAN_FILES) or lower in ("builtin:hand", "builtin:room",
+                                                    "builtin:sphere"):
+        return "g"
     # a hand .npz given Gaussian options is the posed hand made into Gaussians (the bridge
     # from the hand half to the Gaussian half; frame=K in its placement picks the pose)
     if lower.endswith(".npz") and any(v is not None and v != () for v in
-                                      (probe, dgsm, receivers, shadow_matte, objects)):
-        gaussian_in = True
-    if objects and not gaussian_in:
-        raise UsageProblem("--object inserts Gaussian objects beside IN = AVATAR.ply (or a mesh, "
-                           "builtin:hand|room|sphere); it does not apply to a hand .npz", input)
-    if gaussian_in:
-        hand_only = {"ENV": env, "--model": model, "--checkpoint": checkpoint or None,
-                     "--device": device, "--precision": precision, "--size": hand_size,
-                     "--lights": hand_lights, "--frame": hand_frame,
-                     "--frames": hand_frames, "--mesh": hand_mesh,
-                     "--env-res": env_res, "--tex-res": tex_res, "--aa": aa,
-                     "--no-shadows": no_shadows or None, "--no-specular": no_specular or None,
-                     "--no-sss": no_sss or None, "--sss-scale": sss_scale,
-                     "--bounce": bounce or None, "--albedo": albedo_map,
-                     "--roughness": roughness_map, "--aov": aov}
-        given = [k for k, v in hand_only.items() if v is not None]
-        if given:
-            raise UsageProblem(f"{', '.join(given)} only apply to a hand (IN = HAND.npz)")
-        return _relight_gaussians(**locals())
+                                      (a.probe, a.dgsm, a.receivers, a.shadow_matte, a.objects)):
+        return "g"
     if lower.endswith(".npz") or lower.startswith("builtin:"):
-        return _relight_hand(**locals())
-    raise UsageProblem("IN must be a Gaussians .ply (or a mesh, builtin:hand|room|sphere) or a "
-                       "hand .npz (or builtin:right|left|two); cannot tell what this is", input)
+        return _HAND_MODELS.get(a.model or "physical", "h")
+    return "?"
 
 
-def _relight_gaussians(input, output, probe, dgsm, receivers, objects, receivers_out, footprint,
-                       samples,
-                       shadow_strength, light_weights, direct_light, shadow_matte, lobe, intensity,
-                       t_max, normals, camera, background, preview, seed, no_clobber, quiet, **_):
-    import math
+def _refuse_other_modes(mode: str, values: dict, source: str) -> None:
+    """A usage error (exit 2) naming the given options that ``mode`` does not take."""
+    from relight_cli.errors import UsageProblem
+    given = [(name, flag, modes) for name, (flag, modes) in _MODE_OPTIONS.items()
+             if mode not in modes and values[name] is not None and values[name] is not False
+             and values[name] != ()]
+    for modes, which, message, *names_in in _REFUSALS:
+        named = [flag for name, flag, taken in given if which(name, taken)]
+        if mode in modes and named:
+            raise UsageProblem(message.format(", ".join(named)), source if names_in else None)
+
+
+def _is_capture(spec: str) -> bool:
+    import os
+    if spec.lower().endswith((".npz",) + _GAUSSIAN_FILES):
+        return False      # a file name (a folder by that name is then refused as a hand/avatar)
+    return os.path.isdir(spec) or os.path.basename(spec) == "capture.json"
+
+
+# ------------------------------------------------------------------------- Gaussians
+
+def _gaussians(a) -> None:
+    """Gaussian mode: IN (+ --object) relit by --probe, shadowed by --dgsm with
+    --receivers, → a PLY or with --camera an EXR view (relight_cli.jobs.relight_gaussians)."""
     import time
 
-    import numpy as np
-
-    from relight_cli.errors import DataError, UsageProblem
-    from relight_cli.formats.gaussians_ply import FORMAT, VERSION, write_gaussians
-    from relight_cli.gaussians.from_mesh import load_gaussians
+    from relight_cli.errors import DataError
     from relight_cli.formats.sh_probe_json import read_probe
-    from relight_cli.gaussians import transfer as TF
-    from relight_cli.provenance import provenance
-
-    # ---- usage checks before any work
-    if probe is None and shadow_matte is None:
-        raise UsageProblem("Gaussian relighting needs --probe PROBE.json (make one with relight "
-                           "sh-probe)")
-    if dgsm is not None and receivers is None:
-        raise UsageProblem("--dgsm shadows receivers: give --receivers SCENE.ply")
-    if direct_light and dgsm is None:
-        raise UsageProblem("--direct-light takes its lights from --dgsm SHADOWS.exr")
-    if receivers_out is not None and receivers is None:
-        raise UsageProblem("--receivers-out needs --receivers")
-    if preview is not None and camera is None:
-        raise UsageProblem("--preview needs --camera (a rendered view)")
-    if shadow_matte is not None and (camera is None or dgsm is None):
-        raise UsageProblem("--shadow-matte renders a matte: give --camera CAMERA.json and --dgsm "
-                           "SHADOWS.exr (its lights)")
-    bg = parse_vector(background, 3, "--background", minimum=0)
-    if camera is not None and not output.lower().endswith(".exr"):
-        raise UsageProblem("with --camera, -o is an EXR image (name it .exr)", output)
-    if camera is None and not output.lower().endswith(".ply"):
-        raise UsageProblem("-o is the relit Gaussians PLY (name it .ply), or use --camera CAM "
-                           "-o IMAGE.exr", output)
-    check_output(output, no_clobber)
-    check_output(receivers_out, no_clobber, kind="ply", what="--receivers-out")
-    check_output(preview, no_clobber, kind="png", what="--preview")
+    from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.inputs import load_placed, parse_occluder
+    from relight_cli.jobs import relight_gaussians as G
 
-    specs = [input] + list(objects)
+    bg = _gaussian_usage(a)
+    specs = [a.input] + list(a.objects)
     parsed = [parse_occluder(spec, "IN/--object") for spec in specs]
-    for path in [source for source, _ in parsed] + [dgsm, receivers]:
+    for path in [source for source, _ in parsed] + [a.dgsm, a.receivers]:
         if path is not None:
             check_input(path)
-    for path, role in ((probe, "--probe"), (camera, "--camera")):
+    for path, role in ((a.probe, "--probe"), (a.camera, "--camera")):
         if path is not None:
             check_input(path, stdin=role)
-
     start = time.perf_counter()
-    if shadow_matte is not None:
-        return _shadow_matte(shadow_matte, specs, parsed, output, dgsm, receivers, camera,
-                             footprint, samples, light_weights or "intensity", background,
-                             preview, seed, quiet, start)
-    sh_probe = read_probe(probe)
-    shadow_map = _read_dgsm(dgsm) if dgsm is not None else None
-    auto = shadow_strength == "auto"
-    if auto and shadow_map is not None and shadow_map.intensities is None:
-        log("note: this shadow map (DGSM version 1) stores no light intensities, so "
-            "--shadow-strength auto cannot weigh them against the probe: s = 1", quiet)
-        auto, shadow_strength = False, 1.0
-    if light_weights is None:
-        light_weights = "irradiance" if auto else "intensity"
-    relit_objects, object_direct = [], []
+    if a.shadow_matte is not None:
+        return _shadow_matte(a, specs, parsed, bg, start)
+    probe = read_probe(a.probe)
+    shadow_map = _read_dgsm(a.dgsm) if a.dgsm is not None else None
+    objects = []
     for spec, (source, placement) in zip(specs, parsed):
-        avatar = load_placed(source, placement, spec)
-        log(f"read {spec}: {len(avatar)} Gaussians", quiet)
-        try:
-            n = TF.estimate_normals(avatar, normals)
-        except ValueError as exc:  # e.g. --normals stored on a file without normals
-            raise DataError(str(exc), source) from None
-        direct = None       # [L, N, 3] each light's irradiance (--direct-light)
-        extra = None
-        if direct_light:
-            direct = TF.direct_irradiance(shadow_map.intensities, shadow_map.colors,
-                                          shadow_map.lights, avatar.means, n, one_sided=True)
-            extra = direct.sum(axis=0) / math.pi
-        object_direct.append(direct)
-        relit_objects.append(TF.relight_gaussians(
-            avatar, sh_probe.coefficients, q=lobe, intensity=intensity,
-            t_max=math.inf if t_max is None else t_max, normals=n, extra=extra))
-    log(f"probe degree {sh_probe.degree}" + (", objects lit by the shadow map's "
-                                              f"{len(shadow_map.lights)} light(s) too"
-                                              if direct_light else ""), quiet)
-
+        objects.append(load_placed(source, placement, spec))
+        log(f"read {spec}: {len(objects[-1])} Gaussians", a.quiet)
     scene = None
-    if receivers is not None:
-        scene = load_gaussians(receivers)   # PLY, mesh or builtin:
-        log(f"read {receivers}: {len(scene)} receiver Gaussians", quiet)
-    if shadow_map is not None:
-        from relight_cli.gaussians.dgsm import sample_transmittance
-        weights_used = _weights_mode(light_weights, shadow_map, quiet)
-
-        def weights_for(g, normals=None):
-            return TF.dgsm_light_weights(weights_used, shadow_map, g, normals)
-
-        T = sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
-                                 footprint=footprint, samples=samples, seed=seed)   # [L, M]
-        strength = shadow_strength
-        receiver_normals = None
-        if auto:        # per receiver: the lights' share of its light against the probe's
-            receiver_normals = TF.facing_lights(scene.means, TF.estimate_normals(scene, "axis"),
-                                                shadow_map.lights)
-            e_direct = TF.direct_irradiance(shadow_map.intensities, shadow_map.colors,
-                                            shadow_map.lights, scene.means,
-                                            receiver_normals).sum(axis=0)
-            strength = TF.direct_share(e_direct, sh_probe.coefficients, receiver_normals)
-            log(f"direct share of the receivers' light (auto): median "
-                f"{float(np.median(strength)):.2f}, range {float(strength.min()):.2f}–"
-                f"{float(strength.max()):.2f}", quiet)
-        factor = TF.shadow_factor(T, weights_for(scene, receiver_normals), strength)  # [M, 3]
-        scene = TF.attenuate(scene, factor)
-        log(f"shadowed receivers: mean factor {factor.mean():.3f}, "
-            f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of {len(factor)} "
-            f"darkened", quiet)
-        if shadow_map.groups is not None:
-            if len(shadow_map.groups) != len(relit_objects):
-                raise DataError(f"the shadow map has {len(shadow_map.groups)} occluder groups "
-                                f"({', '.join(shadow_map.group_names)}) but {len(relit_objects)} "
-                                f"object(s) were given (IN + --object, in dgsm-build's order)",
-                                dgsm)
-            for j, obj in enumerate(relit_objects):
-                if auto and object_direct[j] is None:
-                    continue    # lit by the probe only: the lights' shadows do not reach it
-                T = sample_transmittance(shadow_map.others(j), obj.means, obj.scales,
-                                         obj.rotations, footprint=footprint, samples=samples,
-                                         seed=seed)
-                if auto:        # colour ρ(S + D): direct share D/(S + D), weights D_l (exact)
-                    d = object_direct[j].sum(axis=0) / math.pi
-                    probe_part = np.clip(TF.shading(sh_probe.coefficients, obj.normals, lobe),
-                                         0.0, None)
-                    total = probe_part + d
-                    share = np.where(total > 0, d / np.where(total > 0, total, 1), 0.0)
-                    factor = TF.shadow_factor(T, object_direct[j], share)
-                else:
-                    factor = TF.shadow_factor(T, weights_for(obj, obj.normals), shadow_strength)
-                relit_objects[j] = TF.attenuate(obj, factor)
-                log(f"shadowed object {j} by the others: mean factor {factor.mean():.3f}, "
-                    f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of "
-                    f"{len(factor)} darkened", quiet)
-        elif len(relit_objects) > 1:
-            log("note: the shadow map has no occluder groups, so the objects do not shadow "
-                "each other (build it from all objects: dgsm-build A B ...)", quiet)
-
-    from relight_cli.formats.gaussians_ply import concatenate
-    relit = relit_objects[0] if len(relit_objects) == 1 else concatenate(relit_objects)
-    inputs = {"input": parsed[0][0], "probe": probe}
-    for j, (source, _) in enumerate(parsed[1:]):
-        inputs[f"object{j}"] = source
-    if receivers:
-        inputs["receivers"] = receivers
-    if dgsm:
-        inputs["dgsm"] = dgsm
-    settings = {"lobe": lobe, "intensity": intensity, "t_max": t_max, "normals": normals,
-                "footprint": footprint, "samples": samples, "seed": seed,
-                "shadow_strength": shadow_strength, "direct_light": direct_light,
-                "objects": specs}
-    if dgsm is not None:
-        # which opacity mapping made the shadow map, and how its lights were weighted
-        settings.update(dgsm_mapping=shadow_map.mapping, dgsm_kappa=shadow_map.kappa,
-                        light_weights=weights_used)
-    if receivers_out is not None:
-        write_gaussians(receivers_out, scene, provenance(FORMAT, VERSION, inputs,
-                                                         dict(settings, role="receivers")))
-        log(f"wrote {receivers_out}", quiet)
-    if camera is None:
-        write_gaussians(output, relit, provenance(FORMAT, VERSION, inputs, settings))
-        log(f"wrote {output} ({time.perf_counter() - start:.2f} s)", quiet)
+    if a.receivers is not None:
+        scene = load_gaussians(a.receivers)   # PLY, mesh or builtin:
+        log(f"read {a.receivers}: {len(scene)} receiver Gaussians", a.quiet)
+    if shadow_map is not None and shadow_map.groups is not None \
+            and len(shadow_map.groups) != len(objects):
+        raise DataError(f"the shadow map has {len(shadow_map.groups)} occluder groups "
+                        f"({', '.join(shadow_map.group_names)}) but {len(objects)} "
+                        f"object(s) were given (IN + --object, in dgsm-build's order)", a.dgsm)
+    view = _read_view(a.camera)
+    relit = G.relight(objects, probe, _gaussian_options(a), shadow_map, scene, view, bg,
+                      names=[source for source, _ in parsed], log=lambda m: log(m, a.quiet))
+    settings = dict(relit.settings, objects=specs)
+    inputs = _gaussian_inputs(a, parsed, camera=False)
+    if a.receivers_out is not None:
+        _write_ply(a.receivers_out, relit.receivers, inputs, dict(settings, role="receivers"))
+        log(f"wrote {a.receivers_out}", a.quiet)
+    if view is None:
+        _write_ply(a.output, relit.objects, inputs, settings)
+        log(f"wrote {a.output} ({time.perf_counter() - start:.2f} s)", a.quiet)
         return
-
-    from relight_cli.formats.camera import read_camera
-    from relight_cli.formats.exr import write_exr
-    from relight_cli.gaussians.splat import render
-
-    inputs["camera"] = camera
-    view = read_camera(camera)
-    everything = relit if scene is None else concatenate([scene, relit])
-    image = render(everything, view, background=bg)
-    channels = {"R": image.image[..., 0], "G": image.image[..., 1], "B": image.image[..., 2],
-                "A": image.alpha}
-    write_exr(output, channels, attributes={"relight.camera": view.to_json()},
-              provenance=provenance("relight/render", 1, inputs,
-                                    dict(settings, background=list(bg))), camera=view)
-    log(f"wrote {output} ({view.width}x{view.height}, {len(everything)} Gaussians, "
-        f"{time.perf_counter() - start:.2f} s)", quiet)
-    if preview is not None:
-        from relight_cli.preview import write_preview
-        write_preview(preview, image.image.astype(np.float32))
-        log(f"wrote {preview}", quiet)
+    _write_view(a, relit.channels, relit.rgb, view, _gaussian_inputs(a, parsed, camera=True),
+                dict(settings, background=list(bg)), {})
+    log(f"wrote {a.output} ({view.width}x{view.height}, {relit.rendered} Gaussians, "
+        f"{time.perf_counter() - start:.2f} s)", a.quiet)
+    if a.preview is not None:
+        log(f"wrote {a.preview}", a.quiet)
 
 
-def _weights_mode(light_weights, shadow_map, quiet):
-    """--light-weights as it can run with this shadow map (version 1 maps: equal, said)."""
-    from relight_cli.gaussians import transfer as TF
-    mode = TF.effective_light_weights(light_weights, shadow_map.intensities)
-    if mode != light_weights:
-        log("note: this shadow map (DGSM version 1) stores no light intensities; the lights "
-            "are weighted equally", quiet)
-    return mode
+def _gaussian_usage(a) -> tuple:
+    """The Gaussian mode's usage checks (before any work): the background."""
+    from relight_cli.errors import UsageProblem
+    if a.probe is None and a.shadow_matte is None:
+        raise UsageProblem("Gaussian relighting needs --probe PROBE.json (make one with relight "
+                           "sh-probe)")
+    for wrong, message in (
+            (a.dgsm is not None and a.receivers is None,
+             "--dgsm shadows receivers: give --receivers SCENE.ply"),
+            (a.direct_light and a.dgsm is None,
+             "--direct-light takes its lights from --dgsm SHADOWS.exr"),
+            (a.receivers_out is not None and a.receivers is None,
+             "--receivers-out needs --receivers"),
+            (a.preview is not None and a.camera is None,
+             "--preview needs --camera (a rendered view)"),
+            (a.shadow_matte is not None and (a.camera is None or a.dgsm is None),
+             "--shadow-matte renders a matte: give --camera CAMERA.json and --dgsm "
+             "SHADOWS.exr (its lights)")):
+        if wrong:
+            raise UsageProblem(message)
+    bg = parse_vector(a.background, 3, "--background", minimum=0)
+    if a.camera is not None and not a.output.lower().endswith(".exr"):
+        raise UsageProblem("with --camera, -o is an EXR image (name it .exr)", a.output)
+    if a.camera is None and not a.output.lower().endswith(".ply"):
+        raise UsageProblem("-o is the relit Gaussians PLY (name it .ply), or use --camera CAM "
+                           "-o IMAGE.exr", a.output)
+    check_output(a.output, a.no_clobber)
+    check_output(a.receivers_out, a.no_clobber, kind="ply", what="--receivers-out")
+    check_output(a.preview, a.no_clobber, kind="png", what="--preview")
+    return bg
 
 
-def _shadow_matte(mode, specs, parsed, output, dgsm, receivers, camera_path, footprint, samples,
-                  light_weights, background, preview, seed, quiet, start):
+def _gaussian_options(a):
+    from relight_cli.jobs.relight_gaussians import GaussianOptions
+    return GaussianOptions(lobe=a.lobe, intensity=a.intensity, t_max=a.t_max, normals=a.normals,
+                           footprint=a.footprint, samples=a.samples, seed=a.seed,
+                           shadow_strength=a.shadow_strength, light_weights=a.light_weights,
+                           direct_light=a.direct_light)
+
+
+def _gaussian_inputs(a, parsed, camera: bool) -> dict:
+    """The provenance roles of the Gaussian mode's input files."""
+    inputs = {"input": parsed[0][0]}
+    if a.shadow_matte is None:
+        inputs["probe"] = a.probe
+    inputs.update({f"object{j}": source for j, (source, _) in enumerate(parsed[1:])})
+    inputs.update({role: path for role, path in (("receivers", a.receivers), ("dgsm", a.dgsm))
+                   if path})
+    if camera:
+        inputs["camera"] = a.camera
+    return inputs
+
+
+def _shadow_matte(a, specs, parsed, bg, start) -> None:
     """The receivers-only shadow matte of the paper's Sec. 4.2 (``--shadow-matte``)."""
     import time
 
-    import numpy as np
-
     from relight_cli.errors import DataError
-    from relight_cli.formats.camera import read_camera
-    from relight_cli.formats.exr import write_exr
-    from relight_cli.gaussians import dgsm as D
-    from relight_cli.gaussians import shadow_matte as SM
-    from relight_cli.gaussians import transfer as TF
     from relight_cli.gaussians.from_mesh import load_gaussians
-    from relight_cli.gaussians.splat import render
-    from relight_cli.provenance import provenance
+    from relight_cli.jobs import relight_gaussians as G
 
-    shadow_map = _read_dgsm(dgsm)
-    scene = load_gaussians(receivers)
-    camera = read_camera(camera_path)
-    weights_used = _weights_mode(light_weights, shadow_map, quiet)
-    weights = TF.dgsm_light_weights(weights_used, shadow_map, scene)
-    if mode == "dgsm":
-        V = D.sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
-                                   footprint=footprint, samples=samples, seed=seed)   # [L, M]
-    else:
+    shadow_map = _read_dgsm(a.dgsm)
+    scene = load_gaussians(a.receivers)
+    view = _read_view(a.camera)
+    meshes = None
+    if a.shadow_matte == "mesh":
+        from relight_cli.gaussians import shadow_matte as SM
         meshes = []
         for spec, (source, placement) in zip(specs, parsed):
             try:
                 meshes.append(SM.load_placed_mesh(source, placement))
             except ValueError as exc:
                 raise DataError(str(exc), spec) from None
-        pts, n = D.footprint_samples(scene.means, scene.scales, scene.rotations, footprint,
-                                     samples, seed)
-        V = SM.mesh_visibility(meshes, shadow_map.lights, pts.reshape(-1, 3))
-        V = V.reshape(len(shadow_map.lights), len(scene), n).mean(axis=2)
-    strength = SM.shadow_strength(TF.shadow_factor(V, weights, 1.0))
-    image = render(scene, camera, background=parse_vector(background, 3, "--background"),
-                   colors=SM.matte_colors(strength))
-    inputs = {"input": parsed[0][0], "dgsm": dgsm, "receivers": receivers, "camera": camera_path}
-    for j, (source, _) in enumerate(parsed[1:]):
-        inputs[f"object{j}"] = source
-    settings = {"shadow_matte": mode, "footprint": footprint, "samples": samples, "seed": seed,
-                "light_weights": weights_used, "dgsm_mapping": shadow_map.mapping,
-                "objects": specs}
-    channels = {"R": image.image[..., 0], "G": image.image[..., 1], "B": image.image[..., 2],
-                "A": image.alpha}
-    write_exr(output, channels, attributes={"relight.matte": f"shadow strength ({mode})",
-                                            "relight.camera": camera.to_json()},
-              provenance=provenance("relight/render", 1, inputs, settings), camera=camera)
-    log(f"wrote {output} (shadow matte, {mode}: {int((strength > 0.1).sum())} of {len(strength)} "
-        f"receivers > 0.1, {time.perf_counter() - start:.2f} s)", quiet)
-    if preview is not None:
+    options = _gaussian_options(a)
+    options.light_weights = a.light_weights or "intensity"
+    matte = G.shadow_matte(a.shadow_matte, scene, shadow_map, view, options, meshes, bg,
+                           log=lambda m: log(m, a.quiet))
+    _write_view(a, matte.channels, matte.rgb, view, _gaussian_inputs(a, parsed, camera=True),
+                dict(matte.settings, objects=specs),
+                {"relight.matte": f"shadow strength ({a.shadow_matte})"})
+    log(f"wrote {a.output} (shadow matte, {a.shadow_matte}: "
+        f"{int((matte.strength > 0.1).sum())} of {len(matte.strength)} receivers > 0.1, "
+        f"{time.perf_counter() - start:.2f} s)", a.quiet)
+
+
+def _write_ply(path, gaussians, inputs, settings) -> None:
+    from relight_cli.formats.gaussians_ply import FORMAT, VERSION, write_gaussians
+    from relight_cli.provenance import provenance
+    write_gaussians(path, gaussians, provenance(FORMAT, VERSION, inputs, settings))
+
+
+def _write_view(a, channels, rgb, view, inputs, settings, attributes) -> None:
+    """A rendered Gaussian view: -o's EXR (R, G, B, A) and the --preview PNG."""
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.provenance import provenance
+    write_exr(a.output, channels, attributes={**attributes, "relight.camera": view.to_json()},
+              provenance=provenance("relight/render", 1, inputs, settings), camera=view)
+    if a.preview is not None:
         from relight_cli.preview import write_preview
-        write_preview(preview, image.image.astype(np.float32))
+        write_preview(a.preview, rgb)
 
 
-def _relight_hand(input, env, output, checkpoint, device, precision, probe, dgsm, receivers,
-                  receivers_out, model, camera, hand_size, hand_lights, hand_frame, hand_frames, hand_mesh,
-                  env_res, tex_res, aa, no_shadows, no_specular, no_sss, sss_scale, bounce,
-                  albedo_map, roughness_map, aov, background, preview, seed, no_clobber, quiet,
-                  **_):
-    """Hand mode: hand.npz + model + env map and/or point lights + camera → EXR image(s)
-    (one per frame with --frames; relight_cli.jobs.relight_hand renders them)."""
+def _read_view(path):
+    """The camera of --camera (None without one)."""
+    if path is None:
+        return None
+    from relight_cli.formats.camera import read_camera
+    return read_camera(path)
+
+
+def _read_dgsm(path: str):
+    """The DGSM reader of formats/dgsm_exr.py (owned by the DGSM module)."""
+    from relight_cli.errors import UsageProblem
+    try:
+        from relight_cli.formats import dgsm_exr
+    except ImportError:
+        raise UsageProblem("--dgsm is not available in this build (formats/dgsm_exr.py is "
+                           "missing)", path) from None
+    return dgsm_exr.read_dgsm(path)
+
+
+# ------------------------------------------------------------------------- hands
+
+def _hand_physical(a) -> None:
+    """Hand mode, --model physical: the posed hand(s) under ENV and/or --lights → EXR
+    image(s), one per frame with --frames (relight_cli.jobs.relight_hand.physical)."""
     import time
 
-    from relight_cli.errors import DataError, UsageProblem
-
-    # ---- usage checks before any work
-    gaussian_only = {"--probe": probe, "--dgsm": dgsm, "--receivers": receivers,
-                     "--receivers-out": receivers_out, "--shadow-matte": _.get("shadow_matte")}
-    given = [k for k, v in gaussian_only.items() if v is not None]
-    if given:
-        raise UsageProblem(f"{', '.join(given)} only apply to Gaussians (IN = AVATAR.ply)")
-    model = model or "physical"
-    if model not in ("physical", "teacher", "student", "linear"):
-        raise UsageProblem(f"--model {model!r} is not available; use physical, teacher, student "
-                           f"or linear")
-    if model == "physical" and (checkpoint or device is not None):
-        raise UsageProblem("--checkpoint and --device belong to a learned --model (teacher, "
-                           "student, linear)")
-    if precision is not None and model != "student":
-        raise UsageProblem("--precision sets the student's decoder: it needs --model student")
-    if model in ("teacher", "student", "linear"):
-        return _relight_hand_learned(**locals())
-    width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, camera,
-                                                            hand_size, hand_frame, env_res)
-    _sequence_patterns(hand_frame, hand_frames, output, preview)
-    tex = 256 if tex_res is None else tex_res
-    if not 8 <= tex <= 4096:
-        raise UsageProblem(f"--tex-res must be in [8, 4096], got {tex}")
-    samples_axis = 2 if aa is None else aa
-    if not 1 <= samples_axis <= 8:
-        raise UsageProblem(f"--aa must be in [1, 8], got {samples_axis}")
-    scale = 1.0 if sss_scale is None else sss_scale   # its range is checked by FiniteFloat
-    aovs = [a.strip() for a in aov.split(",") if a.strip()] if aov else []
-    if aov is not None and not aovs:
-        raise UsageProblem("--aov needs at least one of normal, uv, depth")
-    bad = [a for a in aovs if a not in ("normal", "uv", "depth")]
-    if bad:
-        raise UsageProblem(f"--aov takes normal, uv, depth; unknown: {', '.join(bad)}")
-    rough_value = None
-    if roughness_map is not None:
-        try:
-            rough_value = float(roughness_map)
-        except ValueError:
-            check_input(roughness_map)
-        else:
-            if not 0 < rough_value <= 1:
-                raise UsageProblem(f"--roughness must be in (0, 1], got {roughness_map}")
-    bg = parse_vector(background, 3, "--background", minimum=0)
-    if hand_frames is None:
-        check_output(output, no_clobber, kind="exr")
-        check_output(preview, no_clobber, kind="png", what="--preview")
-    for path, role in ((camera, "--camera"), (hand_lights, "--lights"), (albedo_map, None)):
-        if path is not None:
-            check_input(path, stdin=role)
-
-    # ---- inputs (data errors)
-    start = time.perf_counter()
+    from relight_cli.errors import DataError
     from relight_cli.inputs import load_envmap, load_hand, read_roughness_map
     from relight_cli.jobs import relight_hand as J
     from relight_cli.render import appearance as A
-    from relight_cli.render.shading import PointLights, RenderSettings
-    from relight_cli.provenance import provenance
+    from relight_cli.render.shading import RenderSettings
 
-    data = load_hand(input)
-    frames = _frames(hand_frames, frame, data, input, output, preview, no_clobber)
-    envmap = load_envmap(env) if env is not None else None
-    lights = None
-    if hand_lights is not None:
-        from relight_cli.formats.lights_json import read_lights
-        raw = read_lights(hand_lights)
-        lights = PointLights(raw.positions, raw.colors * raw.intensities[:, None])
-    albedo = None
-    if albedo_map is not None:
-        from relight_cli.formats.image import read_image
-        pixels, _names = read_image(albedo_map)
-        if pixels.shape[2] < 3:
-            raise DataError("albedo map needs 3 colour channels", albedo_map)
-        albedo = pixels[..., :3]
+    width, height, frame, env_h, env_w = _hand_view_options(a)
+    _sequence_patterns(a)
+    tex, samples_axis, aovs, rough_value = _physical_usage(a)
+    bg = parse_vector(a.background, 3, "--background", minimum=0)
+    _check_hand_files(a, (a.albedo_map, None))
+
+    start = time.perf_counter()
+    data = load_hand(a.input)
+    frames = _frames(a, frame, data)
+    envmap = load_envmap(a.env) if a.env is not None else None
+    lights = _point_lights(a.hand_lights)
     rough = rough_value
-    if roughness_map is not None and rough_value is None:
-        rough = read_roughness_map(roughness_map)
-    mesh_name = hand_mesh or "fine"
-    view_of = _view_of(camera, width, height)
+    if a.roughness_map is not None and rough_value is None:
+        rough = read_roughness_map(a.roughness_map)
+    mesh_name = a.hand_mesh or "fine"
+    view_of = _view_of(a, width, height)
     try:
-        materials = A.hand_materials(data, mesh_name, max(tex, 256), seed, albedo, rough)
+        materials = A.hand_materials(data, mesh_name, max(tex, 256), a.seed,
+                                     _albedo(a.albedo_map), rough)
     except ValueError as exc:
-        raise DataError(str(exc), albedo_map or roughness_map) from None
-    log(f"read {input}: {len(data.hands)} hand(s), "
-        f"{_frames_text(frames)}; {'env ' + env if env else 'no env'}, "
-        f"{0 if lights is None else len(lights)} point light(s)", quiet)
+        raise DataError(str(exc), a.albedo_map or a.roughness_map) from None
+    log(f"read {a.input}: {len(data.hands)} hand(s), "
+        f"{_frames_text(frames)}; {'env ' + a.env if a.env else 'no env'}, "
+        f"{0 if lights is None else len(lights)} point light(s)", a.quiet)
 
-    # ---- render
-    settings = RenderSettings(tex_res=tex, aa=samples_axis, shadows=not no_shadows,
-                              specular=not no_specular, sss=not no_sss, sss_scale=scale,
-                              env_res=(env_h, env_w), bounce=bounce)
-    inputs = {"hand": input}
-    if env is not None:
-        inputs["env"] = env
-    for role, path in (("camera", camera), ("lights", hand_lights), ("albedo", albedo_map)):
-        if path is not None:
-            inputs[role] = path
-    if roughness_map is not None and rough_value is None:
-        inputs["roughness"] = roughness_map
-    from relight_cli.formats.exr import write_exr
+    scale = 1.0 if a.sss_scale is None else a.sss_scale   # its range is checked by FiniteFloat
+    settings = RenderSettings(tex_res=tex, aa=samples_axis, shadows=not a.no_shadows,
+                              specular=not a.no_specular, sss=not a.no_sss, sss_scale=scale,
+                              env_res=(env_h, env_w), bounce=a.bounce)
+    inputs = {"hand": a.input, "env": a.env, "camera": a.camera, "lights": a.hand_lights,
+              "albedo": a.albedo_map,
+              "roughness": a.roughness_map if rough_value is None else None}
+    record = J.physical_settings(settings, mesh_name, a.roughness_map, a.seed, bg)
     renders = J.physical(data, frames, view_of, materials, settings, lights, envmap, bg,
-                         mesh_name, aovs, input)
-    with _frame_bar(frames, hand_frames, quiet) as (step, done):
-        for r in renders:
-            record = provenance("relight/render", 1, inputs, {
-                "model": model, "frame": r.frame, "mesh": mesh_name, "env_res": [env_h, env_w],
-                "tex_res": tex, "aa": samples_axis, "shadows": not no_shadows,
-                "specular": not no_specular, "sss": not no_sss, "sss_scale": scale,
-                "bounce": bounce, "roughness": roughness_map, "seed": seed,
-                "background": list(bg)})
-            path, png = _frame_outputs(hand_frames, output, preview, r.frame)
-            write_exr(path, r.channels, attributes={
-                "relight.model": model, "relight.camera": r.view.to_json()}, provenance=record,
-                camera=r.view)
-            if png is not None:
-                from relight_cli.preview import write_preview
-                write_preview(png, r.rgb)
-            step(r)
-    _log_written(done, output, hand_frames, start, quiet)
+                         mesh_name, aovs, a.input)
+    _write_frames(a, renders, frames, inputs, record, start, passes=False)
 
 
-def _relight_hand_learned(input, env, output, checkpoint, device, precision, model, camera,
-                          hand_size,
-                          hand_lights, hand_frame, hand_frames, hand_mesh, env_res, tex_res, aa,
-                          no_shadows, no_specular, no_sss, sss_scale, bounce, albedo_map, roughness_map, aov,
-                          background, preview, no_clobber, quiet, **_):
-    """Hand mode with a learned model: the teacher's per-light textures summed (Eq. 2)."""
+def _physical_usage(a) -> tuple:
+    """--model physical's own usage checks: (tex_res, aa, AOV names, roughness value or None)."""
+    from relight_cli.errors import UsageProblem
+    tex = 256 if a.tex_res is None else a.tex_res
+    if not 8 <= tex <= 4096:
+        raise UsageProblem(f"--tex-res must be in [8, 4096], got {tex}")
+    samples_axis = 2 if a.aa is None else a.aa
+    if not 1 <= samples_axis <= 8:
+        raise UsageProblem(f"--aa must be in [1, 8], got {samples_axis}")
+    aovs = [v.strip() for v in a.aov.split(",") if v.strip()] if a.aov else []
+    if a.aov is not None and not aovs:
+        raise UsageProblem("--aov needs at least one of normal, uv, depth")
+    bad = [v for v in aovs if v not in ("normal", "uv", "depth")]
+    if bad:
+        raise UsageProblem(f"--aov takes normal, uv, depth; unknown: {', '.join(bad)}")
+    rough_value = None
+    if a.roughness_map is not None:
+        try:
+            rough_value = float(a.roughness_map)
+        except ValueError:
+            check_input(a.roughness_map)
+        else:
+            if not 0 < rough_value <= 1:
+                raise UsageProblem(f"--roughness must be in (0, 1], got {a.roughness_map}")
+    return tex, samples_axis, aovs, rough_value
+
+
+def _hand_learned(a) -> None:
+    """Hand mode with a learned model: the teacher's per-light textures summed (Eq. 2),
+    URHand's linear model, or the student (relight_cli.jobs.relight_hand)."""
     import time
+
+    from relight_cli.errors import UsageProblem
+    from relight_cli.inputs import load_envmap, load_hand
+    from relight_cli.neural.train import resolve_device
+
+    if not a.checkpoint:
+        raise UsageProblem(f"--model {a.model} needs --checkpoint CKPT.pt (from "
+                           f"{'distill' if a.model == 'student' else 'train-teacher'})")
+    if a.model == "student" and len(a.checkpoint) > 1:
+        raise UsageProblem("--model student takes one --checkpoint (one student renders "
+                           "every hand)")
+    if a.model == "student" and a.hand_lights is not None:
+        raise UsageProblem("the student is an env-map model: it cannot take --lights (use "
+                           "--model teacher for point lights)")
+    width, height, frame, env_h, env_w = _hand_view_options(a)
+    _sequence_patterns(a)
+    if a.aa is not None and not 1 <= a.aa <= 8:
+        raise UsageProblem(f"--aa must be in [1, 8], got {a.aa}")
+    bg = parse_vector(a.background, 3, "--background")
+    _check_hand_files(a, *((path, None) for path in a.checkpoint))
+
+    start = time.perf_counter()
+    device = resolve_device(a.device or "auto")
+    data = load_hand(a.input)
+    frames = _frames(a, frame, data)
+    if a.model == "student":
+        net, config, ckpt = _load_student(a, data, device)
+    else:
+        per_hand = _load_per_hand(a, data, device)
+        config = per_hand[0].config
+    envmap = load_envmap(a.env) if a.env is not None else None
+    lights = None
+    if a.hand_lights is not None:
+        from relight_cli.formats.lights_json import read_lights
+        lights = read_lights(a.hand_lights)
+    view_of = _view_of(a, width, height)
+    samples_axis = ((config.aa or 2) if a.model == "teacher" else 2) if a.aa is None else a.aa
+    job = dict(data=data, frames=frames, view_of=view_of, samples_axis=samples_axis,
+               background=bg, device=device, source=a.input)
+    if a.model == "student":
+        return _render_student(a, job, net, config, ckpt, envmap, env_h, env_w, start)
+    _render_per_hand(a, job, per_hand, lights, envmap, env_h, env_w, start)
+
+
+def _render_student(a, job, net, config, ckpt, envmap, env_h, env_w, start) -> None:
+    """--model student: the texel features under the env map, one decoder pass per frame."""
+    from relight_cli.errors import UsageProblem
+    from relight_cli.envmap import discretize_env
+    from relight_cli.jobs import relight_hand as J
+    if a.env_res is None:
+        env_h, env_w = config.env_res            # the student's own grid
+    if (env_h, env_w) != tuple(config.env_res):
+        from relight_cli.envmap import EnvGrid
+        raise UsageProblem(f"the student was trained on a {EnvGrid(*config.env_res)} (WxH) "
+                           f"env grid; --env-res must match")
+    used = J.decoder_precision(a.precision or "auto", job["device"])
+    log(f"student decoder: {used} (--precision {a.precision or 'auto'})", a.quiet)
+    renders = J.student(net=net, config=config, denv=discretize_env(envmap, env_h, env_w),
+                        precision=used, **job)
+    inputs = {"hand": a.input, "checkpoint": a.checkpoint[0], "env": a.env, "camera": a.camera}
+    settings = J.student_settings(config, ckpt["step"], used, (env_h, env_w),
+                                  job["samples_axis"], job["background"])
+    _write_frames(a, renders, job["frames"], inputs, settings, start, passes=False)
+
+
+def _render_per_hand(a, job, per_hand, lights, envmap, env_h, env_w, start) -> None:
+    """--model teacher|linear: one pass per light / direction and hand (teacher; linear:
+    one per lighting and hand), hand k by its own model, visibility against every hand;
+    a bar over the passes for one frame."""
+    import contextlib
 
     import numpy as np
 
-    from relight_cli.errors import DataError, UsageProblem
-
-    # ---- usage checks before any work
-    physical_only = {"--mesh": hand_mesh, "--tex-res": tex_res,
-                     "--no-shadows": no_shadows or None, "--no-specular": no_specular or None,
-                     "--no-sss": no_sss or None, "--sss-scale": sss_scale,
-                     "--bounce": bounce or None, "--albedo": albedo_map,
-                     "--roughness": roughness_map, "--aov": aov}
-    given = [k for k, v in physical_only.items() if v is not None]
-    if given:
-        raise UsageProblem(f"{', '.join(given)} only apply to --model physical (a learned "
-                           f"model has its own texture, materials and shadows)")
-    if not checkpoint:
-        raise UsageProblem(f"--model {model} needs --checkpoint CKPT.pt (from "
-                           f"{'distill' if model == 'student' else 'train-teacher'})")
-    if model == "student" and len(checkpoint) > 1:
-        raise UsageProblem("--model student takes one --checkpoint (one student renders "
-                           "every hand)")
-    if model == "student" and hand_lights is not None:
-        raise UsageProblem("the student is an env-map model: it cannot take --lights (use "
-                           "--model teacher for point lights)")
-    width, height, frame, env_h, env_w = _hand_view_options(env, hand_lights, output, camera,
-                                                            hand_size, hand_frame, env_res)
-    _sequence_patterns(hand_frame, hand_frames, output, preview)
-    if aa is not None and not 1 <= aa <= 8:
-        raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
-    bg = parse_vector(background, 3, "--background")
-    if hand_frames is None:
-        check_output(output, no_clobber, kind="exr")
-        check_output(preview, no_clobber, kind="png", what="--preview")
-    for path, role in ((camera, "--camera"), (hand_lights, "--lights")):
-        if path is not None:
-            check_input(path, stdin=role)
-    for path in checkpoint:
-        check_input(path)
-
-    # ---- inputs (data errors)
-    start = time.perf_counter()
-    from relight_cli.inputs import load_envmap, load_hand
-    from relight_cli.jobs import relight_hand as J
-    from relight_cli.neural.train import resolve_device
-
-    torch_device = resolve_device(device or "auto")
-    data = load_hand(input)
-    frames = _frames(hand_frames, frame, data, input, output, preview, no_clobber)
-    if model == "student":
-        from relight_cli.formats.checkpoint import read_checkpoint
-        from relight_cli.neural.checkpoints import student_model
-        from relight_cli.neural.geometry import uv_layout_digest
-        ckpt = read_checkpoint(checkpoint[0], kind=model)
-        try:
-            net, config = student_model(ckpt, torch_device)
-        except (ValueError, UsageProblem) as exc:
-            raise DataError(getattr(exc, "message", str(exc)), checkpoint[0]) from None
-        if (data.n_joints - 1) * 3 != int(ckpt["pose_dim"]):
-            raise DataError(f"the hand has {data.n_joints} joints; the checkpoint's model was "
-                            f"trained on {int(ckpt['pose_dim']) // 3 + 1}", input)
-        layout = ckpt.get("extra", {}).get("uv_layout")
-        if layout is not None and layout != uv_layout_digest(data.mesh("fine")):
-            raise DataError("the hand's UV layout differs from the one the model learned its "
-                            "texture on (another hand model?)", input)
-    else:
-        from relight_cli.hand.scene import handedness
-        from relight_cli.neural import evaluate as EV
-        models = _load_hand_models(checkpoint, model, torch_device)
-        try:
-            per_hand = EV.assign_models(models, handedness(data))
-        except ValueError as exc:
-            raise UsageProblem(str(exc)) from None
-        try:
-            EV.check_hands(per_hand, data)
-        except ValueError as exc:
-            raise DataError(str(exc), getattr(exc, "path", None) or input) from None
-        config, ckpt = per_hand[0].config, None
-        _log_mirrored(per_hand, handedness(data), quiet)
-    envmap = load_envmap(env) if env is not None else None
-    lights = None
-    if hand_lights is not None:
-        from relight_cli.formats.lights_json import read_lights
-        lights = read_lights(hand_lights)
-    view_of = _view_of(camera, width, height)
-    samples_axis = ((config.aa or 2) if model == "teacher" else 2) if aa is None else aa
-    from relight_cli.features import discretize_env
-    if model == "student":
-        if env_res is None:
-            env_h, env_w = config.env_res            # the student's own grid
-        if (env_h, env_w) != tuple(config.env_res):
-            from relight_cli.envmap import EnvGrid
-            raise UsageProblem(f"the student was trained on a {EnvGrid(*config.env_res)} (WxH) "
-                               f"env grid; --env-res must match")
-        used = J.decoder_precision(precision or "auto", torch_device)
-        log(f"student decoder: {used} (--precision {precision or 'auto'})", quiet)
-        renders = J.student(data, frames, view_of, net, config,
-                            discretize_env(envmap, env_h, env_w), samples_axis, bg, torch_device,
-                            input, used)
-        inputs = {"hand": input, "checkpoint": checkpoint[0], "env": env, "camera": camera}
-        settings = {"model": model, "student": config.student, "mesh": "fine",
-                    "precision": used,
-                    "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
-                    "specular": config.specular, "visibility": config.visibility,
-                    "checkpoint_step": int(ckpt["step"]), "background": list(bg)}
-        return _write_frames(renders, frames, hand_frames, output, preview, model, inputs,
-                             settings, start, quiet, passes=False)
-
-    # ---- render: one pass per light / direction and hand (teacher; linear: one per
-    # lighting and hand), hand k by its own model, visibility against every hand
     from relight_cli.clitools import progress
+    from relight_cli.envmap import discretize_env
+    from relight_cli.jobs import relight_hand as J
     denv = discretize_env(envmap, env_h, env_w) if envmap is not None else None
-    inputs = {"hand": input, "env": env, "camera": camera, "lights": hand_lights}
-    inputs.update(_checkpoint_roles(checkpoint))
-    settings = {"model": model, "teacher": config.model, "mesh": "fine",
-                "env_res": [env_h, env_w], "tex_res": config.tex_res, "aa": samples_axis,
-                "visibility": config.visibility, "falloff": config.falloff,
-                "checkpoints": [{"hand": k, "checkpoint": m.name, "model": m.model_name,
-                                 "sides": m.sides, "step": m.step}
-                                for k, m in enumerate(per_hand)],
-                "background": list(bg)}
-    if hand_frames is not None:          # a sequence: a bar over its frames
-        renders = J.learned(data, frames, view_of, per_hand, samples_axis, lights, denv, bg,
-                            torch_device, input)
-        return _write_frames(renders, frames, hand_frames, output, preview, model, inputs,
-                             settings, start, quiet, passes=True)
-    lit = 0 if denv is None else int(np.count_nonzero(denv.lit))
-    total = (lit + (0 if lights is None else len(lights.positions))) * len(data.hands)
-    with progress(total=total, desc=f"relight ({model} passes)", quiet=quiet) as bar:
-        renders = J.learned(data, frames, view_of, per_hand, samples_axis, lights, denv, bg,
-                            torch_device, input, progress=bar.update)
-        _write_frames(renders, frames, hand_frames, output, preview, model, inputs, settings,
-                      start, quiet, passes=True)
+    inputs = {"hand": a.input, "env": a.env, "camera": a.camera, "lights": a.hand_lights,
+              **_checkpoint_roles(a.checkpoint)}
+    settings = J.learned_settings(a.model, per_hand, (env_h, env_w), job["samples_axis"],
+                                  job["background"])
+    bar = contextlib.nullcontext()
+    if a.hand_frames is None:          # one frame: a bar over its passes (a sequence: frames)
+        lit = 0 if denv is None else int(np.count_nonzero(denv.lit))
+        total = (lit + (0 if lights is None else len(lights.positions))) * len(job["data"].hands)
+        bar = progress(total=total, desc=f"relight ({a.model} passes)", quiet=a.quiet)
+    with bar as passes:
+        renders = J.learned(per_hand=per_hand, lights=lights, denv=denv,
+                            progress=None if passes is None else passes.update, **job)
+        _write_frames(a, renders, job["frames"], inputs, settings, start, passes=True)
 
 
-def _write_frames(renders, frames, hand_frames, output, preview, model, inputs, settings,
-                  start, quiet, passes: bool) -> None:
-    """Write each FrameRender of a learned model (EXR R, G, B, A with provenance recording
-    its frame; the PNG preview), then the closing log line."""
-    with _frame_bar(frames, hand_frames, quiet) as (step, done):
-        for r in renders:
-            path, png = _frame_outputs(hand_frames, output, preview, r.frame)
-            _write_learned(path, png, r.rgb, r.channels["A"], model, r.view, inputs,
-                           {**settings, "frame": r.frame})
-            step(r)
-    _log_written(done, output, hand_frames, start, quiet, passes=passes)
+def _load_student(a, data, device) -> tuple:
+    """(net, config, checkpoint) of --model student; DataError for a checkpoint that does
+    not load or does not fit the hand."""
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.jobs import relight_hand as J
+    from relight_cli.neural.checkpoints import student_model
+    ckpt = read_checkpoint(a.checkpoint[0], kind="student")
+    try:
+        net, config = student_model(ckpt, device)
+    except (ValueError, UsageProblem) as exc:
+        raise DataError(getattr(exc, "message", str(exc)), a.checkpoint[0]) from None
+    try:
+        J.check_student(ckpt, data)
+    except ValueError as exc:
+        raise DataError(str(exc), a.input) from None
+    return net, config, ckpt
+
+
+def _load_per_hand(a, data, device) -> list:
+    """The HandModel of each hand (--model teacher|linear): each hand takes the checkpoint
+    trained on its handedness; a note when one renders its mirror image."""
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.hand.scene import handedness
+    from relight_cli.neural import evaluate as EV
+    models = _load_hand_models(a.checkpoint, a.model, device)
+    try:
+        per_hand = EV.assign_models(models, handedness(data))
+    except ValueError as exc:
+        raise UsageProblem(str(exc)) from None
+    try:
+        EV.check_hands(per_hand, data)
+    except ValueError as exc:
+        raise DataError(str(exc), getattr(exc, "path", None) or a.input) from None
+    for k, (m, side) in enumerate(zip(per_hand, handedness(data))):
+        if m.sides and side not in m.sides:
+            log(f"note: hand {k} ({side}) is rendered by {m.name}, trained on the "
+                f"{'/'.join(m.sides)} hand; give one --checkpoint per hand for its own model",
+                a.quiet)
+    return per_hand
 
 
 def _load_hand_models(paths, kind: str, device) -> list:
@@ -825,16 +745,6 @@ def _load_hand_models(paths, kind: str, device) -> list:
     return models
 
 
-def _log_mirrored(per_hand, sides, quiet) -> None:
-    """Say so when one hand's model renders a hand of the other handedness (its mirror
-    image: allowed, the tangent frames mirror, but not what the model was trained on)."""
-    for k, (m, side) in enumerate(zip(per_hand, sides)):
-        if m.sides and side not in m.sides:
-            log(f"note: hand {k} ({side}) is rendered by {m.name}, trained on the "
-                f"{'/'.join(m.sides)} hand; give one --checkpoint per hand for its own model",
-                quiet)
-
-
 def _checkpoint_roles(paths) -> dict:
     """Provenance roles of the checkpoints: ``checkpoint``, or ``checkpoint.0``, ``.1`` …"""
     if len(paths) == 1:
@@ -842,136 +752,68 @@ def _checkpoint_roles(paths) -> dict:
     return {f"checkpoint.{i}": p for i, p in enumerate(paths)}
 
 
-def _is_capture(spec: str) -> bool:
-    import os
-    if spec.lower().endswith((".npz", ".ply", ".obj", ".glb", ".gltf", ".stl", ".off")):
-        return False      # a file name (a folder by that name is then refused as a hand/avatar)
-    return os.path.isdir(spec) or os.path.basename(spec) == "capture.json"
-
-
-def _relight_capture(input, env, output, checkpoint, device, model, aa, env_res, splits,
-                     eval_samples, no_clobber, quiet, **options):
-    """Capture mode: a capture's frames and env renders, each hand by its own learned
-    model, scored against the capture's images (relight/metrics JSON)."""
-    import os
-    import time
-
-    from relight_cli.errors import DataError, UsageProblem
-
-    # ---- usage checks before any work
-    hand_or_gaussian = {"ENV": env, **{flag: options.get(name)
-                                       for name, flag in _VIEW_OPTIONS.items()}}
-    given = [k for k, v in hand_or_gaussian.items() if v not in (None, False, ())]
-    if given:
-        raise UsageProblem(f"{', '.join(given)} do not apply to a capture (IN = CAPTURE/ renders "
-                           f"the capture's own cameras, lights and env maps)")
-    if model not in ("teacher", "linear"):
-        raise UsageProblem("a capture is scored with --model teacher or linear (and one "
-                           "--checkpoint per hand)")
-    if not checkpoint:
-        raise UsageProblem(f"--model {model} needs --checkpoint CKPT.pt (one per hand)")
-    from relight_cli.neural.evaluate import SPLITS
-    names = None
-    if splits is not None:
-        names = [n.strip() for n in splits.split(",") if n.strip()]
-        bad = [n for n in names if n not in SPLITS]
-        if not names or bad:
-            raise UsageProblem(f"--splits takes {', '.join(SPLITS)}"
-                               + (f"; unknown: {', '.join(bad)}" if bad else ""))
-    if eval_samples is not None and eval_samples < 1:
-        raise UsageProblem(f"--eval-samples must be ≥ 1, got {eval_samples}")
-    if aa is not None and not 1 <= aa <= 8:
-        raise UsageProblem(f"--aa must be in [1, 8], got {aa}")
+def _hand_view_options(a) -> tuple:
+    """Hand mode's shared usage checks: (width, height, frame, env H, env W)."""
+    from relight_cli.clitools import check_extension, parse_size
+    from relight_cli.errors import UsageProblem
     from relight_cli.inputs import env_grid
-    grid = env_grid(env_res or "32x16")
-    from relight_cli.formats.capture import index_path
-    index = index_path(input)   # names a folder without capture.json and a capture.json that is a folder
-    folder = os.path.dirname(index) or "."
-    for path in (index, *checkpoint):
-        check_input(path)
-    # after the inputs (never one of them): the scores are a relight/metrics JSON
-    check_output(output, no_clobber, kind="json")
-
-    # ---- inputs (data errors), then the scores
-    start = time.perf_counter()
-    from relight_cli.clitools import progress
-    from relight_cli.formats.metrics_json import make_record, write_metrics
-    from relight_cli.neural.evaluate import CaptureEvaluator
-    from relight_cli.neural.train import resolve_device
-    from relight_cli.provenance import provenance
-
-    torch_device = resolve_device(device or "auto")
-    models = _load_hand_models(checkpoint, model, torch_device)
-    try:
-        evaluator = CaptureEvaluator(folder, models, torch_device, aa, grid)
-    except ValueError as exc:
-        raise UsageProblem(str(exc)) from None
-    if not evaluator.sampling["matched"]:
-        log(f"note: pixels sampled {evaluator.aa}×{evaluator.aa}, but the capture's images were "
-            f"made with {evaluator.sampling['capture_aa']}×{evaluator.sampling['capture_aa']} "
-            f"(recorded as settings.sampling.matched = false)", quiet)
-    chosen = names or evaluator.default_splits()
-    available = evaluator.data.splits()
-    total = sum(len(available.get(n) or []) if eval_samples is None
-                else min(eval_samples, len(available.get(n) or [])) for n in chosen)
-    with progress(total=total, desc="relight (capture samples)", quiet=quiet) as bar:
-        scores = evaluator.evaluate(chosen, eval_samples, progress=bar.update)
-    if not scores:
-        raise DataError(f"the capture has no samples in {', '.join(chosen)}", index)
-    inputs = {"capture": index, **_checkpoint_roles(checkpoint)}
-    settings = {"model": model, "splits": chosen, "eval_samples": eval_samples,
-                "env_res": list(grid), "aa": evaluator.aa, "sampling": evaluator.sampling,
-                "hands": [{"hand": k, "name": evaluator.names[k], "checkpoint": m.name,
-                           "model": m.model_name, "sides": m.sides, "step": m.step,
-                           **({"subject": m.subject} if m.subject else {})}
-                          for k, m in enumerate(evaluator.models)]}
-    record = provenance("relight/metrics", 2, inputs, settings)
-    write_metrics(output, make_record("validation", scores, {r: {"path": p} for r, p in
-                                                              inputs.items()}, settings, record))
-    summary = "; ".join(f"{n}: MSE {m['mse'] * 1e3:.3f}e-3 SSIM {m['ssim']:.3f} ({m['samples']})"
-                        for n, m in scores.items())
-    log(f"wrote {output} ({time.perf_counter() - start:.1f} s): {summary}", quiet)
+    if a.env is None and a.hand_lights is None:
+        raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
+    check_extension(a.output, "exr")
+    if a.camera is not None and a.hand_size is not None:
+        raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
+    width, height = 256, 256
+    if a.hand_size is not None:
+        width, height = parse_size(a.hand_size, "--size", maximum=8192)
+    frame = 0 if a.hand_frame is None else a.hand_frame
+    if frame < 0:
+        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
+    env_h, env_w = env_grid(a.env_res or "32x16")
+    return width, height, frame, env_h, env_w
 
 
-# options of the hand and Gaussian modes (a capture brings its own views and lights)
-_VIEW_OPTIONS = {"probe": "--probe", "dgsm": "--dgsm", "receivers": "--receivers",
-                 "objects": "--object", "receivers_out": "--receivers-out",
-                 "shadow_matte": "--shadow-matte", "camera": "--camera",
-                 "hand_size": "--size", "hand_lights": "--lights",
-                 "hand_frame": "--frame", "hand_frames": "--frames", "hand_mesh": "--mesh",
-                 "tex_res": "--tex-res",
-                 "no_shadows": "--no-shadows", "no_specular": "--no-specular",
-                 "no_sss": "--no-sss", "sss_scale": "--sss-scale", "bounce": "--bounce",
-                 "albedo_map": "--albedo", "roughness_map": "--roughness", "aov": "--aov",
-                 "preview": "--preview", "precision": "--precision",
-                 "direct_light": "--direct-light"}
+def _check_hand_files(a, *more) -> None:
+    """-o and --preview (one frame; a sequence's are checked by _frames), then the input
+    files: --camera, --lights and ``more`` (path, stdin role)."""
+    if a.hand_frames is None:
+        check_output(a.output, a.no_clobber, kind="exr")
+        check_output(a.preview, a.no_clobber, kind="png", what="--preview")
+    for path, role in ((a.camera, "--camera"), (a.hand_lights, "--lights"), *more):
+        if path is not None:
+            check_input(path, stdin=role)
 
 
-def _write_learned(output, preview, rgb, mask, model, camera, inputs, settings):
-    """A learned model's render (over its background: relight_cli.jobs.relight_hand): EXR
-    (R, G, B, A) with provenance, and the PNG preview."""
-    from relight_cli.formats.exr import write_exr
-    from relight_cli.provenance import provenance
-    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
-    record = provenance("relight/render", 1, {k: v for k, v in inputs.items() if v is not None},
-                        settings)
-    write_exr(output, channels, attributes={"relight.model": model,
-                                            "relight.camera": camera.to_json()},
-              provenance=record, camera=camera)
-    if preview is not None:
-        from relight_cli.preview import write_preview
-        write_preview(preview, rgb)
+def _point_lights(path):
+    """--lights as the physical renderer's PointLights (radiance colour × intensity)."""
+    if path is None:
+        return None
+    from relight_cli.formats.lights_json import read_lights
+    from relight_cli.render.shading import PointLights
+    raw = read_lights(path)
+    return PointLights(raw.positions, raw.colors * raw.intensities[:, None])
 
 
-def _sequence_patterns(hand_frame, hand_frames, output, preview) -> None:
+def _albedo(path):
+    """--albedo's [H, W, 3] UV albedo (None without one)."""
+    if path is None:
+        return None
+    from relight_cli.errors import DataError
+    from relight_cli.formats.image import read_image
+    pixels, _names = read_image(path)
+    if pixels.shape[2] < 3:
+        raise DataError("albedo map needs 3 colour channels", path)
+    return pixels[..., :3]
+
+
+def _sequence_patterns(a) -> None:
     """--frames' usage checks that need no input: not with --frame, and -o (and
     --preview) patterns that name each frame's file ({frame}, Python format syntax)."""
     from relight_cli.errors import UsageProblem
-    if hand_frames is None:
+    if a.hand_frames is None:
         return
-    if hand_frame is not None:
+    if a.hand_frame is not None:
         raise UsageProblem("--frame renders one frame, --frames a sequence: give one of them")
-    for what, pattern in (("-o", output), ("--preview", preview)):
+    for what, pattern in (("-o", a.output), ("--preview", a.preview)):
         if pattern is None:
             continue
         if pattern == "-":
@@ -988,47 +830,44 @@ def _sequence_patterns(hand_frame, hand_frames, output, preview) -> None:
             raise UsageProblem(f"{what} pattern {pattern!r} gives every frame the same file")
 
 
-def _frames(hand_frames, frame, data, source, output, preview, no_clobber) -> list:
+def _frames(a, frame, data) -> list:
     """The frames to render (``--frames`` or the one ``--frame``), and with --frames every
     frame's output checked as -o / --preview are (before any work)."""
     from relight_cli.errors import UsageProblem
-    if hand_frames is None:
+    from relight_cli.jobs.relight_hand import select_frames
+    if a.hand_frames is None:
         if frame >= data.n_frames:
-            raise UsageProblem(f"--frame {frame} is out of range: {source} has {data.n_frames} "
+            raise UsageProblem(f"--frame {frame} is out of range: {a.input} has {data.n_frames} "
                                f"frame(s)")
         return [frame]
-    from relight_cli.jobs.relight_hand import select_frames
     try:
-        frames = select_frames(hand_frames, data.n_frames)
+        frames = select_frames(a.hand_frames, data.n_frames)
     except ValueError as exc:
         raise UsageProblem(str(exc)) from None
-    for what, pattern, kind in (("-o", output, "exr"), ("--preview", preview, "png")):
+    for what, pattern, kind in (("-o", a.output, "exr"), ("--preview", a.preview, "png")):
         if pattern is None:
             continue
         paths = [pattern.format(frame=f) for f in frames]
         if len(set(paths)) != len(paths):
             raise UsageProblem(f"{what} pattern {pattern!r} gives two frames the same file")
         for path in paths:
-            check_output(path, no_clobber, kind=kind, what=what)
+            check_output(path, a.no_clobber, kind=kind, what=what)
     return frames
 
 
-def _frame_outputs(hand_frames, output, preview, frame) -> tuple:
+def _frame_outputs(a, frame) -> tuple:
     """(EXR path, PNG path or None) of one frame."""
-    if hand_frames is None:
-        return output, preview
-    return output.format(frame=frame), (None if preview is None else preview.format(frame=frame))
+    if a.hand_frames is None:
+        return a.output, a.preview
+    return (a.output.format(frame=frame),
+            None if a.preview is None else a.preview.format(frame=frame))
 
 
-def _view_of(camera, width, height):
-    """(frame, posed meshes) → Camera: ``camera`` read once, or each frame framed by the
+def _view_of(a, width, height):
+    """(frame, posed meshes) → Camera: --camera read once, or each frame framed by the
     default camera of ``width`` × ``height``."""
-    from relight_cli.hand.scene import preview_camera
-    if camera is not None:
-        from relight_cli.formats.camera import read_camera
-        view = read_camera(camera)
-        return lambda frame, meshes: view
-    return lambda frame, meshes: preview_camera(meshes, width, height)
+    from relight_cli.jobs.relight_hand import framing
+    return framing(width, height, _read_view(a.camera))
 
 
 def _frames_text(frames) -> str:
@@ -1037,32 +876,34 @@ def _frames_text(frames) -> str:
     return f"{len(frames)} frames ({frames[0]}…{frames[-1]})"
 
 
-class _frame_bar:
-    """A progress bar over a sequence's frames (frames/s); nothing for one frame.
-    Yields (step(render), done list of the renders' FrameRender)."""
+def _write_frames(a, renders, frames, inputs, settings, start, passes: bool) -> None:
+    """Write each FrameRender (EXR: its channels, provenance recording its frame; the PNG
+    preview; a bar over a sequence's frames), then the closing log line.  ``inputs``'
+    None roles are left out."""
+    import contextlib
 
-    def __init__(self, frames, hand_frames, quiet):
-        self.frames, self.sequence, self.quiet = frames, hand_frames is not None, quiet
-        self.done, self.bar = [], None
-
-    def __enter__(self):
-        if self.sequence:
-            from relight_cli.clitools import progress
-            self.bar = progress(total=len(self.frames), desc="relight (frames)", unit="frame",
-                                quiet=self.quiet).__enter__()
-
-        def step(render):
-            render.rgb = None          # the pixels are written; keep the timings only
-            render.channels = None
-            self.done.append(render)
-            if self.bar is not None:
-                self.bar.update(1)
-        return step, self.done
-
-    def __exit__(self, *exc):
-        if self.bar is not None:
-            self.bar.__exit__(*exc)
-        return False
+    from relight_cli.clitools import progress
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.provenance import provenance
+    inputs = {role: path for role, path in inputs.items() if path is not None}
+    done, bar = [], contextlib.nullcontext()
+    if a.hand_frames is not None:
+        bar = progress(total=len(frames), desc="relight (frames)", unit="frame", quiet=a.quiet)
+    with bar as frames_bar:
+        for r in renders:
+            path, png = _frame_outputs(a, r.frame)
+            record = provenance("relight/render", 1, inputs, {**settings, "frame": r.frame})
+            write_exr(path, r.channels, attributes={
+                "relight.model": settings["model"], "relight.camera": r.view.to_json()},
+                provenance=record, camera=r.view)
+            if png is not None:
+                from relight_cli.preview import write_preview
+                write_preview(png, r.rgb)
+            r.rgb = r.channels = None          # the pixels are written; keep the timings
+            done.append(r)
+            if frames_bar is not None:
+                frames_bar.update(1)
+    _log_written(done, a.output, a.hand_frames, start, a.quiet, passes=passes)
 
 
 def _log_written(done, output, hand_frames, start, quiet, passes: bool = False) -> None:
@@ -1086,33 +927,65 @@ def _log_written(done, output, hand_frames, start, quiet, passes: bool = False) 
         + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in median.items()) + ")", quiet)
 
 
-def _hand_view_options(env, hand_lights, output, camera, hand_size, hand_frame, env_res):
-    """Hand mode's shared usage checks: (width, height, frame, env H, env W)."""
-    from relight_cli.errors import UsageProblem
-    if env is None and hand_lights is None:
-        raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
-    from relight_cli.clitools import check_extension
-    check_extension(output, "exr")
-    if camera is not None and hand_size is not None:
-        raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
-    width, height = 256, 256
-    if hand_size is not None:
-        from relight_cli.clitools import parse_size
-        width, height = parse_size(hand_size, "--size", maximum=8192)
-    frame = 0 if hand_frame is None else hand_frame
-    if frame < 0:
-        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
+# ------------------------------------------------------------------------- capture
+
+def _capture(a) -> None:
+    """Capture mode: a capture's frames and env renders, each hand by its own learned
+    model, scored against the capture's images (relight/metrics JSON;
+    relight_cli.jobs.score_capture)."""
+    import os
+    import time
+
+    from relight_cli.errors import DataError, UsageProblem
+    from relight_cli.formats.capture import index_path
     from relight_cli.inputs import env_grid
-    env_h, env_w = env_grid(env_res or "32x16")
-    return width, height, frame, env_h, env_w
+    from relight_cli.neural.evaluate import SPLITS
 
+    if a.model not in ("teacher", "linear"):
+        raise UsageProblem("a capture is scored with --model teacher or linear (and one "
+                           "--checkpoint per hand)")
+    if not a.checkpoint:
+        raise UsageProblem(f"--model {a.model} needs --checkpoint CKPT.pt (one per hand)")
+    names = None
+    if a.splits is not None:
+        names = [n.strip() for n in a.splits.split(",") if n.strip()]
+        bad = [n for n in names if n not in SPLITS]
+        if not names or bad:
+            raise UsageProblem(f"--splits takes {', '.join(SPLITS)}"
+                               + (f"; unknown: {', '.join(bad)}" if bad else ""))
+    if a.eval_samples is not None and a.eval_samples < 1:
+        raise UsageProblem(f"--eval-samples must be ≥ 1, got {a.eval_samples}")
+    if a.aa is not None and not 1 <= a.aa <= 8:
+        raise UsageProblem(f"--aa must be in [1, 8], got {a.aa}")
+    grid = env_grid(a.env_res or "32x16")
+    index = index_path(a.input)   # names a folder without capture.json and a capture.json that is a folder
+    for path in (index, *a.checkpoint):
+        check_input(path)
+    # after the inputs (never one of them): the scores are a relight/metrics JSON
+    check_output(a.output, a.no_clobber, kind="json")
 
-def _read_dgsm(path: str):
-    """The DGSM reader of formats/dgsm_exr.py (owned by the DGSM module)."""
-    from relight_cli.errors import UsageProblem
+    start = time.perf_counter()
+    from relight_cli.formats.metrics_json import make_record, write_metrics
+    from relight_cli.jobs.score_capture import CaptureOptions, score_capture
+    from relight_cli.neural.train import resolve_device
+    from relight_cli.provenance import provenance
+
+    device = resolve_device(a.device or "auto")
+    models = _load_hand_models(a.checkpoint, a.model, device)
+    options = CaptureOptions(names, a.eval_samples, a.aa, grid, a.model)
     try:
-        from relight_cli.formats import dgsm_exr
-    except ImportError:
-        raise UsageProblem("--dgsm is not available in this build (formats/dgsm_exr.py is "
-                           "missing)", path) from None
-    return dgsm_exr.read_dgsm(path)
+        result = score_capture(os.path.dirname(index) or ".", models, options, device,
+                               log=lambda m: log(m, a.quiet), quiet=a.quiet)
+    except ValueError as exc:
+        raise UsageProblem(str(exc)) from None
+    if not result.scores:
+        raise DataError(f"the capture has no samples in {', '.join(result.settings['splits'])}",
+                        index)
+    inputs = {"capture": index, **_checkpoint_roles(a.checkpoint)}
+    record = provenance("relight/metrics", 2, inputs, result.settings)
+    write_metrics(a.output, make_record("validation", result.scores,
+                                        {r: {"path": p} for r, p in inputs.items()},
+                                        result.settings, record))
+    summary = "; ".join(f"{n}: MSE {m['mse'] * 1e3:.3f}e-3 SSIM {m['ssim']:.3f} ({m['samples']})"
+                        for n, m in result.scores.items())
+    log(f"wrote {a.output} ({time.perf_counter() - start:.1f} s): {summary}", a.quiet)

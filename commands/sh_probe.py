@@ -62,7 +62,7 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
 
     from relight_cli.errors import UsageProblem
     from relight_cli.formats.sh_probe_json import FORMAT, VERSION, ShProbe, write_probe
-    from relight_cli.gaussians import probe as P
+    from relight_cli.gaussians import probe as PR
     from relight_cli.provenance import provenance
 
     check_output(output, no_clobber, kind="json")
@@ -92,29 +92,29 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
         position = parse_vector(at, 3, "--at")
         scene = read_gaussians(check_input(input))
         log(f"read {input}: {len(scene)} Gaussians, SH degree {scene.sh_degree}", quiet)
-        samples = P.scene_samples(scene, position, face_size, near,
-                                  progress=lambda it: progress(it, total=6, desc="cube faces",
-                                                               quiet=quiet))
+        samples = PR.scene_samples(scene, position, face_size, near,
+                                   progress=lambda it: progress(it, total=6, desc="cube faces",
+                                                                quiet=quiet))
         settings.update(at=list(position), face_size=face_size, near=near)
     else:
         from relight_cli.inputs import load_envmap
         env = load_envmap(input, nonfinite=nonfinite)
         log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
-        samples = P.env_samples(env)
+        samples = PR.env_samples(env)
         settings["nonfinite"] = nonfinite
 
     extra = {}
     if fixed is None:
-        choice = P.choose_degree(samples, tolerance, ridge, max_degree, max_negativity)
+        choice = PR.choose_degree(samples, tolerance, ridge, max_degree, max_negativity)
         chosen = choice.degree
         coefficients = choice.coefficients
-        extra["degree_search"] = P.degree_search_record(choice)
+        extra["degree_search"] = PR.degree_search_record(choice)
         settings.update(tolerance=tolerance, max_negativity=max_negativity, max_degree=max_degree)
-        for line in P.degree_search_log(choice):
+        for line in PR.degree_search_log(choice):
             log(line, quiet)
     else:
         chosen = fixed
-        coefficients = P.fit_probe(samples, chosen, ridge)
+        coefficients = PR.fit_probe(samples, chosen, ridge)
     if is_scene:
         extra["face_size"] = face_size
     prov = provenance(FORMAT, VERSION, {"input": input}, settings)

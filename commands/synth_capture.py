@@ -89,106 +89,42 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
 
     from relight_cli.errors import UsageProblem
     from relight_cli.formats import capture as C
-    from relight_cli.provenance import provenance
-    from relight_cli.render.appearance import hand_materials
-    from relight_cli.render.capture import (FrameRenderer, StageSettings, hand_motion,
-                                            plan_capture, stage_envmap, two_hand_record)
-
     from relight_cli.inputs import load_envmap, load_hand
+    from relight_cli.jobs.synth_capture import StageSettings, light_stage
+    from relight_cli.provenance import provenance
 
     # ---- usage checks before any work
-    lights = leds
-    for name, value, lo, hi in (("--cameras", cameras, 1, 1000), ("--leds", leds, 1, 10000),
-                                ("--group", group, 1, 10000), ("--frames", frames, 1, 100000),
-                                ("--full-every", full_every, 1, 100000), ("--size", res, 8, 4096),
-                                ("--keyframe-every", keyframe_every, 1, 100000),
-                                ("--tex-res", tex_res, 8, 4096), ("--aa", aa, 1, 8),
-                                ("--eval-poses", eval_poses, 0, 1000),
-                                ("--eval-cameras", eval_cameras, 0, 1000)):
-        if not lo <= value <= hi:
-            raise UsageProblem(f"{name} must be in [{lo}, {hi}], got {value}")
-    if group > lights:
-        raise UsageProblem(f"--group {group} exceeds --leds {leds}")
-    if eval_poses and eval_cameras > cameras:
-        raise UsageProblem(f"--eval-cameras {eval_cameras} exceeds --cameras {cameras}")
-    if motion == "file" and hand.startswith("builtin:"):
-        raise UsageProblem("--motion file needs a HAND.npz with frames")
-    env_specs = [e.strip() for e in eval_envs.split(",") if e.strip()] if eval_poses else []
-    if eval_poses and not env_specs:
-        raise UsageProblem("--eval-poses needs at least one --eval-envs map")
-    env_names = [os.path.basename(e.split(":", 1)[1] if e.startswith("builtin:") else e)
-                 .split(".", 1)[0] for e in env_specs]
-    if len(set(env_names)) != len(env_names):
-        raise UsageProblem("two --eval-envs maps have the same name")
-    from relight_cli.inputs import env_grid
-    env_res = env_grid(eval_env_res, "--eval-env-res")
-    if output in ("", "-"):
-        raise UsageProblem("-o is the capture FOLDER; give a folder name", repr(output))
-    if no_clobber and os.path.lexists(output):
-        raise UsageProblem("output exists and --no-clobber was given", output)
-    check_output(preview, no_clobber, kind="png", what="--preview")
-    if os.path.exists(output) and not os.path.isdir(output):
-        raise UsageProblem("output exists and is not a folder", output)
-    parent = os.path.dirname(os.path.abspath(output))
-    if not os.path.isdir(parent):
-        raise UsageProblem("output's parent folder does not exist", parent)
-    index_path = os.path.join(output, C.INDEX)
-    existing = None
-    if os.path.isdir(output) and os.listdir(output):
-        if not os.path.exists(index_path):
-            raise UsageProblem("output folder is not empty and holds no capture.json; "
-                               "give a new or empty folder", output)
-        existing = C.read_capture(index_path)
+    env_specs, env_names, env_res, existing = _check_usage(
+        hand, output, cameras, leds, group, frames, full_every, res, motion, keyframe_every,
+        tex_res, aa, eval_poses, eval_envs, eval_cameras, eval_env_res, preview, no_clobber)
 
-    # ---- inputs (data errors)
+    # ---- inputs (data errors), the plan
     data = load_hand(hand)
-    # each env map is resampled once (exactly, power preserving) to the stage's working
-    # grid: what eval/envs/ stores and the ground truth integrates
-    envs = [stage_envmap(load_envmap(spec), env_res) for spec in env_specs]
-    settings = StageSettings(cameras=cameras, lights=lights, group=group,
-                             frames=frames if motion == "random" else data.n_frames,
+    settings = StageSettings(cameras=cameras, lights=leds, group=group, frames=frames,
                              full_every=full_every, res=res, keyframe_every=keyframe_every,
                              seed=seed, tex_res=tex_res, aa=aa, sss=not no_sss, bounce=bounce,
                              skin_seed=skin_seed, eval_env_res=tuple(env_res))
-    plan = plan_capture(data, settings, motion=data if motion == "file" else None)
+    stage = light_stage(data, [load_envmap(spec) for spec in env_specs], settings, motion,
+                        eval_poses)
+    plan, settings = stage.plan, stage.settings
     if existing is not None and existing.key != plan.key:
         raise UsageProblem("output folder holds a different capture (other settings or hand); "
                            "give a new folder to start another", output)
-    materials = hand_materials(plan.motion, "fine", max(tex_res, 256), skin_seed)
-    # held-out poses: a random motion of the scene's hands (both interacting, for two)
-    eval_hand = (hand_motion(data, eval_poses, seed + 7919, keyframe_every=1)
-                 if eval_poses else None)
     log(f"{'resuming' if existing else 'writing'} {output}: {settings.cameras} cameras, "
         f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})", quiet)
 
     # ---- write: every finished file lands at once (resumable), see C.immediate_writes
     inputs = {"hand": hand}
-    record = provenance(C.FORMAT, C.VERSION, inputs, asdict(settings))
-    renderer = FrameRenderer(plan, materials, settings)
-    evaluation = None
-    if eval_hand is not None:
-        evaluation = {"hand": "eval/hand.npz",
-                      "envs": {n: f"eval/envs/{n}.exr" for n in env_names},
-                      "renders": [{"pose": p, "env": n, "camera": c.name,
-                                   "image": f"eval/{p:03d}/{n}/{c.name}.exr"}
-                                  for p in range(eval_poses) for n in env_names
-                                  for c in plan.cameras[:eval_cameras]]}
-    n_hands = len(plan.motion.hands)
-    stage = asdict(settings)
-    if n_hands == 2:
-        stage["two_hands"] = two_hand_record(plan.motion, eval_hand, placed=motion == "random")
-    capture = C.Capture(plan.cameras, plan.lights.positions, plan.lights.intensity,
-                        plan.light_names, plan.frames, "hand.npz", settings.fps, evaluation,
-                        plan.key, False, stage, record)
+    capture = _index(stage, env_names, eval_cameras,
+                     provenance(C.FORMAT, C.VERSION, inputs, asdict(settings)))
     start = time.perf_counter()
     # A folder this run makes is removed again when the run fails before anything is in
     # it (a full disk, a folder where no file can be created); one the user gave, and
     # anything written (kept for a resume), stay.
     made = not os.path.lexists(output)
     try:
-        rendered, skipped = _write(output, index_path, capture, plan, inputs, renderer,
-                                   evaluation, eval_hand, env_names, env_specs, envs,
-                                   eval_poses, eval_cameras, n_hands, quiet)
+        rendered, skipped = _write(output, capture, stage, inputs, env_names, env_specs,
+                                   eval_cameras, quiet)
     except BaseException:
         if made:
             _remove_empty_tree(output)
@@ -205,6 +141,76 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
         log(f"wrote {preview}", quiet)
 
 
+def _check_usage(hand, output, cameras, leds, group, frames, full_every, res, motion,
+                 keyframe_every, tex_res, aa, eval_poses, eval_envs, eval_cameras,
+                 eval_env_res, preview, no_clobber):
+    """The options' usage errors (exit 2), before any work: (env map specs, their names,
+    the eval env grid, the capture already in the folder or None)."""
+    import os
+
+    from relight_cli.errors import UsageProblem
+    from relight_cli.formats import capture as C
+    from relight_cli.inputs import env_grid
+
+    for name, value, lo, hi in (("--cameras", cameras, 1, 1000), ("--leds", leds, 1, 10000),
+                                ("--group", group, 1, 10000), ("--frames", frames, 1, 100000),
+                                ("--full-every", full_every, 1, 100000), ("--size", res, 8, 4096),
+                                ("--keyframe-every", keyframe_every, 1, 100000),
+                                ("--tex-res", tex_res, 8, 4096), ("--aa", aa, 1, 8),
+                                ("--eval-poses", eval_poses, 0, 1000),
+                                ("--eval-cameras", eval_cameras, 0, 1000)):
+        if not lo <= value <= hi:
+            raise UsageProblem(f"{name} must be in [{lo}, {hi}], got {value}")
+    if group > leds:
+        raise UsageProblem(f"--group {group} exceeds --leds {leds}")
+    if eval_poses and eval_cameras > cameras:
+        raise UsageProblem(f"--eval-cameras {eval_cameras} exceeds --cameras {cameras}")
+    if motion == "file" and hand.startswith("builtin:"):
+        raise UsageProblem("--motion file needs a HAND.npz with frames")
+    env_specs = [e.strip() for e in eval_envs.split(",") if e.strip()] if eval_poses else []
+    if eval_poses and not env_specs:
+        raise UsageProblem("--eval-poses needs at least one --eval-envs map")
+    env_names = [os.path.basename(e.split(":", 1)[1] if e.startswith("builtin:") else e)
+                 .split(".", 1)[0] for e in env_specs]
+    if len(set(env_names)) != len(env_names):
+        raise UsageProblem("two --eval-envs maps have the same name")
+    env_res = env_grid(eval_env_res, "--eval-env-res")
+    if output in ("", "-"):
+        raise UsageProblem("-o is the capture FOLDER; give a folder name", repr(output))
+    if no_clobber and os.path.lexists(output):
+        raise UsageProblem("output exists and --no-clobber was given", output)
+    check_output(preview, no_clobber, kind="png", what="--preview")
+    if os.path.exists(output) and not os.path.isdir(output):
+        raise UsageProblem("output exists and is not a folder", output)
+    parent = os.path.dirname(os.path.abspath(output))
+    if not os.path.isdir(parent):
+        raise UsageProblem("output's parent folder does not exist", parent)
+    existing = None
+    if os.path.isdir(output) and os.listdir(output):
+        if not os.path.exists(os.path.join(output, C.INDEX)):
+            raise UsageProblem("output folder is not empty and holds no capture.json; "
+                               "give a new or empty folder", output)
+        existing = C.read_capture(os.path.join(output, C.INDEX))
+    return env_specs, env_names, env_res, existing
+
+
+def _index(stage, env_names, eval_cameras, record):
+    """The capture's index (capture.json, ``complete`` false until every file is written)."""
+    from relight_cli.formats import capture as C
+    plan = stage.plan
+    evaluation = None
+    if stage.eval_hand is not None:
+        evaluation = {"hand": "eval/hand.npz",
+                      "envs": {n: f"eval/envs/{n}.exr" for n in env_names},
+                      "renders": [{"pose": p, "env": n, "camera": c.name,
+                                   "image": f"eval/{p:03d}/{n}/{c.name}.exr"}
+                                  for p in range(stage.eval_poses) for n in env_names
+                                  for c in plan.cameras[:eval_cameras]]}
+    return C.Capture(plan.cameras, plan.lights.positions, plan.lights.intensity,
+                     plan.light_names, plan.frames, "hand.npz", stage.settings.fps, evaluation,
+                     plan.key, False, stage.record, record)
+
+
 def _remove_empty_tree(folder: str) -> None:
     """Remove ``folder`` if it holds nothing but empty folders (never a file)."""
     import os
@@ -217,8 +223,7 @@ def _remove_empty_tree(folder: str) -> None:
             return
 
 
-def _write(output, index_path, capture, plan, inputs, renderer, evaluation, eval_hand,
-           env_names, env_specs, envs, eval_poses, eval_cameras, n_hands, quiet):
+def _write(output, capture, stage, inputs, env_names, env_specs, eval_cameras, quiet):
     """Write the capture (resumable: finished files land at once); (rendered, skipped)."""
     import os
 
@@ -226,8 +231,9 @@ def _write(output, index_path, capture, plan, inputs, renderer, evaluation, eval
     from relight_cli.formats import capture as C
     from relight_cli.formats.hand_npz import write_hand
     from relight_cli.provenance import provenance
-    from relight_cli.render.capture import hand_coverage
 
+    plan = stage.plan
+    index_path = os.path.join(output, C.INDEX)
     rendered = skipped = 0
     with C.immediate_writes():
         os.makedirs(output, exist_ok=True)
@@ -245,43 +251,57 @@ def _write(output, index_path, capture, plan, inputs, renderer, evaluation, eval
             skipped += len(plan.cameras) - len(todo)
             if todo:
                 os.makedirs(folder, exist_ok=True)
-                for cam, result in renderer.frame(frame, todo):
-                    C.write_image(os.path.join(output, C.image_path(frame.index, cam.name)),
-                                  result.image, result.mask, plan.key,
-                                  {"relight.frame": frame.index, "relight.camera": cam.name,
+                for r in stage.frame(frame, todo):
+                    C.write_image(os.path.join(output, C.image_path(frame.index, r.camera.name)),
+                                  r.image, r.mask, plan.key,
+                                  {"relight.frame": frame.index, "relight.camera": r.camera.name,
                                    "relight.lit": frame.lit},
                                   provenance("relight/capture-image", 1, inputs,
-                                             {"frame": frame.index, "camera": cam.name}),
-                                  camera=cam, hand_masks=hand_coverage(result, n_hands))
+                                             {"frame": frame.index, "camera": r.camera.name}),
+                                  camera=r.camera, hand_masks=r.hand_masks)
                     rendered += 1
             frame.images = [c.name for c in plan.cameras]
-        if evaluation is not None:
-            from relight_cli.formats.envmap import write_envmap
-            os.makedirs(os.path.join(output, "eval", "envs"), exist_ok=True)
-            write_hand(os.path.join(output, "eval", "hand.npz"), eval_hand,
-                       provenance("relight/hand", 1, inputs, {"role": "held-out poses",
-                                                              "key": plan.key}))
-            for name, spec, env in zip(env_names, env_specs, envs):
-                write_envmap(os.path.join(output, "eval", "envs", f"{name}.exr"), env,
-                             provenance("relight/envmap", 1, {"env": spec}, {}))
-            for pose in progress(range(eval_poses), desc="held-out", quiet=quiet):
-                for name, env in zip(env_names, envs):
-                    cams = [c for c in plan.cameras[:eval_cameras] if not C.image_is_valid(
-                        os.path.join(output, "eval", f"{pose:03d}", name, f"{c.name}.exr"),
-                        c, plan.key)]
-                    if not cams:
-                        continue
-                    os.makedirs(os.path.join(output, "eval", f"{pose:03d}", name), exist_ok=True)
-                    for cam, result in renderer.env_views(eval_hand, pose, env, cams):
-                        C.write_image(os.path.join(output, "eval", f"{pose:03d}", name,
-                                                   f"{cam.name}.exr"),
-                                      result.image, result.mask, plan.key,
-                                      {"relight.pose": pose, "relight.env": name,
-                                       "relight.camera": cam.name},
-                                      provenance("relight/capture-image", 1, inputs,
-                                                 {"pose": pose, "env": name, "camera": cam.name}),
-                                      camera=cam, hand_masks=hand_coverage(result, n_hands))
-                        rendered += 1
+        if capture.evaluation is not None:
+            rendered += _write_held_out(output, stage, inputs, env_names, env_specs,
+                                        eval_cameras, quiet)
         capture.complete = True
         C.write_capture(index_path, capture)
     return rendered, skipped
+
+
+def _write_held_out(output, stage, inputs, env_names, env_specs, eval_cameras, quiet) -> int:
+    """The held-out poses, env maps and renders under eval/ (resumable); images rendered."""
+    import os
+
+    from relight_cli.clitools import progress
+    from relight_cli.formats import capture as C
+    from relight_cli.formats.envmap import write_envmap
+    from relight_cli.formats.hand_npz import write_hand
+    from relight_cli.provenance import provenance
+
+    plan, rendered = stage.plan, 0
+    os.makedirs(os.path.join(output, "eval", "envs"), exist_ok=True)
+    write_hand(os.path.join(output, "eval", "hand.npz"), stage.eval_hand,
+               provenance("relight/hand", 1, inputs, {"role": "held-out poses",
+                                                      "key": plan.key}))
+    for name, spec, env in zip(env_names, env_specs, stage.envs):
+        write_envmap(os.path.join(output, "eval", "envs", f"{name}.exr"), env,
+                     provenance("relight/envmap", 1, {"env": spec}, {}))
+    for pose in progress(range(stage.eval_poses), desc="held-out", quiet=quiet):
+        for k, name in enumerate(env_names):
+            folder = os.path.join(output, "eval", f"{pose:03d}", name)
+            cams = [c for c in plan.cameras[:eval_cameras] if not C.image_is_valid(
+                os.path.join(folder, f"{c.name}.exr"), c, plan.key)]
+            if not cams:
+                continue
+            os.makedirs(folder, exist_ok=True)
+            for r in stage.held_out(pose, k, cams):
+                C.write_image(os.path.join(folder, f"{r.camera.name}.exr"),
+                              r.image, r.mask, plan.key,
+                              {"relight.pose": pose, "relight.env": name,
+                               "relight.camera": r.camera.name},
+                              provenance("relight/capture-image", 1, inputs,
+                                         {"pose": pose, "env": name, "camera": r.camera.name}),
+                              camera=r.camera, hand_masks=r.hand_masks)
+                rendered += 1
+    return rendered

@@ -89,10 +89,9 @@ def command(captures, output, preset, config_file, model, iters, batch, lr, tex_
     """
     import os
 
-    from relight_cli.clitools import check_input
     from relight_cli.errors import UsageProblem
 
-    from ._learned import check_outputs, write_validation
+    from . import _learned as L
 
     # ---- usage checks before any work
     if iters is not None and iters < 1:
@@ -102,133 +101,46 @@ def command(captures, output, preset, config_file, model, iters, batch, lr, tex_
                            f"not --model {model or 'olat'}; give one capture")
     folders = []
     for capture in captures:
-        if not os.path.isdir(capture):
-            from relight_cli.errors import DataError
-            if os.path.exists(capture) and os.path.basename(capture) == "capture.json":
-                capture = os.path.dirname(capture) or "."
-            else:
-                raise DataError("CAPTURE must be a capture folder (with capture.json)", capture)
-        if os.path.isfile(os.path.join(capture, "capture.json")):
-            check_input(os.path.join(capture, "capture.json"))
+        capture = L.check_capture(capture)
         same = [f for f in folders if os.path.realpath(f) == os.path.realpath(capture)]
         if same:
             raise UsageProblem(f"CAPTURE {capture} is given twice (also as {same[0]}): give "
                                f"each subject once")
         folders.append(capture)
-    capture = folders[0]
-    for path, role in ((config_file, "--config"), (vgg_weights, None), (resume, None)):
-        if path is not None:
-            check_input(path, stdin=role)
-    check_outputs(output, metrics_out, no_clobber)
+    L.check_inputs(config_file, vgg_weights, resume)
+    L.check_outputs(output, metrics_out, no_clobber)
 
     import torch  # noqa: F401  (after usage checks: --help and usage errors stay fast)
 
-    from relight_cli.errors import DataError
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
-    from relight_cli.neural.config import TeacherConfig, resolve_config, resume_config
-    from relight_cli.hand.scene import handedness
-    from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.train import resolve_device, train
-    from relight_cli.provenance import outside_transaction, provenance
+    from relight_cli.jobs import train_teacher as job
+    from relight_cli.neural.train import resolve_device
+    from relight_cli.provenance import provenance
 
-    overrides = {"model": model, "iters": iters, "batch": batch, "lr": lr, "tex_res": tex_res,
-                 "seed": seed, "visibility": False if no_visibility else None}
-    linear_only = {"light_path": light_path, "linearity_loss": linearity_loss,
-                   "features": light_features, "specular": False if no_specular else None,
-                   "refiner": False if no_refiner else None}
     ckpt = read_checkpoint(resume) if resume is not None else None
-    kind = ckpt["kind"] if ckpt is not None else ("linear" if model == "linear" else "teacher")
-    config_class, resolve, train_model = TeacherConfig, resolve_config, train
-    if kind == "linear":
-        from relight_cli.neural import linear, linear_train
-        overrides.update(linear_only)
-        config_class, resolve, train_model = (linear.LinearConfig, linear.resolve_config,
-                                              linear_train.train)
-    elif kind != "teacher":
-        raise DataError(f"checkpoint holds a {kind!r} model, expected a teacher", resume)
-    elif len(folders) > 1:
-        raise UsageProblem(f"several CAPTUREs (one per subject) train --model linear only; "
-                           f"{resume} holds the {ckpt['model']} teacher: give one capture")
-    elif any(v is not None for v in linear_only.values()):
-        raise UsageProblem("--light-path, --linearity-loss, --features, --no-specular and "
-                           "--no-refiner belong to --model linear")
-    if ckpt is not None:
-        config = resume_config(ckpt, config_class, overrides, config_file, iters, resume)
-    else:
-        config = resolve(preset, config_file, overrides)
+    config = job.configure(model, preset, config_file, {
+        "iters": iters, "batch": batch, "lr": lr, "tex_res": tex_res, "seed": seed,
+        "visibility": False if no_visibility else None}, {
+        "light_path": light_path, "linearity_loss": linearity_loss, "features": light_features,
+        "specular": False if no_specular else None, "refiner": False if no_refiner else None},
+        ckpt, resume, len(folders))
     torch_device = resolve_device(device)
-
-    vgg = None
-    if vgg_weights is not None:
-        from relight_cli.neural.losses import load_vgg
-        vgg = load_vgg(vgg_weights).to(torch_device)
-    # ---- data (data errors)
-    subjects = [CaptureData(folder, config.tex_res, config.aa, config.visibility,
-                            config.falloff, config.holdout, config.cache_poses)
-                for folder in folders]
-    data = subjects[0]
-    if len(subjects) > 1:
-        # what one model cannot share (joints, UV layout, hands, sampling), named per capture
-        linear_train.check_subjects(subjects)
-    if ckpt is not None and len(subjects) == 1 and "subjects" not in ckpt["extra"] \
-            and ckpt["capture_key"] != data.key:
-        raise DataError(f"checkpoint was trained on another capture (key {ckpt['capture_key']}, "
-                        f"this one is {data.key})", resume)
-    if ckpt is not None and (len(subjects) > 1 or "subjects" in ckpt["extra"]):
-        trained = [r["capture_key"] for r in ckpt["extra"].get("subjects") or
-                   [{"capture_key": ckpt["capture_key"]}]]
-        if trained != [d.key for d in subjects]:
-            raise DataError(f"checkpoint was trained on other subjects (keys "
-                            f"{', '.join(trained)}; these captures are "
-                            f"{', '.join(d.key for d in subjects)}, in this order)", resume)
+    vgg = L.read_vgg(vgg_weights, torch_device)
+    subjects = L.read_captures(folders, config)     # ---- data (data errors)
     rank = int(os.environ.get("RANK", "0"))
     quiet = quiet or rank != 0
-    config.aa = data.aa        # the sampling used, recorded in the checkpoint
-    if not data.sampling["matched"]:
-        log(f"note: pixels sampled {data.aa}×{data.aa}, but the capture's images were made "
-            f"with {data.sampling['capture_aa']}×{data.sampling['capture_aa']} (recorded in "
-            f"the scores as sampling.matched = false)", quiet)
-    splits = data.splits()
-    log(f"read {capture}: {len(splits['train'])} training, {len(splits['heldout'])} held-out, "
-        f"{len(splits['fully_lit'])} fully lit, {len(splits.get('env', []))} env-map samples; "
-        f"{data.n_hands} hand(s) ({', '.join(handedness(data.hand))}, recorded in the "
-        f"checkpoint); model {config.model}, {config.tex_res}² texture, "
-        f"{config.iters} iterations on {torch_device}"
-        + ("" if vgg is not None else "; no VGG weights: λ_VGG = 0"), quiet)
-    for s, other in enumerate(subjects[1:], 1):
-        more = other.splits()
-        log(f"read {folders[s]} (subject {s}): {len(more['train'])} training, "
-            f"{len(more['heldout'])} held-out, {len(more['fully_lit'])} fully lit, "
-            f"{len(more.get('env', []))} env-map samples; each subject conditioned on its "
-            f"own mean texture (URHand Sec. 4)", quiet)
-    if vgg is None:
-        config.lambda_vgg = 0.0 if ckpt is None else config.lambda_vgg
-    inputs = {"capture": data.index_path}
-    for s, other in enumerate(subjects[1:], 1):
-        inputs[f"capture.{s}"] = other.index_path
-    captures_in = dict(inputs)
-    if vgg_weights is not None:
-        inputs["vgg_weights"] = vgg_weights
-    if resume is not None:
-        inputs["resume"] = resume
-    if config_file is not None:
-        inputs["config"] = config_file
-    record = provenance("relight/checkpoint", 1, inputs, {"preset": preset, **config.to_dict()})
-
-    def save(checkpoint):
-        # Periodic checkpoints land at once: an interrupted run keeps its progress.
-        with outside_transaction():
-            write_checkpoint(output, checkpoint)
-
-    result = train_model(data if len(subjects) == 1 else subjects, config, torch_device,
-                         resume=ckpt, vgg=vgg, provenance=record,
-                   save=save if rank == 0 else None, show_progress=not quiet,
-                   log=lambda m: log(m, quiet))
+    captures_in = {"capture": subjects[0].index_path,
+                   **{f"capture.{s}": d.index_path for s, d in enumerate(subjects[1:], 1)}}
+    inputs = {**captures_in, **L.file_inputs(vgg_weights, resume, config_file)}
+    trained = job.run(subjects, job.Options(config, preset, torch_device, vgg, ckpt, resume,
+                                            progress=not quiet),
+                      provenance=lambda settings: provenance("relight/checkpoint", 1, inputs,
+                                                             settings),
+                      save=L.saver(output) if rank == 0 else None,
+                      log=lambda m: log(m, quiet), names=folders)
     if rank != 0:
         return
-    write_checkpoint(output, result.checkpoint)
-    write_validation(metrics_out, result, captures_in, config, record, data.sampling)
-    its = result.steps_run / result.seconds if result.seconds > 0 else float("inf")
-    from relight_cli.neural.train import _summary
-    log(f"wrote {output}: {result.steps_run} step(s) in {result.seconds:.1f} s ({its:.2f} it/s); "
-        + _summary(result.history[-1] if result.history else {"step": config.iters}), quiet)
+    write_checkpoint(output, trained.result.checkpoint)
+    L.write_validation(metrics_out, trained.result, captures_in, trained.config, trained.record,
+                       trained.sampling)
+    log(f"wrote {output}: {job.summary(trained.result)}", quiet)

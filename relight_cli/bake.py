@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from relight_cli import features as F
+from relight_cli import features as FE
 from relight_cli.errors import DataError
 
 
@@ -51,7 +51,7 @@ class PoseFeatures:
         posed: already posed meshes (skips step 1).
     """
 
-    def __init__(self, hand, frame: int, settings: F.FeatureSettings, env_res=(16, 32),
+    def __init__(self, hand, frame: int, settings: FE.FeatureSettings, env_res=(16, 32),
                  tex_res=(128, 128), mesh: str = "coarse", rasters: dict | None = None,
                  source: str = "", posed=None):
         t0 = time.perf_counter()
@@ -62,8 +62,8 @@ class PoseFeatures:
         self.tex_res = (int(tex_res[0]), int(tex_res[1]))
         self.rasters = {} if rasters is None else rasters
         self.seconds = {"pose": time.perf_counter() - t0}
-        meshes = [F.PoseMesh(pm.vertices, pm.faces, pm.normals, pm.name) for pm in posed]
-        self.baker = F.FeatureBaker(meshes, settings, env_res=env_res)
+        meshes = [FE.PoseMesh(pm.vertices, pm.faces, pm.normals, pm.name) for pm in posed]
+        self.baker = FE.FeatureBaker(meshes, settings, env_res=env_res)
 
     @property
     def names(self) -> list[str]:
@@ -90,7 +90,7 @@ class PoseFeatures:
                 key = (pm.uv.shape, pm.uv.tobytes(), pm.faces_uv.tobytes(), self.tex_res)
                 if key not in self.rasters:
                     self.rasters[key] = rasterize_uv(pm.uv, pm.faces_uv, self.tex_res)
-                maps.append(F.texel_maps(feats, pm.faces, self.rasters[key]))
+                maps.append(FE.texel_maps(feats, pm.faces, self.rasters[key]))
             out.append(maps)
         self.seconds["texels"] = self.seconds.get("texels", 0.0) + time.perf_counter() - t0
         return out

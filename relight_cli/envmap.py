@@ -19,6 +19,7 @@ and integrals ∫L dω = Σ L·Δω do not depend on the resolution.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import NamedTuple
 
@@ -519,3 +520,46 @@ def info(env: EnvMap) -> dict:
         "dominant_direction": dominant,
         "directionality": length / lum_total if lum_total > 0 else 0.0,
     }
+
+
+# ---------------------------------------------------------------- discretized for shading
+
+
+@dataclass
+class DiscreteEnv:
+    """An environment map as M directions with exact solid angles.
+
+    Attributes:
+        directions: [M, 3] float64 unit world directions (pixel centres).
+        solid_angle: [M] float64 steradians, Σ = 4π.
+        radiance: [M, 3] float64 linear RGB.
+        height, width: the lat-long grid the directions came from.
+        name: source label.
+    """
+
+    directions: np.ndarray
+    solid_angle: np.ndarray
+    radiance: np.ndarray
+    height: int
+    width: int
+    name: str = ""
+
+    @property
+    def lit(self) -> np.ndarray:
+        """[M] bool: texels with any non-zero radiance (the only ones worth tracing)."""
+        return np.any(self.radiance != 0, axis=1)
+
+
+def discretize_env(env: EnvMap, height: int = 16, width: int = 32) -> DiscreteEnv:
+    """Resample ``env`` to an H×W lat-long grid, area-weighted (power preserved).
+
+    Every texel's radiance is the mean over its cell, so Σ L Δω equals the
+    source's ∫ L dω and a tiny bright source is kept, not missed.
+    """
+    if env.layout == "latlong" and (env.height, env.width) == (height, width):
+        rad = env.radiance
+    else:
+        rad = resample(env, "latlong", height, width).radiance
+    return DiscreteEnv(latlong_directions(height, width).reshape(-1, 3),
+                       np.asarray(latlong_solid_angles(height, width)).reshape(-1).copy(),
+                       np.asarray(rad, np.float64).reshape(-1, 3), height, width, env.name)

@@ -31,6 +31,13 @@ a thread pool (embree and numpy release the GIL); results do not depend on the
 thread count.  An extra env map reuses the cached transport weights: one small
 matrix product per feature.
 
+Where the pieces live: the env map's discretization (:class:`DiscreteEnv`,
+:func:`discretize_env`) beside the lat-long geometry in :mod:`relight_cli.envmap`;
+receivers, normals and view/mirror directions in :mod:`relight_cli.geometry`; the
+traced visibility (:class:`VisibilityCache`) beside the ray tracer in
+:mod:`relight_cli.visibility`; this module keeps what turns them into features (culling
+by lobe support, transport weights, shading, the per-pose baker) and their twins.
+
 :func:`vertex_features_reference` is the slow twin (per-receiver loop, every
 direction traced with trimesh's numpy ray test, no culling) used by tests.
 :func:`ggx_specular_torch` is the differentiable torch version of the GGX
@@ -40,15 +47,17 @@ feature (visibility fixed) for URHand's physical branch.
 from __future__ import annotations
 
 import math
-import os
-import threading
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from relight_cli.brdf import MIN_ROUGHNESS, ggx_cosine, ggx_cosine_torch
+from relight_cli.envmap import DiscreteEnv, discretize_env
 from relight_cli.formats.envmap import EnvMap
+from relight_cli.geometry import (GEMM_SINGLE, Receivers, matvec, dot3, reflect, scene_diagonal,
+                                  vertex_normals, view_directions)
+from relight_cli.visibility import VisibilityCache, thread_pool
 
 # Shading works on [receivers, directions] blocks of at most this many entries
 # (float64: 8 bytes each, a handful alive at once) to bound memory.
@@ -56,8 +65,6 @@ _BLOCK = 1 << 16
 # (receiver, direction) entries per chunk of a pose's pipeline (whole blocks): with
 # K features, K·8 bytes each is the size of one allocation of kept weights.
 _CHUNK = 1 << 18
-# OpenBLAS multithreads a GEMM above 4·65536 multiply-adds; stay below (see _shade_stacked).
-_GEMM_SINGLE = 1 << 17
 # Transport weights (N·M per feature, float64) are kept between env maps up to
 # this many entries (128 MiB); beyond it they are streamed and recomputed.
 _TRANSPORT_CACHE = 1 << 24
@@ -126,342 +133,6 @@ def feature_names(settings: FeatureSettings) -> list[str]:
     if settings.ggx:
         names.append("ggx")
     return names + ["visibility"]
-
-
-# ---------------------------------------------------------------- lighting
-
-
-@dataclass
-class DiscreteEnv:
-    """An environment map as M directions with exact solid angles.
-
-    Attributes:
-        directions: [M, 3] float64 unit world directions (pixel centres).
-        solid_angle: [M] float64 steradians, Σ = 4π.
-        radiance: [M, 3] float64 linear RGB.
-        height, width: the lat-long grid the directions came from.
-        name: source label.
-    """
-
-    directions: np.ndarray
-    solid_angle: np.ndarray
-    radiance: np.ndarray
-    height: int
-    width: int
-    name: str = ""
-
-    @property
-    def lit(self) -> np.ndarray:
-        """[M] bool: texels with any non-zero radiance (the only ones worth tracing)."""
-        return np.any(self.radiance != 0, axis=1)
-
-
-def discretize_env(env: EnvMap, height: int = 16, width: int = 32) -> DiscreteEnv:
-    """Resample ``env`` to an H×W lat-long grid, area-weighted (power preserved).
-
-    Every texel's radiance is the mean over its cell, so Σ L Δω equals the
-    source's ∫ L dω and a tiny bright source is kept, not missed.
-    """
-    from relight_cli import envmap as E
-
-    if env.layout == "latlong" and (env.height, env.width) == (height, width):
-        rad = env.radiance
-    else:
-        rad = E.resample(env, "latlong", height, width).radiance
-    return DiscreteEnv(E.latlong_directions(height, width).reshape(-1, 3),
-                       np.asarray(E.latlong_solid_angles(height, width)).reshape(-1).copy(),
-                       np.asarray(rad, np.float64).reshape(-1, 3), height, width, env.name)
-
-
-# ---------------------------------------------------------------- geometry
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None,
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Unit vertex normals, repairing missing ones; which are defined.
-
-    Given normals that are finite and non-zero are normalized and kept; the rest
-    take the area-weighted mean of adjacent face normals (zero-area faces add
-    nothing).  A vertex with no adjacent face of non-zero area has an undefined
-    normal: it gets (0, 0, 0) and ``defined`` False, and all its features are 0.
-
-    Args:
-        vertices: [V, 3] float, metres, world.
-        faces: [F, 3] int.
-        normals: [V, 3] or None.
-
-    Returns:
-        normals [V, 3] float64 (unit or zero), defined [V] bool.
-    """
-    vertices = np.asarray(vertices, np.float64)
-    faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    n = len(vertices)
-    out = np.zeros((n, 3))
-    good = np.zeros(n, bool)
-    if normals is not None:
-        given = np.asarray(normals, np.float64).reshape(n, 3)
-        with np.errstate(invalid="ignore", over="ignore"):
-            length = np.linalg.norm(given, axis=1)
-        good = np.isfinite(length) & (length > 1e-12)
-        out[good] = given[good] / length[good, None]
-    if not good.all() and len(faces):
-        tri = vertices[faces]
-        face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])   # area-weighted
-        face_n[~np.isfinite(face_n).all(1)] = 0
-        acc = np.zeros((n, 3))
-        for k in range(3):
-            np.add.at(acc, faces[:, k], face_n)
-        length = np.linalg.norm(acc, axis=1)
-        fix = ~good & (length > 1e-30)
-        out[fix] = acc[fix] / length[fix, None]
-        good = good | fix
-    return out, good
-
-
-@dataclass
-class Receivers:
-    """Points that receive light: positions, unit normals, and which normals are defined."""
-
-    points: np.ndarray        # [N, 3] float64, metres, world
-    normals: np.ndarray       # [N, 3] float64 unit (zero where undefined)
-    defined: np.ndarray       # [N] bool
-
-    def __len__(self):
-        return len(self.points)
-
-
-def scene_diagonal(meshes) -> float:
-    """Bounding-box diagonal (metres) of a list of (vertices, faces)."""
-    pts = [np.asarray(v, np.float64).reshape(-1, 3) for v, _ in meshes if len(v)]
-    if not pts:
-        return 1.0
-    allp = np.concatenate(pts)
-    allp = allp[np.isfinite(allp).all(1)]
-    if not len(allp):
-        return 1.0
-    d = float(np.linalg.norm(allp.max(0) - allp.min(0)))
-    return d if d > 0 else 1.0
-
-
-def view_directions(points: np.ndarray, eye) -> np.ndarray:
-    """[N, 3] unit directions from each point towards the eye (0 where they coincide)."""
-    v = np.asarray(eye, np.float64)[None, :] - points
-    length = np.linalg.norm(v, axis=1, keepdims=True)
-    return np.divide(v, length, out=np.zeros_like(v), where=length > 0)
-
-
-def reflect(view: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """[N, 3] mirror directions r = 2(n·v)n − v (unit when n and v are)."""
-    return 2 * np.einsum("ij,ij->i", normals, view)[:, None] * normals - view
-
-
-# ---------------------------------------------------------------- visibility
-
-
-def trace_threads() -> int:
-    """Worker threads for ray tracing: the CPUs this process may run on.
-
-    embreex's occlusion query runs without the GIL (as do numpy's large array
-    operations), so threads working on disjoint receivers scale with cores: raw embree
-    on the default bake's rays ran 1.7× faster on 2 idle cores than on one.
-    """
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:          # not on Linux
-        return max(1, os.cpu_count() or 1)
-
-
-# Rays per traced chunk: small enough that every worker gets several (load balance,
-# bounded peak memory for the per-ray origin/direction arrays), large enough that
-# the per-call Python overhead (~50 µs) is noise.
-_MIN_CHUNK = 1 << 15
-_MAX_CHUNK = 1 << 20
-# (receiver, direction) entries per ray-building step (12 MiB of tiled float32 directions).
-_TILE = 1 << 20
-# One float32 xyz triple as a single 12-byte record, for memcpy-speed repeat/compress.
-_VEC3 = np.dtype((np.void, 12))
-
-
-def _row_chunks(per_row: np.ndarray, workers: int) -> list[slice]:
-    """Split rows into contiguous slices of about equal total ``per_row`` (rays)."""
-    total = int(per_row.sum())
-    target = min(_MAX_CHUNK, max(_MIN_CHUNK, -(-total // (4 * workers))))
-    bounds = np.searchsorted(np.cumsum(per_row), np.arange(target, total, target), side="left")
-    edges = np.unique(np.concatenate([[0], bounds + 1, [len(per_row)]]))
-    edges = edges[edges <= len(per_row)]
-    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-
-_POOLS: dict = {}
-
-
-def _pool(workers: int):
-    """A process-wide thread pool of ``workers`` threads, started once (starting threads
-    per pose costs milliseconds on a busy machine; idle workers cost nothing)."""
-    key = (os.getpid(), workers)     # a forked child has no threads: it needs its own pool
-    if key not in _POOLS:
-        from concurrent.futures import ThreadPoolExecutor
-        _POOLS[key] = ThreadPoolExecutor(workers, thread_name_prefix="relight-trace")
-    return _POOLS[key]
-
-
-class VisibilityCache:
-    """Binary visibility h[i, m] of receivers towards env directions, traced on demand.
-
-    ``require(need)`` traces exactly the pairs asked for that were not traced
-    before, in large embree batches (chunks of receivers traced concurrently by
-    ``threads`` workers), so a pose's visibility is traced once and reused by
-    every env map, shininess and specular model.  The result does not depend on
-    ``threads`` or chunking: every ray is independent (tests check it equals one
-    flat :meth:`~relight_cli.raytrace.RayScene.occluded` call).
-
-    Args:
-        scene: a :class:`~relight_cli.raytrace.RayScene` of every occluding mesh, or
-            None for "nothing occludes" (the ``--no-visibility`` ablation).
-        receivers: the receiving points.
-        directions: [M, 3] unit directions.
-        ray_offset: metres (scalar or [N]) to lift ray origins along the normal (avoids hitting the
-            receiver's own triangles through rounding).
-        threads: worker threads (None = :func:`trace_threads`; 1 = trace on the caller's thread).
-    """
-
-    def __init__(self, scene, receivers: Receivers, directions: np.ndarray, ray_offset,
-                 threads: int | None = None):
-        self.scene = scene
-        self.receivers = receivers
-        self.directions = np.asarray(directions, np.float64)
-        self.ray_offset = np.broadcast_to(np.asarray(ray_offset, np.float64),
-                                          (len(receivers),))[:, None]
-        shape = (len(receivers), len(self.directions))
-        self.traced = np.zeros(shape, bool)
-        self.visible = np.zeros(shape, bool)
-        self.rays_traced = 0
-        self.seconds = 0.0
-        self.threads = trace_threads() if threads is None else max(1, int(threads))
-        self._origins = None
-        self._dirs32 = None
-        self._warm = False
-        self._tiled = None
-        self._lock = threading.Lock()
-
-    def ray_origins(self) -> np.ndarray:
-        """[N, 3] float32 ray origins (receiver lifted along its normal), metres, world."""
-        if self._origins is None:   # directions first: a thread seeing origins finds both
-            self._dirs32 = self.directions.astype(np.float32)
-            self._origins = (self.receivers.points + self.ray_offset
-                             * self.receivers.normals).astype(np.float32)
-        return self._origins
-
-    def require(self, need: np.ndarray) -> int:
-        """Trace every pair of ``need`` ([N, M] bool) not traced yet; return how many.
-
-        Chunks of receivers are traced concurrently on ``threads`` workers."""
-        t0 = time.perf_counter()
-        todo = need & ~self.traced                                # [N, M]
-        per_row = np.count_nonzero(todo, axis=1)
-        count = int(per_row.sum())
-        if count:
-            if self.scene is None:
-                self.visible |= todo
-            else:
-                chunks = _row_chunks(per_row, self.threads)
-                workers = min(self.threads, len(chunks))
-                counted = self.scene.rays_traced
-                if workers > 1:
-                    self.warm_up()
-                    list(_pool(workers).map(
-                        lambda rows: self._trace_rows(rows, todo[rows], per_row[rows]), chunks))
-                else:
-                    for rows in chunks:
-                        self._trace_rows(rows, todo[rows], per_row[rows])
-                # RayScene's counter is not thread-safe (+= from several workers): set it once.
-                self.scene.rays_traced = counted + count
-                self.rays_traced += count
-            self.traced |= todo
-        self.seconds += time.perf_counter() - t0
-        return count
-
-    def require_rows(self, rows: slice, need: np.ndarray) -> int:
-        """:meth:`require` for receivers ``rows`` only (``need`` [len(rows), M] bool), traced
-        on the calling thread.  Calls for disjoint rows may run concurrently (after
-        :meth:`warm_up`); the counters are then updated under a lock, except
-        ``scene.rays_traced``, which the caller must correct (see :meth:`require`)."""
-        t0 = time.perf_counter()
-        traced = self.traced[rows]
-        todo = need & ~traced
-        per_row = np.count_nonzero(todo, axis=1)
-        count = int(per_row.sum())
-        if count:
-            if self.scene is None:   # nothing occludes: visible, and no ray traced
-                self.visible[rows] |= todo
-                count = 0
-            else:
-                self._trace_rows(rows, todo, per_row)
-            traced |= todo
-        with self._lock:
-            self.rays_traced += count
-            self.seconds += time.perf_counter() - t0
-        return count
-
-    def warm_up(self):
-        """Build embree's BVH (done on the first query) before threads race to it."""
-        if self.scene is not None and not self._warm:
-            counted = self.scene.rays_traced
-            self.scene.occluded(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
-            self.scene.rays_traced = counted
-            self._warm = True
-
-    def _trace_rows(self, rows: slice, todo: np.ndarray, per_row: np.ndarray):
-        """Trace ``todo`` ([len(rows), M] bool) of receivers ``rows``; write ``visible[rows]``."""
-        origins = self.ray_origins().view(_VEC3).reshape(-1)        # [N] 12-byte records
-        m = len(self.directions)
-        step = max(1, _TILE // max(1, m))
-        for s in range(0, len(per_row), step):
-            t = todo[s:s + step]
-            b = len(t)
-            tiled = self._tiled_dirs(b)
-            # Row-major pair order: origins repeat per receiver and directions are a
-            # boolean compress of the tiled grid (both memcpy-like; a fancy-index gather of
-            # [rays, 3] floats was 5× slower), and the mask assignment walks the same order.
-            o = np.repeat(origins[rows.start + s:rows.start + s + b], per_row[s:s + b])
-            d = tiled[:b * m][np.ascontiguousarray(t).reshape(-1)]
-            blocked = self.scene.occluded(o.view(np.float32).reshape(-1, 3),
-                                          d.view(np.float32).reshape(-1, 3))
-            self.visible[rows.start + s:rows.start + s + b][t] = ~blocked
-
-    def _tiled_dirs(self, rows: int) -> np.ndarray:
-        """[≥ rows·M] 12-byte records: the float32 direction grid repeated ``rows`` times."""
-        tiled = self._tiled
-        if tiled is None or len(tiled) < rows * len(self.directions):
-            base = np.ascontiguousarray(self._dirs32).view(_VEC3).reshape(-1)
-            tiled = np.tile(base, max(rows, 1))
-            self._tiled = tiled      # racing threads each build a valid one; either is kept
-        return tiled
-
-
-def dot3(vectors: np.ndarray, directions: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """[n, M] float64 dot products of ``vectors`` [n, 3] with ``directions`` [M, 3].
-
-    Matrix products of at most ``_GEMM_SINGLE`` multiply-adds each: OpenBLAS runs
-    those on the calling thread, so worker threads calling this at once do not stall
-    on OpenBLAS's own thread pool (a whole [N, 3]·[3, M] product would be split over
-    threads).  Culling and shading both use this one function, so a pair's n·ω and
-    r·ω are bit-identical in both.
-    """
-    v = np.asarray(vectors, np.float64)
-    d_t = np.asarray(directions, np.float64).T
-    if out is None:
-        out = np.empty((len(v), d_t.shape[1]))
-    step = max(1, _GEMM_SINGLE // max(1, 3 * d_t.shape[1]))
-    for s in range(0, len(v), step):
-        np.matmul(v[s:s + step], d_t, out=out[s:s + step])
-    return out
-
-
-def _matvec(a: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """a @ x ([b, M] · [M]) without BLAS, whose matrix-vector product goes multithreaded
-    at far smaller sizes than its matrix product (see :func:`dot3`)."""
-    return np.einsum("ij,j->i", a, x)
 
 
 #: n·ω below −BELOW_PLANE: the direction is under the receiver's tangent plane.
@@ -583,9 +254,9 @@ def _transport_stacked(receivers, view, directions, solid_angle, visible, settin
             if settings.phong and settings.visibility:
                 above = cosines[sl] > -BELOW_PLANE
             np.maximum(cosines[sl], 0, out=cos)
-        denom = _matvec(cos, solid_angle)
+        denom = matvec(cos, solid_angle)
         np.multiply(cos, h, out=cos)                              # W_diffuse = h·max(n·ω, 0)
-        vis = np.divide(_matvec(cos, solid_angle), denom, out=np.zeros_like(denom), where=denom > 0)
+        vis = np.divide(matvec(cos, solid_angle), denom, out=np.zeros_like(denom), where=denom > 0)
         if settings.phong:
             # [b, M] r·ω (``lobes`` from culling is overwritten in place: a scratch array)
             lobe = dot3(reflected[sl], directions) if lobes is None else lobes[sl]
@@ -633,10 +304,10 @@ def _shade_stacked(blocks, weighted: np.ndarray, out: list[dict]):
     """
     for sl, names, stacked, vis in blocks:
         k, b, m = stacked.shape
-        # Products of at most _GEMM_SINGLE multiply-adds: OpenBLAS runs those on one
+        # Products of at most GEMM_SINGLE multiply-adds: OpenBLAS runs those on one
         # thread, and its thread hand-off costs more than it saves on these memory-bound
         # tall-skinny products (3-10× slower on a busy 2-core machine, measured).
-        rows = max(1, _GEMM_SINGLE // (m * weighted.shape[1]))
+        rows = max(1, GEMM_SINGLE // (m * weighted.shape[1]))
         for i, name in enumerate(names):
             for r in range(0, b, rows):
                 res = stacked[i, r:r + rows] @ weighted                         # [r, 3E]
@@ -920,7 +591,7 @@ class FeatureBaker:
 
             chunks = self._row_slices(workers)
             if workers > 1 and len(chunks) > 1:
-                results = list(_pool(min(workers, len(chunks))).map(pose_chunk, chunks))
+                results = list(thread_pool(min(workers, len(chunks))).map(pose_chunk, chunks))
             else:
                 results = [pose_chunk(rows) for rows in chunks]
             if counted is not None:   # RayScene's counter is not thread-safe: set it once
@@ -944,8 +615,8 @@ class FeatureBaker:
             groups = [blocks[i::workers] for i in range(workers)] if workers > 1 else [blocks]
             groups = [g for g in groups if g]
             if len(groups) > 1:
-                list(_pool(len(groups)).map(lambda g: _shade_stacked(g, weighted, per_env),
-                                            groups))
+                list(thread_pool(len(groups)).map(lambda g: _shade_stacked(g, weighted, per_env),
+                                                  groups))
             else:
                 _shade_stacked(blocks, weighted, per_env)
             self.stats.add_time("shade", time.perf_counter() - t0)

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 from relight_cli import envmap as E
-from relight_cli.features import (DiscreteEnv, FeatureBaker, FeatureSettings, PoseMesh,
-                                  discretize_env, feature_names, ggx_weights, scene_diagonal,
-                                  vertex_features_reference, vertex_normals)
+from relight_cli.envmap import DiscreteEnv, discretize_env
+from relight_cli.features import (FeatureBaker, FeatureSettings, PoseMesh, feature_names,
+                                  ggx_weights, vertex_features_reference)
+from relight_cli.geometry import scene_diagonal, vertex_normals
 from relight_cli.formats.envmap import EnvMap
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -378,7 +379,7 @@ def test_cached_transport_extends_when_new_texels_light_up():
 
 
 def test_row_chunks_cover_every_row_once():
-    from relight_cli.features import _row_chunks
+    from relight_cli.visibility import _row_chunks
     rng = np.random.default_rng(3)
     for n, workers in ((1, 1), (7, 2), (500, 2), (3000, 4)):
         per_row = rng.integers(0, 400, n)
@@ -391,10 +392,10 @@ def test_threaded_trace_equals_one_flat_embree_call(monkeypatch):
     # The threaded, chunked, tiled ray building must trace exactly the rays a single
     # flat RayScene.occluded call on the (receiver, direction) pairs traces.  Tiny chunk
     # and tile sizes force many chunks and sub-tiles on a small scene.
-    from relight_cli import features as F
+    from relight_cli import visibility as V
     from relight_cli.raytrace import RayScene
-    monkeypatch.setattr(F, "_MIN_CHUNK", 64)
-    monkeypatch.setattr(F, "_TILE", 700)       # not a multiple of M: ragged sub-tiles
+    monkeypatch.setattr(V, "_MIN_CHUNK", 64)
+    monkeypatch.setattr(V, "_TILE", 700)       # not a multiple of M: ragged sub-tiles
     meshes = [sphere((-0.05, 0, 0), sub=2), sphere((0.05, 0, 0), sub=2)]
     env = grid_env(8, 16, smooth_sky)
     need = np.random.default_rng(5).random((sum(len(m.vertices) for m in meshes), 128)) < 0.6
@@ -456,7 +457,7 @@ def test_phong_odd_and_fractional_exponents_match_slow_twin():
 
 
 def test_dot3_equals_matrix_product():
-    from relight_cli.features import dot3
+    from relight_cli.geometry import dot3
     rng = np.random.default_rng(2)
     v, d = rng.normal(size=(1001, 3)), rng.normal(size=(77, 3))
     # row blocks of BLAS products vs one product: the same sums, rounding only

@@ -182,7 +182,7 @@ def test_env_render_equals_sum_of_direction_renders(capture_dir):  # noqa: F811
     """Env map = Σ of its directions as far point lights (same discretization), and = its
     two halves' sum: one forward pass, linear in the lights."""
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import DiscreteEnv, discretize_env
+    from relight_cli.envmap import DiscreteEnv, discretize_env
     from relight_cli.neural import teacher as T
     from relight_cli.neural.linear_train import render_lights
     from relight_cli.render.gbuffer import render_gbuffer
@@ -231,7 +231,7 @@ def test_mlp_baseline_is_linear_in_the_env(capture_dir):  # noqa: F811
     render of an env map is the sum of its halves' renders, and a light's direction lands
     in its own lat-long pixel."""
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import DiscreteEnv, discretize_env
+    from relight_cli.envmap import DiscreteEnv, discretize_env
     from relight_cli.neural import teacher as T
     from relight_cli.neural.linear_train import render_lights
     from relight_cli.render.gbuffer import render_gbuffer

@@ -54,7 +54,7 @@ def _distill(setup, out, *extra):
 
 def _sky(h=16, w=32):
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     return discretize_env(builtin_envmap("builtin:sky"), h, w)
 
 
@@ -172,7 +172,7 @@ def test_distillation_lowers_the_loss(setup):
     data = CaptureData(str(setup / "cap"), tcfg.tex_res, tcfg.aa)
     envs = [_sky()]
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     envs.append(discretize_env(builtin_envmap("builtin:studio"), 16, 32))
     cfg = StudentConfig.from_dict({**STUDENT, "iters": 40, "env_holdout": 0.0,
                                    "lambda_vgg": 0.0, "env_res": [16, 32]})
@@ -241,7 +241,7 @@ def test_student_renders_one_and_two_hands(setup, tmp_path, student):
 
 def test_student_is_scale_equivariant(setup, tmp_path):
     """Normalizing by the env's mean radiance: a 10× brighter env gives a 10× brighter image."""
-    from relight_cli.features import DiscreteEnv
+    from relight_cli.envmap import DiscreteEnv
     from relight_cli.formats.checkpoint import read_checkpoint
     from relight_cli.neural import distill as D
     from relight_cli.neural.teacher import composite
@@ -455,7 +455,7 @@ class _ConstantDRAM(torch.nn.Module):
 def learning(setup):
     """run(student, sabotage, **config) → trained model; score(model) → held-out MSEs."""
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.neural import distill as D
     from relight_cli.neural.config import StudentConfig
     from relight_cli.neural.data import CaptureData

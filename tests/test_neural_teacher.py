@@ -259,7 +259,7 @@ def _render(model, cfg, texels, gb, poses, inputs, weights):
 
 def test_point_lights_and_env_are_linear(capture_dir):
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import DiscreteEnv, discretize_env
+    from relight_cli.envmap import DiscreteEnv, discretize_env
     from relight_cli.neural import teacher as T
     from relight_cli.render.gbuffer import render_gbuffer
 
@@ -833,7 +833,7 @@ def test_each_hand_takes_its_own_teacher(two_capture):
     """Hand 0 (right) by the right teacher, hand 1 (left) by the left one: where a pixel sees
     one hand only, the two-teacher render equals that teacher's own render of the scene."""
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.neural import evaluate as EV
     from relight_cli.neural.teacher import env_light_inputs, render_lights
     from relight_cli.render.gbuffer import render_gbuffer
@@ -946,7 +946,7 @@ def test_linear_model_per_hand_equals_one_model_path(two_capture):
     """URHand's linear model through the per-hand path (a view of each hand, visibility of
     the pair) renders what its own all-hands pass renders."""
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.neural import evaluate as EV
     from relight_cli.neural import linear as LM
     from relight_cli.neural.linear_train import render_lights

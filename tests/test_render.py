@@ -21,7 +21,7 @@ WHITE = A.constant_material(albedo=(1.0, 1.0, 1.0), roughness=0.5)
 
 
 def uniform_env(h=16, w=32, value=1.0):
-    return F.DiscreteEnv(E.latlong_directions(h, w).reshape(-1, 3),
+    return E.DiscreteEnv(E.latlong_directions(h, w).reshape(-1, 3),
                          np.asarray(E.latlong_solid_angles(h, w)).reshape(-1).copy(),
                          np.full((h * w, 3), value), h, w, "uniform")
 

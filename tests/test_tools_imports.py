@@ -41,8 +41,8 @@ def test_the_package_keeps_its_layers(tool, real):
 def test_the_graph_counts_lazy_relative_and_aliased_imports(real):
     # formats/keypoints.py imports .leap inside read_keypoints (relative, in a function)
     assert "relight_cli.formats.leap" in real["relight_cli.formats.keypoints"]
-    # commands/relight.py: `from relight_cli.gaussians import dgsm as D` names a module
-    assert "relight_cli.gaussians.dgsm" in real["relight_cli.commands.relight"]
+    # jobs/relight_gaussians.py: `from relight_cli.gaussians import dgsm as D` names a module
+    assert "relight_cli.gaussians.dgsm" in real["relight_cli.jobs.relight_gaussians"]
     # `from . import __version__` is the package itself
     assert "relight_cli" in real["relight_cli.provenance"]
     assert all(m not in deps for m, deps in real.items())
@@ -134,4 +134,26 @@ def test_the_script_prints_the_graph_and_exits_0():
     lines = r.stdout.splitlines()
     assert "relight_cli.formats.image [formats] -> relight_cli.errors, relight_cli.formats.exr, " \
            "relight_cli.provenance" in lines
-    assert lines[-1] == "0 violations"
+    assert "0 violations" in lines and lines[-1] == "0 confusing aliases"
+
+
+def test_short_aliases_read_one_way(tool, tmp_path):
+    """A short module alias names one module across the package, and never a value in
+    the file that imports it; a planted package with both breaches is reported."""
+    assert tool.alias_problems() == [], "\n".join(tool.alias_problems())
+    engine, formats, commands = tmp_path / "relight_cli", tmp_path / "formats", tmp_path / "commands"
+    for folder in (engine, formats, commands):
+        folder.mkdir()
+        (folder / "__init__.py").write_text("")
+    (engine / "dgsm.py").write_text("")
+    (engine / "distill.py").write_text("")
+    (commands / "a.py").write_text("from relight_cli import dgsm as D\n")
+    (commands / "b.py").write_text("def f():\n    from relight_cli import distill as D\n"
+                                   "    T = 1\n    from relight_cli import dgsm as T\n")
+    found = tool.alias_problems({"relight_cli": engine, "relight_cli.commands": commands,
+                                 "relight_cli.formats": formats})
+    assert found == [
+        "relight_cli.commands.b binds T to a value and to module relight_cli.dgsm",
+        "alias D names 2 modules: relight_cli.dgsm in relight_cli.commands.a; "
+        "relight_cli.distill in relight_cli.commands.b",
+    ], found

@@ -22,13 +22,17 @@ The layers, bottom to top (a module may import its own layer and those below):
 
 Prints the graph, one line per module (``module [layer] -> deps``), then the
 violations: an import circle (two or more modules), a module importing a layer above
-its own (a format importing the engine, say), a command importing another command.
-Exits 1 if there is any.  ``tests/test_tools_imports.py`` runs it on the package.
+its own (a format importing the engine, say), a command importing another command; and
+the short module aliases that read two ways: one alias (``D``, ``EV``: one to three
+capitals) naming two modules in different files (``D`` as ``gaussians.dgsm`` here and
+``neural.distill`` there), or a file that binds an alias it imports a module as to a
+value too (``T`` a module and an array).  Exits 1 if there is any.  ``tests/test_tools_imports.py`` runs it on the package.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 import sys
 from pathlib import Path
 
@@ -74,6 +78,17 @@ def _known(name: str, modules) -> str | None:
     return None
 
 
+def _from_target(node: ast.ImportFrom, here: str) -> str:
+    """The dotted module a ``from ... import`` reads from, relative ones resolved against
+    the importing module's package ``here``."""
+    if not node.level:
+        return node.module or ""
+    base = here.split(".")
+    if node.level > 1:
+        base = base[:-(node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
 def imports_of(source: str, module: str, is_package: bool, modules) -> set:
     """The package modules that the module ``module`` (its text ``source``) imports."""
     tree = ast.parse(source)
@@ -87,13 +102,7 @@ def imports_of(source: str, module: str, is_package: bool, modules) -> set:
                     if found:
                         deps.add(found)
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = here.split(".")
-                if node.level > 1:
-                    base = base[:-(node.level - 1)]
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
+            target = _from_target(node, here)
             if not (target == PACKAGE or target.startswith(PACKAGE + ".")):
                 continue
             for alias in node.names:   # `from pkg import submodule` names a module
@@ -225,6 +234,62 @@ def violations(graph: dict) -> list:
     return found
 
 
+SHORT_ALIAS = re.compile(r"^[A-Z][A-Z0-9]{0,2}$")
+
+
+def module_aliases(source: str, module: str, is_package: bool) -> dict:
+    """Short aliases (:data:`SHORT_ALIAS`) a module's text binds to modules: alias -> the
+    set of dotted names imported as it (any package: ``torch.nn.functional`` too)."""
+    tree = ast.parse(source)
+    here = module if is_package else module.rpartition(".")[0]
+    found = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            pairs = [(a.name, a.asname) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            target = _from_target(node, here)
+            pairs = [(f"{target}.{a.name}", a.asname) for a in node.names]
+        else:
+            continue
+        for name, alias in pairs:
+            if alias and SHORT_ALIAS.match(alias):
+                found.setdefault(alias, set()).add(name)
+    return found
+
+
+def _bound_values(source: str) -> set:
+    """Names a module's text binds to values: assignment and loop targets, arguments."""
+    names = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            names.add(node.id)
+        elif isinstance(node, ast.arg):
+            names.add(node.arg)
+    return names
+
+
+def alias_problems(sources: dict | None = None) -> list:
+    """Short module aliases that read two ways across the package (see the docstring)."""
+    uses, problems = {}, []
+    for name, (path, is_package) in sorted(module_files(sources).items()):
+        text = path.read_text()
+        aliases = module_aliases(text, name, is_package)
+        values = _bound_values(text)
+        for alias, targets in sorted(aliases.items()):
+            for target in targets:
+                uses.setdefault(alias, {}).setdefault(target, []).append(name)
+            if len(targets) > 1:
+                problems.append(f"{name} imports {' and '.join(sorted(targets))} as {alias}")
+            if alias in values:
+                problems.append(f"{name} binds {alias} to a value and to module "
+                                f"{', '.join(sorted(targets))}")
+    for alias, targets in sorted(uses.items()):
+        if len(targets) > 1:
+            where = "; ".join(f"{t} in {', '.join(sorted(set(m)))}" for t, m in sorted(targets.items()))
+            problems.append(f"alias {alias} names {len(targets)} modules: {where}")
+    return problems
+
+
 def main() -> int:
     edges = graph()
     for module, deps in edges.items():
@@ -236,7 +301,11 @@ def main() -> int:
     print(f"{len(problems)} violation{'s' * (len(problems) != 1)}")
     for problem in problems:
         print(f"  {problem}")
-    return 1 if problems else 0
+    confusing = alias_problems()
+    print(f"{len(confusing)} confusing alias{'es' * (len(confusing) != 1)}")
+    for problem in confusing:
+        print(f"  {problem}")
+    return 1 if problems or confusing else 0
 
 
 if __name__ == "__main__":

@@ -12,8 +12,10 @@ of one call per frame.  Each yields a :class:`FrameRender`; writing is the calle
                     its own model, visibility traced against every hand
     student(...)    RelightableHands' student: texel features under the env map, one pass
 
-``view_of(frame, meshes)`` gives each frame's camera (a fixed camera, or the default
-camera framing that frame's posed hands).
+``physical_settings``, ``learned_settings`` and ``student_settings`` give the settings
+each frame's provenance records (plus its ``frame``); ``check_student`` that a student
+checkpoint fits the hand.  ``view_of(frame, meshes)`` gives each frame's camera (a fixed
+camera, or the default camera framing that frame's posed hands).
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ def physical(data, frames, view_of, materials, settings, lights=None, envmap=Non
         aovs: any of ``normal``, ``uv``, ``depth``.  source: the hand's name in errors.
     """
     from relight_cli.bake import pose_scene
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
     from relight_cli.render.shading import HandRenderer
     from relight_cli.uvraster import rasterize_uv
 
@@ -91,7 +93,7 @@ def learned(data, frames, view_of, per_hand, samples_axis: int, lights=None, den
     Args:
         lights: a read relight/lights record (positions, colors, intensities) or None.
         denv: the env map discretized on the model's grid
-            (:func:`relight_cli.features.discretize_env`) or None.
+            (:func:`relight_cli.envmap.discretize_env`) or None.
         progress: callable(n) per pass done (for a bar), or None.
     """
     from relight_cli.bake import pose_scene
@@ -142,6 +144,16 @@ def learned(data, frames, view_of, per_hand, samples_axis: int, lights=None, den
                           sum(len(w) for _, weights in passes for w in weights))
 
 
+def framing(width: int, height: int, camera=None):
+    """A ``view_of`` for the jobs: (frame, posed meshes) → ``camera`` when given, else the
+    default camera of ``width`` × ``height`` framing that frame's posed hands from the
+    front (+Z; :func:`relight_cli.hand.scene.preview_camera`)."""
+    if camera is not None:
+        return lambda frame, meshes: camera
+    from relight_cli.hand.scene import preview_camera
+    return lambda frame, meshes: preview_camera(meshes, width, height)
+
+
 PRECISIONS = ("auto", "float32", "bfloat16")
 
 
@@ -179,7 +191,7 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
     import torch
 
     from relight_cli.bake import pose_scene
-    from relight_cli.neural import distill as D
+    from relight_cli.neural import distill as DI
     from relight_cli.neural.teacher import composite
     from relight_cli.render.gbuffer import render_gbuffer
 
@@ -189,7 +201,7 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
     kind = "cuda" if str(device).startswith("cuda") else "cpu"
     autocast = (lambda: torch.autocast(kind, dtype=torch.bfloat16)) if precision == "bfloat16" \
         else contextlib.nullcontext
-    features = D.StudentFeatures(config, cache=1)
+    features = DI.StudentFeatures(config, cache=1)
     for frame in frames:
         seconds = {}
         t0 = time.perf_counter()
@@ -204,8 +216,8 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
         t0 = time.perf_counter()
         with torch.no_grad():
             with autocast():
-                textures = D.student_forward(net, config, maps, D.hand_poses(data, frame), denv,
-                                             D.wrist_rotations(data, frame), device)
+                textures = DI.student_forward(net, config, maps, DI.hand_poses(data, frame), denv,
+                                              DI.wrist_rotations(data, frame), device)
             textures = [t.float() for t in textures]
             seconds["decoder"] = time.perf_counter() - t0
             t0 = time.perf_counter()
@@ -214,6 +226,51 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
         rgb, mask = _over_background(image.cpu().numpy().astype(np.float32), gbuffer.mask,
                                      background)
         yield FrameRender(frame, _rgba(rgb, mask), rgb, view, seconds, 1)
+
+
+def physical_settings(settings, mesh: str, roughness, seed: int, background) -> dict:
+    """The provenance settings of :func:`physical`'s frames (each adds its ``frame``):
+    the RenderSettings, the mesh, the roughness option as given, seed and background."""
+    return {"model": "physical", "mesh": mesh, "env_res": list(settings.env_res),
+            "tex_res": settings.tex_res, "aa": settings.aa, "shadows": settings.shadows,
+            "specular": settings.specular, "sss": settings.sss, "sss_scale": settings.sss_scale,
+            "bounce": settings.bounce, "roughness": roughness, "seed": seed,
+            "background": list(background)}
+
+
+def learned_settings(model: str, per_hand, env_res, samples_axis: int, background) -> dict:
+    """The provenance settings of :func:`learned`'s frames (``model`` teacher or linear;
+    each hand's checkpoint, model and training step)."""
+    config = per_hand[0].config
+    return {"model": model, "teacher": config.model, "mesh": "fine",
+            "env_res": list(env_res), "tex_res": config.tex_res, "aa": samples_axis,
+            "visibility": config.visibility, "falloff": config.falloff,
+            "checkpoints": [{"hand": k, "checkpoint": m.name, "model": m.model_name,
+                             "sides": m.sides, "step": m.step}
+                            for k, m in enumerate(per_hand)],
+            "background": list(background)}
+
+
+def student_settings(config, step: int, precision: str, env_res, samples_axis: int,
+                     background) -> dict:
+    """The provenance settings of :func:`student`'s frames (``step``: the checkpoint's)."""
+    return {"model": "student", "student": config.student, "mesh": "fine",
+            "precision": precision, "env_res": list(env_res), "tex_res": config.tex_res,
+            "aa": samples_axis, "specular": config.specular, "visibility": config.visibility,
+            "checkpoint_step": int(step), "background": list(background)}
+
+
+def check_student(checkpoint: dict, data) -> None:
+    """ValueError unless the student ``checkpoint`` learned a hand of ``data``'s joints
+    and UV layout."""
+    from relight_cli.neural.geometry import uv_layout_digest
+    if (data.n_joints - 1) * 3 != int(checkpoint["pose_dim"]):
+        raise ValueError(f"the hand has {data.n_joints} joints; the checkpoint's model was "
+                         f"trained on {int(checkpoint['pose_dim']) // 3 + 1}")
+    layout = checkpoint.get("extra", {}).get("uv_layout")
+    if layout is not None and layout != uv_layout_digest(data.mesh("fine")):
+        raise ValueError("the hand's UV layout differs from the one the model learned its "
+                         "texture on (another hand model?)")
 
 
 def _over_background(rgb: np.ndarray, mask: np.ndarray, background) -> tuple:

@@ -5,6 +5,9 @@ is judged").  :func:`ceiling_of` gives a capture's, made once per CaptureData.
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 import torch
 
@@ -85,10 +88,41 @@ class Ceiling:
 
     def score(self, item, texels: list, gbuffer, gt, mask, hand_masks=None,
               names=None) -> dict:
-        """:func:`score` of :meth:`predict` (cached per item, texture sizes and sampling)."""
+        """:func:`score` of :meth:`predict`, cached per item, texture sizes, sampling and
+        the scored pixels: on this Ceiling, and process-wide by the capture's key, so a
+        second model of the same capture in one process (a study's rows, the runs of a
+        test session, ``relight CAPTURE/`` after training) does not shade it again."""
         ident = ("env", item[1]["image"]) if item[0] == "env" else tuple(item)
         key = (ident, tuple(t.tex_res for t in texels), gbuffer.spp, gbuffer.width)
         if key not in self._scores:
-            pred = self.predict(item, texels, gbuffer)
-            self._scores[key] = score(pred, gt, mask, hand_masks, names)
-        return self._scores[key]
+            shared = (self.data.key, *key, gbuffer.height, _digest(gt, mask, hand_masks, names))
+            if shared not in _SHARED:
+                pred = self.predict(item, texels, gbuffer)
+                _SHARED[shared] = score(pred, gt, mask, hand_masks, names)
+                while len(_SHARED) > _SHARED_SIZE:
+                    _SHARED.popitem(last=False)
+            self._scores[key] = _SHARED[shared]
+        return dict(self._scores[key])
+
+
+# Ceiling scores shared by every Ceiling of this process (see Ceiling.score): a few
+# hundred bytes each, bounded.
+_SHARED_SIZE = 4096
+_SHARED: OrderedDict = OrderedDict()
+
+
+def _digest(*arrays) -> str:
+    """SHA-256 of the values that were scored (so a changed image is a new entry)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        if a is None:
+            h.update(b"none")
+        elif isinstance(a, (list, tuple)):
+            h.update(_digest(*a).encode())
+        elif isinstance(a, str):
+            h.update(a.encode())
+        else:
+            a = np.ascontiguousarray(a)
+            h.update(f"{a.dtype}{a.shape}".encode())
+            h.update(a.tobytes())
+    return h.hexdigest()

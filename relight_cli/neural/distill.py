@@ -73,7 +73,7 @@ def rotate_env(denv, steps: int):
     area-weighted mean of its two halves and giving it back to both, so the map turns
     by steps·2π/(W−1) and its power Σ L Δω is kept exactly.
     """
-    from relight_cli.features import DiscreteEnv
+    from relight_cli.envmap import DiscreteEnv
     h, w = denv.height, denv.width
     if steps % (w - 1) == 0:
         return denv
@@ -311,14 +311,14 @@ class StudentFeatures:
     """
 
     def __init__(self, config, cache: int = 16):
-        from relight_cli import features as F
+        from relight_cli import features as FE
         self.config = config
-        self.settings = F.FeatureSettings(shininess=tuple(float(a) for a in config.shininess),
-                                          specular="phong" if config.specular else "none",
-                                          visibility=config.visibility)
+        self.settings = FE.FeatureSettings(shininess=tuple(float(a) for a in config.shininess),
+                                           specular="phong" if config.specular else "none",
+                                           visibility=config.visibility)
         self._poses = LRU(cache)
         self._rasters = {}
-        self.names = ["diffuse"] + ([F.phong_name(a) for a in self.settings.phong]
+        self.names = ["diffuse"] + ([FE.phong_name(a) for a in self.settings.phong]
                                     if config.specular else [])
 
     @property
@@ -510,7 +510,7 @@ def evaluate_student(task: StudentTask, model, device) -> dict:
         out["vs_teacher"]["samples"] = len(rows)
     splits = data.splits()
     if splits.get("env"):
-        from relight_cli.features import discretize_env
+        from relight_cli.envmap import discretize_env
         renders = splits["env"]
         pick = np.unique(np.linspace(0, len(renders) - 1, min(len(renders), cfg.val_samples))
                          .round().astype(int))

@@ -403,7 +403,7 @@ class CaptureEvaluator:
 
     def env_map(self, name: str):
         if name not in self._envs:
-            from relight_cli.features import discretize_env
+            from relight_cli.envmap import discretize_env
             self._envs[name] = discretize_env(self.data.env_map(name), *self.env_res)
         return self._envs[name]
 

@@ -6,7 +6,7 @@ One function renders every case, because they differ only in their lights:
       own 1/r² falloff and visibility;
     * an env map: by the linearity of light transport, a sum over its directions,
       discretized exactly as ``bake-features --env-res`` (default 16×32, exact texel solid
-      angles, :func:`relight_cli.features.discretize_env`): direction m is a distant light
+      angles, :func:`relight_cli.envmap.discretize_env`): direction m is a distant light
       of RGB weight b_m = L_m Δω_m with its own ray-traced visibility.  Directions with zero
       radiance are skipped (they add nothing).
 

@@ -174,7 +174,7 @@ def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, p
     """The validation loop of any model: ``predict_frame(item)`` → (prediction, image, mask)
     of a capture (frame, camera) item; ``predict_env(texels, gbuffer, poses, discretized
     env)`` → the prediction of an ``eval/`` env render (held-out hand)."""
-    from relight_cli.features import discretize_env
+    from relight_cli.envmap import discretize_env
 
     from .scores import attach_ceiling, mean_scores, spread
     model.eval()

@@ -10,7 +10,7 @@ up to the global scale of the light units):
   with the inverse square of the distance r (near field).  The env map term is
   *exactly* bake-features' diffuse feature: the env map is discretized to the same
   lat-long grid (``env_res``) with exact texel solid angles by
-  :func:`relight_cli.features.discretize_env`, and the transport weights come from
+  :func:`relight_cli.envmap.discretize_env`, and the transport weights come from
   :func:`relight_cli.features.transport_blocks`, so a render is exactly linear in
   the env map and consistent with the features a neural model is given.
 * h is binary visibility from embree shadow rays against every hand of the scene.
@@ -41,7 +41,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .appearance import bilinear
+from relight_cli import features as FE
 from relight_cli.brdf import ggx_cosine
+from relight_cli.envmap import DiscreteEnv, discretize_env
+from relight_cli.geometry import Receivers, vertex_normals, view_directions
+from relight_cli.visibility import VisibilityCache
 
 # d'Eon & Luebke (GPU Gems 3, ch. 14) six-Gaussian fit of a three-layer skin
 # profile: (variance in mm², RGB weights).  Each colour's weights sum to 1.
@@ -263,7 +267,7 @@ class Lighting:
             (filled), or None; ``direct="pixel"`` rendering swaps it for exact per-sample
             irradiance and keeps only the SSS/bounce difference from texture space.
         lights: the point lights (or None).
-        env: the discretized env map (``features.DiscreteEnv``) or None.
+        env: the discretized env map (``envmap.DiscreteEnv``) or None.
         stats: seconds per stage and rays traced.
     """
 
@@ -322,7 +326,7 @@ class HandRenderer:
     """
 
     def __init__(self, meshes, materials, settings: RenderSettings | None = None, rasters=None):
-        from relight_cli.features import scene_diagonal
+        from relight_cli.geometry import scene_diagonal
         from relight_cli.raytrace import RayScene
 
         self.settings = settings or RenderSettings()
@@ -435,28 +439,27 @@ class HandRenderer:
         own receivers, results interpolated to texels barycentrically) or the texel
         centres themselves (``"texels"``: per-texel visibility, ~3× more rays).
         """
-        from relight_cli import features as F
 
         surf = self.surfaces[k]
         mesh = self.meshes[k]
         by_vertex = self.settings.env_space == "vertices"
         if k not in self._env_cache:
             if by_vertex:
-                normals, defined = F.vertex_normals(mesh.vertices, mesh.faces, mesh.normals)
-                receivers = F.Receivers(np.asarray(mesh.vertices, np.float64), normals, defined)
+                normals, defined = vertex_normals(mesh.vertices, mesh.faces, mesh.normals)
+                receivers = Receivers(np.asarray(mesh.vertices, np.float64), normals, defined)
             else:
-                receivers = F.Receivers(surf.points, surf.normals, np.ones(len(surf.points), bool))
+                receivers = Receivers(surf.points, surf.normals, np.ones(len(surf.points), bool))
             scene = self.scene if self.settings.shadows else None
-            cache = F.VisibilityCache(scene, receivers, env.directions, self.offsets[k])
+            cache = VisibilityCache(scene, receivers, env.directions, self.offsets[k])
             self._env_cache[k] = (receivers, cache)
         receivers, cache = self._env_cache[k]
         if not np.array_equal(cache.directions, env.directions):
             raise ValueError("env maps of one renderer must share the direction grid")
-        fs = F.FeatureSettings(shininess=(), specular="ggx" if specular else "none",
-                               f0=self.materials[k].f0, visibility=self.settings.shadows)
-        need = F.needed_pairs(receivers, None, env.directions, env.lit, fs)
+        fs = FE.FeatureSettings(shininess=(), specular="ggx" if specular else "none",
+                                f0=self.materials[k].f0, visibility=self.settings.shadows)
+        need = FE.needed_pairs(receivers, None, env.directions, env.lit, fs)
         cache.require(need)
-        view = F.view_directions(receivers.points, eye)
+        view = view_directions(receivers.points, eye)
         rough = None
         if specular:
             if by_vertex:
@@ -466,9 +469,9 @@ class HandRenderer:
                 rough = self.materials[k].roughness_at(uv_of_vertex)
             else:
                 rough = self.materials[k].roughness_at(surf.uv)
-        blocks = F.transport_blocks(receivers, view, env.directions, env.solid_angle,
-                                    cache.visible, fs, rough)
-        result = F.apply_transport(blocks, len(receivers), [env])[0]
+        blocks = FE.transport_blocks(receivers, view, env.directions, env.solid_angle,
+                                     cache.visible, fs, rough)
+        result = FE.apply_transport(blocks, len(receivers), [env])[0]
         if by_vertex:
             result = {name: surf.raster.interpolate(value, mesh.faces, fill=None)[surf.inside]
                       for name, value in result.items() if name != "visibility"}
@@ -476,17 +479,16 @@ class HandRenderer:
 
     def discretize(self, env):
         """An EnvMap (or DiscreteEnv) on bake-features' ``env_res`` grid."""
-        from relight_cli import features as F
-        if isinstance(env, F.DiscreteEnv):
+        if isinstance(env, DiscreteEnv):
             return env
-        return F.discretize_env(env, *self.settings.env_res)
+        return discretize_env(env, *self.settings.env_res)
 
     def light(self, lights: PointLights | None = None, env=None) -> Lighting:
         """Camera-independent lighting: irradiance maps (SSS applied) and visibility.
 
         Args:
             lights: point lights, or None.
-            env: an ``EnvMap`` (discretized to ``env_res``) or a ``features.DiscreteEnv``, or None.
+            env: an ``EnvMap`` (discretized to ``env_res``) or a ``envmap.DiscreteEnv``, or None.
         """
         stats = {}
         t0 = time.perf_counter()

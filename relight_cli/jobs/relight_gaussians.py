@@ -1,0 +1,251 @@
+"""Relight Gaussians: the Gaussian mode of ``relight relight`` as engine jobs.
+
+    relight(...)        objects relit by an SH probe (paper Eq. 9-10), optionally lit
+                        directly by a DGSM's lights, receivers and objects shadowed by
+                        the DGSM (Sec. 3.3), optionally rendered from a camera
+    shadow_matte(...)   the receivers-only shadow matte of the paper's Sec. 4.2
+
+Both take what the command has read (Gaussians, an SH probe, a DGSM, a camera) and an
+options dataclass, and return arrays plus the settings the provenance records; logging
+goes through the ``log`` callable given (none by default).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def _quiet(message: str) -> None:
+    pass
+
+
+@dataclass
+class GaussianOptions:
+    """``relight relight``'s Gaussian options (see its --help).
+
+    shadow_strength: a number in [0, 1] or ``"auto"``.  light_weights: ``intensity``,
+    ``irradiance``, ``equal`` or None (irradiance with auto strength, else intensity).
+    t_max: the shading clip (None: no clip)."""
+
+    lobe: float = 1.0
+    intensity: float = 1.0
+    t_max: float | None = None
+    normals: str = "auto"
+    footprint: str = "stencil"
+    samples: int = 16
+    seed: int = 0
+    shadow_strength: float | str = "auto"
+    light_weights: str | None = None
+    direct_light: bool = False
+
+
+@dataclass
+class RelitGaussians:
+    """What :func:`relight` returns: the relit ``objects`` (one Gaussians, the inputs
+    concatenated in order), the shadowed ``receivers`` (or None), with a camera the
+    rendered ``channels`` (R, G, B, A) and ``rgb`` [H, W, 3] (else None), and the
+    ``settings`` the provenance records (the command adds the objects' specs and, for an
+    image, the background)."""
+
+    objects: object
+    receivers: object | None
+    settings: dict
+    channels: dict | None = None
+    rgb: np.ndarray | None = None
+    rendered: int = 0
+
+
+@dataclass
+class Matte:
+    """What :func:`shadow_matte` returns: the image ``channels`` and ``rgb``, each
+    receiver's shadow ``strength`` [M] and the provenance ``settings``."""
+
+    channels: dict
+    rgb: np.ndarray
+    strength: np.ndarray
+    settings: dict = field(default_factory=dict)
+
+
+def weights_mode(light_weights: str, shadow_map, log=_quiet) -> str:
+    """``light_weights`` as it can run with this shadow map (version 1 maps: equal, said)."""
+    from relight_cli.gaussians import transfer as TF
+    mode = TF.effective_light_weights(light_weights, shadow_map.intensities)
+    if mode != light_weights:
+        log("note: this shadow map (DGSM version 1) stores no light intensities; the lights "
+            "are weighted equally")
+    return mode
+
+
+def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers=None,
+            camera=None, background=(0.0, 0.0, 0.0), names=None, log=_quiet) -> RelitGaussians:
+    """Relight ``objects`` (a list of Gaussians, IN then each --object) by ``probe`` (an
+    SH probe: ``coefficients``, ``degree``).  With ``shadow_map`` (a DGSM) the
+    ``receivers`` (Gaussians, required then) are shadowed and, for a grouped DGSM, each
+    object by the others; with ``camera`` receivers + objects are rendered over
+    ``background``.  ``names``: each object's name in errors (a DataError for normals
+    that cannot be estimated)."""
+    from relight_cli.formats.gaussians_ply import concatenate
+
+    o = options
+    names = names or [f"object {j}" for j in range(len(objects))]
+    if shadow_map is not None and receivers is None:
+        raise ValueError("a shadow map shadows receivers: give receivers")
+    if o.direct_light and shadow_map is None:
+        raise ValueError("direct_light takes its lights from a shadow map")
+    if shadow_map is not None and shadow_map.groups is not None \
+            and len(shadow_map.groups) != len(objects):
+        raise ValueError(f"the shadow map has {len(shadow_map.groups)} occluder groups but "
+                         f"{len(objects)} object(s) were given")
+    auto, strength_setting = o.shadow_strength == "auto", o.shadow_strength
+    if auto and shadow_map is not None and shadow_map.intensities is None:
+        log("note: this shadow map (DGSM version 1) stores no light intensities, so "
+            "--shadow-strength auto cannot weigh them against the probe: s = 1")
+        auto, strength_setting = False, 1.0
+    light_weights = o.light_weights or ("irradiance" if auto else "intensity")
+    relit, direct = _relit_objects(objects, probe, o, shadow_map, names)
+    log(f"probe degree {probe.degree}" + (", objects lit by the shadow map's "
+                                          f"{len(shadow_map.lights)} light(s) too"
+                                          if o.direct_light else ""))
+    settings = {"lobe": o.lobe, "intensity": o.intensity, "t_max": o.t_max,
+                "normals": o.normals, "footprint": o.footprint, "samples": o.samples,
+                "seed": o.seed, "shadow_strength": strength_setting,
+                "direct_light": o.direct_light}
+    if shadow_map is not None:
+        used = weights_mode(light_weights, shadow_map, log)
+        receivers = _shadow_receivers(receivers, probe, shadow_map, used, auto,
+                                      strength_setting, o, log)
+        _shadow_objects(relit, direct, probe, shadow_map, used, auto, strength_setting, o, log)
+        # which opacity mapping made the shadow map, and how its lights were weighted
+        settings.update(dgsm_mapping=shadow_map.mapping, dgsm_kappa=shadow_map.kappa,
+                        light_weights=used)
+    out = RelitGaussians(relit[0] if len(relit) == 1 else concatenate(relit), receivers,
+                         settings)
+    if camera is not None:
+        from relight_cli.gaussians.splat import render
+        everything = out.objects if receivers is None else concatenate([receivers, out.objects])
+        image = render(everything, camera, background=background)
+        out.channels = _rgba(image)
+        out.rgb, out.rendered = image.image.astype(np.float32), len(everything)
+    return out
+
+
+def _relit_objects(objects, probe, o: GaussianOptions, shadow_map, names):
+    """Each object relit by the probe (+ the DGSM's lights with direct_light): (relit
+    list, per object [L, N, 3] irradiance of each light or None)."""
+    from relight_cli.errors import DataError
+    from relight_cli.gaussians import transfer as TF
+    relit, direct = [], []
+    for g, name in zip(objects, names):
+        try:
+            n = TF.estimate_normals(g, o.normals)
+        except ValueError as exc:  # e.g. normals stored on a file without normals
+            raise DataError(str(exc), name) from None
+        d = extra = None
+        if o.direct_light:
+            d = TF.direct_irradiance(shadow_map.intensities, shadow_map.colors,
+                                     shadow_map.lights, g.means, n, one_sided=True)
+            extra = d.sum(axis=0) / math.pi
+        direct.append(d)
+        relit.append(TF.relight_gaussians(
+            g, probe.coefficients, q=o.lobe, intensity=o.intensity,
+            t_max=math.inf if o.t_max is None else o.t_max, normals=n, extra=extra))
+    return relit, direct
+
+
+def _darkened(factor) -> str:
+    return (f"mean factor {factor.mean():.3f}, "
+            f"{int((factor.reshape(len(factor), -1).min(axis=1) < 0.99).sum())} of "
+            f"{len(factor)} darkened")
+
+
+def _shadow_receivers(scene, probe, shadow_map, weights_used, auto, strength, o, log):
+    """The receivers, each light's share of their direct light attenuated by its
+    transmittance (auto strength: per receiver, the lights' share against the probe's)."""
+    from relight_cli.gaussians import transfer as TF
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    T = sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
+                             footprint=o.footprint, samples=o.samples, seed=o.seed)   # [L, M]
+    receiver_normals = None
+    if auto:        # per receiver: the lights' share of its light against the probe's
+        receiver_normals = TF.facing_lights(scene.means, TF.estimate_normals(scene, "axis"),
+                                            shadow_map.lights)
+        e_direct = TF.direct_irradiance(shadow_map.intensities, shadow_map.colors,
+                                        shadow_map.lights, scene.means,
+                                        receiver_normals).sum(axis=0)
+        strength = TF.direct_share(e_direct, probe.coefficients, receiver_normals)
+        log(f"direct share of the receivers' light (auto): median "
+            f"{float(np.median(strength)):.2f}, range {float(strength.min()):.2f}–"
+            f"{float(strength.max()):.2f}")
+    weights = TF.dgsm_light_weights(weights_used, shadow_map, scene, receiver_normals)
+    factor = TF.shadow_factor(T, weights, strength)  # [M, 3]
+    log(f"shadowed receivers: {_darkened(factor)}")
+    return TF.attenuate(scene, factor)
+
+
+def _shadow_objects(relit, direct, probe, shadow_map, weights_used, auto, strength, o, log):
+    """With a grouped DGSM, each object (in place in ``relit``) shadowed by the others."""
+    from relight_cli.gaussians import transfer as TF
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    if shadow_map.groups is None:
+        if len(relit) > 1:
+            log("note: the shadow map has no occluder groups, so the objects do not shadow "
+                "each other (build it from all objects: dgsm-build A B ...)")
+        return
+    for j, obj in enumerate(relit):
+        if auto and direct[j] is None:
+            continue    # lit by the probe only: the lights' shadows do not reach it
+        T = sample_transmittance(shadow_map.others(j), obj.means, obj.scales, obj.rotations,
+                                 footprint=o.footprint, samples=o.samples, seed=o.seed)
+        if auto:        # colour ρ(S + D): direct share D/(S + D), weights D_l (exact)
+            d = direct[j].sum(axis=0) / math.pi
+            probe_part = np.clip(TF.shading(probe.coefficients, obj.normals, o.lobe), 0.0, None)
+            total = probe_part + d
+            share = np.where(total > 0, d / np.where(total > 0, total, 1), 0.0)
+            factor = TF.shadow_factor(T, direct[j], share)
+        else:
+            weights = TF.dgsm_light_weights(weights_used, shadow_map, obj, obj.normals)
+            factor = TF.shadow_factor(T, weights, strength)
+        relit[j] = TF.attenuate(obj, factor)
+        log(f"shadowed object {j} by the others: {_darkened(factor)}")
+
+
+def shadow_matte(mode: str, receivers, shadow_map, camera, options: GaussianOptions,
+                 meshes=None, background=(0.0, 0.0, 0.0), log=_quiet) -> Matte:
+    """The receivers-only shadow matte (paper Sec. 4.2): receivers coloured by shadow
+    strength 1 − Σ w_l V_l / Σ w_l, nothing else drawn.  ``mode`` ``dgsm``: V the DGSM's
+    transmittance; ``mesh``: embree shadow rays against ``meshes`` (the objects as
+    triangle meshes).  Lights and weights (``options.light_weights``, default intensity)
+    come from the DGSM."""
+    from relight_cli.gaussians import dgsm as D
+    from relight_cli.gaussians import shadow_matte as SM
+    from relight_cli.gaussians import transfer as TF
+    from relight_cli.gaussians.splat import render
+
+    o, scene = options, receivers
+    used = weights_mode(o.light_weights or "intensity", shadow_map, log)
+    weights = TF.dgsm_light_weights(used, shadow_map, scene)
+    if mode == "dgsm":
+        V = D.sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
+                                   footprint=o.footprint, samples=o.samples, seed=o.seed)
+    elif mode == "mesh":
+        if meshes is None:
+            raise ValueError("a mesh shadow matte needs the objects' meshes")
+        pts, n = D.footprint_samples(scene.means, scene.scales, scene.rotations, o.footprint,
+                                     o.samples, o.seed)
+        V = SM.mesh_visibility(meshes, shadow_map.lights, pts.reshape(-1, 3))
+        V = V.reshape(len(shadow_map.lights), len(scene), n).mean(axis=2)
+    else:
+        raise ValueError(f"shadow matte mode is dgsm or mesh, got {mode!r}")
+    strength = SM.shadow_strength(TF.shadow_factor(V, weights, 1.0))
+    image = render(scene, camera, background=background, colors=SM.matte_colors(strength))
+    settings = {"shadow_matte": mode, "footprint": o.footprint, "samples": o.samples,
+                "seed": o.seed, "light_weights": used, "dgsm_mapping": shadow_map.mapping}
+    return Matte(_rgba(image), image.image.astype(np.float32), strength, settings)
+
+
+def _rgba(image) -> dict:
+    return {"R": image.image[..., 0], "G": image.image[..., 1], "B": image.image[..., 2],
+            "A": image.alpha}
