@@ -250,10 +250,9 @@ _MODE_OPTIONS = {
     "env": ("ENV", "pls"),
     "probe": ("--probe", "g"), "dgsm": ("--dgsm", "g"), "receivers": ("--receivers", "g"),
     "objects": ("--object", "g"), "receivers_out": ("--receivers-out", "g"),
-    "light_weights": ("--light-weights", "gplsc"),   # ignored by a hand or capture, as before
-    "direct_light": ("--direct-light", "gpls"),      # ignored by a hand, as before
+    "light_weights": ("--light-weights", "g"), "direct_light": ("--direct-light", "g"),
     "shadow_matte": ("--shadow-matte", "g"),
-    "t_max": ("--shading-clip", "gplsc"),            # ignored by a hand or capture, as before
+    "t_max": ("--shading-clip", "g"),
     "camera": ("--camera", "gpls"),
     "model": ("--model", "plsc"), "checkpoint": ("--checkpoint", "lsc"),
     "device": ("--device", "lsc"), "precision": ("--precision", "s"),

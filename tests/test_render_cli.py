@@ -96,6 +96,10 @@ def test_subprocess(files):
     (["builtin:right", "builtin:sky", "--frame", "3", "-o", "o.exr"], 2, "out of range"),
     (["builtin:right", "builtin:sky", "--probe", "p.json", "-o", "o.exr"], 2,
      "only apply to Gaussians"),
+    (["builtin:right", "builtin:sky", "--direct-light", "--shading-clip", "2", "-o", "o.exr"], 2,
+     "--direct-light, --shading-clip only apply to Gaussians"),     # once ignored silently
+    (["builtin:right", "builtin:sky", "--light-weights", "equal", "-o", "o.exr"], 2,
+     "--light-weights only apply to Gaussians"),
     (["builtin:right", "builtin:sky", "--roughness", "0", "-o", "o.exr"], 2, "--roughness"),
     (["builtin:right", "builtin:sky", "--tex-res", "2", "-o", "o.exr"], 2, "--tex-res"),
     (["builtin:right", "builtin:sky", "--env-res", "1x4", "-o", "o.exr"], 2, "--env-res"),
