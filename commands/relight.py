@@ -502,14 +502,9 @@ def _read_view(path):
 
 
 def _read_dgsm(path: str):
-    """The DGSM reader of formats/dgsm_exr.py (owned by the DGSM module)."""
-    from relight_cli.errors import UsageProblem
-    try:
-        from relight_cli.formats import dgsm_exr
-    except ImportError:
-        raise UsageProblem("--dgsm is not available in this build (formats/dgsm_exr.py is "
-                           "missing)", path) from None
-    return dgsm_exr.read_dgsm(path)
+    """The DGSM of --dgsm (formats/dgsm_exr.py)."""
+    from relight_cli.formats.dgsm_exr import read_dgsm
+    return read_dgsm(path)
 
 
 # ------------------------------------------------------------------------- hands
