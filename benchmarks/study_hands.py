@@ -1240,6 +1240,15 @@ def main(argv=None):
               flush=True)
         if args.worker:
             continue
+        # a table whose rows all came from the cache as they were is left as written (its
+        # file keeps the run that trained them, not this run's 0-minute wall time)
+        before = results / f"study_{name}.json"
+        if before.is_file():
+            old = json.loads(before.read_text())
+            if all(old.get(k) == json.loads(json.dumps(record.get(k)))
+                   for k in ("rows", "curves", "row_seconds", "claims")):
+                print(f"{name}: unchanged; {before} kept", file=sys.stderr, flush=True)
+                continue
         # each table is written as soon as it is complete, so a study spread over sessions
         # commits its finished tables (wall_seconds: this run's time up to that table)
         record.update({"command": command, "machine": where,

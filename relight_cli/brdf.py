@@ -55,7 +55,11 @@ def ggx_cosine(normal, view, light, roughness, f0: float = 0.04) -> np.ndarray:
 
 
 def ggx_cosine_torch(normal, view, light, roughness, f0: float = 0.04):
-    """Torch twin of :func:`ggx_cosine` (differentiable in normal and roughness)."""
+    """Torch twin of :func:`ggx_cosine` (differentiable in normal and roughness).
+
+    D's denominator is evaluated as |n × h|² + (n·h)² α², which equals the module doc's
+    form for unit vectors but stays > 0 in float32 down to ``MIN_ROUGHNESS`` (the usual
+    form divides by zero there, as Filament's ``D_GGX`` notes for half floats)."""
     import torch
 
     n = torch.nn.functional.normalize(normal, dim=-1)
@@ -68,7 +72,13 @@ def ggx_cosine_torch(normal, view, light, roughness, f0: float = 0.04):
     nv = (n * view).sum(-1)
     nh = (n * half).sum(-1)
     vh = torch.clamp((view * half).sum(-1), 0, 1)
-    D = a2 / (math.pi * (nh * nh * (a2 - 1) + 1) ** 2)
+    # (n·h)²(α² − 1) + 1 = |n × h|² + (n·h)² α² for unit n, h: in float32 the left side
+    # cancels to 0 (D = inf) where n·h rounds to 1 and α² < 2⁻²⁴ (ρ below ~0.016); the
+    # right side has no cancellation, and it is at least α² (the clamp covers a zero n or
+    # h, where the lobe is masked below anyway)
+    nxh = torch.linalg.cross(*torch.broadcast_tensors(n, half), dim=-1)
+    den = torch.maximum((nxh * nxh).sum(-1) + nh * nh * a2, a2)
+    D = a2 / (math.pi * den ** 2)
     F = f0 + (1 - f0) * (1 - vh) ** 5
     nlp = torch.clamp(nl, min=0)
     nvp = torch.clamp(nv, min=0)

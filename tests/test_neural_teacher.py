@@ -1051,3 +1051,58 @@ def test_relight_two_teachers_bad_input(case, code, message, two_capture, captur
     lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and message in lines[0], r.output
     assert list(out.parent.iterdir()) == []
+
+
+# ---------------------------------------------------------------- numerical stability
+
+
+def test_ggx_teacher_roughness_keeps_a_float32_floor(capture_dir):
+    """A material head driven far negative (what the converged study's GGX row reached:
+    σ(y) ≈ 1e-16) still gives ρ ≥ GGX_MIN_ROUGHNESS, and a training step through the
+    full render has finite gradients."""
+    from relight_cli.neural.models import GGX_MIN_ROUGHNESS
+    from relight_cli.neural.train import sample_loss
+    data = _data(capture_dir)
+    model, cfg = _model(data, model="ggx")
+    mean = torch.from_numpy(data.mean_texture().mean(0, keepdims=True))
+    with torch.no_grad():
+        model.material_net.head.bias[3] = -60.0            # σ(−60) ≈ 1e-26
+        model.material_net.head.bias[4:6] = 0.0            # untilted normals
+    pose = torch.zeros(1, data.pose_dim)
+    _, rough, _ = model.materials(mean, pose)
+    assert float(rough.detach().min()) >= GGX_MIN_ROUGHNESS - 1e-7
+    model.train()
+    loss, _ = sample_loss(model, data, data.splits()["train"][0], cfg, 0, torch.device("cpu"),
+                          mean_texture=mean)
+    loss.backward()
+    assert torch.isfinite(loss)
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+def test_training_stops_at_the_first_non_finite_gradient(capture_dir):
+    """A loss that turns NaN at step 3 stops the run there with one DataError naming the
+    step, the parameter and the capture, before the optimizer takes the step: every saved
+    checkpoint is finite and the weights are those after step 2."""
+    from relight_cli.neural.train import TeacherTask, TrainingDiverged, fit
+    cfg = TeacherConfig.from_dict({**SMALL, "iters": 6, "save_every": 1, "val_every": 0})
+    task = TeacherTask(_data(capture_dir), cfg)
+    honest = task.loss
+
+    def loss(net, item, step, device):
+        total, parts = honest(net, item, step, device)
+        return (total * float("nan"), {**parts, "mse": float("nan")}) if step == 2 \
+            else (total, parts)
+    task.loss = loss
+    saved = []
+    with pytest.raises(TrainingDiverged) as caught:
+        fit(task, cfg, torch.device("cpu"), save=saved.append, show_progress=False)
+    err = caught.value
+    assert err.exit_code == 1 and err.path == str(task.data.index_path)
+    assert "training diverged at step 3 of 6: non-finite gradient of " in err.message
+    assert "mse nan" in err.message
+    assert [c["step"] for c in saved] == [1, 2]
+    for c in saved:
+        assert all(torch.isfinite(w).all() for w in c["weights"].values())
+    # sabotage check: the same run with an honest loss trains through all six steps
+    task.loss = honest
+    assert fit(task, cfg, torch.device("cpu"), show_progress=False).checkpoint["step"] == 6

@@ -153,6 +153,36 @@ def test_ggx_reciprocity_and_torch_twin():
     np.testing.assert_allclose(t.numpy(), ggx_cosine(n, v, l, rho), rtol=1e-12, atol=1e-300)
 
 
+def test_ggx_torch_float32_stays_finite_at_the_mirror_peak():
+    """Smooth roughness down to MIN_ROUGHNESS in float32 with n exactly the half vector:
+    the textbook denominator (n·h)²(α² − 1) + 1 cancels to 0 there (D = inf, and NaN
+    gradients through the masked branch); the |n × h|² form keeps the value and its
+    gradient finite and agrees with the float64 reference where float32 can resolve the
+    lobe (α ≥ 1e-4: rounding of the unit vectors, ~1e-7 rad, is then ≪ its width)."""
+    import torch
+    from relight_cli.brdf import MIN_ROUGHNESS
+    rng = np.random.default_rng(11)
+    v, l = rng.normal(size=(2, 4000, 3))
+    v[:, 2], l[:, 2] = np.abs(v[:, 2]) + 0.05, np.abs(l[:, 2]) + 0.05
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    l /= np.linalg.norm(l, axis=1, keepdims=True)
+    # the half vector as float32 computes it: n·h rounds to exactly 1 for many texels
+    n = torch.nn.functional.normalize(torch.tensor(v, dtype=torch.float32)
+                                      + torch.tensor(l, dtype=torch.float32), dim=-1)
+    for rho in (MIN_ROUGHNESS, 0.005, 0.02, 0.2):
+        raw = torch.full((4000,), math.log(rho / (1 - rho)), requires_grad=True)
+        normal = n.clone().requires_grad_(True)
+        out = ggx_cosine_torch(normal, torch.tensor(v, dtype=torch.float32),
+                               torch.tensor(l, dtype=torch.float32), torch.sigmoid(raw))
+        assert torch.isfinite(out).all(), rho
+        out.sum().backward()
+        assert torch.isfinite(normal.grad).all() and torch.isfinite(raw.grad).all(), rho
+        if rho >= 0.01:       # α = ρ² ≥ 1e-4
+            n64 = normal.detach().double().numpy()        # unit again in float64
+            ref = ggx_cosine(n64 / np.linalg.norm(n64, axis=1, keepdims=True), v, l, rho)
+            np.testing.assert_allclose(out.detach().double().numpy(), ref, rtol=2e-3)
+
+
 @pytest.mark.parametrize("rho", [0.3, 0.6, 1.0])
 def test_ggx_energy_bound(rho):
     """Directional albedo ∫ f_s cos dω ≤ 1 even with F0 = 1 (a perfect mirror's Fresnel)."""

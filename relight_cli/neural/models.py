@@ -42,7 +42,10 @@ albedo (3), roughness (1), tangent-space normal (3) — then
 C_i = σ(S_i) · (A/π · max(n·l, 0) + f_GGX(n, v, l, ρ)·max(n·l, 0)), the lobe of
 :mod:`relight_cli.brdf` (F0 0.04).  The paper's separate normal/roughness decoders
 share one material U-Net here (same inputs, same architecture; one pass instead of
-three).
+three).  The paper gives no range for ρ; ours is ``GGX_MIN_ROUGHNESS`` + (1 −
+``GGX_MIN_ROUGHNESS``)·σ(y): a plain σ(y) drifted to ρ ≈ 1e-16 on texels of the
+converged-scale study (issue 21's GGX row, seed 0, step 466), where the lobe's peak
+(1/(π ρ⁴)) and its gradients overflow float32 and training diverged.
 """
 
 from __future__ import annotations
@@ -54,6 +57,10 @@ from torch import nn
 from torch.nn import functional as F
 
 from .config import PAPER_UNIT, TeacherConfig
+
+#: the GGX teacher's roughness floor: Filament's fp32 ``MIN_PERCEPTUAL_ROUGHNESS``
+#: (α² ≥ 4.1e-6, a peak D ≤ 7.7e4 sr⁻¹ that float32 and its gradients hold).
+GGX_MIN_ROUGHNESS = 0.045
 
 N_INPUT = 7          # local light dir 3, local view dir 3, visibility 1
 
@@ -203,12 +210,13 @@ class GGXTeacher(nn.Module):
                                  config.pose_channels)
 
     def materials(self, mean_texture: torch.Tensor, pose: torch.Tensor):
-        """(albedo [H, 3, N, N] ∈ (0, 1), roughness [H, 1, N, N] ∈ (0, 1), tangent-space
-        unit normal [H, 3, N, N] with n_z > 0) from T̄ [H, 3, N, N]."""
+        """(albedo [H, 3, N, N] ∈ (0, 1), roughness [H, 1, N, N] ∈
+        (``GGX_MIN_ROUGHNESS``, 1), tangent-space unit normal [H, 3, N, N] with n_z > 0)
+        from T̄ [H, 3, N, N]."""
         hands = torch.arange(mean_texture.shape[0])
         raw = self.material_net(mean_texture, pose, hands)
         albedo = torch.sigmoid(raw[:, :3])
-        roughness = torch.sigmoid(raw[:, 3:4])
+        roughness = GGX_MIN_ROUGHNESS + (1 - GGX_MIN_ROUGHNESS) * torch.sigmoid(raw[:, 3:4])
         # tangent-space normal around +z (the interpolated normal): small tilts at init
         tilt = torch.tanh(raw[:, 4:6])
         normal = torch.cat([tilt, torch.ones_like(tilt[:, :1])], 1)

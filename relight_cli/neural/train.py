@@ -381,6 +381,7 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
                 parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
         if world > 1 and not use_ddp:
             average_gradients(model, world)
+        check_gradients(model, step, config.iters, parts_sum, task)
         optimizer.step()
         if after_step is not None:
             after_step(step, world)
@@ -414,6 +415,26 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         dist.barrier()
         dist.destroy_process_group()
     return result
+
+
+class TrainingDiverged(DataError):
+    """A training step produced a non-finite gradient: the run stops before the optimizer
+    takes it, so no weight, moment or checkpoint ever holds NaN/Inf.  Exit 1."""
+
+
+def check_gradients(model, step: int, iters: int, parts: dict, task) -> None:
+    """TrainingDiverged when any gradient of ``model`` is NaN/Inf.  Called after the
+    ranks' gradients are averaged, so every rank sees the same answer and stops together."""
+    grads = [(name, p.grad) for name, p in model.named_parameters() if p.grad is not None]
+    if not grads or bool(torch.stack([torch.isfinite(g).all() for _, g in grads]).all()):
+        return
+    name = next(n for n, g in grads if not bool(torch.isfinite(g).all()))
+    losses = ", ".join(f"{k} {v:.4g}" for k, v in parts.items())
+    data = getattr(task, "data", None)
+    raise TrainingDiverged(
+        f"training diverged at step {step + 1} of {iters}: non-finite gradient of {name} "
+        f"(batch {losses or 'loss unknown'}); nothing was updated",
+        getattr(data, "index_path", None))
 
 
 def average_gradients(model, world: int) -> None:
