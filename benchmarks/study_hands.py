@@ -438,7 +438,7 @@ class Study:
         import torch
 
         from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
-        from relight_cli.neural.train import fit
+        from relight_cli.neural.train import TrainingDiverged, fit
         partial, notes = runs / f"{key}.partial.pt", runs / f"{key}.partial.json"
         resume, before, spent = None, [], 0.0
         if partial.is_file() and notes.is_file():
@@ -477,8 +477,22 @@ class Study:
                                "step": checkpoint["step"]})
             write_checkpoint(str(partial), checkpoint)
         config.save_every = config.val_every
-        result = fit(task, config, torch.device("cpu"), resume=resume, show_progress=False,
-                     save=save)
+        try:
+            result = fit(task, config, torch.device("cpu"), resume=resume, show_progress=False,
+                         save=save)
+        except TrainingDiverged as exc:
+            # a row that diverges is a result too: recorded (its curve up to there), shown
+            # in its table, and not retrained by the next run
+            seconds = spent + time.perf_counter() - t0
+            write_json(runs / f"{key}.json", {
+                "key": key, "kind": kind, "hand": hand, "seed": seed, "overrides": overrides,
+                "iters": config.iters, "metrics": {}, "curve": points,
+                "seconds": round(seconds, 1), "resumed_from": resume["step"] if resume else None,
+                "diverged": exc.message})
+            for leftover in (partial, notes):
+                leftover.unlink(missing_ok=True)
+            self.log(f"  {seconds:.0f} s: DIVERGED: {exc.message}")
+            return
         seconds = spent + time.perf_counter() - t0
         final = result.history[-1]
         curve_points = points + [[final["step"], final.get(curve[0], {}).get(curve[1])]]
@@ -885,6 +899,11 @@ def summarize(table: Table, runs: dict) -> dict:
            "seconds": seconds, "convergence": convergence, "seeds": sorted({r["seed"] for p in runs.values()
                                                 for rs in p.values() for r in rs})}
     out["claims"] = [verdict(table, c, runs) for c in table.claims]
+    diverged = {f"{name} {hand} seed {r['seed']}": r["diverged"]
+                for name, per_hand in runs.items() for hand, records in per_hand.items()
+                for r in records if r.get("diverged")}
+    if diverged:
+        out["diverged"] = diverged
     return out
 
 
@@ -1010,6 +1029,10 @@ def markdown(table: Table, record: dict) -> str:
                       f"gain over the last {CONVERGED_TAIL:.0%} of iterations, mean over "
                       f"seeds; converged when every seed gained < {CONVERGED_DB} dB): "
                       + "; ".join(parts) + "."]
+    if record.get("diverged"):
+        lines += ["", "**Diverged** (no scores; the row's mean is over the other seeds): "
+                  + "; ".join(f"{row}: {why}" for row, why in record["diverged"].items())
+                  + "."]
     lines += ["", "Mean ± sample standard deviation over the seeds (each seed: a fresh "
               "initialization and sampling order on the same capture). Masked by the "
               "ground-truth hand mask; linear radiance, PSNR's data range that of the ground "

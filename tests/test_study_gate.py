@@ -296,6 +296,48 @@ def test_an_interrupted_row_resumes_to_the_uninterrupted_result(gate_run, tmp_pa
     assert not list(runs.glob("*.partial.*"))
 
 
+def test_a_diverged_row_is_recorded_and_shown(gate_run, tmp_path, monkeypatch):
+    """A row whose training diverges (TrainingDiverged) is cached as a result with its
+    reason and no scores, is not retrained by the next run, and its table says so while
+    the row's mean is the other seed's."""
+    from relight_cli.neural import train as T
+    study_hands = _study_module()
+    study, _ = gate_run
+    other = study_hands.Study("tiny", tmp_path / "diverged", log=lambda m: None)
+    other.captures, other.capture_info = study.captures, study.capture_info
+    args = ("teacher", study_hands.GATE_HAND, {}, SEED, *study_hands.GATE_SPLITS["teacher"])
+    honest = T.TeacherTask.loss
+
+    def nan_at_step_2(self, net, item, step, device):
+        total, parts = honest(self, net, item, step, device)
+        return (total * float("nan"), parts) if step == 1 else (total, parts)
+    monkeypatch.setattr(T.TeacherTask, "loss", nan_at_step_2)
+    with one_thread():
+        record = other.row(*args)
+    assert record["diverged"].startswith("training diverged at step 2 of ")
+    assert record["metrics"] == {}
+    runs = tmp_path / "diverged" / "runs"
+    assert not list(runs.glob("*.partial.*"))
+
+    def never(*a, **k):
+        raise AssertionError("a diverged row was trained again")
+    monkeypatch.setattr(T.TeacherTask, "loss", never)
+    other._memo.clear()
+    assert other.row(*args) == record
+    with one_thread():
+        fine = study.row(*args)
+    table = study_hands.TABLES["rh_t13"]
+    runs_of = {"Ours (teacher)": {study_hands.GATE_HAND: [fine, {**record, "seed": 1}]}}
+    summary = study_hands.summarize(table, runs_of)
+    key = f"Ours (teacher) {study_hands.GATE_HAND} seed 1"
+    assert summary["diverged"] == {key: record["diverged"]}
+    cell = summary["rows"]["Ours (teacher)"][study_hands.GATE_HAND]["heldout"]["mse"]
+    assert cell["n"] == 1 and cell["mean"] == fine["metrics"]["heldout"]["mse"]
+    text = study_hands.markdown(table, {**summary, "command": "c", "machine": "m",
+                                        "wall_seconds": 0, "scale": "tiny", "captures": {}})
+    assert "**Diverged**" in text and key in text
+
+
 def test_gate_fails_when_nothing_learns(gate_run, tmp_path):
     """Sabotage of learning itself: the gap rows retrained with every optimizer step
     skipped (forward, loss and backward run; the weights stay at their initialization)
