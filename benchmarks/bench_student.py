@@ -183,13 +183,11 @@ def quality(iters: int, work: Path) -> tuple:
     the jobs of ``relight train-teacher`` and ``relight distill``
     (:mod:`relight_cli.jobs.train_teacher`, :mod:`relight_cli.jobs.distill`) with the
     commands' defaults: ({row: {"metrics", "seconds"}}, {"train": envs, "eval": envs})."""
-    from click.testing import CliRunner
-
-    from relight_cli.cli import cli
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
     from relight_cli.formats.metrics_json import make_record
     from relight_cli.inputs import load_envmap
     from relight_cli.jobs import distill as JD
+    from relight_cli.jobs.synth_capture import make_capture
     from relight_cli.jobs import train_teacher as JT
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.train import resolve_device
@@ -205,12 +203,8 @@ def quality(iters: int, work: Path) -> tuple:
                                           if k != "step"}, {}, {}, {})["metrics"]
 
     cap = work / "cap"
-    r = CliRunner().invoke(cli, [str(a) for a in (
-        "synth-capture", "-o", cap, "--cameras", "4", "--leds", "32", "--group", "4",
-        "--frames", "16", "--size", "64", "--tex-res", "128", "--aa", "1", "--eval-poses", "2",
-        "--eval-cameras", "2", "--eval-envs", "builtin:sky,builtin:studio", "-q")],
-        catch_exceptions=False)
-    assert r.exit_code == 0, r.output
+    make_capture(str(cap), cameras=4, lights=32, group=4, frames=16, res=64, tex_res=128,
+                 aa=1, eval_poses=2, eval_cameras=2, eval_envs=("builtin:sky", "builtin:studio"))
     device = resolve_device("auto")
     config = JT.configure(None, "tiny", None, {"iters": 2 * iters})
     trained = JT.run(capture_data(config), JT.Options(config, "tiny", device, progress=False))

@@ -78,13 +78,11 @@ def _timed_task(data, cfg, evaluate: bool = True):
 
 
 def make_capture(folder: Path, two_hands: bool, frames: int, quick: bool) -> Path:
-    from click.testing import CliRunner
-
-    from relight_cli.cli import cli
-    args = ["synth-capture", "-o", str(folder), "--cameras", "4" if quick else "6",
-            "--leds", "32", "--group", "4", "--size", "48" if quick else "64",
-            "--tex-res", "128", "--aa", "1", "--eval-poses", "2", "--eval-cameras", "2",
-            "--eval-envs", "builtin:sky,builtin:studio", "-q"]
+    """The benchmark's capture, through ``relight synth-capture``'s job."""
+    from relight_cli.jobs import synth_capture as J
+    settings = dict(cameras=4 if quick else 6, lights=32, group=4, res=48 if quick else 64,
+                    tex_res=128, aa=1, eval_poses=2, eval_cameras=2,
+                    eval_envs=("builtin:sky", "builtin:studio"))
     if two_hands:
         from relight_cli.formats.hand_npz import write_hand
         from relight_cli.hand.model import builtin_hand
@@ -92,11 +90,9 @@ def make_capture(folder: Path, two_hands: bool, frames: int, quick: bool) -> Pat
         from relight_cli.render.capture import hand_motion
         motion = folder.parent / f"{folder.name}_motion.npz"
         write_hand(str(motion), pair(hand_motion(builtin_hand("right"), frames, seed=5)))
-        args = ["synth-capture", str(motion), "--motion", "file", *args[1:]]
+        J.make_capture(str(folder), str(motion), motion="file", **settings)
     else:
-        args += ["--frames", str(frames)]
-    r = CliRunner().invoke(cli, args, catch_exceptions=False)
-    assert r.exit_code == 0, r.output
+        J.make_capture(str(folder), frames=frames, **settings)
     return folder
 
 

@@ -306,19 +306,14 @@ CAPTURE_VERSION = 2
 
 
 def synth_capture(folder: Path, hand: str, seed: int, capture: dict, eval_envs: list) -> None:
-    """The one place this runner calls ``relight synth-capture`` (in process)."""
-    from click.testing import CliRunner
-
-    from relight_cli.cli import cli
-    args = ["synth-capture", hand, "-o", str(folder), "--seed", seed,
-            "--cameras", capture["cameras"], "--leds", capture["lights"],
-            "--group", capture["group"], "--frames", capture["frames"], "--size", capture["res"],
-            "--tex-res", capture["tex_res"], "--aa", capture["aa"],
-            "--eval-poses", capture["eval_poses"], "--eval-cameras", capture["eval_cameras"],
-            "--eval-envs", ",".join(eval_envs), "-q"]
-    result = CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-    if result.exit_code != 0:
-        raise RuntimeError(f"synth-capture failed ({result.exit_code}): {result.output}")
+    """The one place this runner makes a capture: ``relight synth-capture``'s job
+    (:func:`relight_cli.jobs.synth_capture.make_capture`)."""
+    from relight_cli.jobs.synth_capture import make_capture
+    make_capture(str(folder), hand, seed=seed, cameras=capture["cameras"],
+                 lights=capture["lights"], group=capture["group"], frames=capture["frames"],
+                 res=capture["res"], tex_res=capture["tex_res"], aa=capture["aa"],
+                 eval_poses=capture["eval_poses"], eval_cameras=capture["eval_cameras"],
+                 eval_envs=eval_envs)
 
 
 class Study:

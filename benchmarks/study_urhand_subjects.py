@@ -112,13 +112,11 @@ class Study:
         if not ((folder / "capture.json").is_file() and stamp.is_file()):
             self.log(f"capture skin {skin}: synth-capture into {folder}")
             t0 = time.perf_counter()
-            args = ["synth-capture", "builtin:right", "-o", str(folder),
-                    "--seed", self.motion_seed, "--skin-seed", skin,
-                    "--cameras", c["cameras"], "--leds", c["lights"], "--group", c["group"],
-                    "--frames", c["frames"], "--size", c["res"], "--tex-res", c["tex_res"],
-                    "--aa", c["aa"], "--eval-poses", c["eval_poses"],
-                    "--eval-cameras", c["eval_cameras"], "-q"]
-            cli(args)
+            from relight_cli.jobs.synth_capture import make_capture
+            make_capture(str(folder), "builtin:right", seed=self.motion_seed, skin_seed=skin,
+                         cameras=c["cameras"], lights=c["lights"], group=c["group"],
+                         frames=c["frames"], res=c["res"], tex_res=c["tex_res"], aa=c["aa"],
+                         eval_poses=c["eval_poses"], eval_cameras=c["eval_cameras"])
             stamp.write_text(f"{time.perf_counter() - t0:.1f}\n")
             made_now = True
         from relight_cli.neural.data import CaptureData
@@ -229,16 +227,6 @@ class Study:
                                   f"{m.get('ceiling', {}).get('psnr', float('nan')):.2f})"
                                   for s, m in scores.items()))
         return out
-
-
-def cli(args: list) -> None:
-    """``relight`` in process (synth-capture)."""
-    from click.testing import CliRunner
-
-    from relight_cli.cli import cli as relight
-    result = CliRunner().invoke(relight, [str(a) for a in args], catch_exceptions=False)
-    if result.exit_code != 0:
-        raise RuntimeError(f"relight {args[0]} failed ({result.exit_code}): {result.output}")
 
 
 # ---------------------------------------------------------------------------- the table

@@ -85,16 +85,14 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
     """
     import os
     import time
-    from dataclasses import asdict
 
     from relight_cli.errors import UsageProblem
     from relight_cli.formats import capture as C
     from relight_cli.inputs import load_envmap, load_hand
-    from relight_cli.jobs.synth_capture import StageSettings, light_stage
-    from relight_cli.provenance import provenance
+    from relight_cli.jobs.synth_capture import StageSettings, light_stage, write_capture_folder
 
     # ---- usage checks before any work
-    env_specs, env_names, env_res, existing = _check_usage(
+    env_specs, env_res, existing = _check_usage(
         hand, output, cameras, leds, group, frames, full_every, res, motion, keyframe_every,
         tex_res, aa, eval_poses, eval_envs, eval_cameras, eval_env_res, preview, no_clobber)
 
@@ -114,21 +112,9 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
         f"{settings.lights} LEDs, {len(plan.frames)} frames ({res}x{res})", quiet)
 
     # ---- write: every finished file lands at once (resumable), see C.immediate_writes
-    inputs = {"hand": hand}
-    capture = _index(stage, env_names, eval_cameras,
-                     provenance(C.FORMAT, C.VERSION, inputs, asdict(settings)))
     start = time.perf_counter()
-    # A folder this run makes is removed again when the run fails before anything is in
-    # it (a full disk, a folder where no file can be created); one the user gave, and
-    # anything written (kept for a resume), stay.
-    made = not os.path.lexists(output)
-    try:
-        rendered, skipped = _write(output, capture, stage, inputs, env_names, env_specs,
-                                   eval_cameras, quiet)
-    except BaseException:
-        if made:
-            _remove_empty_tree(output)
-        raise
+    capture, rendered, skipped = write_capture_folder(output, stage, hand, env_specs,
+                                                      eval_cameras, quiet)
     log(f"wrote {output}: {rendered} image(s) rendered, {skipped} already there "
         f"({time.perf_counter() - start:.1f} s)", quiet)
     if preview is not None:
@@ -144,13 +130,14 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
 def _check_usage(hand, output, cameras, leds, group, frames, full_every, res, motion,
                  keyframe_every, tex_res, aa, eval_poses, eval_envs, eval_cameras,
                  eval_env_res, preview, no_clobber):
-    """The options' usage errors (exit 2), before any work: (env map specs, their names,
-    the eval env grid, the capture already in the folder or None)."""
+    """The options' usage errors (exit 2), before any work: (env map specs, the eval env
+    grid, the capture already in the folder or None)."""
     import os
 
     from relight_cli.errors import UsageProblem
     from relight_cli.formats import capture as C
     from relight_cli.inputs import env_grid
+    from relight_cli.jobs.synth_capture import env_name
 
     for name, value, lo, hi in (("--cameras", cameras, 1, 1000), ("--leds", leds, 1, 10000),
                                 ("--group", group, 1, 10000), ("--frames", frames, 1, 100000),
@@ -170,8 +157,7 @@ def _check_usage(hand, output, cameras, leds, group, frames, full_every, res, mo
     env_specs = [e.strip() for e in eval_envs.split(",") if e.strip()] if eval_poses else []
     if eval_poses and not env_specs:
         raise UsageProblem("--eval-poses needs at least one --eval-envs map")
-    env_names = [os.path.basename(e.split(":", 1)[1] if e.startswith("builtin:") else e)
-                 .split(".", 1)[0] for e in env_specs]
+    env_names = [env_name(e) for e in env_specs]
     if len(set(env_names)) != len(env_names):
         raise UsageProblem("two --eval-envs maps have the same name")
     env_res = env_grid(eval_env_res, "--eval-env-res")
@@ -191,117 +177,4 @@ def _check_usage(hand, output, cameras, leds, group, frames, full_every, res, mo
             raise UsageProblem("output folder is not empty and holds no capture.json; "
                                "give a new or empty folder", output)
         existing = C.read_capture(os.path.join(output, C.INDEX))
-    return env_specs, env_names, env_res, existing
-
-
-def _index(stage, env_names, eval_cameras, record):
-    """The capture's index (capture.json, ``complete`` false until every file is written)."""
-    from relight_cli.formats import capture as C
-    plan = stage.plan
-    evaluation = None
-    if stage.eval_hand is not None:
-        evaluation = {"hand": "eval/hand.npz",
-                      "envs": {n: f"eval/envs/{n}.exr" for n in env_names},
-                      "renders": [{"pose": p, "env": n, "camera": c.name,
-                                   "image": f"eval/{p:03d}/{n}/{c.name}.exr"}
-                                  for p in range(stage.eval_poses) for n in env_names
-                                  for c in plan.cameras[:eval_cameras]]}
-    return C.Capture(plan.cameras, plan.lights.positions, plan.lights.intensity,
-                     plan.light_names, plan.frames, "hand.npz", stage.settings.fps, evaluation,
-                     plan.key, False, stage.record, record)
-
-
-def _remove_empty_tree(folder: str) -> None:
-    """Remove ``folder`` if it holds nothing but empty folders (never a file)."""
-    import os
-    for root, dirs, files in os.walk(folder, topdown=False):
-        if files:
-            return
-        try:
-            os.rmdir(root)
-        except OSError:
-            return
-
-
-def _write(output, capture, stage, inputs, env_names, env_specs, eval_cameras, quiet):
-    """Write the capture (resumable: finished files land at once); (rendered, skipped)."""
-    import os
-
-    from relight_cli.clitools import progress
-    from relight_cli.formats import capture as C
-    from relight_cli.formats.hand_npz import write_hand
-    from relight_cli.provenance import provenance
-
-    plan = stage.plan
-    index_path = os.path.join(output, C.INDEX)
-    rendered = skipped = 0
-    with C.immediate_writes():
-        os.makedirs(output, exist_ok=True)
-        # the index first (complete: false): a run stopped after it resumes, whatever
-        # else it wrote
-        C.write_capture(index_path, capture)
-        write_hand(os.path.join(output, "hand.npz"), plan.motion,
-                   provenance("relight/hand", 1, inputs, {"role": "capture ground truth",
-                                                          "key": plan.key}))
-        for frame in progress(plan.frames, desc="frames", quiet=quiet):
-            folder = os.path.join(output, "images", f"{frame.index:06d}")
-            todo = [c for c in plan.cameras
-                    if not C.image_is_valid(os.path.join(output, C.image_path(frame.index, c.name)),
-                                            c, plan.key)]
-            skipped += len(plan.cameras) - len(todo)
-            if todo:
-                os.makedirs(folder, exist_ok=True)
-                for r in stage.frame(frame, todo):
-                    C.write_image(os.path.join(output, C.image_path(frame.index, r.camera.name)),
-                                  r.image, r.mask, plan.key,
-                                  {"relight.frame": frame.index, "relight.camera": r.camera.name,
-                                   "relight.lit": frame.lit},
-                                  provenance("relight/capture-image", 1, inputs,
-                                             {"frame": frame.index, "camera": r.camera.name}),
-                                  camera=r.camera, hand_masks=r.hand_masks)
-                    rendered += 1
-            frame.images = [c.name for c in plan.cameras]
-        if capture.evaluation is not None:
-            rendered += _write_held_out(output, stage, inputs, env_names, env_specs,
-                                        eval_cameras, quiet)
-        capture.complete = True
-        C.write_capture(index_path, capture)
-    return rendered, skipped
-
-
-def _write_held_out(output, stage, inputs, env_names, env_specs, eval_cameras, quiet) -> int:
-    """The held-out poses, env maps and renders under eval/ (resumable); images rendered."""
-    import os
-
-    from relight_cli.clitools import progress
-    from relight_cli.formats import capture as C
-    from relight_cli.formats.envmap import write_envmap
-    from relight_cli.formats.hand_npz import write_hand
-    from relight_cli.provenance import provenance
-
-    plan, rendered = stage.plan, 0
-    os.makedirs(os.path.join(output, "eval", "envs"), exist_ok=True)
-    write_hand(os.path.join(output, "eval", "hand.npz"), stage.eval_hand,
-               provenance("relight/hand", 1, inputs, {"role": "held-out poses",
-                                                      "key": plan.key}))
-    for name, spec, env in zip(env_names, env_specs, stage.envs):
-        write_envmap(os.path.join(output, "eval", "envs", f"{name}.exr"), env,
-                     provenance("relight/envmap", 1, {"env": spec}, {}))
-    for pose in progress(range(stage.eval_poses), desc="held-out", quiet=quiet):
-        for k, name in enumerate(env_names):
-            folder = os.path.join(output, "eval", f"{pose:03d}", name)
-            cams = [c for c in plan.cameras[:eval_cameras] if not C.image_is_valid(
-                os.path.join(folder, f"{c.name}.exr"), c, plan.key)]
-            if not cams:
-                continue
-            os.makedirs(folder, exist_ok=True)
-            for r in stage.held_out(pose, k, cams):
-                C.write_image(os.path.join(folder, f"{r.camera.name}.exr"),
-                              r.image, r.mask, plan.key,
-                              {"relight.pose": pose, "relight.env": name,
-                               "relight.camera": r.camera.name},
-                              provenance("relight/capture-image", 1, inputs,
-                                         {"pose": pose, "env": name, "camera": r.camera.name}),
-                              camera=r.camera, hand_masks=r.hand_masks)
-                rendered += 1
-    return rendered
+    return env_specs, env_res, existing

@@ -93,6 +93,14 @@ class RelightGroup(click.Group):
         args = list(sys.argv[1:] if args is None else args)
         from .provenance import set_command_line
         set_command_line(args)
+        try:
+            return self._main(args, prog_name, complete_var, standalone_mode, **extra)
+        finally:
+            # the command is over: engine code called from Python afterwards (in the same
+            # process, e.g. after CliRunner) records no command line of its own
+            set_command_line(None)
+
+    def _main(self, args, prog_name, complete_var, standalone_mode, **extra):
         if not standalone_mode:
             return super().main(args, prog_name or "relight", complete_var, False, **extra)
         try:

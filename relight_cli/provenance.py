@@ -50,8 +50,10 @@ _COMMAND_LINE: list[str] = []
 PRESENTATION_FLAGS = frozenset({"-q", "--quiet", "--debug", "--no-clobber"})
 
 
-def set_command_line(argv: list[str]) -> None:
-    _COMMAND_LINE[:] = ["relight", *(a for a in argv if a not in PRESENTATION_FLAGS)]
+def set_command_line(argv: list[str] | None) -> None:
+    """The running command's argv (``relight`` prepended), or None when it is over."""
+    _COMMAND_LINE[:] = [] if argv is None else \
+        ["relight", *(a for a in argv if a not in PRESENTATION_FLAGS)]
 
 
 def command_line() -> str:

@@ -229,3 +229,35 @@ def test_light_stage_job_equals_the_cli(run_cli, tmp_path):
     rgb, _ = C.read_image(str(out / cap.evaluation["renders"][0]["image"]))
     np.testing.assert_array_equal(rgb, held.image.astype(np.float16).astype(np.float32))
     assert not np.allclose(held.image, renders[0].image)
+
+
+def test_make_capture_writes_the_clis_folder(run_cli, tmp_path):
+    """``jobs.synth_capture.make_capture`` (what the studies call) writes the folder
+    ``synth-capture`` writes: the same files, index (but the provenance's command line,
+    empty from Python) and pixels; a second call resumes and renders nothing."""
+    from relight_cli.formats import capture as C
+    from relight_cli.jobs import synth_capture as J
+
+    args = dict(cameras=2, lights=6, group=2, frames=3, res=10, tex_res=32, aa=1, seed=4,
+                eval_poses=1, eval_cameras=1, eval_envs=["builtin:sky"], eval_env_res=(8, 16))
+    cli_out, lib_out = tmp_path / "cli", tmp_path / "lib"
+    _cli(run_cli, "synth-capture", "builtin:two", "-o", cli_out, "--cameras", "2", "--leds",
+         "6", "--group", "2", "--frames", "3", "--size", "10", "--tex-res", "32", "--aa", "1",
+         "--seed", "4", "--eval-poses", "1", "--eval-cameras", "1", "--eval-envs",
+         "builtin:sky", "--eval-env-res", "16x8", "-q")
+    capture, rendered, skipped = J.make_capture(str(lib_out), "builtin:two", **args)
+    assert (rendered, skipped) == (3 * 2 + 1, 0)
+    files = sorted(p.relative_to(cli_out) for p in cli_out.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(lib_out) for p in lib_out.rglob("*") if p.is_file())
+
+    def index(folder):
+        obj = json.loads((folder / C.INDEX).read_text())
+        return obj, obj["provenance"].pop("command")
+    (lib, lib_command), (cli, cli_command) = index(lib_out), index(cli_out)
+    assert lib == cli and lib_command == ""      # (the CLI run before it has ended)
+    assert cli_command.startswith("relight synth-capture builtin:two -o ")
+    for rel in files:
+        if rel.suffix == ".exr" and rel.parts[:2] != ("eval", "envs"):
+            for a, b in zip(C.read_image(str(cli_out / rel)), C.read_image(str(lib_out / rel))):
+                np.testing.assert_array_equal(a, b)
+    assert J.make_capture(str(lib_out), "builtin:two", **args)[1:] == (0, 3 * 2 + 1)
