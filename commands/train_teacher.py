@@ -19,7 +19,8 @@ from ._learned import training_options
 @click.option("--preset", type=click.Choice(["tiny", "cpu", "paper"]), default="tiny",
               show_default=True,
               help="tiny: 32² texture, ~150 iterations, seconds to minutes (tests, demo); "
-                   "cpu: 64² texture, 6000 iterations with a cosine learning-rate decay, "
+                   "cpu: 64² texture, 6000 iterations with a cosine learning-rate decay "
+                   "from 2e-3 (5e-4 for ggx, which collapses at 2e-3), "
                    "about 15-30 min on 2 CPU cores (benchmarks/results/presets.md says how "
                    "close each model comes to its ceiling); paper: the papers' sizes and "
                    "iterations (100k teacher, 2M linear model: a GPU job).")
