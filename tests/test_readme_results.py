@@ -22,7 +22,14 @@ def _readme_section() -> str:
 
 def _readme_t3() -> str:
     text = (ROOT / "README.md").read_text(encoding="utf-8")
-    return text.split("**URHand Table 3, converged**", 1)[1].split("Measured on the way", 1)[0]
+    return text.split("**URHand Table 3, converged**", 1)[1].split(
+        "**RelightableHands Table 1/3, converged**", 1)[0]
+
+
+def _readme_rh_t13() -> str:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    return text.split("**RelightableHands Table 1/3, converged**", 1)[1].split(
+        "Measured on the way", 1)[0]
 
 
 @pytest.mark.skipif(not (RESULTS / "study_ur_t2.json").exists(), reason="no converged table")
@@ -61,3 +68,30 @@ def test_readme_quotes_the_converged_urhand_feature_table():
     assert verdicts[:3] == ["reproduced"] * 3 and verdicts[3].startswith("tie")
     assert "three of the paper's four claims reproduced" in text and "w/o refiner is a tie" in text
     assert f"{rec['row_seconds'] / 3600:.1f} h of row training" in text
+
+
+@pytest.mark.skipif(not (RESULTS / "study_rh_t13.json").exists(), reason="no converged table")
+def test_readme_quotes_the_converged_teacher_table():
+    rec = json.loads((RESULTS / "study_rh_t13.json").read_text())
+    text = _readme_rh_t13()
+    quoted = [float(x) for x in re.findall(r"\d+\.\d+", text)]
+    rows = rec["rows"]
+    for row in ("Ours (teacher)", "w/o visibility", "GGX [6, 61]"):
+        for hand in ("right", "left", "both"):
+            mse = rows[row][hand]["heldout"]["mse"]["mean"] * 1e3
+            assert round(mse, 3) in quoted, (row, hand, mse, quoted)
+    teacher = [rows["Ours (teacher)"][h]["heldout"]["gap_to_ceiling"]["mean"]
+               for h in ("right", "left", "both")]
+    ggx = [rows["GGX [6, 61]"][h]["heldout"]["gap_to_ceiling"]["mean"]
+           for h in ("right", "left", "both")]
+    assert f"teacher stays {min(teacher):.1f}–{max(teacher):.1f} dB below it" in text
+    assert max(ggx) <= 0.7 and "within 0.7\ndB of its ceiling" in text
+    verdicts = {(c["worse"], c["metric"], hand): h["verdict"] for c in rec["claims"]
+                for hand, h in c["hands"].items()}
+    assert len(verdicts) == 12
+    for (worse, _, _), verdict in verdicts.items():
+        assert verdict == ("reproduced" if worse == "w/o visibility"
+                           else "not reproduced (reversed)"), (worse, verdict)
+    assert "reproduced on all three" in text and "Table 3 reversed" in text
+    assert f"{rec['row_seconds'] / 3600:.1f} h of row\ntraining" in text
+
