@@ -43,7 +43,8 @@ from ._learned import training_options
               help="Ablation (Table 2): features baked without visibility.")
 @click.option("--cache", "cache_dir", default=None, metavar="DIR",
               help="Folder for the teacher's per-direction textures beyond the memory budget "
-                   "(config cache_mb); without it they are recomputed.")
+                   "(config cache_mb, 2048 MB); without it they are recomputed, one teacher "
+                   "pass per missed sample (the log says when the budget is short).")
 @training_options("held-out poses × evaluation env maps against the teacher and against ground truth")
 @no_clobber_option
 @quiet_option

@@ -156,3 +156,32 @@ def test_distill_job_equals_cli(root, student):
         _history(root / f"{student}_cli.json")
     assert sorted(distilled.split["train"] + distilled.split["eval"]) == sorted(envs)
     assert distilled.computed > 0
+
+
+def test_cache_note_says_what_a_short_budget_costs():
+    """The log line names the share of samples that recompute a teacher pass and the
+    budget that holds every pair; it is silent when the pairs fit or spill to a folder."""
+    from relight_cli.jobs.distill import cache_note
+    note = cache_note(584, 6.29, 2048, None)
+    assert "holds 325 of 584 pairs" in note and "44 %" in note and "cache_mb 3674" in note
+    assert cache_note(584, 6.29, 4096, None) == ""
+    assert cache_note(584, 6.29, 2048, "cache") == ""
+    assert cache_note(584, 6.29, 0, None).count("holds 0 of 584") == 1
+
+
+def test_distill_logs_a_budget_that_cannot_hold_the_teacher_textures(root):
+    """A run whose cache_mb holds none of its pairs says so (and what would hold them);
+    the same run with --cache DIR does not."""
+    teacher = root / "teacher.pt"
+    if not teacher.is_file():
+        _cli("train-teacher", root / "cap", "--config", root / "teacher.json", "--iters", 2,
+             "-q", "-o", teacher)
+    small = root / "student_small_cache.json"
+    small.write_text(json.dumps({**STUDENT, "cache_mb": 0}))
+    envs = [a for e in ENVS for a in ("--envs", e)]
+    r = _cli("distill", teacher, root / "cap", *envs, "--config", small, "--iters", 1,
+             "-o", root / "small_cache.pt")
+    assert "(cache_mb 0) holds 0 of" in r.output and "recompute a teacher pass" in r.output
+    r = _cli("distill", teacher, root / "cap", *envs, "--config", small, "--iters", 1,
+             "--cache", root / "spill", "-o", root / "spilled.pt")
+    assert "cache_mb" not in r.output

@@ -22,6 +22,7 @@ log lines go to the ``log`` callable given, the progress bar through
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 
 from relight_cli.jobs.train_teacher import Options as TrainOptions, provenance_record
@@ -178,6 +179,10 @@ def run(teacher: Teacher, data, envs: dict, options: Options, provenance=None, s
         f"{config.student}, {config.tex_res}² features, {config.iters} iterations on "
         f"{device}; pseudo ground truth {_texture_mb(data, teacher.config, grid):.1f} MB per "
         f"pose and camera")
+    note = cache_note(len(task.items), _texture_mb(data, teacher.config, grid), config.cache_mb,
+                      options.cache_dir)
+    if note:
+        say(note)
     settings = {"preset": options.preset, **config.to_dict()}
     record = provenance_record(provenance, settings)
     result = fit(task, config, device, resume=ckpt, provenance=record, save=save,
@@ -194,7 +199,21 @@ def summary(distilled: Distilled) -> str:
     return steps(distilled.result, f"{distilled.computed} teacher texture set(s) computed; ")
 
 
+def cache_note(pairs: int, mb_each: float, cache_mb: int, cache_dir: str | None) -> str:
+    """The log line for a memory budget that cannot hold every training pair's teacher
+    textures with no ``--cache`` folder ("" otherwise): the share a uniformly sampled
+    pair misses (each miss is a whole teacher pass) and the budget that holds them all."""
+    if cache_dir is not None or pairs == 0 or mb_each <= 0:
+        return ""
+    held = min(pairs, int(cache_mb // mb_each))
+    if held >= pairs:
+        return ""
+    need = math.ceil(pairs * mb_each)
+    return (f"the teacher-texture memory budget (cache_mb {cache_mb}) holds {held} of "
+            f"{pairs} pairs: about {100 * (pairs - held) / pairs:.0f} % of samples recompute "
+            f"a teacher pass; a config with cache_mb {need} or --cache DIR keeps them all")
+
+
 def _texture_mb(data, tconfig, grid) -> float:
     """Megabytes of the teacher's per-direction textures of one (pose, camera) pair."""
     return data.n_hands * len(grid.directions) * 3 * tconfig.tex_res ** 2 * 4 / 2 ** 20
-
