@@ -27,8 +27,9 @@ from ._learned import training_options
 @click.option("--preset", type=click.Choice(["tiny", "cpu", "paper"]), default="tiny",
               show_default=True,
               help="tiny: 32² maps, minutes on a CPU (tests, demo); cpu: 64² maps, 4000 "
-                   "iterations with a cosine learning-rate decay, about 30 min on 2 CPU "
-                   "cores (benchmarks/results/presets.md); paper: RelightableHands' sizes "
+                   "iterations with a cosine learning-rate decay, 10-30 min on 2 CPU "
+                   "cores (benchmarks/results/converged/study_rh_t2.md); paper: "
+                   "RelightableHands' sizes "
                    "(100k iterations: a GPU job).")
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
               help="JSON object of config fields overriding the preset (formats/checkpoint.md; "

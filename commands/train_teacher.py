@@ -21,7 +21,7 @@ from ._learned import training_options
               help="tiny: 32² texture, ~150 iterations, seconds to minutes (tests, demo); "
                    "cpu: 64² texture, 6000 iterations with a cosine learning-rate decay "
                    "from 2e-3 (5e-4 for ggx, which collapses at 2e-3), "
-                   "about 15-30 min on 2 CPU cores (benchmarks/results/presets.md says how "
+                   "about 10-30 min on 2 CPU cores (benchmarks/results/converged/ says how "
                    "close each model comes to its ceiling); paper: the papers' sizes and "
                    "iterations (100k teacher, 2M linear model: a GPU job).")
 @click.option("--config", "config_file", default=None, metavar="FILE.json",

@@ -95,11 +95,15 @@ STUDENT_PRESETS = {
     # tiny and the paper widths, a cosine decay from 2e-3 over 4000 iterations, 8×16 env
     # directions (the teacher's per-direction textures of a (pose, camera) pair cost
     # 0.4–3 s each on one CPU core at 64²: 16×32 would make distillation 4× slower).
-    # Not yet measured to convergence: benchmarks/bench_presets.py.
+    # cache_mb 8192: the teacher's textures of every training (pose, camera) pair stay in
+    # memory (6.3 MB each at 64² and 8×16; the converged study capture's 584 pairs need
+    # 3.7 GB): at the default 2048 MB 44 % of its samples recomputed a 0.8 s teacher pass,
+    # 45 min per student instead of about 10.  The budget is a ceiling, not an allocation.
+    # Measured to convergence: benchmarks/results/converged/study_rh_t2.md.
     "cpu": {"tex_res": 64, "decoder": (64, 64, 32, 32, 32, 32, 16), "iters": 4000,
             "lr": 2e-3, "lr_schedule": "cosine", "lr_final": 1e-5, "neg_start": 1000,
             "env_res": (8, 16), "val_every": 1000, "val_samples": 16, "save_every": 1000,
-            "channels_last": True},
+            "channels_last": True, "cache_mb": 8192},
     "paper": {"tex_res": 128, "decoder": (256, 256, 128, 128, 64, 64, 32),
               "pose_channels": (16, 64), "dram_code": 512, "iters": 100_000, "batch": 4,
               "lr": 1e-3, "neg_start": 25_000, "val_every": 5000, "val_samples": 64,
