@@ -645,3 +645,23 @@ def test_student_untied_biases_give_spatial_capacity(untied):
         assert loss.item() < 0.3 * float(target.var())
     else:
         assert spread < 1e-5
+
+
+def test_dram_film_scale_is_bounded():
+    """DRAM's FiLM multiplies each layer by 1 + tanh(a) ∈ (0, 2) however large its
+    linear map of the light code makes a: the unbounded 1 + a let one Adam step scale the
+    texture by orders of magnitude (both converged-study DRAM rows blew up mid-run)."""
+    from relight_cli.neural.student import DRAMNet
+    torch.manual_seed(0)
+    net = DRAMNet(8 * 16 * 3, [8, 8, 8], 6, (4, 4), code=16, tex_res=16)
+    cond = torch.randn(3, 16 + 6) * 10
+    h = torch.ones(3, 8, 4, 4)
+    for i, film in enumerate(net.film):
+        with torch.no_grad():
+            film.weight.normal_(0, 100.0)
+            film.bias.zero_()
+            film.weight[film.out_features // 2:] = 0     # no shift: the scale alone
+        out = net._film(h[:, :film.out_features // 2], i, cond)
+        assert torch.isfinite(out).all()
+        assert out.min() >= 0 and out.max() <= 2, (i, float(out.min()), float(out.max()))
+        assert out.max() > 1.5 and out.min() < 0.5       # the bound is reached, not forced

@@ -29,7 +29,13 @@ def _readme_t3() -> str:
 def _readme_rh_t13() -> str:
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     return text.split("**RelightableHands Table 1/3, converged**", 1)[1].split(
-        "Measured on the way", 1)[0]
+        "**RelightableHands Table 2, converged**", 1)[0]
+
+
+def _readme_rh_t2() -> str:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    return text.split("**RelightableHands Table 2, converged**", 1)[1].split(
+        "`make test` runs the orderings", 1)[0]
 
 
 @pytest.mark.skipif(not (RESULTS / "study_ur_t2.json").exists(), reason="no converged table")
@@ -95,3 +101,36 @@ def test_readme_quotes_the_converged_teacher_table():
     assert "reproduced on all three" in text and "Table 3 reversed" in text
     assert f"{rec['row_seconds'] / 3600:.1f} h of row\ntraining" in text
 
+
+
+@pytest.mark.skipif(not (RESULTS / "study_rh_t2.json").exists()
+                    or not (RESULTS / "student_gap.json").exists(), reason="no converged table")
+def test_readme_quotes_the_converged_student_table():
+    rec = json.loads((RESULTS / "study_rh_t2.json").read_text())
+    gap = json.loads((RESULTS / "student_gap.json").read_text())
+    text = _readme_rh_t2()
+    quoted = [float(x) for x in re.findall(r"\d+\.\d+", text)]
+    rows = rec["rows"]
+    for row in ("Ours (student)", "w/o specular", "w/o visibility", "DRAM [4]"):
+        for split in ("vs_teacher", "vs_ground_truth"):
+            mse = rows[row]["right"][split]["mse"]["mean"] * 1e3
+            assert round(mse, 3) in quoted, (row, split, mse, quoted)
+    ours = rows["Ours (student)"]["right"]["vs_ground_truth"]
+    assert round(ours["ceiling"]["mse"]["mean"] * 1e3, 3) in quoted
+    assert f"{ours['gap_to_ceiling']['mean']:.2f} dB below its ceiling" in text
+    verdicts = {(c["worse"], c["metric"].split(".")[0]): h["verdict"]
+                for c in rec["claims"] for h in c["hands"].values()}
+    assert len(verdicts) == 6
+    for (worse, split), verdict in verdicts.items():
+        tie = worse == "w/o specular" and split == "vs_teacher"
+        assert verdict.startswith("tie") if tie else verdict == "reproduced", (worse, split)
+    assert "both reproduced against the teacher and against the ground truth" in text
+    assert "a tie against the teacher and help against the ground truth" in text
+    # the split of the student's gap, read back from student_gap.json
+    parts = {k: sum(s["split_db"][k] for s in gap["seeds"]) / len(gap["seeds"])
+             for k in ("teacher", "env_grid", "distillation", "total")}
+    assert abs(parts["total"] - ours["gap_to_ceiling"]["mean"]) < 0.01
+    assert f"{parts['teacher']:.1f} dB is the teacher's own error" in text
+    assert f"{parts['env_grid']:.1f} dB the 8×16 env grid" in text
+    assert f"{parts['distillation']:.1f} dB is distillation" in text
+    assert f"{rec['row_seconds'] / 3600:.1f} h of row\ntraining" in text
