@@ -143,6 +143,11 @@ class TeacherConfig(TrainingConfig):
             the default.
         untied_bias: the OLAT U-Net's decoder and head carry one bias per texel (the
             authors' code) instead of one per channel.
+        inputs: the OLAT U-Net's per-texel input.  ``paper``: local light direction,
+            local view direction and visibility (App. A.1, 7 channels); ``half`` (ours)
+            adds the local half vector h = (l + v)/‖l + v‖ (10 channels), on which a
+            microfacet lobe is a function of one coordinate (h_z = n·h).  See
+            :mod:`relight_cli.neural.models` for the measurement.
         iters, batch, lr: Adam iterations, samples (frame × camera) per step, learning rate.
         lr_schedule, lr_final: ``constant`` keeps ``lr`` (the paper: 1e-3 for 100k
             iterations); ``cosine`` (ours, for the ``cpu`` preset's short runs) decays it
@@ -183,6 +188,7 @@ class TeacherConfig(TrainingConfig):
     lambda_b: float = 100.0
     head: str = "printed"
     untied_bias: bool = False
+    inputs: str = "paper"
     aa: int = 0
     holdout: float = 0.25
     cache_poses: int = 64
@@ -193,6 +199,7 @@ class TeacherConfig(TrainingConfig):
         check.choice("model", ("olat", "ggx"))
         check.choice("falloff", ("analytic", "none"))
         check.choice("head", ("printed", "code"))
+        check.choice("inputs", ("paper", "half"))
         check.choice("neg_schedule", ("decay", "literal", "constant"))
         check.integer("tex_res", 8, 4096)
         for name in ("encoder", "decoder", "pose_channels"):

@@ -191,6 +191,46 @@ def test_eq10_head_and_units():
     np.testing.assert_allclose(pre[0, :, 0, 0].numpy(), [lb - ls, lb, 2 * ls + lb], rtol=1e-6)
 
 
+def test_half_vector_input_is_the_normalized_sum_of_light_and_view():
+    """``inputs: half`` appends h = (l + v)/|l + v| (closed form, float64 numpy) to the
+    paper's 7 channels; zero outside the charts and finite where l = -v; ``paper`` is the
+    7 channels untouched."""
+    from relight_cli.neural.models import OLATTeacher, teacher_inputs
+
+    rng = np.random.default_rng(3)
+    lv = rng.normal(size=(2, 2, 3, 5, 5))
+    lv /= np.linalg.norm(lv, axis=2, keepdims=True)
+    x = np.concatenate([lv[0], lv[1], rng.uniform(size=(2, 1, 5, 5))], 1)
+    x[0, :, 0, 0] = 0.0                                         # outside the UV charts
+    x[0, 3:6, 1, 1] = -x[0, 0:3, 1, 1]                          # l = -v
+    out = teacher_inputs(torch.tensor(x, dtype=torch.float32), "half").numpy()
+    assert out.shape == (2, 10, 5, 5)
+    np.testing.assert_array_equal(out[:, :7], x.astype(np.float32))
+    h = x[:, 0:3] + x[:, 3:6]
+    norm = np.linalg.norm(h, axis=1, keepdims=True)
+    ok = norm[:, 0] > 1e-3
+    expect = np.where(norm > 1e-3, h / np.maximum(norm, 1e-300), 0.0)
+    np.testing.assert_allclose(out[:, 7:].transpose(0, 2, 3, 1)[ok],
+                               expect.transpose(0, 2, 3, 1)[ok], atol=2e-6)
+    assert np.all(out[0, 7:, 0, 0] == 0) and np.isfinite(out).all()
+    assert teacher_inputs(torch.tensor(x, dtype=torch.float32), "paper").shape[1] == 7
+    # the U-Net takes 10 channels, and the half vector reaches the output
+    model = OLATTeacher(TeacherConfig.from_dict({**SMALL, "inputs": "half"}), 6)
+    assert model.net.enc[0].in_channels == 10
+    assert OLATTeacher(TeacherConfig.from_dict(SMALL), 6).net.enc[0].in_channels == 7
+    torch.manual_seed(0)
+    with torch.no_grad():
+        model.net.enc[0].weight[:, :7] = 0          # only h can move the output now
+        xin = torch.zeros(1, 7, 16, 16)
+        xin[:, 0:3] = torch.tensor([0.0, 0.6, 0.8])[:, None, None]
+        a = model(xin.clone(), torch.zeros(1, 6), torch.zeros(1, dtype=torch.long))
+        xin[:, 3:6] = torch.tensor([0.0, 0.0, 1.0])[:, None, None]
+        b = model(xin, torch.zeros(1, 6), torch.zeros(1, dtype=torch.long))
+    assert not torch.allclose(a, b)
+    with pytest.raises(UsageProblem):
+        TeacherConfig.from_dict({"inputs": "both"})
+
+
 def test_neg_weight_schedules():
     from relight_cli.neural.losses import neg_weight
     assert neg_weight(10, 5.0, 25) == 1.0                               # before t_s
@@ -404,9 +444,11 @@ def test_no_training_frame_inside_the_held_out_segment(capture_dir):
 
 
 # one variant (the cosine schedule's state and the NHWC layout are the harder resume; a
-# constant learning rate is the special case it contains), to keep make test in budget
+# constant learning rate is the special case it contains; the half-vector input checks
+# that a 10-channel teacher saves, loads and resumes), to keep make test in budget
 @pytest.mark.parametrize("variant", [{"lr_schedule": "cosine", "lr_final": 1e-4,
-                                      "channels_last": True}], ids=["cosine-nhwc"])
+                                      "channels_last": True, "inputs": "half"}],
+                         ids=["cosine-nhwc-half"])
 def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli, variant):
     full, half, resumed = tmp_path / "full.pt", tmp_path / "half.pt", tmp_path / "resumed.pt"
     config = tmp_path / "config.json"
@@ -1124,3 +1166,4 @@ def test_cpu_preset_gives_ggx_its_own_learning_rate(tmp_path):
     assert resolve_config("cpu", str(config), {}).lr == 5e-4
     config.write_text(json.dumps({"model": "ggx", "lr": 1e-3}))
     assert resolve_config("cpu", str(config), {}).lr == 1e-3
+

@@ -134,3 +134,26 @@ def test_readme_quotes_the_converged_student_table():
     assert f"{parts['env_grid']:.1f} dB the 8×16 env grid" in text
     assert f"{parts['distillation']:.1f} dB is distillation" in text
     assert f"{rec['row_seconds'] / 3600:.1f} h of row\ntraining" in text
+
+
+@pytest.mark.skipif(not (RESULTS / "teacher_inputs.json").exists(), reason="no study table")
+def test_readme_quotes_the_teacher_inputs_study():
+    """The teacher's gap on every sample (and the half vector's gain) as the README's Table
+    1/3 and presets paragraphs quote them, read back from teacher_inputs.json."""
+    rec = json.loads((RESULTS / "teacher_inputs.json").read_text())["results"]
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    t13 = _readme_rh_t13()
+    paper, half = rec["paper"], rec["half"]
+    held, train = paper["all_heldout"]["gap"][0], paper["all_train"]["gap"][0]
+    assert f"is {train:.2f} dB below its ceiling on its 384 training images" in t13
+    assert f"but {held:.2f} dB\nbelow it on the 128 held-out ones" in t13
+    assert f"(the 16 read {paper['heldout']['gap'][0]:.2f}:" in t13
+    gain = half["versus_paper"]["all_heldout"]
+    assert gain["verdict"] == "better" and f"gains\n{gain['diff_db']:.2f} dB there" in t13
+    assert all(r["all_heldout"]["psnr"] > p["all_heldout"]["psnr"]
+               for r, p in zip(half["seeds"], paper["seeds"])) and "on every seed" in t13
+    assert half["versus_paper"]["env"]["verdict"] == "tie" and "ties under env maps" in t13
+    assert all(r["all_heldout"]["samples"] == 128 and r["all_train"]["samples"] == 384
+               for r in paper["seeds"] + half["seeds"])
+    assert (f"on every sample {held:.2f} dB short on new poses and {train:.2f} dB on its "
+            f"training poses") in text.replace("\n", " ")

@@ -1,0 +1,278 @@
+"""What the OLAT teacher's per-texel input costs it: the paper's (light, view, visibility)
+against the same plus the half vector, at the ``cpu`` preset, to convergence, over seeds.
+
+The converged Table 1/3 (``results/converged/study_rh_t13.md``) left the OLAT teacher
+3.2–4.8 dB below its ceiling while the GGX baseline, the same U-Net with an explicit
+microfacet lobe, came within 0.7 dB.  Per image, the teacher's held-out error is not
+spread evenly: a few (frame, camera) images 10–16 dB below the ceiling — point-light
+highlights on the back of the hand and bright grazing rims, both specular — carry most of
+the mean-PSNR gap, while most images sit within 1 dB of it (and several above: a texture
+fitted through the bilinear lookup can beat point samples).  A microfacet lobe is a
+function of one coordinate of the local half vector (h_z = n·h), which the paper's input
+makes the network build from l and v through 3×3 convolutions; ``TeacherConfig.inputs =
+half`` hands it h directly (:mod:`relight_cli.neural.models`).
+
+Each run is the command a user runs, ``relight train-teacher CAPTURE --preset cpu --model
+olat --config VARIANT.json --seed S`` (one thread each, ``--workers`` at a time), on the
+study's ``converged`` right-hand capture (``studies/scales.json``), cached under
+``--work`` so an interrupted study resumes.  A variant's difference from ``paper`` is a
+verdict only when it exceeds max(2 σ over seeds, 0.2 dB) (the study_hands rule).
+Writes ``teacher_inputs.{md,json,png}`` to ``--out``.  Run (about 9 min per run on one
+core; 3 seeds × 2 variants, two at a time: ~30 min)::
+
+    .venv/bin/python benchmarks/study_teacher_inputs.py --seeds 3 --workers 2 \\
+        --work benchmarks/out/teacher_inputs --out benchmarks/results/converged
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common as B  # noqa: E402
+import bench_presets as P  # noqa: E402
+
+VARIANTS = {"paper": {"inputs": "paper"}, "half": {"inputs": "half"},
+            "code": {"inputs": "paper", "head": "code"}}
+SPLITS = ("heldout", "fully_lit", "env")
+#: what the table compares: every held-out sample, then the validation's splits
+COMPARED = ("all_heldout", "all_train") + SPLITS
+
+
+def _run(work: Path, capture: Path, variant: str, seed: int, log) -> dict:
+    """One training run (cached): {"argv", "wall_s", "metrics"}."""
+    name = f"{variant}_s{seed}"
+    done = work / f"{name}.done.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    config = work / f"{variant}.json"
+    P.B_write(config, VARIANTS[variant])
+    argv = ["train-teacher", str(capture), "--preset", "cpu", "--model", "olat", "--config",
+            str(config), "--seed", str(seed), "-o", str(work / f"{name}.pt"),
+            "--metrics-out", str(work / f"{name}.json"), "-q"]
+    log(f"{name}: relight {' '.join(argv)}")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    t0 = time.perf_counter()
+    r = subprocess.run([P.RELIGHT, *argv], env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise SystemExit(f"study_teacher_inputs.py: error: {name} failed:\n{r.stderr[-2000:]}")
+    record = {"argv": argv, "wall_s": round(wall, 1),
+              "metrics": json.loads((work / f"{name}.json").read_text())}
+    P.B_write(done, record)
+    log(f"{name}: done in {wall / 60:.1f} min")
+    return record
+
+
+def _score_all(work: Path, capture: Path, variant: str, seed: int) -> dict:
+    """Every held-out and every training sample of the run's checkpoint scored with its
+    ceiling (cached): the training command validates on ``val_samples`` (16) of each
+    split only.  {"heldout": {psnr, mse, ssim, samples, ceiling, gap}, "train": ...}."""
+    name = f"{variant}_s{seed}"
+    path = work / f"{name}.all.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.evaluate import evaluate_capture, load_hand_model
+    model = load_hand_model(read_checkpoint(str(work / f"{name}.pt"), kind="teacher"),
+                            name=name)
+    scores = evaluate_capture(str(capture), [model], ["heldout", "train"])
+    out = {split: {"psnr": s["psnr"], "mse": s["mse"], "ssim": s["ssim"],
+                   "samples": s["samples"], "ceiling": s["ceiling"]["psnr"],
+                   "gap": s["gap_to_ceiling"]}
+           for split, s in scores.items()}
+    P.B_write(path, out)
+    return out
+
+
+def _seed_row(record: dict, every: dict) -> dict:
+    m = record["metrics"]["metrics"]
+    row = {"wall_s": record["wall_s"], "all_heldout": every["heldout"],
+           "all_train": every["train"]}
+    for split in SPLITS:
+        s = m.get(split) or {}
+        # (the validation's own samples: val_samples of each split)
+        row[split] = {"psnr": s.get("psnr"), "ceiling": (s.get("ceiling") or {}).get("psnr"),
+                      "gap": s.get("gap_to_ceiling"), "mse": s.get("mse")}
+    curve = P._curve(record)
+    iters = curve[-1][0]
+    tail = [v for s, v in curve if (1 - P.TAIL) * iters <= s < iters]
+    row["gain_tail_db"] = curve[-1][1] - tail[0] if tail else None
+    row["curve"] = curve
+    return row
+
+
+def _stats(values: list) -> tuple:
+    import numpy as np
+    v = np.asarray(values, float)
+    return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0
+
+
+def summarize(runs: dict, seeds: list) -> dict:
+    """Per variant: per-seed rows, mean ± std of each split's PSNR and gap, convergence;
+    per non-paper variant and split: the mean paired difference from ``paper`` and its
+    verdict."""
+    out = {}
+    for variant, rows in runs.items():
+        entry = {"seeds": rows}
+        for split in COMPARED:
+            psnr = [r[split]["psnr"] for r in rows if r[split]["psnr"] is not None]
+            gap = [r[split]["gap"] for r in rows if r[split]["gap"] is not None]
+            if psnr:
+                entry[split] = {"psnr": _stats(psnr), "gap": _stats(gap) if gap else None,
+                                "ceiling": rows[0][split]["ceiling"]}
+        gains = [r["gain_tail_db"] for r in rows]
+        entry["converged"] = all(g is not None and g < P.CONVERGED_DB for g in gains)
+        entry["wall_min"] = sum(r["wall_s"] for r in rows) / 60
+        out[variant] = entry
+    base = runs.get("paper")
+    for variant, rows in runs.items():
+        if variant == "paper" or base is None:
+            continue
+        out[variant]["versus_paper"] = {}
+        for split in COMPARED:
+            diffs = [a[split]["psnr"] - b[split]["psnr"] for a, b in zip(rows, base)
+                     if a[split]["psnr"] is not None and b[split]["psnr"] is not None]
+            if not diffs:
+                continue
+            mean, std = _stats(diffs)
+            margin = max(2 * std, 0.2)
+            verdict = "better" if mean > margin else "worse" if mean < -margin else "tie"
+            out[variant]["versus_paper"][split] = {"diff_db": mean, "std_db": std,
+                                                   "margin_db": margin, "verdict": verdict}
+    return out
+
+
+def main(argv=None) -> None:
+    ap = B.parser(__doc__.splitlines()[0])
+    ap.add_argument("--work", default=str(B.OUT / "teacher_inputs"), metavar="DIR",
+                    help="cache: the capture, checkpoints, metrics")
+    ap.add_argument("--variants", default="paper,half",
+                    help=f"comma-separated, of {', '.join(VARIANTS)} [default: paper,half]")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args(argv)
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad or not variants:
+        ap.error(f"unknown variant(s) {', '.join(bad)}; use {', '.join(VARIANTS)}")
+    if args.quick:
+        ap.error("no --quick: each run is a converged cpu-preset teacher (minutes); "
+                 "tests/test_neural_teacher.py covers the input itself")
+    out = B.start(args, "study_teacher_inputs.py")
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+
+    def log(m):
+        print(m, file=sys.stderr, flush=True)
+
+    t0 = time.perf_counter()
+    limits = B.machine_limits()
+    capture, _ = P._capture(work, log)
+    seeds = list(range(args.seeds))
+    jobs = [(v, s) for s in seeds for v in variants]
+    with ThreadPoolExecutor(max(1, args.workers)) as pool:
+        records = list(pool.map(lambda job: _run(work, capture, *job, log), jobs))
+    every = [_score_all(work, capture, v, s) for v, s in jobs]
+    runs = {v: [_seed_row(r, e) for (vv, _), r, e in zip(jobs, records, every) if vv == v]
+            for v in variants}
+    record = {"command": B.run_command("study_teacher_inputs.py",
+                                       sys.argv[1:] if argv is None else argv),
+              "machine": limits, "capture": str(capture), "seeds": seeds,
+              "wall_s": round(time.perf_counter() - t0, 1),
+              "variants": {v: VARIANTS[v] for v in variants},
+              "by_hand": [f"{v}_s{s}" for (v, s), r in zip(jobs, records) if r.get("note")],
+              "results": summarize(runs, seeds)}
+    P.B_write(out / "teacher_inputs.json", record)
+    (out / "teacher_inputs.md").write_text(_markdown(record))
+    _plot(record, out / "teacher_inputs.png")
+    print((out / "teacher_inputs.md").read_text())
+
+
+def _markdown(record: dict) -> str:
+    res = record["results"]
+    rows_min = sum(v["wall_min"] for v in res.values())
+    lines = ["# The OLAT teacher's input: the paper's against the half vector added", "",
+             f"Command: `{record['command']}`  ",
+             B.machine_line(record["machine"]) + "  ",
+             f"Wall time: {record['wall_s'] / 60:.1f} min for this invocation (runs in its "
+             f"cache cost nothing); the runs themselves took {rows_min:.1f} min, one core "
+             f"each, two at a time; seeds {', '.join(map(str, record['seeds']))}; right "
+             f"hand, `converged` capture, `--preset cpu`."
+             + (f" Runs by hand (the same command, before this script existed; their cached "
+                f"records say so): {', '.join(record['by_hand'])}." if record.get("by_hand")
+                else ""), "",
+             "| input | held-out PSNR, all samples | gap | SSIM | training poses, all: gap | "
+             "held-out PSNR, validation (16) | gap | fully lit gap | env-map gap | converged "
+             "| min per run |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+
+    def cell(e, split, key):
+        s = e.get(split)
+        if not s or s.get(key) is None:
+            return "—"
+        m, sd = s[key]
+        return f"{m:.2f} ± {sd:.2f}"
+    for v, e in res.items():
+        ssim = [r["all_heldout"]["ssim"] for r in e["seeds"]]
+        lines.append(f"| {v} ({json.dumps(record['variants'][v])}) | "
+                     f"{cell(e, 'all_heldout', 'psnr')} | {cell(e, 'all_heldout', 'gap')} | "
+                     f"{sum(ssim) / len(ssim):.4f} | {cell(e, 'all_train', 'gap')} | "
+                     f"{cell(e, 'heldout', 'psnr')}"
+                     f" | {cell(e, 'heldout', 'gap')} | {cell(e, 'fully_lit', 'gap')} | "
+                     f"{cell(e, 'env', 'gap')} | {'yes' if e['converged'] else 'NOT'} | "
+                     f"{e['wall_min'] / len(e['seeds']):.1f} |")
+    ceil = {s: next((e[s]["ceiling"] for e in res.values() if e.get(s)), None) for s in COMPARED}
+    lines += ["", "Ceilings (perfect texture through the same compositing and pixel sampling): "
+              + ", ".join(f"{s} {c:.2f} dB" for s, c in ceil.items() if c is not None) + ".",
+              "", "Against `paper`, paired by seed (verdict when |difference| > max(2 σ, "
+              "0.2 dB)):", ""]
+    for v, e in res.items():
+        for split, d in (e.get("versus_paper") or {}).items():
+            lines.append(f"- {v}, {split}: {d['diff_db']:+.2f} ± {d['std_db']:.2f} dB → "
+                         f"**{d['verdict']}**")
+    lines += ["", "Per seed (held-out PSNR / gap in dB, all samples; the validation's 16):", ""]
+    for v, e in res.items():
+        lines.append(f"- {v}: " + "; ".join(
+            f"seed {s}: {r['all_heldout']['psnr']:.2f} / {r['all_heldout']['gap']:.2f} "
+            f"({r['heldout']['psnr']:.2f} / {r['heldout']['gap']:.2f})"
+            for s, r in zip(record["seeds"], e["seeds"])))
+    lines += ["", "Converged: every seed's held-out PSNR gained < 0.2 dB over the last 20 % "
+              "of its iterations (on the validation's samples). All samples: every "
+              "(frame, camera) image of the held-out poses, scored from the final "
+              "checkpoint with its ceiling (`relight_cli.neural.evaluate`), and every "
+              "image of the training poses likewise; validation: "
+              "the 16 evenly spaced held-out samples, fully lit frames and held-out "
+              "env-map renders the training command validates on. Plot: "
+              "teacher_inputs.png.", ""]
+    return "\n".join(lines)
+
+
+def _plot(record: dict, path: Path) -> None:
+    fig, (ax,) = B.figure()
+    colours = {}
+    for v, e in record["results"].items():
+        for s, r in zip(record["seeds"], e["seeds"]):
+            kw = {"color": colours[v]} if v in colours else {}
+            line, = ax.plot([p[0] for p in r["curve"]], [p[1] for p in r["curve"]],
+                            marker="o", markersize=3, label=v if not s else None, **kw)
+            colours.setdefault(v, line.get_color())
+    ceil = next((e["heldout"]["ceiling"] for e in record["results"].values()
+                 if e.get("heldout")), None)
+    if ceil is not None:
+        ax.axhline(ceil, color="k", linestyle=":", linewidth=1, label="ceiling (same samples)")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("held-out PSNR, the validation's 16 samples (dB)")
+    ax.set_title("OLAT teacher, cpu preset: input channels (one line per seed)")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    B.save(fig, path, record["machine"])
+
+
+if __name__ == "__main__":
+    main()
