@@ -1150,6 +1150,51 @@ def test_training_stops_at_the_first_non_finite_gradient(capture_dir):
     assert fit(task, cfg, torch.device("cpu"), show_progress=False).checkpoint["step"] == 6
 
 
+
+def test_training_stops_when_every_gradient_vanishes(capture_dir, monkeypatch):
+    """A model whose output no longer depends on its weights (a saturated shadow gate: σ(S)
+    underflows to 0, the render is black, the loss stays positive and every gradient is
+    exactly 0.0 — finite, so the non-finite check cannot see it) stops once COLLAPSE_STEPS
+    of the last COLLAPSE_WINDOW steps were such steps, with one DataError, a
+    TrainingDiverged (studies record the row); a gradient that is small but not zero does
+    not stop it."""
+    from relight_cli.neural import train as T
+    monkeypatch.setattr(T, "COLLAPSE_STEPS", 3)
+    monkeypatch.setattr(T, "COLLAPSE_WINDOW", 4)
+    cfg = TeacherConfig.from_dict({**SMALL, "iters": 8, "val_every": 0})
+    task = T.TeacherTask(_data(capture_dir), cfg)
+    honest = task.loss
+
+    def close(net, logit):
+        # the dead teacher of the converged study: the shadow logit far below zero and a
+        # non-negative raw texture (no L_neg either), whatever the inputs
+        with torch.no_grad():
+            net.net.head.weight.zero_()
+            net.net.head.bias[:3] = 1.0
+            net.net.head.bias[3] = logit
+
+    def closed_gate(net, item, step, device):
+        if step >= 2:
+            close(net, -1e4)
+        return honest(net, item, step, device)
+    task.loss = closed_gate
+    with pytest.raises(T.TrainingDiverged) as caught:
+        T.fit(task, cfg, torch.device("cpu"), show_progress=False)
+    err = caught.value
+    assert isinstance(err, T.TrainingCollapsed) and err.exit_code == 1
+    assert err.path == str(task.data.index_path)
+    assert "training collapsed at step 5 of 8: every gradient was exactly zero in 3 of the " \
+        "last 4 steps" in err.message and "lower --lr" in err.message
+    assert "mse " in err.message and "mse 0 " not in err.message
+    # sabotage check: a tiny but nonzero gradient (the gate nearly, not fully, closed)
+    # trains through every step
+    def nearly_closed(net, item, step, device):
+        close(net, -12.0)
+        return honest(net, item, step, device)
+    task.loss = nearly_closed
+    assert T.fit(task, cfg, torch.device("cpu"), show_progress=False).checkpoint["step"] == 8
+
+
 def test_cpu_preset_gives_ggx_its_own_learning_rate(tmp_path):
     """``--preset cpu --model ggx`` trains at 5e-4 (at the OLAT teacher's 2e-3 the GGX
     baseline collapsed, see config.PRESET_MODEL); the model may come from a flag or the
