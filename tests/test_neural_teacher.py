@@ -541,6 +541,43 @@ def test_ddp_two_processes_identical_weights(capture_dir, tmp_path):
     assert moved                                        # it trained
 
 
+
+DDP_COLLAPSE_SCRIPT = """
+import os, sys, torch
+from relight_cli.neural import train as T
+from relight_cli.neural.config import TeacherConfig
+from relight_cli.neural.data import CaptureData
+T.COLLAPSE_STEPS, T.COLLAPSE_WINDOW = 3, 4
+cfg = TeacherConfig.from_dict({**%(small)s, "iters": 8, "batch": 1, "val_every": 0})
+task = T.TeacherTask(CaptureData(sys.argv[1], cfg.tex_res, aa=1), cfg)
+honest = task.loss
+def closed(net, item, step, device):
+    head = getattr(net, "module", net).net.head
+    if step >= 1:
+        with torch.no_grad():
+            head.weight.zero_()
+            head.bias[:3] = 1.0
+            head.bias[3] = -1e4
+    return honest(net, item, step, device)
+task.loss = closed
+try:
+    T.fit(task, cfg, torch.device("cpu"), show_progress=False)
+    said = "trained through"
+except T.TrainingCollapsed as exc:
+    said = exc.message
+torch.save({"said": said}, sys.argv[2] + f"/rank{os.environ['RANK']}.pt")
+"""
+
+
+def test_ddp_ranks_stop_together_when_the_gradients_vanish(capture_dir, tmp_path):
+    """Under torchrun (2 gloo processes) a collapsed model stops every rank at the same
+    step (each naming its own batch's loss), instead of one rank waiting on the other
+    forever."""
+    r0, r1 = _ddp_pair(DDP_COLLAPSE_SCRIPT % {"small": repr(SMALL)}, capture_dir, tmp_path)
+    assert r0["said"].split(" (this batch")[0] == r1["said"].split(" (this batch")[0]
+    assert r0["said"].startswith("training collapsed at step 4 of 8: every gradient was "
+                                 "exactly zero in 3 of the last 4 steps"), r0["said"]
+
 def test_ddp_cli_rank0_writes(capture_dir, small_config, tmp_path):
     from conftest import relight_executable
     out = tmp_path / "ddp.pt"
