@@ -382,6 +382,10 @@ def test_learned_light_path_carries_part_of_the_image(data32, trained):
     assert ok, share
     assert {"heldout", "fully_lit", "env"} <= set(result.metrics)
     assert result.metrics["heldout"]["light_path_share"] > 0.1 * SHARE_FLOOR
+    # and the final model scored on every held-out sample, not only the validation's
+    n_held = len(data32.splits()["heldout"])
+    assert result.metrics["heldout_all"]["samples"] == n_held
+    assert result.metrics["heldout_all"]["light_path_share"] > 0.1 * SHARE_FLOOR
     # T̄ in sr⁻¹: synthetic skin albedos are < 1, so T̄ < 1/π nearly everywhere
     assert 0.02 < float(tex.median()) < 0.4
 

@@ -680,6 +680,14 @@ def test_train_teacher_subprocess_and_relight(capture_dir, small_config, tmp_pat
     record = json.loads(val.read_text())
     assert record["kind"] == "validation"
     assert {"heldout", "fully_lit", "env"} <= set(record["metrics"])
+    # the final model is also scored on every held-out sample (validation: val_samples 2),
+    # with its ceiling, and the closing line says so; the curve keeps the validation's
+    every, held = record["metrics"]["heldout_all"], record["metrics"]["heldout"]
+    n_held = len(_data(capture_dir).splits()["heldout"])
+    assert held["samples"] == 2 < every["samples"] == n_held
+    assert "gap_to_ceiling" in every and every["ceiling"]["samples"] == n_held
+    assert all("heldout_all" not in h for h in record["details"]["history"])
+    assert f"every held-out sample ({n_held}): PSNR {every['psnr']:.2f} dB" in r.stderr
     lights = tmp_path / "lights.json"
     lights.write_text(json.dumps({"format": "relight/lights", "version": 1, "lights": [
         {"position": [0.4, 1.0, 0.7], "intensity": 2.0}]}))

@@ -189,8 +189,14 @@ def summary(result, more: str = "") -> str:
     from relight_cli.neural.train import _summary
     its = result.steps_run / result.seconds if result.seconds > 0 else float("inf")
     last = result.history[-1] if result.history else {"step": result.checkpoint["step"]}
+    every = result.metrics.get("heldout_all")
+    tail = ""
+    if isinstance(every, dict) and "psnr" in every:
+        tail = (f"; every held-out sample ({every['samples']}): PSNR {every['psnr']:.2f} dB"
+                + (f", {every['gap_to_ceiling']:.2f} dB below its ceiling"
+                   if "gap_to_ceiling" in every else ""))
     return (f"{result.steps_run} step(s) in {result.seconds:.1f} s ({its:.2f} it/s); {more}"
-            + _summary(last))
+            + _summary(last) + tail)
 
 
 def provenance_record(provenance, settings: dict) -> dict:

@@ -287,7 +287,8 @@ def linearity_consistency(model, texels, sample, lights, intensity, mean_texture
     return torch.sqrt(err / count + 1e-20)
 
 
-def evaluate(model, data, config: LinearConfig, device, mean_texture, splits=None) -> dict:
+def evaluate(model, data, config: LinearConfig, device, mean_texture, splits=None,
+             every: bool = False) -> dict:
     """Per split {mse, psnr, ssim, mae, samples} (:func:`relight_cli.neural.train.evaluate_splits`);
     the capture's splits also get ``light_path_share``: RMS of (neural − physical-branch
     render) over RMS of the image inside the hand (:func:`learned_share`; ≈ 0 when the
@@ -317,8 +318,8 @@ def evaluate(model, data, config: LinearConfig, device, mean_texture, splits=Non
     out = {}
     for name in names:                  # one split at a time: the share is per split
         current[0] = name
-        out.update(evaluate_splits(model, data, config.val_samples, frame, env, [name],
-                                   tuple(config.env_res)))
+        out.update(evaluate_splits(model, data, None if every else config.val_samples, frame,
+                                   env, [name], tuple(config.env_res)))
     for name, (num, den) in share.items():
         if name in out and den > 0:
             out[name]["light_path_share"] = float(np.sqrt(num / den))
@@ -431,10 +432,14 @@ class LinearTask:
             average_gradients(self.disc, world)
         self.opt_d.step()
 
-    def evaluate(self, model, device):
+    def evaluate(self, model, device, every: bool = False):
         """The first subject's splits (as for one capture); with several subjects also
         ``subject1``, ``subject2`` … (the splits of ``extra.subjects[s]``'s capture, under
-        its own T̄): held-out poses of every trained subject."""
+        its own T̄): held-out poses of every trained subject.  ``every``: the first
+        subject's held-out split, every sample of it."""
+        if every:
+            return evaluate(model, self.data, self.config, device, self.mean_texture,
+                            ["heldout"], every=True)
         out = evaluate(model, self.data, self.config, device, self.mean_texture)
         for s in range(1, len(self.datas)):
             out[f"subject{s}"] = evaluate(model, self.datas[s], self.config, device,
