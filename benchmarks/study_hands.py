@@ -458,7 +458,11 @@ class Study:
                 step_hook(step, world)
             at[0] = step + 1
 
-        def evaluate(model, device):
+        def evaluate(model, device, every=False):
+            if every:           # the final model on every held-out sample: no curve point
+                import inspect
+                return (score(model, device, every=True)
+                        if "every" in inspect.signature(score).parameters else {})
             out = score(model, device)
             if at[0] < config.iters:
                 points.append([at[0], out.get(curve[0], {}).get(curve[1])])
@@ -654,7 +658,9 @@ def _final_splits(base, score, splits, curve):
             if step + 1 >= self.config.iters:
                 self.final = True
 
-        def evaluate(self, model, device):
+        def evaluate(self, model, device, every=False):
+            if every:     # the final model on every held-out sample (base's own)
+                return base.evaluate(self, model, device, every=True)
             return score(self, model, device, list(splits) if self.final else [curve[0]])
     return Task
 
@@ -880,6 +886,11 @@ def summarize(table: Table, runs: dict) -> dict:
                                               for m, _, _ in table.metrics}
                     cell[split]["gap_to_ceiling"] = mean_std(
                         [r["metrics"][split].get("gap_to_ceiling") for r in records])
+            every = [r["metrics"].get("heldout_all") for r in records]
+            if every and all(e and e.get("gap_to_ceiling") is not None for e in every):
+                # the final model on every held-out sample (the columns: val_samples)
+                cell["heldout_all"] = {m: mean_std([e[m] for e in every])
+                                       for m in ("psnr", "gap_to_ceiling", "samples")}
             rows.setdefault(name, {})[hand] = cell
             steps = sorted({p[0] for r in records for p in r["curve"]})
             curves.setdefault(name, {})[hand] = [
@@ -1008,6 +1019,16 @@ def markdown(table: Table, record: dict) -> str:
                 gaps.append(f"{name}: " + ", ".join(parts))
         lines += ["", "Gap to the ceiling (ceiling PSNR − row PSNR, mean over seeds): "
                   + "; ".join(gaps) + "."]
+        every = [f"{name}: " + ", ".join(
+            f"{hand} {per_hand[hand]['heldout_all']['gap_to_ceiling']['mean']:+.2f} dB "
+            f"({per_hand[hand]['heldout_all']['samples']['mean']:.0f} samples)"
+            for hand in hands if per_hand.get(hand, {}).get("heldout_all"))
+            for name, per_hand in record["rows"].items()
+            if any(per_hand.get(h, {}).get("heldout_all") for h in hands)]
+        if every:
+            lines += ["", "The same gap on every held-out sample (the final model; the "
+                      "columns score the validation's evenly spaced samples, which can "
+                      "misstate it): " + "; ".join(every) + "."]
     conv = record.get("convergence") or {}
     if conv:
         parts = []

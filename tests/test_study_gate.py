@@ -358,3 +358,18 @@ def test_gate_fails_when_nothing_learns(gate_run, tmp_path):
         assert worse[name]["gap_db"] > limits[name] > metrics[name]["gap_db"], name
         line = next(row for row in result.stdout.splitlines() if f"{name}.gap_db" in row)
         assert "REGRESSED" in line, result.stdout
+
+
+def test_teacher_and_linear_rows_record_every_held_out_sample(gate_run):
+    """A study row of a teacher or the linear model stores the final model scored on every
+    held-out sample (``heldout_all``, with its ceiling gap) beside the table's
+    validation-sample columns, so a table can show the gap its columns may misstate."""
+    study, _ = gate_run
+    records = [json.loads(p.read_text()) for p in sorted((study.out / "runs").glob("*.json"))]
+    scored = [r for r in records if r.get("kind") in ("teacher", "linear") and r.get("metrics")]
+    assert scored
+    for r in scored:
+        every, held = r["metrics"]["heldout_all"], r["metrics"]["heldout"]
+        assert every["samples"] >= held["samples"] and "gap_to_ceiling" in every, r["key"]
+    assert any(r["metrics"]["heldout_all"]["samples"] > r["metrics"]["heldout"]["samples"]
+               for r in scored)
