@@ -740,7 +740,8 @@ def _edit_index(cap, edit):
 
 @pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
                                   "iters-0", "unknown-preset", "not-pt", "not-a-folder",
-                                  "bad-config", "bad-head", "resume-other-config"])
+                                  "bad-config", "bad-head", "bad-inputs",
+                                  "resume-other-config"])
 def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli):
     from relight_cli.formats import capture as C
     cap = _copy_capture(capture_dir, tmp_path)
@@ -785,6 +786,10 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
         code = 2
     elif case == "bad-head":
         (tmp_path / "bad.json").write_text('{"head": "inside", "untied_bias": true}')
+        args[3] = str(tmp_path / "bad.json")
+        code = 2
+    elif case == "bad-inputs":
+        (tmp_path / "bad.json").write_text('{"inputs": "halfway"}')
         args[3] = str(tmp_path / "bad.json")
         code = 2
     elif case == "resume-other-config":

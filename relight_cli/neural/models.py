@@ -203,8 +203,9 @@ class OLATTeacher(nn.Module):
         super().__init__()
         self.config = config
         self.inputs = getattr(config, "inputs", "paper")
-        self.net = UNet(N_INPUTS[self.inputs], 4, config.encoder, config.decoder, pose_dim, config.pose_channels,
-                        config.tex_res, getattr(config, "untied_bias", False))
+        self.net = UNet(N_INPUTS[self.inputs], 4, config.encoder, config.decoder, pose_dim,
+                        config.pose_channels, config.tex_res,
+                        getattr(config, "untied_bias", False))
         self.lambda_s = config.lambda_s * PAPER_UNIT
         self.lambda_b = config.lambda_b * PAPER_UNIT
         self.head = getattr(config, "head", "printed")

@@ -388,8 +388,7 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
                 parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
         if world > 1 and not use_ddp:
             average_gradients(model, world)
-        check_gradients(model, step, config.iters, parts_sum, task)
-        vanished = gradients_vanished(model)           # the same on every rank
+        vanished = check_gradients(model, step, config.iters, parts_sum, task)  # all ranks
         if vanished:                # ... and counted only where some rank's loss is not 0
             vanished = any_rank(any(v > 0 for v in parts_sum.values()), world, device)
         still.append(vanished)
@@ -489,19 +488,19 @@ def any_rank(flag: bool, world: int, device) -> bool:
     return bool(t.item())
 
 
-def gradients_vanished(model) -> bool:
-    """True when ``model`` has gradients and every one of them is exactly zero."""
-    grads = [p.grad for p in model.parameters() if p.grad is not None]
-    return bool(grads) and not bool(torch.stack([g.abs().max() for g in grads]).max() > 0)
-
-
-def check_gradients(model, step: int, iters: int, parts: dict, task) -> None:
-    """TrainingDiverged when any gradient of ``model`` is NaN/Inf.  Called after the
-    ranks' gradients are averaged, so every rank sees the same answer and stops together."""
+def check_gradients(model, step: int, iters: int, parts: dict, task) -> bool:
+    """TrainingDiverged when any gradient of ``model`` is NaN/Inf; else whether every
+    gradient is exactly zero (a collapsed step, :class:`TrainingCollapsed`).  One pass:
+    the largest |g| of each parameter (NaN and Inf propagate through it).  Called after
+    the ranks' gradients are averaged, so every rank sees the same answer and stops
+    together."""
     grads = [(name, p.grad) for name, p in model.named_parameters() if p.grad is not None]
-    if not grads or bool(torch.stack([torch.isfinite(g).all() for _, g in grads]).all()):
-        return
-    name = next(n for n, g in grads if not bool(torch.isfinite(g).all()))
+    if not grads:
+        return False
+    largest = torch.stack([g.detach().abs().amax() for _, g in grads])
+    if bool(torch.isfinite(largest).all()):
+        return not bool((largest > 0).any())
+    name = next(n for (n, _), m in zip(grads, largest) if not bool(torch.isfinite(m)))
     losses = ", ".join(f"{k} {v:.4g}" for k, v in parts.items())
     data = getattr(task, "data", None)
     raise TrainingDiverged(
