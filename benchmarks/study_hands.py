@@ -605,9 +605,6 @@ class Study:
             self._targets = (teacher_row["key"], data, targets)
         task = D.StudentTask(data, config, targets, envs, list(range(n_train)),
                              list(range(n_train, len(specs))), names)
-        # every pose's features kept (the default 16-pose cache re-traces a larger capture's
-        # visibility on nearly every sample; the maps are the same either way)
-        task.features = D.StudentFeatures(config, cache=1024)
         return task
 
     # -------------------------------------------------------------- tables

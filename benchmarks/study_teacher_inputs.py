@@ -56,16 +56,22 @@ def _run(work: Path, capture: Path, variant: str, seed: int, log) -> dict:
     argv = ["train-teacher", str(capture), "--preset", "cpu", "--model", "olat", "--config",
             str(config), "--seed", str(seed), "-o", str(work / f"{name}.pt"),
             "--metrics-out", str(work / f"{name}.json"), "-q"]
+    return run_once(work, name, argv, "study_teacher_inputs.py", log)
+
+
+def run_once(work: Path, name: str, argv: list, who: str, log) -> dict:
+    """``relight ARGV`` on one thread, its record {"argv", "wall_s", "metrics" (the
+    ``--metrics-out`` file work/NAME.json)} cached as work/NAME.done.json."""
     log(f"{name}: relight {' '.join(argv)}")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     t0 = time.perf_counter()
     r = subprocess.run([P.RELIGHT, *argv], env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if r.returncode != 0:
-        raise SystemExit(f"study_teacher_inputs.py: error: {name} failed:\n{r.stderr[-2000:]}")
+        raise SystemExit(f"{who}: error: {name} failed:\n{r.stderr[-2000:]}")
     record = {"argv": argv, "wall_s": round(wall, 1),
               "metrics": json.loads((work / f"{name}.json").read_text())}
-    P.B_write(done, record)
+    P.B_write(work / f"{name}.done.json", record)
     log(f"{name}: done in {wall / 60:.1f} min")
     return record
 
@@ -149,22 +155,30 @@ def summarize(runs: dict, seeds: list) -> dict:
     return out
 
 
+def parse_variants(ap, argv, known: dict, default: str, seeds: int, what: str):
+    """``--variants`` (of ``known``), ``--seeds``, ``--workers`` added to ``ap`` and parsed:
+    (args, the variants); no ``--quick`` (each run is a converged cpu-preset ``what``)."""
+    ap.add_argument("--variants", default=default,
+                    help=f"comma-separated, of {', '.join(known)} [default: {default}]")
+    ap.add_argument("--seeds", type=int, default=seeds)
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args(argv)
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    bad = [v for v in variants if v not in known]
+    if bad or not variants:
+        ap.error(f"unknown variant(s) {', '.join(bad)}; use {', '.join(known)}")
+    if args.quick:
+        ap.error(f"no --quick: each run is a converged cpu-preset {what}")
+    return args, variants
+
+
 def main(argv=None) -> None:
     ap = B.parser(__doc__.splitlines()[0])
     ap.add_argument("--work", default=str(B.OUT / "teacher_inputs"), metavar="DIR",
                     help="cache: the capture, checkpoints, metrics")
-    ap.add_argument("--variants", default="paper,half",
-                    help=f"comma-separated, of {', '.join(VARIANTS)} [default: paper,half]")
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--workers", type=int, default=2)
-    args = ap.parse_args(argv)
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-    bad = [v for v in variants if v not in VARIANTS]
-    if bad or not variants:
-        ap.error(f"unknown variant(s) {', '.join(bad)}; use {', '.join(VARIANTS)}")
-    if args.quick:
-        ap.error("no --quick: each run is a converged cpu-preset teacher (minutes); "
-                 "tests/test_neural_teacher.py covers the input itself")
+    args, variants = parse_variants(ap, argv, VARIANTS, "paper,half", 3,
+                                    "teacher (minutes); tests/test_neural_teacher.py covers "
+                                    "the input itself")
     out = B.start(args, "study_teacher_inputs.py")
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -253,15 +267,20 @@ def _markdown(record: dict) -> str:
     return "\n".join(lines)
 
 
-def _plot(record: dict, path: Path) -> None:
-    fig, (ax,) = B.figure()
+def plot_seed_curves(ax, record: dict) -> None:
+    """One validation curve per seed, one colour per variant (labelled once)."""
     colours = {}
     for v, e in record["results"].items():
         for s, r in zip(record["seeds"], e["seeds"]):
             kw = {"color": colours[v]} if v in colours else {}
             line, = ax.plot([p[0] for p in r["curve"]], [p[1] for p in r["curve"]],
-                            marker="o", markersize=3, label=v if not s else None, **kw)
+                            marker="o", markersize=3, label=None if s else v, **kw)
             colours.setdefault(v, line.get_color())
+
+
+def _plot(record: dict, path: Path) -> None:
+    fig, (ax,) = B.figure()
+    plot_seed_curves(ax, record)
     ceil = next((e["heldout"]["ceiling"] for e in record["results"].values()
                  if e.get("heldout")), None)
     if ceil is not None:

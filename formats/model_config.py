@@ -299,6 +299,11 @@ class StudentConfig(TrainingConfig):
             (med_aa1, tiny, 32², 400 iterations, 5 training and 3 held-out env maps, the
             150-iteration tiny teacher): tied 18.87 dB vs the teacher, untied 17.69 dB —
             off by default until a converged comparison says otherwise.
+        env_augment: ``paper`` (the training maps as given, with ``rotations``) or ``mix``
+            (ours): every sample's env map synthesized from the training maps — a mixture
+            of up to three, each rotated, mirrored and tinted, and a random sun cell
+            (:func:`relight_cli.neural.distill.mix_env`); exact pseudo ground truth at no
+            teacher cost.  The paper distills on 2,560 real maps; a capture here has a few.
         dram_code: DRAM's light code size (512).
         lambda_s, lambda_b: Eq. 11 in the paper's units, applied × PAPER_UNIT (the
             teacher's conversion: λ_b = 100 is a floor of 0.125 where a white texel
@@ -323,6 +328,7 @@ class StudentConfig(TrainingConfig):
     env_holdout: float = 0.17
     rotations: bool = True
     untied_bias: bool = False
+    env_augment: str = "paper"
     dram_code: int = 64
     cache_mb: int = 2048
     lambda_s: float = 25.0
@@ -332,6 +338,7 @@ class StudentConfig(TrainingConfig):
     def validate(self, where: str = "config") -> None:
         check = _Checker(self, where)
         check.choice("student", ("student", "dram"))
+        check.choice("env_augment", ("paper", "mix"))
         check.choice("neg_schedule", ("decay", "literal", "constant"))
         check.integer("tex_res", 8, 4096)
         check.widths("decoder")

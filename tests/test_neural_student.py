@@ -116,6 +116,72 @@ def test_wrist_env_identity_and_turn():
     assert any(np.allclose(t[inner], rolled[inner]) for t in turned)
 
 
+def test_mirror_is_exact_in_longitude():
+    """The mirrored map's value at longitude −φ is the original's at φ (cells matched by
+    the grid's pixel-centre angles, the seam's −π and +π columns kept apart; the
+    directions then mirror x), and its power is kept."""
+    from relight_cli.envmap import latlong_angles
+    from relight_cli.neural.distill import mirror_env
+    for h, w in ((8, 16), (16, 32)):
+        env = _sky(h, w)
+        env.radiance[:] *= np.random.default_rng(0).uniform(0.5, 2.0, env.radiance.shape)
+        mir = mirror_env(env)
+        _, lon = latlong_angles(h, w)
+        col = np.argmin(np.abs(-lon[:, None] - lon[None]), axis=1)
+        np.testing.assert_allclose(lon[col], -lon, atol=1e-12)
+        match = (np.arange(h)[:, None] * w + col[None]).ravel()
+        flipped = env.directions * np.array([-1.0, 1.0, 1.0])
+        np.testing.assert_allclose(env.directions[match], flipped, atol=1e-12)
+        np.testing.assert_array_equal(mir.radiance, env.radiance[match])
+        np.testing.assert_allclose((mir.radiance * mir.solid_angle[:, None]).sum(0),
+                                   (env.radiance * env.solid_angle[:, None]).sum(0),
+                                   rtol=1e-12)
+
+
+def test_mixed_env_maps(monkeypatch):
+    """``env_augment: mix``: seeded, finite, non-negative, on the training maps' grid; one
+    uniform map with no tint is uniform, and its sun is one cell carrying the drawn share
+    of the power, at a cell drawn uniformly on the sphere (∝ solid angle)."""
+    from relight_cli.envmap import DiscreteEnv
+    from relight_cli.neural import distill as D
+    sky = _sky(8, 16)
+    studio = D.rotate_env(sky, 3)
+    maps = [sky, studio]
+    a, b = (D.mix_env(maps, np.random.default_rng(7)) for _ in range(2))
+    np.testing.assert_array_equal(a.radiance, b.radiance)
+    draws = [D.mix_env(maps, np.random.default_rng(k)) for k in range(20)]
+    assert len({d.radiance.tobytes() for d in draws}) == 20
+    for d in draws:
+        assert np.isfinite(d.radiance).all() and (d.radiance >= 0).all()
+        assert d.directions is sky.directions and (d.height, d.width) == (8, 16)
+        assert not any(np.allclose(d.radiance / D.env_scale(d), m.radiance / D.env_scale(m))
+                       for m in maps)
+    uniform = DiscreteEnv(sky.directions, sky.solid_angle, np.full_like(sky.radiance, 2.0),
+                          8, 16, "uniform")
+    monkeypatch.setattr(D, "MIX_MAPS", 1)
+    monkeypatch.setattr(D, "MIX_TINT", 0.0)
+    monkeypatch.setattr(D, "MIX_SUN_P", 0.0)
+    flat = D.mix_env([uniform], np.random.default_rng(1)).radiance
+    np.testing.assert_allclose(flat, flat[0, 0], rtol=1e-12)
+    assert 0.2 <= flat[0, 0] <= 1.0                      # U(0.2, 1) over the map's scale 2
+    monkeypatch.setattr(D, "MIX_SUN_P", 1.0)
+    omega = sky.solid_angle
+    heights = []
+    for k in range(3000):
+        rad = D.mix_env([uniform], np.random.default_rng(k)).radiance
+        base = np.median(rad[:, 0])
+        sun = np.flatnonzero(np.abs(rad[:, 0] - base) > 1e-12 * base)
+        assert len(sun) == 1
+        share = (rad[sun[0], 0] - base) * omega[sun[0]] / (base * omega.sum())
+        assert D.MIX_SUN_SHARE[0] * (1 - 1e-9) <= share <= D.MIX_SUN_SHARE[1] * (1 + 1e-9)
+        heights.append(abs(sky.directions[sun[0], 1]))
+    # uniform on the sphere: E|y| over the grid's cells weighted by solid angle (0.5 on the
+    # continuous sphere); cells drawn with equal odds would give 0.64 on this 8-row grid
+    expected = float((np.abs(sky.directions[:, 1]) * omega).sum() / omega.sum())
+    assert abs(np.mean(heights) - expected) < 0.02
+    assert abs(expected - np.abs(sky.directions[:, 1]).mean()) > 0.1
+
+
 # ---------------------------------------------------------------- pseudo ground truth
 
 
@@ -223,6 +289,33 @@ def test_identical_runs_identical_weights_and_renders(setup, tmp_path):
 
 
 @pytest.mark.parametrize("student", ["student", "dram"])
+def test_mixed_env_training_resumes_exactly(setup, tmp_path, student):
+    """``env_augment: mix`` draws each sample's map from the run's seeded RNG stream, so
+    2 + 2 resumed iterations are 4 uninterrupted ones, bit for bit; and the run is not
+    the plain one (the maps it trained on differ)."""
+    from relight_cli.formats.checkpoint import read_checkpoint
+    (tmp_path / "mix.json").write_text(json.dumps({**STUDENT, "env_augment": "mix",
+                                                   "student": student}))
+    (tmp_path / "plain.json").write_text(json.dumps({**STUDENT, "student": student}))
+
+    def run(out, config, *extra):
+        r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
+                    config, "-q", "-o", out, *extra)
+        assert r.exit_code == 0, r.output
+        return read_checkpoint(str(out))
+    whole = run(tmp_path / "whole.pt", tmp_path / "mix.json", "--iters", "4")
+    run(tmp_path / "half.pt", tmp_path / "mix.json", "--iters", "2")
+    r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--resume",
+                tmp_path / "half.pt", "--iters", "4", "-q", "-o", tmp_path / "resumed.pt")
+    assert r.exit_code == 0, r.output
+    resumed = read_checkpoint(str(tmp_path / "resumed.pt"))
+    plain = run(tmp_path / "plain.pt", tmp_path / "plain.json", "--iters", "4")
+    for k, v in whole["weights"].items():
+        assert torch.equal(v, resumed["weights"][k]), k
+    assert any(not torch.equal(v, plain["weights"][k]) for k, v in whole["weights"].items())
+
+
+@pytest.mark.parametrize("student", ["student", "dram"])
 def test_student_renders_one_and_two_hands(setup, tmp_path, student):
     from conftest import run_relight
     from relight_cli.formats.exr import read_exr
@@ -277,7 +370,7 @@ def test_help(run_cli):
 @pytest.mark.parametrize("case", ["nan-env", "student-as-teacher", "no-training-envs",
                                   "missing-envs", "missing-eval-envs", "bad-output-name",
                                   "cache-is-a-file", "output-is-the-teacher",
-                                  "env-res-height-first"])
+                                  "env-res-height-first", "bad-env-augment"])
 def test_distill_bad_input(setup, tmp_path, case):
     args = ["distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
             setup / "student.json", "--iters", "2"]
@@ -295,12 +388,16 @@ def test_distill_bad_input(setup, tmp_path, case):
         args[1] = ckpt
     elif case == "no-training-envs":
         (tmp_path / "c.json").write_text(json.dumps({**STUDENT, "env_holdout": 0.9}))
-        args[6] = tmp_path / "c.json"
+        args[args.index("--config") + 1] = tmp_path / "c.json"
     elif case == "missing-envs":
         args += ["--envs", tmp_path / "nope.exr"]
     elif case == "missing-eval-envs":
         args += ["--eval-envs", tmp_path / "nope.exr"]
     elif case == "bad-output-name":
+        code = 2
+    elif case == "bad-env-augment":
+        (tmp_path / "c.json").write_text(json.dumps({**STUDENT, "env_augment": "rotate"}))
+        args[args.index("--config") + 1] = tmp_path / "c.json"
         code = 2
     elif case == "env-res-height-first":
         args += ["--env-res", "8x16"]                      # HxW: refused, WxH is 16x8
