@@ -388,11 +388,18 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
                 parts_sum[k] = parts_sum.get(k, 0.0) + v / len(mine)
         if world > 1 and not use_ddp:
             average_gradients(model, world)
-        vanished = check_gradients(model, step, config.iters, parts_sum, task)  # all ranks
+        try:
+            vanished = check_gradients(model, step, config.iters, parts_sum, task)  # all ranks
+        except TrainingDiverged:
+            _close_group(world)      # every rank raises it at this step: they close together
+            raise
         if vanished:                # ... and counted only where some rank's loss is not 0
             vanished = any_rank(any(v > 0 for v in parts_sum.values()), world, device)
         still.append(vanished)
         if sum(still) >= COLLAPSE_STEPS:
+            # every rank counts the same steps: close the group together, or the rank that
+            # exits first leaves the other's gloo pair to abort the job (SIGABRT)
+            _close_group(world)
             raise TrainingCollapsed(step, config.iters, parts_sum, task)
         optimizer.step()
         if after_step is not None:
@@ -423,13 +430,20 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
             _peak_rss_mb())
     result = TrainResult(checkpoint(config.iters), history, final, config.iters - start, seconds,
                          peak)
-    if world > 1:
-        # every rank waits for rank 0's final validation, then the group closes cleanly (a
-        # rank leaving while another still talks through gloo aborts the whole job)
-        import torch.distributed as dist
+    # every rank waits for rank 0's final validation, then the group closes cleanly
+    _close_group(world)
+    return result
+
+
+def _close_group(world: int) -> None:
+    """Every rank waits at a barrier, then the process group closes (a rank leaving while
+    another still talks through gloo aborts the whole job).  A no-op in one process."""
+    if world <= 1:
+        return
+    import torch.distributed as dist
+    if dist.is_initialized():
         dist.barrier()
         dist.destroy_process_group()
-    return result
 
 
 class TrainingDiverged(DataError):
