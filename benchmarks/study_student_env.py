@@ -18,6 +18,11 @@ built-ins and four Poly Haven HDRIs).  Two changes are measured, alone and toget
   non-negative linear map of the grid's radiances, so the teacher's pseudo ground truth
   stays exact and costs no teacher pass.
 
+DRAM (Table 2's baseline, ``student: dram``) is run on the training maps alone and with
+synthesized ones: its only lighting input is the env map seen from the wrist, so it is
+the model that most needs more than seven maps (its converged curve is flat from the
+first validation).
+
 Each student is the command a user runs, ``relight distill TEACHER CAPTURE --envs …
 --eval-envs … --preset cpu --config VARIANT.json --seed S --cache DIR`` (one thread each,
 ``--workers`` at a time), distilled from the ``paper``-input ``cpu`` OLAT teacher of the
@@ -29,10 +34,10 @@ training, each checkpoint is scored against its teacher on every held-out (frame
 × each held-out env map, and on 128 evenly spaced held-out-pose × training-map and
 trained-pose × held-out-map samples; against the ground truth on every held-out env
 render of the capture, with its ceiling (``--metrics-out``).  A variant's difference from
-``tied`` (the previous ``cpu`` preset, the paper's text) is a verdict only when it exceeds
+``tied`` (the paper's text; ``dram_mix``'s from ``dram``) is a verdict only when it exceeds
 max(2 σ over seeds, 0.2 dB) (the study_hands rule).  Writes ``student_env.{md,json,png}``
-to ``--out``.  Run (about 15 min per student on one core; 2 seeds × 4 variants, two at a
-time, ~1 h with the teachers cached)::
+to ``--out``.  Run (about 15 min per student on one core; 2 seeds × 6 variants, two at a
+time, ~1.5 h with the teachers cached)::
 
     .venv/bin/python benchmarks/study_student_env.py --seeds 2 --workers 2 \\
         --work benchmarks/out/student_env --teachers benchmarks/out/teacher_inputs \\
@@ -56,8 +61,13 @@ import study_teacher_inputs as T  # noqa: E402
 VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper"},
             "untied": {"untied_bias": True, "env_augment": "paper"},
             "mix": {"untied_bias": False, "env_augment": "mix"},
-            "untied_mix": {"untied_bias": True, "env_augment": "mix"}}
+            "untied_mix": {"untied_bias": True, "env_augment": "mix"},
+            "dram": {"student": "dram", "env_augment": "paper"},
+            "dram_mix": {"student": "dram", "env_augment": "mix"}}
 BASE = "tied"
+#: what each variant is compared with (paired by seed): the students with ``tied`` (the
+#: paper's text), DRAM with synthesized env maps with DRAM on the training maps alone
+BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
           "ground_truth")
@@ -199,7 +209,8 @@ def _seed_row(record: dict, scores: dict) -> dict:
 
 def summarize(runs: dict) -> dict:
     """Per variant: per-seed rows, mean ± std of each split's PSNR and MSE, convergence;
-    per variant other than ``tied`` and split: the paired PSNR difference and verdict."""
+    per variant with a base in :data:`BASES` and split: the paired PSNR difference from
+    the base and the verdict."""
     out = {}
     for variant, rows in runs.items():
         entry = {"seeds": rows}
@@ -213,18 +224,18 @@ def summarize(runs: dict) -> dict:
         entry["converged"] = all(g is not None and g < P.CONVERGED_DB for g in gains)
         entry["wall_min"] = sum(r["wall_s"] for r in rows) / 60
         out[variant] = entry
-    base = runs.get(BASE)
     for variant, rows in runs.items():
-        if variant == BASE or base is None:
+        base = runs.get(BASES.get(variant))
+        if base is None:
             continue
-        out[variant]["versus_" + BASE] = {}
+        out[variant]["versus"] = {"base": BASES[variant], "splits": {}}
         for split in SPLITS:
             mean, std = T._stats([a[split]["psnr"] - b[split]["psnr"]
                                   for a, b in zip(rows, base)])
             ratio = T._stats([a[split]["mse"] / b[split]["mse"] for a, b in zip(rows, base)])
             margin = max(2 * std, 0.2)
             verdict = "better" if mean > margin else "worse" if mean < -margin else "tie"
-            out[variant]["versus_" + BASE][split] = {
+            out[variant]["versus"]["splits"][split] = {
                 "diff_db": mean, "std_db": std, "margin_db": margin, "verdict": verdict,
                 "mse_ratio": ratio[0]}
     return out
@@ -324,13 +335,15 @@ def _markdown(record: dict) -> str:
                      f"{e['wall_min'] / len(e['seeds']):.1f} |")
     first = next(iter(res.values()))["ground_truth"]
     lines += [f"| ceiling (perfect texture) | | | | {first['ceiling_mse'] * 1e3:.2f} | | | |",
-              "", f"Mean PSNR (dB) per split; against `{BASE}`, paired by seed (verdict when "
+              "", "Mean PSNR (dB) per split; the students against `tied`, DRAM with synthesized env "
+              "maps against `dram`, paired by seed (verdict when "
               "|difference| > max(2 σ, 0.2 dB)), with the mean MSE ratio:", ""]
     for v, e in res.items():
         lines.append(f"- {v}: " + "; ".join(
             f"{NAMES[s]} {e[s]['psnr'][0]:.2f} ± {e[s]['psnr'][1]:.2f}" for s in SPLITS))
-        for s, d in (e.get("versus_" + BASE) or {}).items():
-            lines.append(f"  - {NAMES[s]}: {d['diff_db']:+.2f} ± {d['std_db']:.2f} dB, MSE × "
+        versus = e.get("versus") or {"splits": {}}
+        for s, d in versus["splits"].items():
+            lines.append(f"  - vs {versus['base']}, {NAMES[s]}: {d['diff_db']:+.2f} ± {d['std_db']:.2f} dB, MSE × "
                          f"{d['mse_ratio']:.2f} → **{d['verdict']}**")
     lines += ["", f"Samples: every held-out (frame, camera) × each held-out map; {SUBSAMPLE} "
               "evenly spaced samples of the other two teacher splits; every held-out env "

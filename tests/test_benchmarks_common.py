@@ -1,4 +1,5 @@
-"""benchmarks/_common.py: the missing-matplotlib line, the shared options, the plot helper."""
+"""benchmarks/_common.py: the missing-matplotlib line, the shared options, the plot helper;
+study_student_env.py's verdicts."""
 
 from __future__ import annotations
 
@@ -52,3 +53,32 @@ def test_plot_draws_every_curve_including_exact_and_nonfinite_points(tmp_path):
     path = B.save(fig, tmp_path / "p.png", {"platform": "p", "cpus": 2, "load_average": "0",
                                             "gemm_gflops": 1.0, "memory_gbs": 1.0})
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _env_row(psnr: float, tail: float = 0.05) -> dict:
+    import study_student_env as E
+    row = {s: {"psnr": psnr, "mse": 10 ** (-psnr / 10)} for s in E.SPLITS}
+    row["ground_truth"].update(gap=34.0 - psnr, ceiling=34.0, ceiling_mse=10 ** -3.4)
+    return {**row, "gain_tail_db": tail, "wall_s": 600.0}
+
+
+def test_student_env_verdicts_pair_each_variant_with_its_base():
+    """study_student_env: a student variant is judged against ``tied`` and DRAM with
+    synthesized env maps against DRAM, paired by seed, by max(2σ, 0.2 dB)."""
+    import study_student_env as E
+    runs = {"tied": [_env_row(24.0), _env_row(24.5)],
+            "mix": [_env_row(25.0), _env_row(25.6)],          # +1.05 ± 0.07 dB: better
+            "untied": [_env_row(24.1), _env_row(24.6)],       # +0.1 dB: a tie
+            "dram": [_env_row(16.0, 0.5), _env_row(16.2)],
+            "dram_mix": [_env_row(14.0), _env_row(17.2)]}     # −0.5 ± 2.1 dB: a tie
+    res = E.summarize(runs)
+    assert "versus" not in res["tied"] and "versus" not in res["dram"]
+    assert res["mix"]["versus"]["base"] == "tied" and res["dram_mix"]["versus"]["base"] == "dram"
+    for split in E.SPLITS:
+        assert res["mix"]["versus"]["splits"][split]["verdict"] == "better"
+        assert res["untied"]["versus"]["splits"][split]["verdict"] == "tie"
+        d = res["dram_mix"]["versus"]["splits"][split]
+        assert d["verdict"] == "tie" and abs(d["diff_db"] + 0.5) < 1e-9
+        assert d["margin_db"] > 4
+    assert not res["dram"]["converged"] and res["mix"]["converged"]
+    assert abs(res["mix"]["ground_truth"]["gap"][0] - 8.7) < 1e-9
