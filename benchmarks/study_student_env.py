@@ -36,8 +36,9 @@ trained-pose × held-out-map samples; against the ground truth on every held-out
 render of the capture, with its ceiling (``--metrics-out``).  A variant's difference from
 ``tied`` (the paper's text; ``dram_mix``'s from ``dram``) is a verdict only when it exceeds
 max(2 σ over seeds, 0.2 dB) (the study_hands rule).  Writes ``student_env.{md,json,png}``
-to ``--out``.  Run (about 15 min per student on one core; 2 seeds × 6 variants, two at a
-time, ~1.5 h with the teachers cached)::
+to ``--out``.  Run (about 17 min per student on one core of a 2-core AMD EPYC, two at a
+time, and ~10 min per seed for the teacher's textures: 2 seeds × 6 variants ≈ 2 h with
+the teachers cached; ``--variants tied,untied_mix`` ≈ 1 h)::
 
     .venv/bin/python benchmarks/study_student_env.py --seeds 2 --workers 2 \\
         --work benchmarks/out/student_env --teachers benchmarks/out/teacher_inputs \\
@@ -51,6 +52,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -201,8 +203,11 @@ def _seed_row(record: dict, scores: dict) -> dict:
            "validation_vs_teacher": m["vs_teacher"]}
     curve = P._curve(record, "vs_teacher")
     iters = curve[-1][0]
-    tail = [v for s, v in curve if (1 - P.TAIL) * iters <= s < iters]
-    row["gain_tail_db"] = curve[-1][1] - tail[0] if tail else None
+    tail = [(s, v) for s, v in curve if (1 - P.TAIL) * iters <= s < iters]
+    if not tail:    # validation sparser than the tail: the last interval before the end
+        tail = [(s, v) for s, v in curve if s < iters][-1:]
+    row["gain_tail_db"] = curve[-1][1] - tail[0][1] if tail else None
+    row["tail_from"] = tail[0][0] if tail else None
     row["curve"] = curve
     return row
 
@@ -271,7 +276,7 @@ def main(argv=None) -> None:
         if not marker.is_file():
             log(f"teacher seed {s}: its per-direction textures, {workers} process(es)")
             (work / f"textures_s{s}").mkdir(exist_ok=True)
-            with ProcessPoolExecutor(workers) as pool:
+            with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
                 list(pool.map(_prefill, *zip(*[(str(teacher[s]), str(capture),
                                                 str(work / f"textures_s{s}"), k, workers)
                                                for k in range(workers)])))
@@ -280,7 +285,9 @@ def main(argv=None) -> None:
     with ThreadPoolExecutor(workers) as pool:
         records = list(pool.map(lambda job: _run(work, capture, teacher[job[1]], *job, log),
                                 jobs))
-    with ProcessPoolExecutor(workers) as pool:
+    # spawned, not forked: a child forked from this process (its threads above, torch's
+    # thread pools) deadlocked before scoring anything (seen: 1 h 40 min idle)
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
         scores = list(pool.map(_score, *zip(*[(work, capture, teacher[s], v, s)
                                               for v, s in jobs])))
     runs = {v: [_seed_row(r, sc) for (vv, _), r, sc in zip(jobs, records, scores) if vv == v]
@@ -329,28 +336,33 @@ def _markdown(record: dict) -> str:
     for v, e in res.items():
         cells = [f"{e[s]['mse'][0] * 1e3:.2f} ± {e[s]['mse'][1] * 1e3:.2f}" for s in SPLITS]
         gap = e["ground_truth"]["gap"]
+        gains = ", ".join("?" if r["gain_tail_db"] is None else f"{r['gain_tail_db']:+.2f}"
+                          for r in e["seeds"])
         lines.append(f"| {v} ({json.dumps(record['variants'][v])}) | " + " | ".join(cells)
                      + f" | {gap[0]:.2f} ± {gap[1]:.2f} | "
-                     f"{'yes' if e['converged'] else 'NOT'} | "
+                     f"{'yes' if e['converged'] else 'NOT'} ({gains}) | "
                      f"{e['wall_min'] / len(e['seeds']):.1f} |")
     first = next(iter(res.values()))["ground_truth"]
     lines += [f"| ceiling (perfect texture) | | | | {first['ceiling_mse'] * 1e3:.2f} | | | |",
-              "", "Mean PSNR (dB) per split; the students against `tied`, DRAM with synthesized env "
-              "maps against `dram`, paired by seed (verdict when "
+              "", "Mean PSNR (dB) per split; the students against `tied`, DRAM with "
+              "synthesized env maps against `dram`, paired by seed (verdict when "
               "|difference| > max(2 σ, 0.2 dB)), with the mean MSE ratio:", ""]
     for v, e in res.items():
         lines.append(f"- {v}: " + "; ".join(
             f"{NAMES[s]} {e[s]['psnr'][0]:.2f} ± {e[s]['psnr'][1]:.2f}" for s in SPLITS))
         versus = e.get("versus") or {"splits": {}}
         for s, d in versus["splits"].items():
-            lines.append(f"  - vs {versus['base']}, {NAMES[s]}: {d['diff_db']:+.2f} ± {d['std_db']:.2f} dB, MSE × "
-                         f"{d['mse_ratio']:.2f} → **{d['verdict']}**")
+            lines.append(f"  - vs {versus['base']}, {NAMES[s]}: {d['diff_db']:+.2f} ± "
+                         f"{d['std_db']:.2f} dB, MSE × {d['mse_ratio']:.2f} → "
+                         f"**{d['verdict']}**")
     lines += ["", f"Samples: every held-out (frame, camera) × each held-out map; {SUBSAMPLE} "
               "evenly spaced samples of the other two teacher splits; every held-out env "
               "render of the capture for the ground truth (the ceiling: the perfect texture "
               "at the student's N through the same compositing). Converged: every seed's "
               "validation PSNR against the teacher gained < 0.2 dB over the last 20 % of its "
-              "iterations. Plot: student_env.png.", ""]
+              "iterations (over the last validation interval where validation is sparser: "
+              "25 % at the `cpu` preset's 1,000 of 4,000); the column gives each seed's gain "
+              "(dB). Plot: student_env.png.", ""]
     return "\n".join(lines)
 
 

@@ -17,7 +17,8 @@ RESULTS = ROOT / "benchmarks" / "results" / "converged"
 
 def _readme_section() -> str:
     text = (ROOT / "README.md").read_text(encoding="utf-8")
-    return text.split("**URHand Table 2, converged**", 1)[1].split("**URHand Table 3, converged**", 1)[0]
+    return text.split("**URHand Table 2, converged**", 1)[1].split(
+        "**URHand Table 3, converged**", 1)[0]
 
 
 def _readme_t3() -> str:
@@ -102,7 +103,6 @@ def test_readme_quotes_the_converged_teacher_table():
     assert f"{rec['row_seconds'] / 3600:.1f} h of row\ntraining" in text
 
 
-
 @pytest.mark.skipif(not (RESULTS / "study_rh_t2.json").exists()
                     or not (RESULTS / "student_gap.json").exists(), reason="no converged table")
 def test_readme_quotes_the_converged_student_table():
@@ -157,3 +157,26 @@ def test_readme_quotes_the_teacher_inputs_study():
                for r in paper["seeds"] + half["seeds"])
     assert (f"on every sample {held:.2f} dB short on new poses and {train:.2f} dB on its "
             f"training poses") in text.replace("\n", " ")
+
+
+@pytest.mark.skipif(not (RESULTS / "student_env.json").exists(), reason="no study table")
+def test_readme_quotes_the_student_env_study():
+    """The README's student paragraph quotes student_env.json: each variant's ground-truth
+    PSNR and gap, the per-seed differences, the paired difference and its verdict."""
+    res = json.loads((RESULTS / "student_env.json").read_text())["results"]
+    text = " ".join(_readme_rh_t2().split())
+    tied, both = res["tied"], res["untied_mix"]
+    gt = "ground_truth"
+    assert (f"from {tied[gt]['psnr'][0]:.2f} to {both[gt]['psnr'][0]:.2f} dB against the "
+            "ground truth") in text
+    assert f"(gap {tied[gt]['gap'][0]:.2f} to {both[gt]['gap'][0]:.2f} dB)" in text
+    diffs = [a[gt]["psnr"] - b[gt]["psnr"] for a, b in zip(both["seeds"], tied["seeds"])]
+    assert all(d > 0 for d in diffs) and "higher on both seeds" in text
+    assert "(" + " and ".join(f"{d:+.2f}" for d in diffs) + " dB)" in text
+    versus = both["versus"]["splits"][gt]
+    assert versus["verdict"] == "tie"
+    assert f"{versus['diff_db']:+.2f} ± {versus['std_db']:.2f} dB is a tie" in text
+    minutes = sum(e["wall_min"] for e in res.values())
+    assert f"{minutes:.0f} min of student training" in text
+    assert not both["converged"] and "one seed was still gaining" in text
+    assert f"{tied[gt]['mse'][0] * 1e3:.2f} against 43.366" in text
