@@ -300,6 +300,8 @@ def main(argv=None) -> None:
               "by_hand": {f"{v}_s{s}": r["note"] for (v, s), r in zip(jobs, records)
                           if r.get("note")},
               "results": summarize(runs)}
+    import study_hands as S
+    record = S.portable(record)     # committed tables name no machine's folders
     P.B_write(out / "student_env.json", record)
     (out / "student_env.md").write_text(_markdown(record))
     _plot(record, out / "student_env.png")

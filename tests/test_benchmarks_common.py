@@ -82,3 +82,23 @@ def test_student_env_verdicts_pair_each_variant_with_its_base():
         assert d["margin_db"] > 4
     assert not res["dram"]["converged"] and res["mix"]["converged"]
     assert abs(res["mix"]["ground_truth"]["gap"][0] - 8.7) < 1e-9
+
+
+def test_student_env_convergence_reads_the_last_interval_when_validation_is_sparse():
+    """Validated every 1,000 of 4,000 iterations, no point lies in the last 20 %: the gain
+    is read over the last interval (3,000 → 4,000), never left unknown; a curve with a
+    point inside the tail still uses the tail."""
+    import study_student_env as E
+
+    def record(points):
+        history = [{"step": s, "vs_teacher": {"psnr": v}} for s, v in points]
+        return {"wall_s": 1.0, "metrics": {"metrics": {
+            "vs_ground_truth": {"mse": 1e-2, "psnr": 20.0, "ssim": 0.9, "samples": 4,
+                                "ceiling": {"psnr": 30.0, "mse": 1e-3},
+                                "gap_to_ceiling": 10.0},
+            "vs_teacher": {"psnr": points[-1][1]}}, "details": {"history": history}}}
+
+    sparse = E._seed_row(record([(1000, 20.0), (2000, 22.0), (3000, 23.0), (4000, 23.5)]), {})
+    assert sparse["tail_from"] == 3000 and abs(sparse["gain_tail_db"] - 0.5) < 1e-12
+    dense = E._seed_row(record([(3000, 23.0), (3500, 23.4), (4000, 23.5)]), {})
+    assert dense["tail_from"] == 3500 and abs(dense["gain_tail_db"] - 0.1) < 1e-12

@@ -180,3 +180,15 @@ def test_readme_quotes_the_student_env_study():
     assert f"{minutes:.0f} min of student training" in text
     assert not both["converged"] and "one seed was still gaining" in text
     assert f"{tied[gt]['mse'][0] * 1e3:.2f} against 43.366" in text
+
+
+def test_committed_results_name_no_machine_folders():
+    """Every committed table, record and note under benchmarks/results names paths relative
+    to the repository (``../shared/…``), never this checkout's absolute folders."""
+    parent = str(ROOT.resolve().parent).rstrip("/") + "/"
+    if parent == "/":
+        pytest.skip("the checkout sits at the file system's root")
+    found = [str(p.relative_to(ROOT)) for p in (ROOT / "benchmarks" / "results").rglob("*")
+             if p.suffix in (".json", ".md", ".txt", ".csv") and p.is_file()
+             and parent in p.read_text(encoding="utf-8", errors="replace")]
+    assert not found, found
