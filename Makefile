@@ -167,8 +167,11 @@ example: install
 	$(PY) tools/readme_example.py
 	@echo "example outputs are in example/"
 
+# One pytest-xdist worker per core, each test file kept on one worker (its module and
+# session fixtures are built once); tests/conftest.py gives each worker one thread.
+TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 man: install
 	$(PY) -m relight_cli.manpage man

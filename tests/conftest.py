@@ -13,6 +13,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = (ROOT / ".." / "shared" / "data").resolve()
 
+# Under pytest-xdist (``make test`` runs one worker per core) every worker, and every
+# ``relight`` it starts, computes on one thread: two workers each running torch's default
+# of one thread per core oversubscribe the machine, and OpenMP's spinning threads then
+# run several times slower than one thread each.  Set before any test imports torch.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[_var] = "1"
+
 
 def shared_path(*parts: str) -> Path:
     """A file under ../shared/data, or skip the test when it is absent."""
