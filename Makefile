@@ -168,10 +168,11 @@ example: install
 	@echo "example outputs are in example/"
 
 # One pytest-xdist worker per core, each test file kept on one worker (its module and
-# session fixtures are built once); tests/conftest.py gives each worker one thread.
+# session fixtures are built once), the slowest files handed out first (tests/conftest.py,
+# which also gives each worker one thread).
 TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 man: install
 	$(PY) -m relight_cli.manpage man
