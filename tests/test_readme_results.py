@@ -189,6 +189,29 @@ def test_readme_quotes_the_student_env_study():
     assert f"{tied[gt]['mse'][0] * 1e3:.2f} against 43.366" in text
 
 
+
+@pytest.mark.skipif(not (RESULTS / "student_iters" / "student_env.json").exists(),
+                    reason="no study table")
+def test_readme_quotes_the_student_iterations_study():
+    """The README's sentence on the student trained twice as long quotes
+    student_iters/student_env.json: time, convergence, PSNRs, per-seed gains, spread, verdict."""
+    res = json.loads((RESULTS / "student_iters" / "student_env.json").read_text())["results"]
+    text = " ".join(_readme_rh_t2().split())
+    tied, long = res["tied"], res["tied_8k"]
+    gt = "ground_truth"
+    assert f"8,000 iterations, {long['wall_min'] / len(long['seeds']):.1f} min per student" in text
+    gains = [s["gain_tail_db"] for s in long["seeds"]]
+    assert long["converged"] and "the student converges (last-interval gains " + " and ".join(
+        f"{g:+.2f}" for g in gains) + " dB)" in text
+    assert f"goes from {tied[gt]['psnr'][0]:.2f} to {long[gt]['psnr'][0]:.2f} dB" in text
+    diffs = [a[gt]["psnr"] - b[gt]["psnr"] for a, b in zip(long["seeds"], tied["seeds"])]
+    assert "(" + " and ".join(f"{d:+.2f}" for d in diffs) + " dB per seed)" in text
+    assert (f"seed spread falling from {tied[gt]['psnr'][1]:.2f} to "
+            f"{long[gt]['psnr'][1]:.2f} dB") in text
+    versus = long["versus"]["splits"][gt]
+    assert versus["verdict"] == "tie"
+    assert f"{versus['diff_db']:+.2f} ± {versus['std_db']:.2f} dB is still a tie" in text
+
 def test_committed_results_name_no_machine_folders():
     """Every committed table, record and note under benchmarks/results names paths relative
     to the repository (``../shared/…``), never this checkout's absolute folders."""
