@@ -189,7 +189,6 @@ def test_readme_quotes_the_student_env_study():
     assert f"{tied[gt]['mse'][0] * 1e3:.2f} against 43.366" in text
 
 
-
 @pytest.mark.skipif(not (RESULTS / "student_iters" / "student_env.json").exists(),
                     reason="no study table")
 def test_readme_quotes_the_student_iterations_study():
@@ -211,6 +210,7 @@ def test_readme_quotes_the_student_iterations_study():
     versus = long["versus"]["splits"][gt]
     assert versus["verdict"] == "tie"
     assert f"{versus['diff_db']:+.2f} ± {versus['std_db']:.2f} dB is still a tie" in text
+
 
 def test_committed_results_name_no_machine_folders():
     """Every committed table, record and note under benchmarks/results names paths relative
