@@ -33,6 +33,12 @@ def _readme_rh_t13() -> str:
         "**RelightableHands Table 2, converged**", 1)[0]
 
 
+def _listed(words) -> str:
+    """``a and b``, ``a, b and c``: how the README lists per-seed numbers."""
+    words = list(words)
+    return " and ".join([", ".join(words[:-1]), words[-1]] if len(words) > 1 else words)
+
+
 def _readme_rh_t2() -> str:
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     return text.split("**RelightableHands Table 2, converged**", 1)[1].split(
@@ -200,11 +206,11 @@ def test_readme_quotes_the_student_iterations_study():
     gt = "ground_truth"
     assert f"8,000 iterations, {long['wall_min'] / len(long['seeds']):.1f} min per student" in text
     gains = [s["gain_tail_db"] for s in long["seeds"]]
-    assert long["converged"] and "the student converges (last-interval gains " + " and ".join(
+    assert long["converged"] and "the student converges (last-interval gains " + _listed(
         f"{g:+.2f}" for g in gains) + " dB)" in text
     assert f"goes from {tied[gt]['psnr'][0]:.2f} to {long[gt]['psnr'][0]:.2f} dB" in text
     diffs = [a[gt]["psnr"] - b[gt]["psnr"] for a, b in zip(long["seeds"], tied["seeds"])]
-    assert "(" + " and ".join(f"{d:+.2f}" for d in diffs) + " dB per seed)" in text
+    assert "(" + _listed(f"{d:+.2f}" for d in diffs) + " dB per seed)" in text
     assert (f"seed spread falling from {tied[gt]['psnr'][1]:.2f} to "
             f"{long[gt]['psnr'][1]:.2f} dB") in text
     versus = long["versus"]["splits"][gt]
