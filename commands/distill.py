@@ -34,7 +34,9 @@ from ._learned import training_options
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
               help="JSON object of config fields overriding the preset (formats/checkpoint.md; "
                    "'-': stdin).")
-@click.option("--iters", type=int, default=None, help="Adam iterations (overrides the preset).")
+@click.option("--iters", type=int, default=None,
+              help="Adam iterations (overrides the preset); 0 with the config's head_init "
+                   "lsq: the closed-form least-squares student alone.")
 @click.option("--env-res", default=None, metavar="WxH",
               help="Lat-long directions each env map is discretized into: the student's "
                    "features and the teacher's pseudo ground truth (one teacher pass per "
@@ -79,8 +81,8 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     from . import _learned as L
 
     # ---- usage checks before any work
-    if iters is not None and iters < 1:
-        raise UsageProblem(f"--iters must be ≥ 1, got {iters}")
+    if iters is not None and iters < 0:
+        raise UsageProblem(f"--iters must be ≥ 0 (0: only with head_init lsq), got {iters}")
     L.check_capture(capture, index_ok=False)
     check_input(teacher)
     L.check_inputs(config_file, vgg_weights, resume)

@@ -256,9 +256,9 @@ class _Checker:
                             for c in v):
             self.bad(name, f"must be a list of channel widths in [{lo}, {hi}]")
 
-    def training(self):
+    def training(self, min_iters: int = 1):
         """iters, batch, lr, the loss weights, the L_neg schedule, cadences and the seed."""
-        self.integer("iters")
+        self.integer("iters", min_iters)
         self.integer("batch", 1, 4096)
         self.number("lr", 0.0, 10.0, open_lo=True)
         self.choice("lr_schedule", ("constant", "cosine"))
@@ -304,6 +304,15 @@ class StudentConfig(TrainingConfig):
             of up to three, each rotated, mirrored and tinted, and a random sun cell
             (:func:`relight_cli.neural.distill.mix_env`); exact pseudo ground truth at no
             teacher cost.  The paper distills on 2,560 real maps; a capture here has a few.
+        head: ``eq11`` (the paper's: the CNN maps features and J_s(θ) to the texture,
+            Eq. 11) or ``linear`` (ours): the CNN maps J_s(θ) alone, with per-texel
+            biases, to per-texel weights of each feature map and the texture is
+            ReLU(Σ_k W_k ⊙ F_k), linear in the env map
+            (:class:`relight_cli.neural.student.LinearHeadStudent`).
+        head_init: the linear head's start: ``grey`` (a grey Lambertian texture) or
+            ``lsq`` (the per-texel least-squares fit of the teacher's textures by the
+            features, :func:`relight_cli.neural.distill.fit_linear_head`); with ``lsq``,
+            ``iters`` may be 0: the closed-form fit is the student.
         dram_code: DRAM's light code size (512).
         lambda_s, lambda_b: Eq. 11 in the paper's units, applied × PAPER_UNIT (the
             teacher's conversion: λ_b = 100 is a floor of 0.125 where a white texel
@@ -329,6 +338,8 @@ class StudentConfig(TrainingConfig):
     rotations: bool = True
     untied_bias: bool = False
     env_augment: str = "paper"
+    head: str = "eq11"
+    head_init: str = "grey"
     dram_code: int = 64
     cache_mb: int = 2048
     lambda_s: float = 25.0
@@ -339,6 +350,12 @@ class StudentConfig(TrainingConfig):
         check = _Checker(self, where)
         check.choice("student", ("student", "dram"))
         check.choice("env_augment", ("paper", "mix"))
+        check.choice("head", ("eq11", "linear"))
+        if self.head == "linear" and self.student != "student":
+            check.bad("head", "linear is a head of the texel-aligned student, not of dram")
+        check.choice("head_init", ("grey", "lsq"))
+        if self.head_init == "lsq" and self.head != "linear":
+            check.bad("head_init", "lsq starts the linear head (head: linear)")
         check.choice("neg_schedule", ("decay", "literal", "constant"))
         check.integer("tex_res", 8, 4096)
         check.widths("decoder")
@@ -358,7 +375,8 @@ class StudentConfig(TrainingConfig):
         check.number("lambda_b", 0.0, 1e6)
         for name in ("specular", "visibility", "rotations", "untied_bias"):
             check.boolean(name)
-        check.training()
+        # a least-squares start is a student by itself: iters 0 is the closed form alone
+        check.training(0 if self.head_init == "lsq" else 1)
 
 
 LIGHT_PATHS = ("linear", "nonlinear", "mlp")

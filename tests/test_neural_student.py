@@ -370,7 +370,9 @@ def test_help(run_cli):
 @pytest.mark.parametrize("case", ["nan-env", "student-as-teacher", "no-training-envs",
                                   "missing-envs", "missing-eval-envs", "bad-output-name",
                                   "cache-is-a-file", "output-is-the-teacher",
-                                  "env-res-height-first", "bad-env-augment"])
+                                  "env-res-height-first", "bad-env-augment",
+                                  "linear-head-on-dram", "lsq-start-without-linear-head",
+                                  "zero-iters-without-lsq", "negative-iters"])
 def test_distill_bad_input(setup, tmp_path, case):
     args = ["distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
             setup / "student.json", "--iters", "2"]
@@ -398,6 +400,15 @@ def test_distill_bad_input(setup, tmp_path, case):
     elif case == "bad-env-augment":
         (tmp_path / "c.json").write_text(json.dumps({**STUDENT, "env_augment": "rotate"}))
         args[args.index("--config") + 1] = tmp_path / "c.json"
+        code = 2
+    elif case in ("linear-head-on-dram", "lsq-start-without-linear-head"):
+        bad = ({"student": "dram", "head": "linear"} if case == "linear-head-on-dram"
+               else {"head_init": "lsq"})
+        (tmp_path / "c.json").write_text(json.dumps({**STUDENT, **bad}))
+        args[args.index("--config") + 1] = tmp_path / "c.json"
+        code = 2
+    elif case in ("zero-iters-without-lsq", "negative-iters"):
+        args[args.index("--iters") + 1] = "0" if case == "zero-iters-without-lsq" else "-1"
         code = 2
     elif case == "env-res-height-first":
         args += ["--env-res", "8x16"]                      # HxW: refused, WxH is 16x8
@@ -762,3 +773,132 @@ def test_dram_film_scale_is_bounded():
         assert torch.isfinite(out).all()
         assert out.min() >= 0 and out.max() <= 2, (i, float(out.min()), float(out.max()))
         assert out.max() > 1.5 and out.min() < 0.5       # the bound is reached, not forced
+
+
+# ---------------------------------------------------------------- the linear head
+
+
+def test_linear_head_learns_and_fails_without_features(learning):
+    """``head: linear`` (per-texel weights of the features, from the pose alone) passes
+    the learning gate; fed zeroed features it cannot: its texture is then 0 whatever the
+    weights, every gradient vanishes and the trainer stops the run as collapsed."""
+    from relight_cli.neural.train import TrainingCollapsed
+    run, score, _ = learning
+    assert _beats_baseline(score(*run(head="linear"))), "linear head"
+    with pytest.raises(TrainingCollapsed):
+        run(head="linear", sabotage="zero-features")
+
+
+def test_linear_head_least_squares_start_is_the_closed_form(learning):
+    """``head_init: lsq`` sets the weights to the per-texel least-squares fit before any
+    step: this pseudo ground truth is ρ/π · diffuse + 0.5 · phong16, a linear map of the
+    features, so the fit alone (lr 1e-12: no step moves it) scores far below the
+    baseline and a grey start does not; on texels the features reach, its weights match
+    np.linalg.lstsq of the same samples stacked (an independent solve)."""
+    from relight_cli.neural import distill as D
+    run, score, _ = learning
+    task, model = run(head="linear", head_init="lsq", lr=1e-12)
+    fitted = score(task, model)
+    grey = score(*run(head="linear", lr=1e-12))
+    assert fitted["model"] < 0.05 * fitted["baseline"], fitted
+    assert not _beats_baseline(grey), grey
+    # the same samples, stacked: rows of every training (pose, camera) under its drawn map
+    cfg, n, k = task.config, task.config.tex_res, model.maps
+    rows, targets = [], []
+    for npass in range(D.LSQ_PASSES):
+        rng = np.random.default_rng([int(cfg.seed), 17, npass])
+        for pose, cam in task.items:
+            denv = task.env_for(0, (pose, cam), rng)
+            s = D.env_scale(denv)
+            pf = task.features.pose(task.data.hand, pose, key=(False, pose))
+            f = task.features.maps(pf, denv, task.data._cameras[cam].center)[0] / s
+            rows.append(f.reshape(k, 3 * n * n).T.astype(np.float64))
+            targets.append(task.targets.texture(pose, cam, denv)[0].numpy().reshape(-1) / s)
+    rows, targets = np.stack(rows, 1), np.stack(targets, 1)         # [3N², S, K], [3N², S]
+    w = model.weight_bias.detach().numpy().reshape(k, 3 * n * n).T
+    # the ridge: √λ·I rows pulling towards the grey start W₀ (0.5 on diffuse, 0 else)
+    ridge = D.LSQ_RIDGE * float((rows ** 2).sum()) / (3 * n * n * k)
+    start = np.zeros(k)
+    start[0] = 0.5
+    strong = np.argsort(-np.abs(rows).sum((1, 2)))[:50]
+    for x in [*strong, int(np.argmin(np.abs(rows).sum((1, 2))))]:     # and the emptiest
+        a = np.concatenate([rows[x], np.sqrt(ridge) * np.eye(k)])
+        ref = np.linalg.lstsq(a, np.concatenate([targets[x], np.sqrt(ridge) * start]),
+                              rcond=None)[0]
+        assert np.allclose(w[x], ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max()), (x, w[x], ref)
+
+
+def test_linear_head_is_linear_in_the_env_map(setup, tmp_path):
+    """The linear head's texture is ReLU(Σ_k W_k(θ) ⊙ F_k) with weights that see no
+    light: wherever it is not clipped (raw ≥ 0 under both maps), the texture under env
+    a + b is the sum of those under a and b, to float rounding; DRAM's (its light code is
+    log1p of the map) is not.  (The eq11 student, near-linear this early in training,
+    misses by only ~1e-4: no control.)"""
+    from relight_cli.envmap import DiscreteEnv
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural import distill as D
+    from relight_cli.neural.config import StudentConfig
+    from relight_cli.neural.data import CaptureData
+
+    (tmp_path / "lin.json").write_text(json.dumps({**STUDENT, "head": "linear"}))
+    (tmp_path / "dram.json").write_text(json.dumps({**STUDENT, "student": "dram"}))
+    data = CaptureData(str(setup / "cap"), 16, 1)
+    gaps = {}
+    for head, config in (("linear", tmp_path / "lin.json"), ("dram", tmp_path / "dram.json")):
+        r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config", config,
+                    "--iters", "20", "-q", "-o", tmp_path / f"{head}.pt")
+        assert r.exit_code == 0, r.output
+        model, cfg = student_model(read_checkpoint(str(tmp_path / f"{head}.pt")))
+        assert isinstance(cfg, StudentConfig) and head in (cfg.head, cfg.student)
+        a = _sky(*cfg.env_res)
+        rng = np.random.default_rng(0)
+        b = DiscreteEnv(a.directions, a.solid_angle,
+                        rng.uniform(0, 30, a.radiance.shape).astype(a.radiance.dtype),
+                        a.height, a.width, "noise")
+        both = DiscreteEnv(a.directions, a.solid_angle, a.radiance + b.radiance, a.height,
+                           a.width, "sum")
+        task = D.StudentTask(data, cfg, None, [a], [0], [], ["sky"])
+        pose, cam = task.items[0]
+        pf = task.features.pose(data.hand, pose, key=(False, pose))
+        out = []
+        for env in (a, b, both):
+            feats = task.features.maps(pf, env, data._cameras[cam].center)
+            with torch.no_grad():
+                tex, raw, s = D.student_forward(model, cfg, feats, D.hand_poses(data.hand, pose),
+                                                env, D.wrist_rotations(data.hand, pose), "cpu",
+                                                return_raw=True)
+            out.append((tex[0], raw[0]))
+        (ta, ra), (tb, rb), (tab, _) = out
+        kept = (ra >= 0) & (rb >= 0)
+        assert float(kept.float().mean()) > 0.5, head
+        gaps[head] = float((tab - ta - tb)[kept].abs().max() / tab.abs().max())
+    assert gaps["linear"] < 1e-5, gaps
+    assert gaps["dram"] > 1e-2, gaps
+
+
+def test_closed_form_student_from_the_command_line(setup, tmp_path):
+    """``--iters 0`` with ``head_init: lsq``: the least-squares fit is the student — a
+    checkpoint at step 0 that validates, resumes into SGD, and renders."""
+    from relight_cli.formats.checkpoint import read_checkpoint
+    (tmp_path / "lsq.json").write_text(json.dumps({**STUDENT, "head": "linear",
+                                                   "head_init": "lsq"}))
+    out = tmp_path / "lsq.pt"
+    r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
+                tmp_path / "lsq.json", "--iters", "0", "--metrics-out", tmp_path / "v.json",
+                "-q", "-o", out)
+    assert r.exit_code == 0, r.output
+    ckpt = read_checkpoint(str(out))
+    assert ckpt["step"] == 0
+    grey = torch.zeros_like(ckpt["weights"]["weight_bias"])
+    grey[:, :3] = 0.5
+    assert not torch.equal(ckpt["weights"]["weight_bias"], grey)        # the fit moved it
+    record = json.loads((tmp_path / "v.json").read_text())
+    assert np.isfinite(record["metrics"]["vs_teacher"]["psnr"])
+    r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--resume", out,
+                "--iters", "2", "-q", "-o", tmp_path / "more.pt")
+    assert r.exit_code == 0, r.output
+    assert read_checkpoint(str(tmp_path / "more.pt"))["step"] == 2
+    img = tmp_path / "img.exr"
+    r = _invoke("relight", setup / "cap" / "hand.npz", "builtin:sky", "--model", "student",
+                "--checkpoint", out, "--size", "24x24", "-q", "-o", img)
+    assert r.exit_code == 0 and img.is_file(), r.output

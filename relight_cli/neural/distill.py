@@ -466,14 +466,21 @@ class StudentTask:
             raise DataError("no training poses in the capture", self.data.index_path)
 
     def build(self, device, resume=None):
-        return build_student(self.config, self.features.channels, self.pose_dim).to(device)
+        net = build_student(self.config, self.features.channels, self.pose_dim)
+        if (resume is None and getattr(self.config, "head_init", "grey") == "lsq"
+                and device != torch.device("meta")):
+            fit_linear_head(self, net)
+        return net.to(device)
 
     def restore(self, resume, device):
         pass
 
-    def env_for(self, step: int, item) -> object:
-        rng = np.random.default_rng([int(self.config.seed), int(step), int(item[0]),
-                                     self._cam_index[item[1]]])
+    def env_for(self, step: int, item, rng=None) -> object:
+        """The training env map of ``item`` at ``step`` (seeded by both), or drawn from
+        ``rng`` when given."""
+        if rng is None:
+            rng = np.random.default_rng([int(self.config.seed), int(step), int(item[0]),
+                                         self._cam_index[item[1]]])
         if getattr(self.config, "env_augment", "paper") == "mix":
             return mix_env([self.envs[i] for i in self.train_idx], rng, self.config.rotations)
         env = self.envs[self.train_idx[int(rng.integers(len(self.train_idx)))]]
@@ -528,6 +535,59 @@ class StudentTask:
                 "teacher_sha256": self.teacher_digest,
                 "envs": json.dumps({"train": [self.env_names[i] for i in self.train_idx],
                                     "eval": [self.env_names[i] for i in self.eval_idx]})}
+
+
+#: ``head_init: lsq``: passes over the training (pose, camera) pairs, each under its own
+#: drawn training env map, and the ridge weight (× the mean diagonal of a texel's normal
+#: matrix) that pulls texels with little or no data towards the grey start
+LSQ_PASSES, LSQ_RIDGE = 2, 1e-4
+
+
+@torch.no_grad()
+def fit_linear_head(task: StudentTask, net) -> dict:
+    """``head_init: lsq``: the linear head's per-texel weights set to the least-squares fit
+    of the teacher's textures by the student's own features (before any SGD step).
+
+    With the pose-dependent part at zero (its last conv starts at zero), the linear head
+    is C = Σ_k W_k ⊙ F_k with W the per-texel weights alone: per texel and colour channel
+    a K-unknown linear least-squares problem (K feature maps) over every training sample,
+    solved in closed form from its normal equations,
+    W = (Σ F Fᵀ + λ I)⁻¹ (Σ F T + λ W₀), λ = ``LSQ_RIDGE`` × the mean diagonal of Σ F Fᵀ
+    over texels, W₀ the grey start (so a texel no camera's features reach keeps it).
+    Samples: ``LSQ_PASSES`` passes over the training (pose, camera) pairs, each under an
+    env map drawn as training draws them (seeded by the run's seed and the pass), features
+    and target both divided by the map's mean radiance as the loss divides them; the
+    texture is the teacher's (every texel, seen from the pair's camera).  The ReLU of the
+    head is not part of the fit (the features and the fitted weights are mostly ≥ 0).
+    Returns {"samples", "rms"} (the fit's residual, normalized units)."""
+    cfg = task.config
+    n, k = int(cfg.tex_res), net.maps
+    start = net.weight_bias.detach().double().reshape(k, 3 * n * n).T.numpy()
+    gram = np.zeros((3 * n * n, k, k))
+    rhs = np.zeros((3 * n * n, k))
+    samples, sq = 0, 0.0
+    for npass in range(LSQ_PASSES):
+        rng = np.random.default_rng([int(cfg.seed), 17, npass])
+        for item in task.items:
+            pose, camera = item
+            denv = task.env_for(0, item, rng)
+            s = env_scale(denv)
+            pf = task.features.pose(task.data.hand, pose, key=(False, pose))
+            feats = task.features.maps(pf, denv, task.data._cameras[camera].center)
+            for hand_feats, target in zip(feats, task.targets.texture(pose, camera, denv)):
+                f = (hand_feats.astype(np.float64) / s).reshape(k, 3 * n * n).T
+                t = target.double().numpy().reshape(-1) / s
+                gram += f[:, :, None] * f[:, None, :]
+                rhs += f * t[:, None]
+                sq += float(t @ t)
+                samples += 1
+    ridge = LSQ_RIDGE * float(np.trace(gram, axis1=1, axis2=2).mean()) / k
+    ridge = max(ridge, 1e-12)
+    w = np.linalg.solve(gram + ridge * np.eye(k), (rhs + ridge * start)[..., None])[..., 0]
+    # residual Σ (T − wᵀF)² = Σ T² − 2 wᵀ(Σ F T) + wᵀ(Σ F Fᵀ) w, over every texel and sample
+    resid = sq - 2 * float((w * rhs).sum()) + float(np.einsum("xi,xij,xj->", w, gram, w))
+    net.weight_bias.copy_(torch.from_numpy(w.T.reshape(1, 3 * k, n, n).astype(np.float32)))
+    return {"samples": samples, "rms": float(np.sqrt(max(resid, 0.0) / (samples * 3 * n * n)))}
 
 
 def hand_poses(hand, frame: int) -> np.ndarray:
