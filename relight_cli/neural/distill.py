@@ -489,7 +489,10 @@ class StudentTask:
         return env
 
     def render(self, net, pose: int, camera: str, denv, device, held_out: bool = False,
-               return_raw: bool = False):
+               return_raw: bool = False, clip: bool = True):
+        """The student's image of (pose, camera) under ``denv``; ``clip`` False: the
+        linear head's texture unclipped (its training loss, see
+        :class:`~relight_cli.neural.student.LinearHeadStudent`)."""
         hand = self.data.eval_hand if held_out else self.data.hand
         key = (held_out, pose)
         pf = self.features.pose(hand, pose, key=key)
@@ -498,13 +501,16 @@ class StudentTask:
         wrists = wrist_rotations(hand, pose)
         textures, raw, s = student_forward(net, self.config, feats, hand_poses(hand, pose), denv,
                                            wrists, device, return_raw=True)
+        if not clip:
+            textures = [raw[k] * s for k in range(raw.shape[0])]
         image = composite(textures, self.data.gbuffer(pose, cam, held_out))
         return (image, raw, s) if return_raw else image
 
     def loss(self, net, item, step, device):
         pose, camera = item
         denv = self.env_for(step, item)
-        image, raw, s = self.render(net, pose, camera, denv, device, return_raw=True)
+        clip = getattr(self.config, "head", "eq11") != "linear"
+        image, raw, s = self.render(net, pose, camera, denv, device, return_raw=True, clip=clip)
         target = self.targets.image(pose, camera, denv).to(device)
         gb = self.data.gbuffer(pose, self.data._cameras[camera])
         mask = torch.from_numpy(gb.mask > 0).to(device)

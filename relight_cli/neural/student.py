@@ -165,16 +165,25 @@ class LinearHeadStudent(nn.Module):
     channels each), W_k [3, N, N] the k-th map's per-texel, per-channel weights, decoded
     from J_s(θ) by the student's CNN (``decoder`` widths, 3×3 convs, LeakyReLU(0.2)) with
     untied per-texel biases — its input is spatially constant, so they carry the texel's
-    identity (albedo, specular strength).  The last conv starts at zero and its untied
-    bias at a grey diffuse weight (0.5) and no specular, so training starts from a grey
-    Lambertian texture.
+    identity (albedo, specular strength).  As Eq. 11 scales T by λ_s, the CNN's output is
+    scaled by λ_s (× PAPER_UNIT, 0.031 at λ_s = 25) before it is added to the untied
+    weights: Adam moves every output weight by about lr per step whatever its gradient,
+    so unscaled, one step of the 64 × 9 output weights could move W by more than its own
+    size.  The last conv starts at zero and the untied weights at a grey diffuse weight
+    (0.5) and no specular, so training starts from a grey Lambertian texture.
+
+    The ReLU clips the rendered texture, not the trained one: the distillation loss sees
+    Σ_k W_k ⊙ F_k unclipped (``StudentTask.loss``), with L_neg on it as on Eq. 11's λ_s T.
+    A clipped texel passes no gradient, and the first build (clipped in training, the
+    CNN's output unscaled) died on seed 0 of the converged study between steps 1,000 and
+    2,000: 26.77 dB against the teacher, then 8.51 dB — a black texture — to the end.
 
     Why: the paper's student (App. A.2, Eq. 11) maps features to texture through a CNN
     whose only per-texel inputs are lighting; a per-texel linear least-squares fit of the
     same features (no pose, no CNN) scores 2.9 dB above the converged paper-text student
     on held-out poses × held-out env maps against the teacher (seed 0 of
     benchmarks/results/converged/student_env.md: 25.00 against 22.14 dB on 40 samples;
-    benchmarks/study_student_linear.py).  URHand (Sec. 3.2) makes the same point for its
+    benchmarks/study_student_env.py, variant ``lsq``).  URHand (Sec. 3.2) makes the same point for its
     light path: linear in physically based shading features, with spatially varying
     weights from light-independent inputs, generalizes to unseen illumination.
     """
@@ -182,8 +191,9 @@ class LinearHeadStudent(nn.Module):
     kind = "student"
 
     def __init__(self, feature_channels: int, decoder, pose_dim: int, pose_channels,
-                 tex_res: int):
+                 tex_res: int, lambda_s: float = 25.0):
         super().__init__()
+        self.lambda_s = lambda_s * PAPER_UNIT
         if feature_channels % 3:
             raise ValueError("feature maps must have 3 channels each")
         self.maps = feature_channels // 3
@@ -204,12 +214,13 @@ class LinearHeadStudent(nn.Module):
         h = self.pose(pose, size)
         for conv, bias in zip(self.convs, self.biases):
             h = F.leaky_relu(conv(h) + bias, 0.2)
-        w = self.out(h) + self.weight_bias
+        w = self.lambda_s * self.out(h) + self.weight_bias
         return w.reshape(w.shape[0], self.maps, 3, size, size)
 
     def forward(self, features: torch.Tensor, pose: torch.Tensor, env_code=None,
                 return_raw: bool = False):
-        """features [H, 3K, N, N] → textures [H, 3, N, N], ReLU(Σ_k W_k ⊙ F_k)."""
+        """features [H, 3K, N, N] → textures [H, 3, N, N], ReLU(Σ_k W_k ⊙ F_k) (and the
+        unclipped sum as ``raw``)."""
         n = features.shape[-1]
         feats = features.reshape(features.shape[0], self.maps, 3, n, n)
         raw = (self.weights(pose, n) * feats).sum(1)
@@ -295,7 +306,7 @@ def build_student(config, feature_channels: int, pose_dim: int):
                       config.lambda_s, config.lambda_b, config.tex_res)
     elif getattr(config, "head", "eq11") == "linear":
         net = LinearHeadStudent(feature_channels, config.decoder, pose_dim,
-                                config.pose_channels, config.tex_res)
+                                config.pose_channels, config.tex_res, config.lambda_s)
     else:
         net = StudentNet(feature_channels, config.decoder, pose_dim, config.pose_channels,
                          config.lambda_s, config.lambda_b,
