@@ -86,6 +86,14 @@ demo: install
 		-o demo/hand_student_env.exr --preview demo/hand_student_env.png
 	$(RELIGHT) relight builtin:two:fist builtin:sky --model student --checkpoint demo/student.pt \
 		-o demo/hands2_student_env.exr --preview demo/hands2_student_env.png
+	# the student with a head linear in its features (ours), in closed form: the per-texel
+	# least-squares fit of the teacher's textures by the features, no training step (seconds)
+	printf '{"head": "linear", "head_init": "lsq"}\n' > demo/student_lsq.json
+	$(RELIGHT) distill demo/teacher.pt demo/capture --envs builtin:sky --envs builtin:studio \
+		--envs builtin:uniform --envs builtin:point -o demo/student_lsq.pt --preset tiny \
+		--config demo/student_lsq.json --iters 0 --metrics-out demo/student_lsq_val.json
+	$(RELIGHT) relight demo/capture/hand.npz builtin:studio --model student --checkpoint demo/student_lsq.pt \
+		-o demo/hand_lsq_student_env.exr --preview demo/hand_lsq_student_env.png
 	# spherical-harmonic light probes
 	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json --preview demo/studio_probe.png
 	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json --preview demo/sky_probe.png

@@ -26,11 +26,11 @@ from ._learned import training_options
                    "hypernetwork baseline (App. A.3) [default: student].")
 @click.option("--preset", type=click.Choice(["tiny", "cpu", "paper"]), default="tiny",
               show_default=True,
-              help="tiny: 32² maps, minutes on a CPU (tests, demo); cpu: 64² maps, 4000 "
-                   "iterations with a cosine learning-rate decay, 10-30 min on 2 CPU "
-                   "cores (benchmarks/results/converged/study_rh_t2.md); paper: "
-                   "RelightableHands' sizes "
-                   "(100k iterations: a GPU job).")
+              help="tiny: 32² maps, minutes on a CPU (tests, demo); cpu: 64² maps, the "
+                   "student's head linear in its features (ours; config head eq11: the "
+                   "paper's), 4000 iterations with a cosine learning-rate decay, 10-30 min "
+                   "on 2 CPU cores (benchmarks/results/converged/student_linear/); paper: "
+                   "RelightableHands' sizes and head (100k iterations: a GPU job).")
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
               help="JSON object of config fields overriding the preset (formats/checkpoint.md; "
                    "'-': stdin).")

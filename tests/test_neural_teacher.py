@@ -280,8 +280,14 @@ def test_config_validation_and_presets(tmp_path):
                                                                              True)
     from relight_cli.neural.config import STUDENT_PRESETS
     from relight_cli.neural.linear import resolve_config as linear_config
-    assert resolve_config("cpu", presets=STUDENT_PRESETS,
-                          config_class=StudentConfig).env_res == (8, 16)
+    student = resolve_config("cpu", presets=STUDENT_PRESETS, config_class=StudentConfig)
+    assert student.env_res == (8, 16) and student.head == "linear"
+    # the linear head is the texel-aligned student's at cpu only: DRAM has none, the paper's
+    # and tiny presets keep Eq. 11, and a config file or flag still chooses
+    for preset, given, head in (("cpu", {"student": "dram"}, "eq11"), ("paper", {}, "eq11"),
+                                ("tiny", {}, "eq11"), ("cpu", {"head": "eq11"}, "eq11")):
+        assert resolve_config(preset, None, given, presets=STUDENT_PRESETS,
+                              config_class=StudentConfig).head == head, (preset, given)
     assert linear_config("cpu").lr_drop == 4500
     cfg = tmp_path / "c.json"
     cfg.write_text('{"iters": 7, "lr": 0.01}')

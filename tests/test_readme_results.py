@@ -226,3 +226,50 @@ def test_committed_results_name_no_machine_folders():
              if p.suffix in (".json", ".md", ".txt", ".csv") and p.is_file()
              and parent in p.read_text(encoding="utf-8", errors="replace")]
     assert not found, found
+
+
+@pytest.mark.skipif(not (RESULTS / "student_linear" / "student_env.json").exists(),
+                    reason="no study table")
+def test_readme_quotes_the_linear_head_study():
+    """The README's paragraph on the student's linear head quotes
+    student_linear/student_env.json (and the 8,000-iteration paper head it is set
+    against): PSNRs and gaps, the paired difference, its verdict, per-seed differences,
+    minutes per student, last-interval gains, and the closed-form rows; the presets
+    section quotes the same row."""
+    res = json.loads((RESULTS / "student_linear" / "student_env.json").read_text())["results"]
+    long = json.loads((RESULTS / "student_iters" / "student_env.json").read_text())["results"]
+    text = " ".join(_readme_rh_t2().split())
+    whole = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    gt = "ground_truth"
+    tied, lin, lsq, start = res["tied"], res["linear"], res["lsq"], res["linear_lsq"]
+    held, train = "heldout_pose_eval_env", "heldout_pose_train_env"
+    assert (f"{tied[train]['psnr'][0]:.2f} dB against the teacher on held-out poses under "
+            f"training maps and {tied[held]['psnr'][0]:.2f} under held-out maps") in text
+    assert (f"scores {lsq[train]['psnr'][0]:.2f} and {lsq[held]['psnr'][0]:.2f} dB") in text
+    assert lsq[train]["psnr"][0] > tied[train]["psnr"][0]
+    assert lsq[held]["psnr"][0] > tied[held]["psnr"][0]
+    assert (f"it reaches {lin[gt]['psnr'][0]:.2f} ± {lin[gt]['psnr'][1]:.2f} dB where the "
+            f"paper's head has {tied[gt]['psnr'][0]:.2f} ± {tied[gt]['psnr'][1]:.2f}") in text
+    assert f"(gap to the ceiling {tied[gt]['gap'][0]:.2f} to {lin[gt]['gap'][0]:.2f} dB)" in text
+    versus = lin["versus"]["splits"][gt]
+    assert versus["verdict"] == "better"
+    assert f"{versus['diff_db']:+.2f} ± {versus['std_db']:.2f} dB, better by the 2σ" in text
+    diffs = [a[gt]["psnr"] - b[gt]["psnr"] for a, b in zip(lin["seeds"], tied["seeds"])]
+    assert all(d > 0 for d in diffs)
+    assert "on every seed (" + _listed(f"{d:+.2f}" for d in diffs) + " dB)" in text
+    for split in ("heldout_pose_eval_env", "train_pose_eval_env"):     # "under held-out maps"
+        assert lin["versus"]["splits"][split]["verdict"] == "better", split
+    per = {k: e["wall_min"] / len(e["seeds"]) for k, e in res.items()}
+    assert f"in {per['linear']:.1f} instead of {per['tied']:.1f} min per student" in text
+    gains = [s["gain_tail_db"] for s in lin["seeds"]]
+    assert not lin["converged"]
+    assert "still gaining at 4,000 iterations (" + _listed(f"{g:+.2f}" for g in gains) in text
+    above = lin[gt]["psnr"][0] - long["tied_8k"][gt]["psnr"][0]
+    assert f"already {above:.2f} dB above the paper's head trained for 8,000" in text
+    assert lsq["converged"] and lsq["versus"]["splits"][gt]["verdict"] == "tie"
+    assert (f"scores {lsq[gt]['psnr'][0]:.2f} ± {lsq[gt]['psnr'][1]:.2f} dB in "
+            f"{per['lsq']:.1f} min, a tie with the paper's {per['tied']:.1f}-min student") in text
+    assert start[gt]["psnr"][0] < lin[gt]["psnr"][0]
+    assert f"below the grey start ({start[gt]['psnr'][0]:.2f} ± {start[gt]['psnr'][1]:.2f}" in text
+    assert (f"{lin[gt]['psnr'][0]:.2f} dB, {lin[gt]['gap'][0]:.2f} dB short, in "
+            f"{per['linear']:.0f} min") in whole

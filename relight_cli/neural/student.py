@@ -25,10 +25,10 @@ black.  ``--no-specular`` drops the Phong maps (3 + 64 = 67 channels).
 ``head: linear`` (ours, :class:`LinearHeadStudent`): the same features, but the decoder
 sees only J_s(θ) (with per-texel biases) and predicts per-texel weights of each feature
 map; the texture is ReLU(Σ_k W_k ⊙ F_k), linear in the env map as URHand's light path
-is (Sec. 3.2), where Eq. 11's CNN is free to learn the training maps instead of light.
-``head_init: lsq`` starts it from the closed-form per-texel least-squares fit
+is (URHand Sec. 4.2), where Eq. 11's CNN is free to learn the training maps instead of
+light.  ``head_init: lsq`` starts it from the closed-form per-texel least-squares fit
 (:func:`relight_cli.neural.distill.fit_linear_head`); with 0 iterations that fit is the
-student.  Eq. 11 stays the default.
+student.  The ``cpu`` preset uses it; ``tiny`` and ``paper`` keep Eq. 11.
 
 DRAM (Bi et al. 2021, "Deep Relightable Appearance Models for Animatable Faces") as
 RelightableHands App. A.3 adapted it.  App. A.3 specifies only two changes to DRAM:
@@ -179,13 +179,17 @@ class LinearHeadStudent(nn.Module):
     2,000: 26.77 dB against the teacher, then 8.51 dB — a black texture — to the end.
 
     Why: the paper's student (App. A.2, Eq. 11) maps features to texture through a CNN
-    whose only per-texel inputs are lighting; a per-texel linear least-squares fit of the
-    same features (no pose, no CNN) scores 2.9 dB above the converged paper-text student
-    on held-out poses × held-out env maps against the teacher (seed 0 of
-    benchmarks/results/converged/student_env.md: 25.00 against 22.14 dB on 40 samples;
-    benchmarks/study_student_env.py, variant ``lsq``).  URHand (Sec. 3.2) makes the same point for its
-    light path: linear in physically based shading features, with spatially varying
-    weights from light-independent inputs, generalizes to unseen illumination.
+    whose only per-texel inputs are lighting, and on the converged capture it fits its
+    teacher worse than the closed-form per-texel least-squares fit of the same features
+    (no pose, no CNN; ``head_init: lsq`` at 0 iterations): 25.88 against 26.91 dB on
+    held-out poses under training maps, 23.40 against 25.25 under held-out maps.  URHand (Sec. 4.2) makes the same point for its light path:
+    linear in physically based shading features, with spatially varying weights from
+    light-independent inputs, it generalizes to unseen illumination.  Measured
+    (benchmarks/results/converged/student_linear/, three seeds, ``cpu`` preset): against
+    the stage's ground truth on held-out poses under held-out env maps, 27.58 ± 0.15 dB
+    where Eq. 11's head has 23.55 ± 0.81 (+4.03 ± 0.95 dB), gap to the ceiling 10.67 →
+    6.64 dB, in 12.9 instead of 16.7 min; the ``cpu`` preset uses it
+    (:data:`relight_cli.neural.config.STUDENT_PRESET_MODEL`).
     """
 
     kind = "student"
