@@ -315,11 +315,18 @@ def test_mixed_env_training_resumes_exactly(setup, tmp_path, student):
     assert any(not torch.equal(v, plain["weights"][k]) for k, v in whole["weights"].items())
 
 
-@pytest.mark.parametrize("student", ["student", "dram"])
+@pytest.mark.parametrize("student", ["student", "dram", "linear"])
 def test_student_renders_one_and_two_hands(setup, tmp_path, student):
     from conftest import run_relight
     from relight_cli.formats.exr import read_exr
-    ckpt = _distill(setup, tmp_path / f"{student}.pt", "--iters", "2", "--student", student)
+    if student == "linear":                    # the linear head (the cpu preset's)
+        (tmp_path / "lin.json").write_text(json.dumps({**STUDENT, "head": "linear"}))
+        r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
+                    tmp_path / "lin.json", "--iters", "2", "-q", "-o", tmp_path / "lin.pt")
+        assert r.exit_code == 0, r.output
+        ckpt = tmp_path / "lin.pt"
+    else:
+        ckpt = _distill(setup, tmp_path / f"{student}.pt", "--iters", "2", "--student", student)
     for hand in (setup / "cap" / "hand.npz", "builtin:two:fist"):
         out = tmp_path / "img.exr"
         r = run_relight("relight", hand, "builtin:sky", "--model", "student", "--checkpoint", ckpt,
