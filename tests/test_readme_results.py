@@ -273,3 +273,23 @@ def test_readme_quotes_the_linear_head_study():
     assert f"below the grey start ({start[gt]['psnr'][0]:.2f} ± {start[gt]['psnr'][1]:.2f}" in text
     assert (f"{lin[gt]['psnr'][0]:.2f} dB, {lin[gt]['gap'][0]:.2f} dB short, in "
             f"{per['linear']:.0f} min") in whole
+
+
+@pytest.mark.skipif(not (RESULTS / "student_linear_8k" / "student_env.json").exists(),
+                    reason="no study table")
+def test_readme_quotes_the_linear_head_at_8000_iterations():
+    """The README's sentence on the linear head trained for 8,000 iterations quotes
+    student_linear_8k/student_env.json and student_linear/student_env.json."""
+    res = json.loads((RESULTS / "student_linear_8k" / "student_env.json").read_text())["results"]
+    four = json.loads((RESULTS / "student_linear" / "student_env.json").read_text())["results"]
+    text = " ".join(_readme_rh_t2().split())
+    gt, held = "ground_truth", "heldout_pose_eval_env"
+    long, short = res["linear_8k"], four["linear"]
+    assert (f"({long[held]['psnr'][0]:.2f} against {short[held]['psnr'][0]:.2f} dB on held-out "
+            "poses under held-out maps)") in text
+    assert long[held]["psnr"][0] > short[held]["psnr"][0]
+    assert f"ground truth ({long[gt]['psnr'][0]:.2f} ± {long[gt]['psnr'][1]:.2f} dB)" in text
+    assert long[gt]["psnr"][0] <= short[gt]["psnr"][0] + 0.2          # "but not"
+    assert all(d["verdict"] == "better" for d in long["versus"]["splits"].values())
+    versus = long["versus"]["splits"][gt]
+    assert f"({versus['diff_db']:+.2f} ± {versus['std_db']:.2f} dB against the ground" in text
