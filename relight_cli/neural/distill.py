@@ -550,7 +550,7 @@ LSQ_PASSES, LSQ_RIDGE = 2, 1e-4
 
 
 @torch.no_grad()
-def fit_linear_head(task: StudentTask, net) -> dict:
+def fit_linear_head(task: StudentTask, net) -> int:
     """``head_init: lsq``: the linear head's per-texel weights set to the least-squares fit
     of the teacher's textures by the student's own features (before any SGD step).
 
@@ -565,13 +565,13 @@ def fit_linear_head(task: StudentTask, net) -> dict:
     and target both divided by the map's mean radiance as the loss divides them; the
     texture is the teacher's (every texel, seen from the pair's camera).  The ReLU of the
     head is not part of the fit (the features and the fitted weights are mostly ≥ 0).
-    Returns {"samples", "rms"} (the fit's residual, normalized units)."""
+    Returns the number of (sample, hand) textures fitted."""
     cfg = task.config
     n, k = int(cfg.tex_res), net.maps
     start = net.weight_bias.detach().double().reshape(k, 3 * n * n).T.numpy()
     gram = np.zeros((3 * n * n, k, k))
     rhs = np.zeros((3 * n * n, k))
-    samples, sq = 0, 0.0
+    samples = 0
     for npass in range(LSQ_PASSES):
         rng = np.random.default_rng([int(cfg.seed), 17, npass])
         for item in task.items:
@@ -585,15 +585,12 @@ def fit_linear_head(task: StudentTask, net) -> dict:
                 t = target.double().numpy().reshape(-1) / s
                 gram += f[:, :, None] * f[:, None, :]
                 rhs += f * t[:, None]
-                sq += float(t @ t)
                 samples += 1
     ridge = LSQ_RIDGE * float(np.trace(gram, axis1=1, axis2=2).mean()) / k
     ridge = max(ridge, 1e-12)
     w = np.linalg.solve(gram + ridge * np.eye(k), (rhs + ridge * start)[..., None])[..., 0]
-    # residual Σ (T − wᵀF)² = Σ T² − 2 wᵀ(Σ F T) + wᵀ(Σ F Fᵀ) w, over every texel and sample
-    resid = sq - 2 * float((w * rhs).sum()) + float(np.einsum("xi,xij,xj->", w, gram, w))
     net.weight_bias.copy_(torch.from_numpy(w.T.reshape(1, 3 * k, n, n).astype(np.float32)))
-    return {"samples": samples, "rms": float(np.sqrt(max(resid, 0.0) / (samples * 3 * n * n)))}
+    return samples
 
 
 def hand_poses(hand, frame: int) -> np.ndarray:

@@ -182,9 +182,10 @@ class LinearHeadStudent(nn.Module):
     whose only per-texel inputs are lighting, and on the converged capture it fits its
     teacher worse than the closed-form per-texel least-squares fit of the same features
     (no pose, no CNN; ``head_init: lsq`` at 0 iterations): 25.88 against 26.91 dB on
-    held-out poses under training maps, 23.40 against 25.25 under held-out maps.  URHand (Sec. 4.2) makes the same point for its light path:
-    linear in physically based shading features, with spatially varying weights from
-    light-independent inputs, it generalizes to unseen illumination.  Measured
+    held-out poses under training maps, 23.40 against 25.25 under held-out maps.  URHand
+    (Sec. 4.2) makes the same point for its light path: linear in physically based
+    shading features, with spatially varying weights from light-independent inputs, it
+    generalizes to unseen illumination.  Measured
     (benchmarks/results/converged/student_linear/, three seeds, ``cpu`` preset): against
     the stage's ground truth on held-out poses under held-out env maps, 27.58 ± 0.15 dB
     where Eq. 11's head has 23.55 ± 0.81 (+4.03 ± 0.95 dB), gap to the ceiling 10.67 →
