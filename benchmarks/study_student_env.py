@@ -88,12 +88,17 @@ VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper", "head": "eq11
             "linear": {"head": "linear", "env_augment": "paper"},
             "linear_lsq": {"head": "linear", "head_init": "lsq", "env_augment": "paper"},
             "lsq": {"head": "linear", "head_init": "lsq", "env_augment": "paper", "iters": 0},
-            "linear_8k": {"head": "linear", "env_augment": "paper", "iters": 8000}}
+            "linear_8k": {"head": "linear", "env_augment": "paper", "iters": 8000},
+            # the cpu preset's student distilled from the OLAT teacher with the shading
+            # features as input (study_teacher_inputs.py's ``shading`` variant)
+            "linear_tshading": {"head": "linear", "env_augment": "paper",
+                                "teacher": "shading"}}
 BASE = "tied"
 #: what each variant is compared with (paired by seed): the students with ``tied`` (the
 #: paper's text), DRAM with synthesized env maps with DRAM on the training maps alone
 BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "tied_8k": BASE,
-         "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k"}
+         "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k",
+         "linear_tshading": "linear"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
           "ground_truth")
@@ -138,6 +143,21 @@ def _targets(teacher: str, capture: str, cache: str | None):
                                    tck.mean_texture, identity=tck.identity)
 
 
+def teacher_of(variant: str) -> str:
+    """The study_teacher_inputs.py variant whose teacher a student variant distills
+    (``VARIANTS[v]["teacher"]``, a study key, not a config field; default ``paper``)."""
+    return VARIANTS[variant].get("teacher", "paper")
+
+
+def student_config(variant: str) -> dict:
+    return {k: v for k, v in VARIANTS[variant].items() if k != "teacher"}
+
+
+def textures_dir(work: Path, teacher: str, seed: int) -> Path:
+    """Where the teacher's per-direction textures of one seed are cached."""
+    return work / (f"textures_s{seed}" if teacher == "paper" else f"textures_{teacher}_s{seed}")
+
+
 def _train_pairs(data) -> list:
     frames = data.train_frames + data.train_fully_lit_frames
     cams = [c.name for c in data.capture.cameras]
@@ -155,7 +175,7 @@ def _run(work: Path, capture: Path, teacher: Path, variant: str, seed: int, log)
     if done.is_file():
         return json.loads(done.read_text())
     config = work / f"{variant}.json"
-    P.B_write(config, {**VARIANTS[variant], "cache_mb": 0})
+    P.B_write(config, {**student_config(variant), "cache_mb": 0})
     envs = _env_specs()
     argv = ["distill", str(teacher), str(capture)]
     for spec in envs["train"]:
@@ -163,7 +183,7 @@ def _run(work: Path, capture: Path, teacher: Path, variant: str, seed: int, log)
     for spec in envs["eval"]:
         argv += ["--eval-envs", spec]
     argv += ["--preset", "cpu", "--config", str(config), "--seed", str(seed), "--cache",
-             str(work / f"textures_s{seed}"), "-o", str(work / f"{name}.pt"),
+             str(textures_dir(work, teacher_of(variant), seed)), "-o", str(work / f"{name}.pt"),
              "--metrics-out", str(work / f"{name}.json"), "-q"]
     return T.run_once(work, name, argv, "study_student_env.py", log)
 
@@ -185,7 +205,8 @@ def _score(work: Path, capture: Path, teacher: Path, variant: str, seed: int) ->
     from relight_cli.neural.checkpoints import student_model
     from relight_cli.neural.train import _metrics
     model, config = student_model(read_checkpoint(str(work / f"{name}.pt"), kind="student"))
-    data, targets = _targets(str(teacher), str(capture), str(work / f"textures_s{seed}"))
+    data, targets = _targets(str(teacher), str(capture),
+                             str(textures_dir(work, teacher_of(variant), seed)))
     envs = _env_specs()
     specs = envs["train"] + envs["eval"]
     grids = [discretize_env(load_envmap(s), *config.env_res) for s in specs]
@@ -261,6 +282,8 @@ def summarize(runs: dict) -> dict:
             continue
         out[variant]["versus"] = {"base": BASES[variant], "splits": {}}
         for split in SPLITS:
+            if split != "ground_truth" and teacher_of(variant) != teacher_of(BASES[variant]):
+                continue        # against two different teachers: no common reference
             mean, std = T._stats([a[split]["psnr"] - b[split]["psnr"]
                                   for a, b in zip(rows, base)])
             ratio = T._stats([a[split]["mse"] / b[split]["mse"] for a, b in zip(rows, base)])
@@ -294,27 +317,31 @@ def main(argv=None) -> None:
     capture, _ = P._capture(teachers, log)
     seeds = list(range(args.seeds))
     workers = max(1, args.workers)
+    kinds = sorted({teacher_of(v) for v in variants})
     with ThreadPoolExecutor(workers) as pool:      # the teachers (cached)
-        list(pool.map(lambda s: T._run(teachers, capture, "paper", s, log), seeds))
-    teacher = {s: teachers / f"paper_s{s}.pt" for s in seeds}
-    for s in seeds:
-        marker = work / f"textures_s{s}.done"
+        list(pool.map(lambda job: T._run(teachers, capture, *job, log),
+                      [(t, s) for t in kinds for s in seeds]))
+    teacher = {(t, s): teachers / f"{t}_s{s}.pt" for t in kinds for s in seeds}
+    for t, s in teacher:
+        where = textures_dir(work, t, s)
+        marker = where.parent / f"{where.name}.done"
         if not marker.is_file():
-            log(f"teacher seed {s}: its per-direction textures, {workers} process(es)")
-            (work / f"textures_s{s}").mkdir(exist_ok=True)
+            log(f"{t} teacher seed {s}: its per-direction textures, {workers} process(es)")
+            where.mkdir(exist_ok=True)
             with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-                list(pool.map(_prefill, *zip(*[(str(teacher[s]), str(capture),
-                                                str(work / f"textures_s{s}"), k, workers)
+                list(pool.map(_prefill, *zip(*[(str(teacher[t, s]), str(capture),
+                                                str(where), k, workers)
                                                for k in range(workers)])))
             marker.write_text("done\n")
     jobs = [(v, s) for s in seeds for v in variants]
     with ThreadPoolExecutor(workers) as pool:
-        records = list(pool.map(lambda job: _run(work, capture, teacher[job[1]], *job, log),
-                                jobs))
+        records = list(pool.map(
+            lambda job: _run(work, capture, teacher[teacher_of(job[0]), job[1]], *job, log),
+            jobs))
     # spawned, not forked: a child forked from this process (its threads above, torch's
     # thread pools) deadlocked before scoring anything (seen: 1 h 40 min idle)
     with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-        scores = list(pool.map(_score, *zip(*[(work, capture, teacher[s], v, s)
+        scores = list(pool.map(_score, *zip(*[(work, capture, teacher[teacher_of(v), s], v, s)
                                               for v, s in jobs])))
     runs = {v: [_seed_row(r, sc) for (vv, _), r, sc in zip(jobs, records, scores) if vv == v]
             for v in variants}
@@ -339,7 +366,8 @@ TOPICS = {"untied": "per-texel biases", "mix": "synthesized env maps",
           "untied_mix": "per-texel biases and synthesized env maps", "dram": "DRAM",
           "dram_mix": "DRAM", "tied_8k": "training length",
           "linear": "a head linear in its features", "linear_lsq": "a head linear in its features",
-          "lsq": "a head linear in its features", "linear_8k": "a head linear in its features"}
+          "lsq": "a head linear in its features", "linear_8k": "a head linear in its features",
+          "linear_tshading": "a teacher with shading features as input"}
 
 NAMES = {"heldout_pose_eval_env": "held-out poses × held-out maps",
          "heldout_pose_train_env": "held-out poses × training maps",
@@ -362,8 +390,11 @@ def _markdown(record: dict) -> str:
              f"Wall time: {record['wall_s'] / 60:.1f} min for this invocation (runs in its "
              f"cache cost nothing); the students themselves took {rows_min:.1f} min, one core "
              f"each, two at a time; seeds {', '.join(map(str, record['seeds']))}; right "
-             f"hand, `converged` capture, `--preset cpu`, each seed's `paper`-input OLAT "
-             f"teacher; {len(envs['train'])} training env maps "
+             f"hand, `converged` capture, `--preset cpu`, each seed's "
+             + ", ".join(sorted({f"`{v.get('teacher', 'paper')}`" for v in
+                                 record["variants"].values()}))
+             + "-input OLAT teacher (study_teacher_inputs.py; a variant's `teacher` names "
+             f"its own); {len(envs['train'])} training env maps "
              f"({', '.join(Path(s.split(':', 1)[-1]).stem for s in envs['train'])}), "
              f"held out: {', '.join(Path(s).stem for s in envs['eval'])}."
              + (" Runs by hand (their cached records say how): "
@@ -387,7 +418,9 @@ def _markdown(record: dict) -> str:
     lines += [f"| ceiling (perfect texture) | | | | {first['ceiling_mse'] * 1e3:.2f} | | | |",
               "", "Mean PSNR (dB) per split; the students against `tied`, DRAM with "
               "synthesized env maps against `dram`, paired by seed (verdict when "
-              "|difference| > max(2 σ, 0.2 dB)), with the mean MSE ratio:", ""]
+              "|difference| > max(2 σ, 0.2 dB)), with the mean MSE ratio (a student of "
+              "another teacher only against the ground truth, the reference both share):",
+              ""]
     for v, e in res.items():
         lines.append(f"- {v}: " + "; ".join(
             f"{NAMES[s]} {e[s]['psnr'][0]:.2f} ± {e[s]['psnr'][1]:.2f}" for s in SPLITS))

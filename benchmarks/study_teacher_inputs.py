@@ -39,7 +39,8 @@ import _common as B  # noqa: E402
 import bench_presets as P  # noqa: E402
 
 VARIANTS = {"paper": {"inputs": "paper"}, "half": {"inputs": "half"},
-            "code": {"inputs": "paper", "head": "code"}}
+            "code": {"inputs": "paper", "head": "code"},
+            "shading": {"inputs": "shading"}, "nopose": {"inputs": "paper", "pose": "none"}}
 SPLITS = ("heldout", "fully_lit", "env")
 #: what the table compares: every held-out sample, then the validation's splits
 COMPARED = ("all_heldout", "all_train") + SPLITS

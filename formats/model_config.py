@@ -146,8 +146,14 @@ class TeacherConfig(TrainingConfig):
         inputs: the OLAT U-Net's per-texel input.  ``paper``: local light direction,
             local view direction and visibility (App. A.1, 7 channels); ``half`` (ours)
             adds the local half vector h = (l + v)/‖l + v‖ (10 channels), on which a
-            microfacet lobe is a function of one coordinate (h_z = n·h).  See
-            :mod:`relight_cli.neural.models` for the measurement.
+            microfacet lobe is a function of one coordinate (h_z = n·h); ``shading``
+            (ours) adds one light's share of the student's shading features (Sec. 4.2):
+            V·max(n·l, 0) and the same times the three Phong lobes max(r·l, 0)^{16,32,64}
+            (11 channels).  See :mod:`relight_cli.neural.models` for the measurements.
+            The OLAT teacher's only (the GGX baseline builds its own inputs).
+        pose: what the teacher's pose encoder sees.  ``joints``: θ (App. A.1); ``none``
+            (ours, an ablation): zeros, so the pose reaches the texture only through the
+            per-texel inputs (directions in the posed texel frames and visibility).
         iters, batch, lr: Adam iterations, samples (frame × camera) per step, learning rate.
         lr_schedule, lr_final: ``constant`` keeps ``lr`` (the paper: 1e-3 for 100k
             iterations); ``cosine`` (ours, for the ``cpu`` preset's short runs) decays it
@@ -189,6 +195,7 @@ class TeacherConfig(TrainingConfig):
     head: str = "printed"
     untied_bias: bool = False
     inputs: str = "paper"
+    pose: str = "joints"
     aa: int = 0
     holdout: float = 0.25
     cache_poses: int = 64
@@ -199,7 +206,10 @@ class TeacherConfig(TrainingConfig):
         check.choice("model", ("olat", "ggx"))
         check.choice("falloff", ("analytic", "none"))
         check.choice("head", ("printed", "code"))
-        check.choice("inputs", ("paper", "half"))
+        check.choice("inputs", ("paper", "half", "shading"))
+        check.choice("pose", ("joints", "none"))
+        if self.model == "ggx" and self.inputs != "paper":
+            check.bad("inputs", "is the OLAT teacher's; the GGX baseline builds its own")
         check.choice("neg_schedule", ("decay", "literal", "constant"))
         check.integer("tex_res", 8, 4096)
         for name in ("encoder", "decoder", "pose_channels"):

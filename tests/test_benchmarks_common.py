@@ -84,6 +84,22 @@ def test_student_env_verdicts_pair_each_variant_with_its_base():
     assert abs(res["mix"]["ground_truth"]["gap"][0] - 8.7) < 1e-9
 
 
+def test_student_env_judges_a_student_of_another_teacher_on_the_ground_truth_only(tmp_path):
+    """A variant distilled from another teacher (``linear_tshading``) is compared with its
+    base on the ground truth alone (against two different teachers nothing is shared); it
+    caches that teacher's textures apart and passes no ``teacher`` field to ``distill``."""
+    import study_student_env as E
+    runs = {"linear": [_env_row(27.0), _env_row(27.4)],
+            "linear_tshading": [_env_row(28.0), _env_row(28.5)]}
+    versus = E.summarize(runs)["linear_tshading"]["versus"]
+    assert versus["base"] == "linear" and list(versus["splits"]) == ["ground_truth"]
+    assert versus["splits"]["ground_truth"]["verdict"] == "better"
+    assert E.teacher_of("linear_tshading") == "shading" and E.teacher_of("linear") == "paper"
+    assert "teacher" not in E.student_config("linear_tshading")
+    assert E.textures_dir(tmp_path, "paper", 1) == tmp_path / "textures_s1"
+    assert E.textures_dir(tmp_path, "shading", 1) == tmp_path / "textures_shading_s1"
+
+
 def test_student_env_convergence_reads_the_last_interval_when_validation_is_sparse():
     """Validated every 1,000 of 4,000 iterations, no point lies in the last 20 %: the gain
     is read over the last interval (3,000 → 4,000), never left unknown; a curve with a

@@ -231,6 +231,76 @@ def test_half_vector_input_is_the_normalized_sum_of_light_and_view():
         TeacherConfig.from_dict({"inputs": "both"})
 
 
+def test_shading_inputs_match_a_float64_reference():
+    """``inputs: shading`` appends V·max(l_z, 0) and V·max(l_z, 0)·max(r·l, 0)^α (α = 16,
+    32, 64; r the view mirrored about +z), checked against float64 numpy with r built as
+    2(n·v)n − v; grazing and back-facing lights give 0, outside the charts 0, every
+    channel in [0, 1]; the U-Net takes 11 channels and the lobes reach its output."""
+    from relight_cli.neural.models import SHADING_EXPONENTS, OLATTeacher, teacher_inputs
+
+    rng = np.random.default_rng(5)
+    lv = rng.normal(size=(2, 2, 3, 6, 6))
+    lv /= np.linalg.norm(lv, axis=2, keepdims=True)
+    x = np.concatenate([lv[0], lv[1], rng.uniform(size=(2, 1, 6, 6))], 1)
+    x[0, :, 0, 0] = 0.0                                          # outside the UV charts
+    x[0, 0:3, 1, 1] = [1.0, 0.0, 0.0]                            # grazing light
+    x[0, 0:3, 2, 2] = [0.0, 0.6, -0.8]                           # light from below
+    x[1, 0:3, 3, 3] = [0.0, 0.6, 0.8]                            # the mirror direction
+    x[1, 3:6, 3, 3] = [0.0, -0.6, 0.8]
+    x[1, 6, 3, 3] = 1.0
+    out = teacher_inputs(torch.tensor(x, dtype=torch.float32), "shading").numpy()
+    assert out.shape == (2, 11, 6, 6) and np.isfinite(out).all()
+    np.testing.assert_array_equal(out[:, :7], x.astype(np.float32))
+    light, view, vis = x[:, 0:3], x[:, 3:6], x[:, 6]
+    n = np.array([0.0, 0.0, 1.0])[None, :, None, None]
+    r = 2 * (view * n).sum(1, keepdims=True) * n - view
+    cos = vis * np.maximum(light[:, 2], 0)
+    np.testing.assert_allclose(out[:, 7], cos, atol=1e-6)
+    for i, a in enumerate(SHADING_EXPONENTS):
+        lobe = cos * np.clip((r * light).sum(1), 0, 1) ** a
+        np.testing.assert_allclose(out[:, 8 + i], lobe, atol=1e-6)
+    assert np.all(out[0, 7:, 0, 0] == 0) and np.all(out[0, 7:, 1, 1] == 0)
+    assert np.all(out[0, 7:, 2, 2] == 0)
+    np.testing.assert_allclose(out[1, 7:, 3, 3], 0.8, atol=1e-6)      # r = l: every lobe 1
+    assert out[:, 7:].min() >= 0 and out[:, 7:].max() <= 1
+    model = OLATTeacher(TeacherConfig.from_dict({**SMALL, "inputs": "shading"}), 6)
+    assert model.net.enc[0].in_channels == 11
+    with torch.no_grad():
+        model.net.enc[0].weight[:, :8] = 0          # only the lobes can move the output now
+        xin = torch.zeros(1, 7, 16, 16)
+        xin[:, 0:3] = torch.tensor([0.0, 0.6, 0.8])[:, None, None]
+        xin[:, 6] = 1.0
+        xin[:, 3:6] = torch.tensor([0.0, -0.6, 0.8])[:, None, None]
+        a = model(xin.clone(), torch.zeros(1, 6), torch.zeros(1, dtype=torch.long))
+        xin[:, 3:6] = torch.tensor([0.0, 0.6, 0.8])[:, None, None]
+        b = model(xin, torch.zeros(1, 6), torch.zeros(1, dtype=torch.long))
+    assert not torch.allclose(a, b)
+
+
+@pytest.mark.parametrize("model_kind", ["olat", "ggx"])
+def test_pose_none_makes_the_teacher_blind_to_the_pose(model_kind):
+    """``pose: none``: two different poses give the same textures (the pose reaches them
+    only through the per-texel inputs); ``joints`` (the default) tells them apart."""
+    from relight_cli.neural.models import build_model
+
+    torch.manual_seed(0)
+    x = torch.rand(2, 7, 16, 16)
+    hand_of = torch.zeros(2, dtype=torch.long)
+    mean = torch.rand(1, 3, 16, 16)
+    p1, p2 = torch.zeros(1, 6), torch.full((1, 6), 0.7)
+    out = {}
+    for pose in ("joints", "none"):
+        torch.manual_seed(1)
+        model = build_model(TeacherConfig.from_dict({**SMALL, "model": model_kind,
+                                                     "pose": pose}), 6)
+        with torch.no_grad():
+            out[pose] = (model(x, p1, hand_of, mean), model(x, p2, hand_of, mean))
+    assert not torch.allclose(*out["joints"])
+    assert torch.equal(*out["none"])
+    # at θ = 0 both see the same zeros: the same weights give the same texture
+    assert torch.equal(out["none"][0], out["joints"][0])
+
+
 def test_neg_weight_schedules():
     from relight_cli.neural.losses import neg_weight
     assert neg_weight(10, 5.0, 25) == 1.0                               # before t_s
@@ -744,10 +814,16 @@ def _edit_index(cap, edit):
     index.write_text(json.dumps(obj))
 
 
+#: train-teacher --config files that are usage errors (exit 2)
+BAD_CONFIGS = {"bad-config": {"tex_res": 33}, "bad-head": {"head": "inside", "untied_bias": True},
+               "bad-inputs": {"inputs": "halfway"},
+               "shading-inputs-on-ggx": {"model": "ggx", "inputs": "shading"},
+               "bad-pose": {"pose": "hands"}}
+
+
 @pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
                                   "iters-0", "unknown-preset", "not-pt", "not-a-folder",
-                                  "bad-config", "bad-head", "bad-inputs",
-                                  "resume-other-config"])
+                                  *BAD_CONFIGS, "resume-other-config"])
 def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli):
     from relight_cli.formats import capture as C
     cap = _copy_capture(capture_dir, tmp_path)
@@ -786,16 +862,8 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
         code = 2
     elif case == "not-a-folder":
         args[1] = str(tmp_path / "nope")
-    elif case == "bad-config":
-        (tmp_path / "bad.json").write_text('{"tex_res": 33}')
-        args[3] = str(tmp_path / "bad.json")
-        code = 2
-    elif case == "bad-head":
-        (tmp_path / "bad.json").write_text('{"head": "inside", "untied_bias": true}')
-        args[3] = str(tmp_path / "bad.json")
-        code = 2
-    elif case == "bad-inputs":
-        (tmp_path / "bad.json").write_text('{"inputs": "halfway"}')
+    elif case in BAD_CONFIGS:
+        (tmp_path / "bad.json").write_text(json.dumps(BAD_CONFIGS[case]))
         args[3] = str(tmp_path / "bad.json")
         code = 2
     elif case == "resume-other-config":

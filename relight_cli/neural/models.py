@@ -77,17 +77,36 @@ GGX_MIN_ROUGHNESS = 0.045
 
 N_INPUT = 7          # local light dir 3, local view dir 3, visibility 1
 #: input channels of the OLAT U-Net per ``TeacherConfig.inputs``
-N_INPUTS = {"paper": N_INPUT, "half": N_INPUT + 3}
+#: the Phong exponents of ``inputs: shading``: the student's specular features' (Sec. 4.2)
+SHADING_EXPONENTS = (16, 32, 64)
+N_INPUTS = {"paper": N_INPUT, "half": N_INPUT + 3, "shading": N_INPUT + 1 + len(SHADING_EXPONENTS)}
 
 
 def teacher_inputs(inputs: torch.Tensor, kind: str) -> torch.Tensor:
-    """The OLAT U-Net's input from the assembled [B, 7, N, N] (light, view, visibility):
-    as is (``paper``), or with the local half vector appended (``half``; zero where the
-    light and view directions are, outside the UV charts)."""
+    """The OLAT U-Net's input from the assembled [B, 7, N, N] (light l, view v, visibility
+    V, in each texel's tangent frame where the coarse normal is +z): as is (``paper``);
+    with the local half vector appended (``half``); or with one light's share of the
+    student's shading features appended (``shading``): V·max(l_z, 0) and
+    V·max(l_z, 0)·max(r·l, 0)^α for α in :data:`SHADING_EXPONENTS`, r = (−v_x, −v_y, v_z)
+    the mirrored view (the Phong lobes of Sec. 4.2 without their normalization, so each
+    channel lies in [0, 1]).  All are zero outside the UV charts, where l and v are."""
     if kind == "paper":
         return inputs
-    half = F.normalize(inputs[:, 0:3] + inputs[:, 3:6], dim=1, eps=1e-8)
-    return torch.cat([inputs, half], 1)
+    light, view, vis = inputs[:, 0:3], inputs[:, 3:6], inputs[:, 6:7]
+    if kind == "half":
+        return torch.cat([inputs, F.normalize(light + view, dim=1, eps=1e-8)], 1)
+    cos = vis * torch.clamp(light[:, 2:3], min=0)
+    mirror = (view[:, 2:3] * light[:, 2:3] - view[:, 0:1] * light[:, 0:1]
+              - view[:, 1:2] * light[:, 1:2]).clamp(0, 1)
+    lobes = [cos * mirror ** a for a in SHADING_EXPONENTS]
+    return torch.cat([inputs, cos, *lobes], 1)
+
+
+def seen_pose(pose: torch.Tensor, kind: str) -> torch.Tensor:
+    """The pose features a teacher sees: θ (``joints``, App. A.1) or zeros (``none``:
+    the pose encoder then adds the same learned features for every pose, and the
+    pose reaches the texture only through the per-texel inputs)."""
+    return pose if kind == "joints" else torch.zeros_like(pose)
 
 
 def pose_vector(poses) -> torch.Tensor:
@@ -209,11 +228,13 @@ class OLATTeacher(nn.Module):
         self.lambda_s = config.lambda_s * PAPER_UNIT
         self.lambda_b = config.lambda_b * PAPER_UNIT
         self.head = getattr(config, "head", "printed")
+        self.pose_input = getattr(config, "pose", "joints")
 
     def forward(self, inputs: torch.Tensor, pose: torch.Tensor, hand_of: torch.Tensor,
                 mean_texture=None, return_raw: bool = False):
         """Per-light textures C_i [B, 3, N, N] (sr⁻¹) from inputs [B, 7, N, N] (Eq. 10);
         with ``return_raw`` also the pre-ReLU λ_s T_i [B, 3, N, N] (for L_neg)."""
+        pose = seen_pose(pose, self.pose_input)
         raw = self.net(teacher_inputs(inputs, self.inputs), pose, hand_of)
         scaled, shadow = self.lambda_s * raw[:, :3], raw[:, 3:4]
         if self.head == "code":
@@ -255,6 +276,7 @@ class GGXTeacher(nn.Module):
         pre-activation can go negative here: L_neg does not apply)."""
         from relight_cli.brdf import ggx_cosine_torch
 
+        pose = seen_pose(pose, getattr(self.config, "pose", "joints"))
         light, view, vis = inputs[:, 0:3], inputs[:, 3:6], inputs[:, 6:7]
         shadow = self.shadow_net(torch.cat([light, vis], 1), pose, hand_of)
         albedo, rough, normal = self.materials(mean_texture, pose)
