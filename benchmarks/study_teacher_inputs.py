@@ -42,6 +42,9 @@ VARIANTS = {"paper": {"inputs": "paper"}, "half": {"inputs": "half"},
             "code": {"inputs": "paper", "head": "code"},
             "shading": {"inputs": "shading"}, "nopose": {"inputs": "paper", "pose": "none"}}
 SPLITS = ("heldout", "fully_lit", "env")
+#: what a variant is, in the table's title
+TITLES = {"half": "the half vector added", "code": "the authors' code's head",
+          "shading": "the student's shading features added", "nopose": "no pose"}
 #: what the table compares: every held-out sample, then the validation's splits
 COMPARED = ("all_heldout", "all_train") + SPLITS
 
@@ -213,7 +216,9 @@ def main(argv=None) -> None:
 def _markdown(record: dict) -> str:
     res = record["results"]
     rows_min = sum(v["wall_min"] for v in res.values())
-    lines = ["# The OLAT teacher's input: the paper's against the half vector added", "",
+    others = [TITLES.get(v, v) for v in record["variants"] if v != "paper"]
+    title = "# The OLAT teacher's input: the paper's against " + " and ".join(others or ["itself"])
+    lines = [title, "",
              f"Command: `{record['command']}`  ",
              B.machine_line(record["machine"]) + "  ",
              f"Wall time: {record['wall_s'] / 60:.1f} min for this invocation (runs in its "
@@ -240,7 +245,8 @@ def _markdown(record: dict) -> str:
                      f"{sum(ssim) / len(ssim):.4f} | {cell(e, 'all_train', 'gap')} | "
                      f"{cell(e, 'heldout', 'psnr')}"
                      f" | {cell(e, 'heldout', 'gap')} | {cell(e, 'fully_lit', 'gap')} | "
-                     f"{cell(e, 'env', 'gap')} | {'yes' if e['converged'] else 'NOT'} | "
+                     f"{cell(e, 'env', 'gap')} | {'yes' if e['converged'] else 'NOT'} ("
+                     + ", ".join(f"{r['gain_tail_db']:+.2f}" for r in e["seeds"]) + ") | "
                      f"{e['wall_min'] / len(e['seeds']):.1f} |")
     ceil = {s: next((e[s]["ceiling"] for e in res.values() if e.get(s)), None) for s in COMPARED}
     lines += ["", "Ceilings (perfect texture through the same compositing and pixel sampling): "
@@ -258,7 +264,8 @@ def _markdown(record: dict) -> str:
             f"({r['heldout']['psnr']:.2f} / {r['heldout']['gap']:.2f})"
             for s, r in zip(record["seeds"], e["seeds"])))
     lines += ["", "Converged: every seed's held-out PSNR gained < 0.2 dB over the last 20 % "
-              "of its iterations (on the validation's samples). All samples: every "
+              "of its iterations (on the validation's samples; the column gives each seed's "
+              "gain, dB). All samples: every "
               "(frame, camera) image of the held-out poses, scored from the final "
               "checkpoint with its ceiling (`relight_cli.neural.evaluate`), and every "
               "image of the training poses likewise; validation: "

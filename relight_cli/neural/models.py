@@ -48,6 +48,17 @@ every held-out sample, 30.19 against 29.91 dB (+0.29 ± 0.14 dB, higher on every
 gap to the ceiling 1.76 against 2.05 dB), SSIM 0.946 against 0.939; a tie under the
 fully lit frames (+0.19 ± 0.13) and the held-out env maps (+0.11 ± 0.36), the lighting a
 student distills, at 7 % more time per run.  So the paper's input stays the default.
+``inputs: shading`` (ours, an option) appends one light's share of the student's
+physics-inspired features (Sec. 4.2): V·max(n·l, 0) and that times the Phong lobes
+max(r·l, 0)^α, α = 16, 32, 64, r the mirrored view (:func:`teacher_inputs`); the U-Net then
+modulates shading it is given instead of building a lobe and a shadow-masked cosine from
+l, v and V.  Measured (same capture and preset, three seeds, 2-core AMD EPYC,
+benchmarks/results/converged/teacher_shading/): on every held-out sample 30.80 ± 0.19
+against 29.96 ± 0.01 dB (+0.85 ± 0.20 dB, better; gap 2.00 → 1.15 dB), under the fully
+lit frames +0.68 ± 0.14 dB (better), on the training poses gap 0.46 → 0.03 dB, and a tie
+under the held-out env maps (+0.00 ± 0.22 dB).  ``pose: none`` (an ablation: zeros into
+the pose encoder) ties with θ on every split (−0.12 ± 0.21 dB held out): the teacher's
+held-out gap is not a pose code overfitted to the 48 training poses.
 
 GGX baseline (App. B, Eq. 12): the same U-Net twice — a shadow U-Net on (local light
 direction, visibility) → S, and a material U-Net on the capture's mean texture T̄ →
