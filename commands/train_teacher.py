@@ -20,7 +20,9 @@ from ._learned import training_options
               show_default=True,
               help="tiny: 32² texture, ~150 iterations, seconds to minutes (tests, demo); "
                    "cpu: 64² texture, 6000 iterations with a cosine learning-rate decay "
-                   "from 2e-3 (5e-4 for ggx, which collapses at 2e-3), "
+                   "from 2e-3 (5e-4 for ggx, which collapses at 2e-3), the olat teacher "
+                   "with the student's shading features as further input (inputs: "
+                   "shading; --config '{\"inputs\": \"paper\"}' for App. A.1's), "
                    "about 10-30 min on 2 CPU cores (benchmarks/results/converged/ says how "
                    "close each model comes to its ceiling); paper: the papers' sizes and "
                    "iterations (100k teacher, 2M linear model: a GPU job).")

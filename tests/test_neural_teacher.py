@@ -1333,6 +1333,19 @@ def test_cpu_preset_gives_ggx_its_own_learning_rate(tmp_path):
     config = tmp_path / "c.json"
     config.write_text(json.dumps({"model": "ggx"}))
     assert resolve_config("cpu", str(config), {}).lr == 5e-4
+
+
+def test_cpu_preset_gives_the_olat_teacher_the_shading_input(tmp_path):
+    """``--preset cpu`` trains the OLAT teacher on ``inputs: shading`` (whether the model
+    is named or left to its default); GGX, ``tiny`` and ``paper`` keep the paper's input,
+    and a config file or flag still chooses."""
+    for preset, given, inputs in (("cpu", {}, "shading"), ("cpu", {"model": "olat"}, "shading"),
+                                  ("cpu", {"model": "ggx"}, "paper"), ("tiny", {}, "paper"),
+                                  ("paper", {}, "paper"), ("cpu", {"inputs": "half"}, "half")):
+        assert resolve_config(preset, None, given).inputs == inputs, (preset, given)
+    config = tmp_path / "c.json"
+    config.write_text(json.dumps({"inputs": "paper"}))
+    assert resolve_config("cpu", str(config), {}).inputs == "paper"
     config.write_text(json.dumps({"model": "ggx", "lr": 1e-3}))
     assert resolve_config("cpu", str(config), {}).lr == 1e-3
 
