@@ -165,6 +165,40 @@ def test_readme_quotes_the_teacher_inputs_study():
             f"training poses") in text.replace("\n", " ")
 
 
+@pytest.mark.skipif(not (RESULTS / "teacher_shading" / "teacher_inputs.json").exists(),
+                    reason="no study table")
+def test_readme_quotes_the_shading_input_study():
+    """The shading input's gain, verdicts and gaps as the README quotes them, read back
+    from teacher_shading/teacher_inputs.json; the cpu preset uses it because it is better
+    on held-out poses and fully lit frames and never worse."""
+    rec = json.loads((RESULTS / "teacher_shading" / "teacher_inputs.json").read_text())
+    res = rec["results"]
+    t13 = " ".join(_readme_rh_t13().split())
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    paper, ours = res["paper"], res["shading"]
+    vs = ours["versus_paper"]
+    held, lit = vs["all_heldout"], vs["fully_lit"]
+    assert held["verdict"] == lit["verdict"] == "better"
+    assert all(d["verdict"] != "worse" for d in vs.values())
+    assert f"gains +{held['diff_db']:.2f} ± {held['std_db']:.2f} dB on every held-out" in t13
+    assert (f"({ours['all_heldout']['psnr'][0]:.2f} against "
+            f"{paper['all_heldout']['psnr'][0]:.2f} dB, gap to the ceiling "
+            f"{paper['all_heldout']['gap'][0]:.2f} to {ours['all_heldout']['gap'][0]:.2f} dB)"
+            ) in t13
+    assert f"+{lit['diff_db']:.2f} ± {lit['std_db']:.2f} dB under the fully lit" in t13
+    assert f"fits the training poses to {ours['all_train']['gap'][0]:.2f} dB" in t13
+    assert vs["env"]["verdict"] == "tie" and "ties under the held-out env maps" in t13
+    assert len(rec["seeds"]) == 3 and "three seeds" in t13
+    nopose = res["nopose"]["versus_paper"]
+    assert all(d["verdict"] == "tie" for d in nopose.values())
+    d = nopose["all_heldout"]
+    assert f"({d['diff_db']:.2f} ± {d['std_db']:.2f} dB)".replace("-", "−") in t13
+    assert (f"{ours['all_heldout']['gap'][0]:.2f} dB short on new poses, "
+            f"{ours['all_train']['gap'][0]:.2f} dB on its training poses") in text
+    from relight_cli.neural.config import resolve_config
+    assert resolve_config("cpu").inputs == "shading"
+
+
 @pytest.mark.skipif(not (RESULTS / "student_env.json").exists(), reason="no study table")
 def test_readme_quotes_the_student_env_study():
     """The README's student paragraph quotes student_env.json: each variant's ground-truth
