@@ -150,6 +150,15 @@ def _identity(path: str) -> tuple:
     return real, (st.st_dev, st.st_ino), stat.S_ISCHR(st.st_mode)
 
 
+def _now(path: str, recorded: tuple) -> tuple:
+    """A registered file's identity now: a long command's input (a config file another
+    process rewrote atomically) may have moved to a new inode, and the old inode number
+    be reused by a file this command writes later, so comparing with the identity recorded
+    at the start refused a checkpoint save as "also an input" (seen: a 30-minute
+    ``distill`` whose config file was rewritten while it trained)."""
+    return _identity(path) if path and path != "-" else recorded
+
+
 def _same(a: tuple, b: tuple) -> bool:
     if a[2] or b[2]:  # a character device (/dev/null) may take any number of streams
         return False
@@ -242,8 +251,8 @@ def declare_input(path: str) -> None:
     ident = _identity(path)
     if any(ident == other for _, other in _RUN.inputs):
         return  # already known (provenance() registers every output's inputs again)
-    for _, other in _RUN.outputs:
-        if _same(ident, other):
+    for out, other in _RUN.outputs:
+        if _same(ident, _now(out, other)):
             raise UsageProblem(_INPUT_IS_OUTPUT, path)
     _RUN.inputs.append((path, ident))
 
@@ -262,8 +271,8 @@ def declare_output(path: str) -> None:
     final, mode = _resolve(path)
     ident = _identity(path)
     if _RUN is not None:
-        for _, other in _RUN.inputs:
-            if _same(ident, other):
+        for inp, other in _RUN.inputs:
+            if _same(ident, _now(inp, other)):
                 raise UsageProblem(_INPUT_IS_OUTPUT, path)
         for out, other in _RUN.outputs:
             if _same(ident, other):
@@ -545,8 +554,8 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None,
     final, mode = _resolve(target)
     if _RUN is not None:
         ident = _identity(target)
-        for _, other in _RUN.inputs:
-            if _same(ident, other):
+        for inp, other in _RUN.inputs:
+            if _same(ident, _now(inp, other)):
                 raise UsageProblem(_INPUT_IS_OUTPUT, target)
     if _PENDING:
         ident = _identity(target)

@@ -160,3 +160,25 @@ def test_half_exr_clamps_instead_of_overflowing(tmp_path):
     write_exr(str(path), {"Y": np.array([[1e6, 1.0]])}, half=True)
     y = read_exr(str(path)).channels["Y"]
     assert np.isfinite(y).all() and y[0, 0] == 65504.0
+
+
+def test_an_input_replaced_during_a_run_does_not_make_its_old_inode_an_input(tmp_path):
+    """Inputs are compared with outputs by what their paths are *now*: an input rewritten
+    atomically by another process mid-run leaves its old inode free, and a file this run
+    writes later may get that inode number (a checkpoint save of a long ``distill`` was
+    refused as "also an input" that way).  Moving the old inode onto the output path is
+    the deterministic version of that reuse; the input's path itself is still refused."""
+    from relight_cli.errors import UsageProblem
+    from relight_cli.provenance import atomic_path, declare_input, output_transaction
+    config, saved = tmp_path / "config.json", tmp_path / "student.pt"
+    config.write_text("{}")
+    with output_transaction():
+        declare_input(str(config))
+        os.rename(config, saved)               # the old inode now sits at the output path
+        config.write_text('{"rewritten": true}')
+        with atomic_path(saved) as tmp:
+            open(tmp, "w").write("checkpoint")
+        with pytest.raises(UsageProblem, match="also an input"):
+            with atomic_path(config) as tmp:
+                open(tmp, "w").write("clobber")
+    assert saved.read_text() == "checkpoint" and config.read_text() == '{"rewritten": true}'
