@@ -195,6 +195,12 @@ def test_readme_quotes_the_shading_input_study():
     assert f"({d['diff_db']:.2f} ± {d['std_db']:.2f} dB)".replace("-", "−") in t13
     assert (f"{ours['all_heldout']['gap'][0]:.2f} dB short on new poses, "
             f"{ours['all_train']['gap'][0]:.2f} dB on its training poses") in text
+    student = json.loads((RESULTS / "student_tshading" / "student_env.json").read_text())
+    d = student["results"]["linear_tshading"]["versus"]["splits"]["ground_truth"]
+    gt = student["results"]["linear_tshading"]["ground_truth"]["psnr"]
+    assert d["verdict"] == "tie" and list(student["variants"]) == ["linear", "linear_tshading"]
+    assert (f"three seeds: {gt[0]:.2f} ± {gt[1]:.2f} dB against the ground truth, a tie, "
+            f"{d['diff_db']:+.2f} ± {d['std_db']:.2f} dB)") in t13
     from relight_cli.neural.config import resolve_config
     assert resolve_config("cpu").inputs == "shading"
 
