@@ -147,9 +147,9 @@ class TeacherConfig(TrainingConfig):
             local view direction and visibility (App. A.1, 7 channels); ``half`` (ours)
             adds the local half vector h = (l + v)/‖l + v‖ (10 channels), on which a
             microfacet lobe is a function of one coordinate (h_z = n·h); ``shading``
-            (ours) adds one light's share of the student's shading features (Sec. 4.2):
-            V·max(n·l, 0) and the same times the three Phong lobes max(r·l, 0)^{16,32,64}
-            (11 channels).  See :mod:`relight_cli.neural.models` for the measurements.
+            (ours) adds one light's share of the student's shading features (Sec. 4.2,
+            Eq. 8–9): V·max(n·l, 0) and the same times the three Phong lobes
+            max(r·l, 0)^{16,32,64} (11 channels; Eq. 9's lobe has no cosine, ours does).  See :mod:`relight_cli.neural.models` for the measurements.
             The OLAT teacher's only (the GGX baseline builds its own inputs).
         pose: what the teacher's pose encoder sees.  ``joints``: θ (App. A.1); ``none``
             (ours, an ablation): zeros, so the pose reaches the texture only through the

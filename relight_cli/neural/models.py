@@ -48,9 +48,10 @@ every held-out sample, 30.19 against 29.91 dB (+0.29 ± 0.14 dB, higher on every
 gap to the ceiling 1.76 against 2.05 dB), SSIM 0.946 against 0.939; a tie under the
 fully lit frames (+0.19 ± 0.13) and the held-out env maps (+0.11 ± 0.36), the lighting a
 student distills, at 7 % more time per run.  So the paper's input stays the default.
-``inputs: shading`` (ours, an option) appends one light's share of the student's
-physics-inspired features (Sec. 4.2): V·max(n·l, 0) and that times the Phong lobes
-max(r·l, 0)^α, α = 16, 32, 64, r the mirrored view (:func:`teacher_inputs`); the U-Net then
+``inputs: shading`` (ours) appends one light's share of the student's
+physics-inspired features (Sec. 4.2, Eq. 8–9): V·max(n·l, 0) and that times the Phong lobes
+max(r·l, 0)^α, α = 16, 32, 64, r the mirrored view (Eq. 9's lobe with the cosine added,
+:func:`teacher_inputs`); the U-Net then
 modulates shading it is given instead of building a lobe and a shadow-masked cosine from
 l, v and V.  Measured (same capture and preset, three seeds, 2-core AMD EPYC,
 benchmarks/results/converged/teacher_shading/): on every held-out sample 30.80 ± 0.19
@@ -87,9 +88,9 @@ from .config import PAPER_UNIT, TeacherConfig
 GGX_MIN_ROUGHNESS = 0.045
 
 N_INPUT = 7          # local light dir 3, local view dir 3, visibility 1
-#: input channels of the OLAT U-Net per ``TeacherConfig.inputs``
-#: the Phong exponents of ``inputs: shading``: the student's specular features' (Sec. 4.2)
+#: the Phong exponents of ``inputs: shading``: the student's specular features' (Eq. 9)
 SHADING_EXPONENTS = (16, 32, 64)
+#: input channels of the OLAT U-Net per ``TeacherConfig.inputs``
 N_INPUTS = {"paper": N_INPUT, "half": N_INPUT + 3, "shading": N_INPUT + 1 + len(SHADING_EXPONENTS)}
 
 
@@ -99,8 +100,10 @@ def teacher_inputs(inputs: torch.Tensor, kind: str) -> torch.Tensor:
     with the local half vector appended (``half``); or with one light's share of the
     student's shading features appended (``shading``): V·max(l_z, 0) and
     V·max(l_z, 0)·max(r·l, 0)^α for α in :data:`SHADING_EXPONENTS`, r = (−v_x, −v_y, v_z)
-    the mirrored view (the Phong lobes of Sec. 4.2 without their normalization, so each
-    channel lies in [0, 1]).  All are zero outside the UV charts, where l and v are."""
+    the mirrored view: one light's term of Eq. 8 (diffuse) and of Eq. 9 (Phong), each in
+    [0, 1].  Departure: Eq. 9 has no cosine; ours multiplies the lobes by max(n·l, 0) so
+    that no lobe lights a texel facing away from the light.
+    All are zero outside the UV charts, where l and v are."""
     if kind == "paper":
         return inputs
     light, view, vis = inputs[:, 0:3], inputs[:, 3:6], inputs[:, 6:7]
