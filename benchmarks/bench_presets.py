@@ -39,11 +39,13 @@ MODELS = ("olat", "ggx", "linear", "student", "dram")
 CONVERGED_DB, TAIL, GOAL_DB = 0.2, 0.2, 1.0
 
 
-def _capture(work: Path, log, scale: str = "converged") -> Path:
-    """The study scale's right-hand capture (made once)."""
+def _capture(work: Path, log, scale: str = "converged", stage: dict | None = None) -> Path:
+    """The study scale's right-hand capture (made once); ``stage`` overrides some of the
+    scale's capture settings (e.g. ``{"lights": 128}``: another capture, its own key)."""
     sys.path.insert(0, str(HERE))
     import study_hands as S
     settings = json.loads((HERE / "studies" / "scales.json").read_text())[scale]
+    settings["capture"].update(stage or {})
     envs = S.env_specs()
     key = S.digest({"capture": settings["capture"], "eval": envs["eval"],
                     "v": S.CAPTURE_VERSION})

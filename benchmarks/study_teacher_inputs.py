@@ -40,11 +40,21 @@ import bench_presets as P  # noqa: E402
 
 VARIANTS = {"paper": {"inputs": "paper"}, "half": {"inputs": "half"},
             "code": {"inputs": "paper", "head": "code"},
-            "shading": {"inputs": "shading"}, "nopose": {"inputs": "paper", "pose": "none"}}
+            "shading": {"inputs": "shading"}, "nopose": {"inputs": "paper", "pose": "none"},
+            "shading_l128": {"inputs": "shading"}}
+#: variants trained on another capture: the converged scale's with these stage settings
+#: overridden.  ``shading_l128``: 128 stage lights instead of 32, the same frames, groups
+#: of 4 and cameras (so as many images, each light lit in 2 grouped frames instead of 8):
+#: do the env maps' directions between the 32 lights cost the teacher its env-map gap?
+#: The env renders (eval hand, env maps, cameras) are the same images on both stages;
+#: the held-out and training frames are not (other lights), each scored with its own
+#: ceiling.
+STAGES = {"shading_l128": {"lights": 128}}
 SPLITS = ("heldout", "fully_lit", "env")
 #: what a variant is, in the table's title
 TITLES = {"half": "the half vector added", "code": "the authors' code's head",
-          "shading": "the student's shading features added", "nopose": "no pose"}
+          "shading": "the student's shading features added", "nopose": "no pose",
+          "shading_l128": "the same on a 128-light stage"}
 #: what the table compares: every held-out sample, then the validation's splits
 COMPARED = ("all_heldout", "all_train") + SPLITS
 
@@ -124,10 +134,10 @@ def _stats(values: list) -> tuple:
     return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else 0.0
 
 
-def summarize(runs: dict, seeds: list) -> dict:
+def summarize(runs: dict, seeds: list, base: str = "paper") -> dict:
     """Per variant: per-seed rows, mean ± std of each split's PSNR and gap, convergence;
-    per non-paper variant and split: the mean paired difference from ``paper`` and its
-    verdict."""
+    per other variant and split: the mean paired difference from ``base`` and its
+    verdict (stored as ``versus_paper`` whatever the base; the record names the base)."""
     out = {}
     for variant, rows in runs.items():
         entry = {"seeds": rows}
@@ -141,9 +151,9 @@ def summarize(runs: dict, seeds: list) -> dict:
         entry["converged"] = all(g is not None and g < P.CONVERGED_DB for g in gains)
         entry["wall_min"] = sum(r["wall_s"] for r in rows) / 60
         out[variant] = entry
-    base = runs.get("paper")
+    base_name, base = base, runs.get(base)
     for variant, rows in runs.items():
-        if variant == "paper" or base is None:
+        if variant == base_name or base is None:
             continue
         out[variant]["versus_paper"] = {}
         for split in COMPARED:
@@ -180,6 +190,8 @@ def main(argv=None) -> None:
     ap = B.parser(__doc__.splitlines()[0])
     ap.add_argument("--work", default=str(B.OUT / "teacher_inputs"), metavar="DIR",
                     help="cache: the capture, checkpoints, metrics")
+    ap.add_argument("--base", default="paper", help="the variant the others are compared "
+                    "with (one of --variants) [default: paper]")
     args, variants = parse_variants(ap, argv, VARIANTS, "paper,half", 3,
                                     "teacher (minutes); tests/test_neural_teacher.py covers "
                                     "the input itself")
@@ -192,21 +204,25 @@ def main(argv=None) -> None:
 
     t0 = time.perf_counter()
     limits = B.machine_limits()
-    capture, _ = P._capture(work, log)
+    if args.base not in variants:
+        ap.error(f"--base {args.base} is not among --variants")
+    captures = {v: P._capture(work, log, stage=STAGES.get(v))[0] for v in variants}
     seeds = list(range(args.seeds))
     jobs = [(v, s) for s in seeds for v in variants]
     with ThreadPoolExecutor(max(1, args.workers)) as pool:
-        records = list(pool.map(lambda job: _run(work, capture, *job, log), jobs))
-    every = [_score_all(work, capture, v, s) for v, s in jobs]
+        records = list(pool.map(lambda job: _run(work, captures[job[0]], *job, log), jobs))
+    every = [_score_all(work, captures[v], v, s) for v, s in jobs]
     runs = {v: [_seed_row(r, e) for (vv, _), r, e in zip(jobs, records, every) if vv == v]
             for v in variants}
     record = {"command": B.run_command("study_teacher_inputs.py",
                                        sys.argv[1:] if argv is None else argv),
-              "machine": limits, "capture": str(capture), "seeds": seeds,
+              "machine": limits, "capture": str(captures[args.base]), "seeds": seeds,
+              "base": args.base,
+              "stages": {v: STAGES[v] for v in variants if v in STAGES},
               "wall_s": round(time.perf_counter() - t0, 1),
               "variants": {v: VARIANTS[v] for v in variants},
               "by_hand": [f"{v}_s{s}" for (v, s), r in zip(jobs, records) if r.get("note")],
-              "results": summarize(runs, seeds)}
+              "results": summarize(runs, seeds, args.base)}
     P.B_write(out / "teacher_inputs.json", record)
     (out / "teacher_inputs.md").write_text(_markdown(record))
     _plot(record, out / "teacher_inputs.png")
@@ -216,8 +232,10 @@ def main(argv=None) -> None:
 def _markdown(record: dict) -> str:
     res = record["results"]
     rows_min = sum(v["wall_min"] for v in res.values())
-    others = [TITLES.get(v, v) for v in record["variants"] if v != "paper"]
-    title = "# The OLAT teacher's input: the paper's against " + " and ".join(others or ["itself"])
+    base = record.get("base", "paper")
+    others = [TITLES.get(v, v) for v in record["variants"] if v != base]
+    mine = "the paper's" if base == "paper" else f"`{base}` ({TITLES.get(base, base)})"
+    title = f"# The OLAT teacher's input: {mine} against " + " and ".join(others or ["itself"])
     lines = [title, "",
              f"Command: `{record['command']}`  ",
              B.machine_line(record["machine"]) + "  ",
@@ -251,7 +269,10 @@ def _markdown(record: dict) -> str:
     ceil = {s: next((e[s]["ceiling"] for e in res.values() if e.get(s)), None) for s in COMPARED}
     lines += ["", "Ceilings (perfect texture through the same compositing and pixel sampling): "
               + ", ".join(f"{s} {c:.2f} dB" for s, c in ceil.items() if c is not None) + ".",
-              "", "Against `paper`, paired by seed (verdict when |difference| > max(2 σ, "
+              *[f"{v} is trained and scored on another capture: the `converged` one with "
+                f"{json.dumps(st)} (its own held-out and training frames and their ceilings; "
+                f"the same env-map renders)." for v, st in (record.get("stages") or {}).items()],
+              "", f"Against `{base}`, paired by seed (verdict when |difference| > max(2 σ, "
               "0.2 dB)):", ""]
     for v, e in res.items():
         for split, d in (e.get("versus_paper") or {}).items():

@@ -118,3 +118,35 @@ def test_student_env_convergence_reads_the_last_interval_when_validation_is_spar
     assert sparse["tail_from"] == 3000 and abs(sparse["gain_tail_db"] - 0.5) < 1e-12
     dense = E._seed_row(record([(3000, 23.0), (3500, 23.4), (4000, 23.5)]), {})
     assert dense["tail_from"] == 3500 and abs(dense["gain_tail_db"] - 0.1) < 1e-12
+
+
+def _teacher_row(psnr: float) -> dict:
+    split = {"psnr": psnr, "gap": 32.0 - psnr, "ceiling": 32.0, "ssim": 0.9}
+    return {"wall_s": 600.0, "gain_tail_db": 0.1, "curve": [[0, 20.0], [10, psnr]],
+            **{s: dict(split) for s in ("all_heldout", "all_train", "heldout", "fully_lit",
+                                        "env")}}
+
+
+def test_teacher_inputs_judges_against_the_named_base_and_a_stage_is_another_capture(
+        tmp_path, monkeypatch):
+    """study_teacher_inputs: ``--base`` names the variant the others are paired with (the
+    paper's input stays out of it), and a variant on another stage trains on a capture of
+    its own key (the scale's settings with that override), which the study makes once."""
+    import bench_presets as P
+    import study_hands as S
+    import study_teacher_inputs as T
+    runs = {"paper": [_teacher_row(20.0), _teacher_row(20.1)],
+            "shading": [_teacher_row(30.0), _teacher_row(30.2)],
+            "shading_l128": [_teacher_row(31.0), _teacher_row(31.3)]}    # +1.05 ± 0.07
+    res = T.summarize(runs, [0, 1], base="shading")
+    assert "versus_paper" not in res["shading"]
+    assert res["paper"]["versus_paper"]["env"]["verdict"] == "worse"
+    d = res["shading_l128"]["versus_paper"]["env"]
+    assert d["verdict"] == "better" and abs(d["diff_db"] - 1.05) < 1e-9
+    made = []
+    monkeypatch.setattr(S, "synth_capture", lambda folder, *a: made.append((folder, a[2])))
+    plain, _ = P._capture(tmp_path, lambda m: None)
+    dense, _ = P._capture(tmp_path, lambda m: None, stage=T.STAGES["shading_l128"])
+    assert plain != dense and [m[1]["lights"] for m in made] == [32, 128]
+    assert {k: v for k, v in made[1][1].items() if k != "lights"} == \
+        {k: v for k, v in made[0][1].items() if k != "lights"}
