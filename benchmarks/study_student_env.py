@@ -92,13 +92,17 @@ VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper", "head": "eq11
             # the cpu preset's student distilled from the OLAT teacher with the shading
             # features as input (study_teacher_inputs.py's ``shading`` variant)
             "linear_tshading": {"head": "linear", "env_augment": "paper",
-                                "teacher": "shading"}}
+                                "teacher": "shading"},
+            # ... and from the same teacher trained on a 128-light stage (``shading_l128``:
+            # same poses, cameras and env maps; the student distills on this capture)
+            "linear_tl128": {"head": "linear", "env_augment": "paper",
+                             "teacher": "shading_l128"}}
 BASE = "tied"
 #: what each variant is compared with (paired by seed): the students with ``tied`` (the
 #: paper's text), DRAM with synthesized env maps with DRAM on the training maps alone
 BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "tied_8k": BASE,
          "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k",
-         "linear_tshading": "linear"}
+         "linear_tshading": "linear", "linear_tl128": "linear_tshading"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
           "ground_truth")
@@ -318,8 +322,11 @@ def main(argv=None) -> None:
     seeds = list(range(args.seeds))
     workers = max(1, args.workers)
     kinds = sorted({teacher_of(v) for v in variants})
+    # each teacher trains on its own stage's capture (T.STAGES); the students distill on
+    # the converged one (the same poses, cameras and env maps on every stage)
+    stage = {t: P._capture(teachers, log, stage=T.STAGES.get(t))[0] for t in kinds}
     with ThreadPoolExecutor(workers) as pool:      # the teachers (cached)
-        list(pool.map(lambda job: T._run(teachers, capture, *job, log),
+        list(pool.map(lambda job: T._run(teachers, stage[job[0]], *job, log),
                       [(t, s) for t in kinds for s in seeds]))
     teacher = {(t, s): teachers / f"{t}_s{s}.pt" for t in kinds for s in seeds}
     for t, s in teacher:
@@ -367,7 +374,8 @@ TOPICS = {"untied": "per-texel biases", "mix": "synthesized env maps",
           "dram_mix": "DRAM", "tied_8k": "training length",
           "linear": "a head linear in its features", "linear_lsq": "a head linear in its features",
           "lsq": "a head linear in its features", "linear_8k": "a head linear in its features",
-          "linear_tshading": "a teacher with shading features as input"}
+          "linear_tshading": "a teacher with shading features as input",
+          "linear_tl128": "that teacher on a 128-light stage"}
 
 NAMES = {"heldout_pose_eval_env": "held-out poses × held-out maps",
          "heldout_pose_train_env": "held-out poses × training maps",
@@ -416,11 +424,12 @@ def _markdown(record: dict) -> str:
                      f"{e['wall_min'] / len(e['seeds']):.1f} |")
     first = next(iter(res.values()))["ground_truth"]
     lines += [f"| ceiling (perfect texture) | | | | {first['ceiling_mse'] * 1e3:.2f} | | | |",
-              "", "Mean PSNR (dB) per split; the students against `tied`, DRAM with "
-              "synthesized env maps against `dram`, paired by seed (verdict when "
-              "|difference| > max(2 σ, 0.2 dB)), with the mean MSE ratio (a student of "
-              "another teacher only against the ground truth, the reference both share):",
-              ""]
+              "", "Mean PSNR (dB) per split; "
+              + (", ".join(f"`{v}` against `{e['versus']['base']}`"
+                           for v, e in res.items() if e.get("versus")) or "no comparisons")
+              + ", paired by seed (verdict when |difference| > max(2 σ, 0.2 dB)), with the "
+              "mean MSE ratio (a student of another teacher only against the ground truth, "
+              "the reference both share):", ""]
     for v, e in res.items():
         lines.append(f"- {v}: " + "; ".join(
             f"{NAMES[s]} {e[s]['psnr'][0]:.2f} ± {e[s]['psnr'][1]:.2f}" for s in SPLITS))
@@ -446,8 +455,10 @@ def _plot(record: dict, path: Path) -> None:
     ax.set_xlabel("iteration")
     ax.set_ylabel("validation PSNR against the teacher (dB)")
     topics = sorted({TOPICS[v] for v in record["variants"] if v in TOPICS})
-    ax.set_title("student, cpu preset: " + (", ".join(topics) or "the paper's text")
-                 + " (one line per seed)", fontsize=9)
+    import textwrap
+    ax.set_title(textwrap.fill("student, cpu preset: " + (", ".join(topics)
+                                                          or "the paper's text")
+                               + " (one line per seed)", 70), fontsize=9)
     ax.grid(True, alpha=0.3)
     ax.legend()
     B.save(fig, path, record["machine"])

@@ -89,6 +89,7 @@ def test_student_env_judges_a_student_of_another_teacher_on_the_ground_truth_onl
     base on the ground truth alone (against two different teachers nothing is shared); it
     caches that teacher's textures apart and passes no ``teacher`` field to ``distill``."""
     import study_student_env as E
+    import study_teacher_inputs as T
     runs = {"linear": [_env_row(27.0), _env_row(27.4)],
             "linear_tshading": [_env_row(28.0), _env_row(28.5)]}
     versus = E.summarize(runs)["linear_tshading"]["versus"]
@@ -98,6 +99,10 @@ def test_student_env_judges_a_student_of_another_teacher_on_the_ground_truth_onl
     assert "teacher" not in E.student_config("linear_tshading")
     assert E.textures_dir(tmp_path, "paper", 1) == tmp_path / "textures_s1"
     assert E.textures_dir(tmp_path, "shading", 1) == tmp_path / "textures_shading_s1"
+    # a teacher of another stage: its study variant, judged against the student of the
+    # 32-light teacher on the ground truth alone
+    assert E.teacher_of("linear_tl128") == "shading_l128" and E.BASES["linear_tl128"] == \
+        "linear_tshading" and "shading_l128" in T.STAGES
 
 
 def test_student_env_convergence_reads_the_last_interval_when_validation_is_sparse():
