@@ -322,7 +322,9 @@ def synth_capture(folder: Path, hand: str, seed: int, capture: dict, eval_envs: 
                  lights=capture["lights"], group=capture["group"], frames=capture["frames"],
                  res=capture["res"], tex_res=capture["tex_res"], aa=capture["aa"],
                  eval_poses=capture["eval_poses"], eval_cameras=capture["eval_cameras"],
-                 eval_envs=eval_envs)
+                 eval_envs=eval_envs,
+                 # a scale that does not name it keeps the renders its cached captures have
+                 eval_env_space=capture.get("eval_env_space", "vertices"))
 
 
 class Study:

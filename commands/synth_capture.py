@@ -48,6 +48,12 @@ from relight_cli.clitools import (SquareSize, check_output, log, no_clobber_opti
 @click.option("--eval-env-res", default="64x32", show_default=True, metavar="WxH",
               help="Lat-long grid the ground-truth env renders integrate over; the env maps "
                    "are stored in eval/envs/ resampled to it.")
+@click.option("--eval-env-space", type=click.Choice(["texels", "vertices"]), default="texels",
+              show_default=True,
+              help="Where the ground-truth env renders integrate light transport: at the "
+                   "texel centres where the LEDs are shaded (an env render is then the sum of "
+                   "the stage's own transport over the map's directions, as on a real stage) "
+                   "or at mesh vertices, interpolated (captures made before this option).")
 @click.option("--skin-seed", type=int, default=0, show_default=True,
               help="Seed of the procedural skin: the subject (keep it across the right, left "
                    "and two-hand captures of one study; --seed changes their motion).")
@@ -58,7 +64,7 @@ from relight_cli.clitools import (SquareSize, check_output, log, no_clobber_opti
 @quiet_option
 def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
             keyframe_every, tex_res, aa, no_sss, bounce, eval_poses, eval_envs, eval_cameras,
-            eval_env_res, skin_seed, preview, seed, no_clobber, quiet):
+            eval_env_res, eval_env_space, skin_seed, preview, seed, no_clobber, quiet):
     """Render a light-stage capture of HAND (a hand.npz, or
     builtin:right|left|two[:POSE]; default builtin:right) into FOLDER in the
     relight/capture format (formats/capture.md): capture.json, the ground-truth
@@ -101,7 +107,8 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
     settings = StageSettings(cameras=cameras, lights=leds, group=group, frames=frames,
                              full_every=full_every, res=res, keyframe_every=keyframe_every,
                              seed=seed, tex_res=tex_res, aa=aa, sss=not no_sss, bounce=bounce,
-                             skin_seed=skin_seed, eval_env_res=tuple(env_res))
+                             skin_seed=skin_seed, eval_env_res=tuple(env_res),
+                             eval_env_space=eval_env_space)
     stage = light_stage(data, [load_envmap(spec) for spec in env_specs], settings, motion,
                         eval_poses)
     plan, settings = stage.plan, stage.settings

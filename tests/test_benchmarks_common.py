@@ -148,6 +148,11 @@ def test_teacher_inputs_judges_against_the_named_base_and_a_stage_is_another_cap
     assert res["paper"]["versus_paper"]["env"]["verdict"] == "worse"
     d = res["shading_l128"]["versus_paper"]["env"]
     assert d["verdict"] == "better" and abs(d["diff_db"] - 1.05) < 1e-9
+    # another stage's frames are other images: judged on the gap to its own ceiling
+    assert d["on"] == "gap" and res["paper"]["versus_paper"]["env"]["on"] == "psnr"
+    runs["shading_l128"][0]["all_heldout"].update(psnr=40.0, gap=5.0)   # higher, but farther
+    worse = T.summarize(runs, [0, 1], base="shading")["shading_l128"]["versus_paper"]
+    assert worse["all_heldout"]["diff_db"] < 0
     made = []
     monkeypatch.setattr(S, "synth_capture", lambda folder, *a: made.append((folder, a[2])))
     plain, _ = P._capture(tmp_path, lambda m: None)

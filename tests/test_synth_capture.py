@@ -516,6 +516,77 @@ def test_stage_env_render_matches_brute_force():
     np.testing.assert_allclose(ours, expected, rtol=1e-9, atol=1e-12 * expected.max())
 
 
+def test_stage_env_render_is_the_sum_of_far_leds():
+    """Superposition, the property every model of LED frames relies on (RelightableHands
+    Eq. 2): with ``env_space="texels"`` (the stage's default since ``eval_env_space``) an
+    env map of a few lit directions renders, SSS and GGX included, as the sum of far LEDs
+    in those directions (r = 100 m, intensity r²·L Δω: the distant-light limit of the
+    LEDs' own shading), through a camera.  The older per-vertex transport does not."""
+    from relight_cli.envmap import DiscreteEnv, latlong_directions, latlong_solid_angles
+    from relight_cli.hand.scene import posed_meshes
+    from relight_cli.inputs import load_hand
+    from relight_cli.render.appearance import hand_materials
+    from relight_cli.render.shading import HandRenderer, PointLights, RenderSettings
+
+    hand = load_hand("builtin:right")
+    meshes = posed_meshes(hand, 0, "fine")
+    materials = hand_materials(hand, "fine", 256, 0)
+    centre = meshes[0].vertices.mean(0)
+    camera = S.dome_cameras(3, centre, 1.0, 32, 30.0)[1]
+    dirs = latlong_directions(8, 16).reshape(-1, 3)
+    dw = latlong_solid_angles(8, 16).reshape(-1)
+    far = 100.0
+
+    def relative(space, cells, weights):
+        r = HandRenderer(meshes, materials, RenderSettings(tex_res=64, aa=2, sss=True,
+                                                           direct="texel", env_res=(8, 16),
+                                                           env_space=space))
+        rad = np.zeros((len(dirs), 3))
+        rad[cells] = weights / dw[cells, None]                  # L Δω = weight
+        env = r.render(camera, r.light(env=DiscreteEnv(dirs, dw, rad, 8, 16))).image
+        leds = PointLights(centre + far * dirs[cells], far * far * weights)
+        led = r.render(camera, r.light(leds)).image
+        assert led.sum() > 0
+        return float(np.sum((env - led) ** 2) / np.sum(led ** 2))
+
+    # one at a time (a backlit grazing one, 37, has the sharpest lobe), then three at once
+    singles = [20, 37, 50, 70, 90]
+    weights = np.array([[1.0, 0.8, 0.6], [0.3, 0.3, 0.3], [2.0, 2.0, 1.5]])
+    for c in singles:
+        assert relative("texels", [c], weights[:1]) < 1e-3, c
+    assert relative("texels", [20, 37, 90], weights) < 1e-3
+    assert max(relative("vertices", [c], weights[:1]) for c in singles) > 1e-2
+
+
+def test_older_captures_keep_their_key_and_env_space(run_cli, tmp_path):
+    """A capture.json without ``eval_env_space`` was rendered per vertex: its stage
+    rebuilds as such and its key is what it was; a new capture records ``texels`` (the
+    default) or what ``--eval-env-space`` says, and the two have different keys."""
+    from dataclasses import asdict
+    import hashlib
+    old = asdict(S.StageSettings(eval_env_space="vertices"))
+    del old["eval_env_space"]
+    assert S.stage_settings(old).eval_env_space == "vertices"
+    text = json.dumps({"settings": old, "hand": "abc"}, sort_keys=True)
+    assert S.capture_key(S.StageSettings(eval_env_space="vertices"), "abc") == \
+        hashlib.sha256(text.encode()).hexdigest()[:16]
+    assert S.capture_key(S.StageSettings(), "abc") != S.capture_key(
+        S.StageSettings(eval_env_space="vertices"), "abc")
+    assert S.stage_settings({**old, "eval_env_space": "pixels"}) is None
+    keys = {}
+    for space in ("texels", "vertices", None):
+        out = tmp_path / f"cap-{space}"
+        extra = [] if space is None else ["--eval-env-space", space]
+        r = run_cli("synth-capture", "-o", out, *TINY, *extra)
+        assert r.exit_code == 0, r.output
+        cap = C.read_capture(str(out))
+        assert cap.settings["eval_env_space"] == (space or "texels")
+        keys[space] = cap.key
+    assert keys[None] == keys["texels"] != keys["vertices"]
+    r = run_cli("synth-capture", "-o", tmp_path / "bad", *TINY, "--eval-env-space", "pixels")
+    assert r.exit_code == 2 and not (tmp_path / "bad").exists()
+
+
 def test_polyhaven_eval_env(run_cli, tmp_path, shared):
     """A real 1k Poly Haven HDR as a held-out env map: stored in eval/envs/ at the working
     grid with its power, and the evaluation renders lit by it."""

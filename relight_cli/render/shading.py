@@ -116,7 +116,10 @@ class RenderSettings:
             the texture-space maps: camera independent, so a light-stage frame traces
             its lights once).
         env_space: where env-map transport is integrated: "vertices" of the rendered mesh
-            (bake-features' receivers; interpolated to texels) or "texels".
+            (bake-features' receivers; interpolated to texels) or "texels" (diffuse
+            transport and visibility at the texel centres, the GGX lobe per G-buffer sample
+            with that visibility looked up: every direction shaded as a far point light
+            is with ``direct="texel"``, so the render is their sum).
         ray_offset: metres to lift shadow-ray origins; None = 1e-4 × the mesh's diagonal.
     """
 
@@ -608,7 +611,9 @@ class HandRenderer:
             if specular:
                 if has_lights and s.direct != "pixel":
                     spec += self._point_specular(gb, sel, rough, mat.f0, lighting, k)
-                if lighting.env is not None:
+                if lighting.env is not None and s.env_space == "texels":
+                    spec += self._env_specular(gb, sel, rough, mat.f0, lighting.env, k)
+                elif lighting.env is not None:
                     env_spec = self._env_transport(k, lighting.env, gb.eye, specular=True)["ggx"]
                     spec += bilinear(self.surfaces[k].to_map(env_spec), uv)
                 radiance[sel] += mat.specular * spec
@@ -631,6 +636,29 @@ class HandRenderer:
             if spec is not None:
                 spec += (ggx_cosine(n, v, l, rough, f0) * falloff)[:, None] * lights.intensity[j]
         return irr, spec
+
+    def _env_specular(self, gb, sel, rough, f0, env, k):
+        """[len(sel), 3] GGX radiance of an env map at the samples ``sel`` of hand k, each
+        lit direction ω_m a distant light of RGB weight L_m Δω_m shaded exactly as
+        :meth:`_point_specular` shades an LED: the lobe per sample, the visibility h_m
+        looked up bilinearly in the texel maps (``env_space="texels"``; traced by
+        :meth:`_env_transport`).  So an env render is the sum over its directions of
+        what the stage renders for one far LED each (tests/test_synth_capture.py)."""
+        self._env_transport(k, env, gb.eye, specular=False)     # traces h at the texels
+        _, cache = self._env_cache[k]
+        surf = self.surfaces[k]
+        n, v, uv = gb.normal[sel], gb.view[sel], gb.uv[sel]
+        lit = np.nonzero(env.lit)[0]
+        weight = env.radiance[lit] * env.solid_angle[lit, None]                    # [M', 3]
+        out = np.zeros((len(sel), 3))
+        block = 8 * _LIGHT_BLOCK
+        for start in range(0, len(lit), block):
+            m = lit[start:start + block]
+            vis = bilinear(surf.to_map(cache.visible[:, m].astype(np.float32)), uv)
+            vis = vis.reshape(len(sel), len(m))                                   # [S, B]
+            w = ggx_cosine(n[:, None], v[:, None], env.directions[m][None], rough[:, None], f0)
+            out += (w * vis) @ weight[start:start + block]
+        return out
 
     def _point_specular(self, gb, sel, rough, f0, lighting, k):
         """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k,
