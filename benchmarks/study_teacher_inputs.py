@@ -319,15 +319,29 @@ def plot_seed_curves(ax, record: dict) -> None:
 
 
 def _plot(record: dict, path: Path) -> None:
+    import copy
     fig, (ax,) = B.figure()
+    if record.get("stages"):
+        # variants on other stages validate on other images: plot each one's gap to its
+        # own ceiling instead of PSNRs that are not comparable
+        record = copy.deepcopy(record)
+        for e in record["results"].values():
+            for r in e["seeds"]:
+                r["curve"] = [[x, r["heldout"]["ceiling"] - y] for x, y in r["curve"]]
     plot_seed_curves(ax, record)
     ceil = next((e["heldout"]["ceiling"] for e in record["results"].values()
                  if e.get("heldout")), None)
-    if ceil is not None:
+    if record.get("stages"):
+        ax.axhline(0, color="k", linestyle=":", linewidth=1, label="ceiling")
+        ax.set_ylabel("gap to own ceiling (dB), 16 held-out samples")
+    elif ceil is not None:
         ax.axhline(ceil, color="k", linestyle=":", linewidth=1, label="ceiling (same samples)")
     ax.set_xlabel("iteration")
-    ax.set_ylabel("held-out PSNR, the validation's 16 samples (dB)")
-    ax.set_title("OLAT teacher, cpu preset: input channels (one line per seed)")
+    if not record.get("stages"):
+        ax.set_ylabel("held-out PSNR, the validation's 16 samples (dB)")
+    ax.set_title("OLAT teacher, cpu preset: "
+                 + ("the stage" if record.get("stages") else "input channels")
+                 + " (one line per seed)")
     ax.grid(True, alpha=0.3)
     ax.legend()
     B.save(fig, path, record["machine"])

@@ -205,6 +205,43 @@ def test_readme_quotes_the_shading_input_study():
     assert resolve_config("cpu").inputs == "shading"
 
 
+@pytest.mark.skipif(not (RESULTS / "env_truth" / "env_truth.json").exists(),
+                    reason="no study table")
+def test_readme_quotes_the_env_truth_and_led_density_studies():
+    """The env-map ground truth's share of the gap and the 128-LED stage, as the README
+    quotes them, read back from env_truth.json and teacher_lights/teacher_inputs.json;
+    the stage's superposition error is what the default ``texels`` makes small."""
+    rec = json.loads((RESULTS / "env_truth" / "env_truth.json").read_text())
+    res, sup = rec["results"], rec["superposition"]
+    t13 = " ".join(_readme_rh_t13().split())
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert (f"up to {100 * sup['vertices']['max']:.0f} % (relative MSE; median "
+            f"{100 * sup['vertices']['median']:.2f} %)") in t13
+    assert sup["texels"]["max"] < 1e-3 and \
+        f"{100 * sup['texels']['max']:.2f} % at most" in t13
+    for name, label in (("paper", "paper input"), ("shading", "shading input")):
+        v, t = res[name]["vertices"]["gap"], res[name]["texels"]["gap"]
+        assert res[name]["gap_change"]["verdict"] == "smaller"
+        assert (f"{v[0]:.2f} to {t[0]:.2f} ± {t[1]:.2f} dB ({label})") in t13
+    st = res["student linear"]
+    assert (f"from {st['vertices']['gap'][0]:.2f} to {st['texels']['gap'][0]:.2f} ± "
+            f"{st['texels']['gap'][1]:.2f} dB") in t13
+    assert f"{st['texels']['gap'][0]:.2f} dB short" in text
+    ceil = {sp: res["paper"][sp]["ceiling"] for sp in ("vertices", "texels")}
+    assert f"from {ceil['vertices']:.2f} to {ceil['texels']:.2f} dB" in t13
+    gains = [e["texels"]["psnr"][0] - e["vertices"]["psnr"][0] for e in res.values()]
+    assert min(gains) > -0.05 and max(gains) < 0.55 and "gain 0.0–0.5 dB" in t13
+    lights = json.loads((RESULTS / "teacher_lights" / "teacher_inputs.json").read_text())
+    dense = lights["results"]["shading_l128"]
+    held, env = dense["versus_paper"]["all_heldout"], dense["versus_paper"]["env"]
+    assert lights["base"] == "shading" and held["on"] == "gap" and held["verdict"] == "better"
+    assert env["verdict"] == "tie"
+    assert (f"from {lights['results']['shading']['all_heldout']['gap'][0]:.2f} to "
+            f"{dense['all_heldout']['gap'][0]:.2f} ± {dense['all_heldout']['gap'][1]:.2f} dB "
+            f"(+{held['diff_db']:.2f} ± {held['std_db']:.2f} dB, better)") in t13
+    assert f"tie under env maps (+{env['diff_db']:.2f} ± {env['std_db']:.2f} dB)" in t13
+
+
 @pytest.mark.skipif(not (RESULTS / "student_env.json").exists(), reason="no study table")
 def test_readme_quotes_the_student_env_study():
     """The README's student paragraph quotes student_env.json: each variant's ground-truth
