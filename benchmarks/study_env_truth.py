@@ -35,7 +35,7 @@ import json
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -45,6 +45,8 @@ import bench_presets as P  # noqa: E402
 import study_teacher_inputs as T  # noqa: E402
 
 SPACES = ("vertices", "texels")
+#: the other ``train-teacher --model`` kinds, at their ``cpu`` preset (``--models``)
+MODELS = ("ggx", "linear")
 #: metres to the far LED of the superposition check (the stage's LEDs are 1.2 m away)
 FAR = 100.0
 
@@ -110,8 +112,21 @@ def superposition(capture: str, space: str, directions: int) -> list:
     return out
 
 
+def run_model(work: Path, capture: Path, model: str, seed: int, log) -> dict:
+    """``relight train-teacher CAPTURE --preset cpu --model MODEL`` once (cached as
+    work/MODEL_sSEED.*, beside study_teacher_inputs.py's OLAT runs)."""
+    name = f"{model}_s{seed}"
+    if (work / f"{name}.done.json").is_file():
+        return json.loads((work / f"{name}.done.json").read_text())
+    argv = ["train-teacher", str(capture), "--preset", "cpu", "--model", model, "--seed",
+            str(seed), "-o", str(work / f"{name}.pt"), "--metrics-out",
+            str(work / f"{name}.json"), "-q"]
+    return T.run_once(work, name, argv, "study_env_truth.py", log)
+
+
 def score_env(work: str, capture: str, variant: str, seed: int, space: str) -> dict:
-    """The teacher's env split on ``capture`` (cached): {psnr, ceiling, gap, samples}."""
+    """The teacher's (or linear model's) env split on ``capture`` (cached): {psnr,
+    ceiling, gap, samples}."""
     path = Path(work) / f"{variant}_s{seed}.env_{space}.json"
     if path.is_file():
         return json.loads(path.read_text())
@@ -120,8 +135,7 @@ def score_env(work: str, capture: str, variant: str, seed: int, space: str) -> d
     from relight_cli.formats.checkpoint import read_checkpoint
     from relight_cli.neural.evaluate import evaluate_capture, load_hand_model
     torch.set_num_threads(1)
-    model = load_hand_model(read_checkpoint(str(Path(work) / f"{variant}_s{seed}.pt"),
-                                            kind="teacher"))
+    model = load_hand_model(read_checkpoint(str(Path(work) / f"{variant}_s{seed}.pt")))
     s = evaluate_capture(capture, [model], ["env"])["env"]
     out = {"psnr": s["psnr"], "ceiling": s["ceiling"]["psnr"], "gap": s["gap_to_ceiling"],
            "samples": s["samples"]}
@@ -217,6 +231,10 @@ def main(argv=None) -> None:
                     help="study_teacher_inputs.py's cache: captures and teachers")
     ap.add_argument("--teachers", default="paper,shading",
                     help=f"comma-separated, of {', '.join(T.VARIANTS)} [default: paper,shading]")
+    ap.add_argument("--models", default="",
+                    help=f"comma-separated, of {', '.join(MODELS)}: trained here (cpu preset) "
+                    "and scored like the teachers [default: none]")
+    ap.add_argument("--model-seeds", type=int, default=1)
     ap.add_argument("--students", default="",
                     help="comma-separated study_student_env.py variants also scored "
                     "(their cache: --student-work) [default: none]")
@@ -231,6 +249,9 @@ def main(argv=None) -> None:
     teachers = [v.strip() for v in args.teachers.split(",") if v.strip()]
     import study_student_env as E
     students = [v.strip() for v in args.students.split(",") if v.strip()]
+    models = [v.strip() for v in args.models.split(",") if v.strip()]
+    if any(m not in MODELS for m in models):
+        ap.error(f"--models: use {', '.join(MODELS)}")
     bad = [v for v in students if v not in E.VARIANTS]
     if bad:
         ap.error(f"unknown student variant(s) {', '.join(bad)}; use {', '.join(E.VARIANTS)}")
@@ -251,8 +272,16 @@ def main(argv=None) -> None:
     for v in teachers:                              # the teachers (cached)
         for s in seeds:
             T._run(work, captures[v, "vertices"], v, s, log)
+    for sp in SPACES:
+        captures["model", sp] = P._capture(work, log, stage=stage_of("", sp))[0]
+    model_seeds = list(range(args.model_seeds))
+    with ThreadPoolExecutor(max(1, args.workers)) as pool:
+        list(pool.map(lambda job: run_model(work, captures["model", "vertices"], *job, log),
+                      [(m, s) for m in models for s in model_seeds]))
     jobs = [(str(work), str(captures[v, sp]), v, s, sp) for v in teachers for s in seeds
             for sp in SPACES]
+    jobs += [(str(work), str(captures["model", sp]), m, s, sp) for m in models
+             for s in model_seeds for sp in SPACES]
     for v in students:       # students distill on the scale's own (32-LED) capture
         for sp in SPACES:
             captures["student", sp] = P._capture(work, log, stage=stage_of("", sp))[0]
@@ -265,7 +294,7 @@ def main(argv=None) -> None:
         done = list(pool.map(score_env, *zip(*jobs)))
         graded = list(pool.map(score_student, *zip(*student_jobs))) if student_jobs else []
         stage_check = {sp: f.result() for sp, f in stage_check.items()}
-    scores = {v: {sp: [] for sp in SPACES} for v in teachers}
+    scores = {v: {sp: [] for sp in SPACES} for v in teachers + models}
     for (_, _, v, _, sp), r in zip(jobs, done):
         scores[v][sp].append(r)
     scores.update({f"student {v}": {sp: [] for sp in SPACES} for v in students})
@@ -274,7 +303,8 @@ def main(argv=None) -> None:
     import numpy as np
     record = {"command": B.run_command("study_env_truth.py",
                                        sys.argv[1:] if argv is None else argv),
-              "machine": limits, "seeds": seeds, "far_m": FAR,
+              "machine": limits, "seeds": seeds, "far_m": FAR, "models": models,
+              "model_seeds": model_seeds,
               "wall_s": round(time.perf_counter() - t0, 1),
               "captures": {f"{v}/{sp}": Path(c).name for (v, sp), c in captures.items()},
               "superposition": {sp: {"median": float(np.median(r)), "mean": float(np.mean(r)),
@@ -321,6 +351,11 @@ def _markdown(record: dict) -> str:
                         if ch else "—") + " |")
     ceil = {sp: next((e[sp]["ceiling"] for e in record["results"].values() if e.get(sp)), None)
             for sp in SPACES}
+    if record.get("models"):
+        lines += ["", f"{', '.join(record['models'])}: `relight train-teacher CAPTURE --preset "
+                  f"cpu --model M`, trained here on the 32-LED capture, seed(s) "
+                  f"{', '.join(map(str, record['model_seeds']))} (± 0 with one seed: no "
+                  f"spread, so a gap change needs 0.2 dB)."]
     lines += ["", "Ceilings (the perfect texture through the same compositing): "
               + ", ".join(f"{sp} {c:.2f} dB" for sp, c in ceil.items() if c is not None)
               + ". Captures: " + ", ".join(f"{k} `{c}`" for k, c in record["captures"].items())
