@@ -227,6 +227,10 @@ def test_readme_quotes_the_env_truth_and_led_density_studies():
     assert (f"from {st['vertices']['gap'][0]:.2f} to {st['texels']['gap'][0]:.2f} ± "
             f"{st['texels']['gap'][1]:.2f} dB") in t13
     assert f"{st['texels']['gap'][0]:.2f} dB short" in text
+    for name, label in (("linear", "URHand's linear model's"), ("ggx", "GGX baseline's")):
+        v, t = res[name]["vertices"]["gap"][0], res[name]["texels"]["gap"][0]
+        assert f"{label} (one seed) from {v:.2f} to {t:.2f} dB" in t13
+    assert rec["model_seeds"] == [0]
     ceil = {sp: res["paper"][sp]["ceiling"] for sp in ("vertices", "texels")}
     assert f"from {ceil['vertices']:.2f} to {ceil['texels']:.2f} dB" in t13
     gains = [e["texels"]["psnr"][0] - e["vertices"]["psnr"][0] for e in res.values()]
