@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
@@ -68,18 +69,14 @@ def superposition(capture: str, space: str, directions: int) -> list:
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.ceiling import Ceiling
     from relight_cli.neural.teacher import composite
-    from relight_cli.render.shading import HandRenderer, PointLights, RenderSettings
+    from relight_cli.render.shading import PointLights
 
     torch.set_num_threads(1)
     data = CaptureData(capture, 64, 0, True)
     shader = Ceiling(data).shader
-    s = shader.settings
+    shader.settings = s = replace(shader.settings, eval_env_space=space)   # this one's own
     meshes = data.meshes(0, True)
-    renderer = HandRenderer(meshes, shader.materials,
-                            RenderSettings(tex_res=s.tex_res, aa=s.aa, sss=s.sss,
-                                           bounce=s.bounce, direct="texel",
-                                           env_res=tuple(s.eval_env_res), env_space=space),
-                            rasters=shader.rasters)
+    renderer = shader.renderer(meshes)
     texels = data.texels(0, True)
     gbuffer = data.gbuffer(0, data.capture.cameras[0], True)
     grid = discretize_env(data.env_map(next(iter(data.capture.evaluation["envs"]))),

@@ -435,6 +435,27 @@ class HandRenderer:
             irr += (h * np.clip(cos, 0, None) / np.maximum(r2, 1e-300))[:, None] * lights.intensity[j]
         return irr, vis
 
+    def _env_visibility(self, k: int, env, fs):
+        """(receivers, VisibilityCache) of hand k's env transport (``env_space``'s
+        receivers), every pair ``fs`` needs of ``env``'s lit directions traced (once per
+        renderer: later calls find them traced)."""
+        if k not in self._env_cache:
+            if self.settings.env_space == "vertices":
+                mesh = self.meshes[k]
+                normals, defined = vertex_normals(mesh.vertices, mesh.faces, mesh.normals)
+                receivers = Receivers(np.asarray(mesh.vertices, np.float64), normals, defined)
+            else:
+                surf = self.surfaces[k]
+                receivers = Receivers(surf.points, surf.normals, np.ones(len(surf.points), bool))
+            scene = self.scene if self.settings.shadows else None
+            cache = VisibilityCache(scene, receivers, env.directions, self.offsets[k])
+            self._env_cache[k] = (receivers, cache)
+        receivers, cache = self._env_cache[k]
+        if not np.array_equal(cache.directions, env.directions):
+            raise ValueError("env maps of one renderer must share the direction grid")
+        cache.require(FE.needed_pairs(receivers, None, env.directions, env.lit, fs))
+        return receivers, cache
+
     def _env_transport(self, k: int, env, eye, specular: bool):
         """Bake-features' env transport for hand k, at its texels: {'diffuse', 'ggx'?} [K, 3].
 
@@ -446,22 +467,9 @@ class HandRenderer:
         surf = self.surfaces[k]
         mesh = self.meshes[k]
         by_vertex = self.settings.env_space == "vertices"
-        if k not in self._env_cache:
-            if by_vertex:
-                normals, defined = vertex_normals(mesh.vertices, mesh.faces, mesh.normals)
-                receivers = Receivers(np.asarray(mesh.vertices, np.float64), normals, defined)
-            else:
-                receivers = Receivers(surf.points, surf.normals, np.ones(len(surf.points), bool))
-            scene = self.scene if self.settings.shadows else None
-            cache = VisibilityCache(scene, receivers, env.directions, self.offsets[k])
-            self._env_cache[k] = (receivers, cache)
-        receivers, cache = self._env_cache[k]
-        if not np.array_equal(cache.directions, env.directions):
-            raise ValueError("env maps of one renderer must share the direction grid")
         fs = FE.FeatureSettings(shininess=(), specular="ggx" if specular else "none",
                                 f0=self.materials[k].f0, visibility=self.settings.shadows)
-        need = FE.needed_pairs(receivers, None, env.directions, env.lit, fs)
-        cache.require(need)
+        receivers, cache = self._env_visibility(k, env, fs)
         view = view_directions(receivers.points, eye)
         rough = None
         if specular:
@@ -641,11 +649,11 @@ class HandRenderer:
         """[len(sel), 3] GGX radiance of an env map at the samples ``sel`` of hand k, each
         lit direction ω_m a distant light of RGB weight L_m Δω_m shaded exactly as
         :meth:`_point_specular` shades an LED: the lobe per sample, the visibility h_m
-        looked up bilinearly in the texel maps (``env_space="texels"``; traced by
-        :meth:`_env_transport`).  So an env render is the sum over its directions of
+        looked up bilinearly in the texel maps (``env_space="texels"``; traced once by
+        :meth:`_env_visibility`, not the diffuse transport again).  So an env render is the sum over its directions of
         what the stage renders for one far LED each (tests/test_synth_capture.py)."""
-        self._env_transport(k, env, gb.eye, specular=False)     # traces h at the texels
-        _, cache = self._env_cache[k]
+        _, cache = self._env_visibility(k, env, FE.FeatureSettings(
+            shininess=(), specular="none", f0=f0, visibility=self.settings.shadows))
         surf = self.surfaces[k]
         n, v, uv = gb.normal[sel], gb.view[sel], gb.uv[sel]
         lit = np.nonzero(env.lit)[0]
