@@ -141,12 +141,14 @@ def score_env(work: str, capture: str, variant: str, seed: int, space: str) -> d
 
 
 def score_student(students: str, teachers: str, capture: str, variant: str, seed: int,
-                  space: str) -> dict:
+                  space: str, grid=None) -> dict:
     """A study_student_env.py student (its cache ``students``) against the env renders of
     ``capture`` (cached): {psnr, ceiling, gap, samples} over every render, as the
     ``distill`` command's own ``vs_ground_truth`` scores them (the perfect texture at the
-    student's N through the same compositing for the ceiling)."""
-    path = Path(students) / f"{variant}_s{seed}.gt_{space}.json"
+    student's N through the same compositing for the ceiling); its features on the env
+    grid ``grid`` (H, W; default its training grid ``env_res``)."""
+    tag = "" if grid is None else f".grid{grid[0]}x{grid[1]}"
+    path = Path(students) / f"{variant}_s{seed}.gt_{space}{tag}.json"
     if path.is_file():
         return json.loads(path.read_text())
     import numpy as np
@@ -164,6 +166,7 @@ def score_student(students: str, teachers: str, capture: str, variant: str, seed
     model, config = student_model(read_checkpoint(str(Path(students) / f"{variant}_s{seed}.pt"),
                                                   kind="student"))
     model.eval()
+    grid = tuple(grid or config.env_res)
     teacher = Path(teachers) / f"{E.teacher_of(variant)}_s{seed}.pt"
     data, targets = E._targets(str(teacher), capture, None)
     envs = E._env_specs()
@@ -176,7 +179,7 @@ def score_student(students: str, teachers: str, capture: str, variant: str, seed
     rows, best = [], []
     for render in data.splits()["env"]:
         pose, env_name, camera, gt, mask = data.env_target(render[1])
-        denv = discretize_env(data.env_map(env_name), *config.env_res)
+        denv = discretize_env(data.env_map(env_name), *grid)
         with torch.no_grad():
             pred = task.render(model, pose, camera.name, denv, "cpu", held_out=True)
         m = DI._metrics(pred.numpy(), gt, mask)

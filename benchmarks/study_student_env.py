@@ -129,7 +129,9 @@ def _prefill(teacher: str, capture: str, cache: str, part: int, parts: int) -> i
     return targets.computed
 
 
-def _targets(teacher: str, capture: str, cache: str | None):
+def _targets(teacher: str, capture: str, cache: str | None, grid=None):
+    """(CaptureData, TeacherTargets) of the ``teacher`` checkpoint on ``capture``, its
+    pseudo ground truth on the env grid ``grid`` (H, W; default the cpu preset's)."""
     from relight_cli.envmap import discretize_env
     from relight_cli.formats.checkpoint import read_checkpoint
     from relight_cli.inputs import load_envmap
@@ -142,7 +144,8 @@ def _targets(teacher: str, capture: str, cache: str | None):
     tck = job.load_teacher(read_checkpoint(teacher, kind="teacher"), "cpu",
                            file_sha256(teacher), teacher)
     data = L.read_captures([capture], tck.config)[0]
-    grid = discretize_env(load_envmap("builtin:uniform"), *STUDENT_PRESETS["cpu"]["env_res"])
+    grid = discretize_env(load_envmap("builtin:uniform"),
+                          *(grid or STUDENT_PRESETS["cpu"]["env_res"]))
     return data, DI.TeacherTargets(tck.net, tck.config, data, grid, cache, 0, "cpu",
                                    tck.mean_texture, identity=tck.identity)
 

@@ -129,7 +129,9 @@ from relight_cli.clitools import (FiniteFloat, ModeGroupedCommand, ShadowStrengt
               help="[hand] Mesh rendered (and shadowing) [default: fine].")
 @click.option("--env-res", "env_res", default=None, metavar="WxH",
               help="[hand] Lat-long grid WxH (width first) the env map is integrated over, "
-                   "exactly as bake-features --env-res [default: 32x16].")
+                   "exactly as bake-features --env-res [default: 32x16; --model student: "
+                   "the checkpoint's render grid, any grid for the texel-aligned student, "
+                   "DRAM's training grid].")
 @click.option("--tex-res", "tex_res", type=SquareSize(), default=None,
               help="[hand] Texture-space lighting/SSS map size N (N×N) [default: 256].")
 @click.option("--aa", type=int, default=None,
@@ -638,12 +640,13 @@ def _render_student(a, job, net, config, ckpt, envmap, env_h, env_w, start) -> N
     from relight_cli.errors import UsageProblem
     from relight_cli.envmap import discretize_env
     from relight_cli.jobs import relight_hand as J
+    from relight_cli.neural.distill import render_grid
     if a.env_res is None:
-        env_h, env_w = config.env_res            # the student's own grid
-    if (env_h, env_w) != tuple(config.env_res):
+        env_h, env_w = render_grid(config)       # the student's own render grid
+    if config.student == "dram" and (env_h, env_w) != tuple(config.env_res):
         from relight_cli.envmap import EnvGrid
-        raise UsageProblem(f"the student was trained on a {EnvGrid(*config.env_res)} (WxH) "
-                           f"env grid; --env-res must match")
+        raise UsageProblem(f"the DRAM student was trained on a {EnvGrid(*config.env_res)} "
+                           f"(WxH) env grid, its light code's; --env-res must match")
     used = J.decoder_precision(a.precision or "auto", job["device"])
     log(f"student decoder: {used} (--precision {a.precision or 'auto'})", a.quiet)
     renders = J.student(net=net, config=config, denv=discretize_env(envmap, env_h, env_w),

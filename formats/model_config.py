@@ -298,7 +298,15 @@ class StudentConfig(TrainingConfig):
         specular: Phong features (False: Table 2's "w/o specular").
         visibility: features baked with visibility (False: Table 2's "w/o visibility").
         shininess: Phong exponents (paper 16, 32, 64).
-        env_res: (H, W) of the env discretization (paper 16×32).
+        env_res: (H, W) of the env discretization the student is trained on: its
+            features and the teacher's pseudo ground truth Σ_m b_m C_m (paper 16×32).
+        render_env_res: (H, W) of the env grid its features are baked on when it renders
+            after training (``relight --model student``, distill's ``vs_ground_truth``);
+            empty: ``env_res`` (the paper uses one grid).  Ours: the features are
+            physically based integrals over the sphere, so a texel-aligned student
+            trained on a coarse grid (cheap pseudo ground truth) renders on a finer one
+            (sharper shadows and highlights); DRAM's light code is its training grid's
+            radiance, so it renders on ``env_res`` only.
         env_holdout: fraction of the env maps kept for evaluation (paper 534 / 3094).
         rotations: augment training env maps with random rotations about +Y by whole
             longitude steps (exact: a column roll of the 16×32 grid).
@@ -344,6 +352,7 @@ class StudentConfig(TrainingConfig):
     visibility: bool = True
     shininess: tuple = (16, 32, 64)
     env_res: tuple = (16, 32)
+    render_env_res: tuple = ()
     env_holdout: float = 0.17
     rotations: bool = True
     untied_bias: bool = False
@@ -378,6 +387,13 @@ class StudentConfig(TrainingConfig):
         if len(self.env_res) != 2 or not all(isinstance(v, int) and 2 <= v <= 1024
                                              for v in self.env_res):
             check.bad("env_res", "must be [H, W] with 2 ≤ H, W ≤ 1024")
+        if self.render_env_res and (len(self.render_env_res) != 2 or not all(
+                isinstance(v, int) and 2 <= v <= 1024 for v in self.render_env_res)):
+            check.bad("render_env_res", "must be [] or [H, W] with 2 ≤ H, W ≤ 1024")
+        if (self.student == "dram" and self.render_env_res
+                and tuple(self.render_env_res) != tuple(self.env_res)):
+            check.bad("render_env_res", "DRAM renders on its training grid (env_res): its "
+                      "light code is that grid's radiance")
         check.number("env_holdout", 0.0, 0.9)
         check.integer("dram_code", 1, 65536)
         check.integer("cache_mb", 0, 10 ** 7)

@@ -379,7 +379,8 @@ def test_help(run_cli):
                                   "cache-is-a-file", "output-is-the-teacher",
                                   "env-res-height-first", "bad-env-augment",
                                   "linear-head-on-dram", "lsq-start-without-linear-head",
-                                  "zero-iters-without-lsq", "negative-iters"])
+                                  "zero-iters-without-lsq", "negative-iters",
+                                  "render-grid-on-dram", "render-grid-bad-shape"])
 def test_distill_bad_input(setup, tmp_path, case):
     args = ["distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
             setup / "student.json", "--iters", "2"]
@@ -408,9 +409,12 @@ def test_distill_bad_input(setup, tmp_path, case):
         (tmp_path / "c.json").write_text(json.dumps({**STUDENT, "env_augment": "rotate"}))
         args[args.index("--config") + 1] = tmp_path / "c.json"
         code = 2
-    elif case in ("linear-head-on-dram", "lsq-start-without-linear-head"):
-        bad = ({"student": "dram", "head": "linear"} if case == "linear-head-on-dram"
-               else {"head_init": "lsq"})
+    elif case in ("linear-head-on-dram", "lsq-start-without-linear-head",
+                  "render-grid-on-dram", "render-grid-bad-shape"):
+        bad = {"linear-head-on-dram": {"student": "dram", "head": "linear"},
+               "lsq-start-without-linear-head": {"head_init": "lsq"},
+               "render-grid-on-dram": {"student": "dram", "render_env_res": [16, 32]},
+               "render-grid-bad-shape": {"render_env_res": [16, 32, 2]}}[case]
         (tmp_path / "c.json").write_text(json.dumps({**STUDENT, **bad}))
         args[args.index("--config") + 1] = tmp_path / "c.json"
         code = 2
@@ -439,6 +443,80 @@ def test_distill_bad_input(setup, tmp_path, case):
         assert list(out.parent.iterdir()) == []
     else:
         assert out.read_bytes() == before and "also an input" in lines[0]
+
+
+def test_student_renders_on_its_render_grid(setup, tmp_path):
+    """``render_env_res``: trained on the same grid, so bit-identical weights; scored and
+    rendered on its own grid (the held-out ground truth records it and differs); ``relight
+    --env-res`` takes any grid for the texel-aligned student, DRAM's must be its own."""
+    from conftest import run_relight
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.formats.exr import read_exr
+    runs = {}
+    for name, extra in (("train", {}), ("fine", {"render_env_res": [16, 32]})):
+        (tmp_path / f"{name}.json").write_text(json.dumps({**STUDENT, "head": "linear",
+                                                           **extra}))
+        r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
+                    tmp_path / f"{name}.json", "--iters", "3", "-q", "-o", tmp_path / f"{name}.pt",
+                    "--metrics-out", tmp_path / f"{name}.metrics.json")
+        assert r.exit_code == 0, r.output
+        runs[name] = (read_checkpoint(str(tmp_path / f"{name}.pt")),
+                      json.loads((tmp_path / f"{name}.metrics.json").read_text())["metrics"])
+    (train, m_train), (fine, m_fine) = runs["train"], runs["fine"]
+    for k, v in train["weights"].items():
+        assert torch.equal(v, fine["weights"][k]), k
+    assert m_train["vs_teacher"] == m_fine["vs_teacher"]          # the training grid's
+    assert m_train["vs_ground_truth"]["env_res"] == [8, 16]
+    assert m_fine["vs_ground_truth"]["env_res"] == [16, 32]
+    assert m_fine["vs_ground_truth"]["psnr"] != m_train["vs_ground_truth"]["psnr"]
+    assert m_fine["vs_ground_truth"]["ceiling"] == m_train["vs_ground_truth"]["ceiling"]
+
+    def render(ckpt, *extra):
+        out = tmp_path / "img.exr"
+        r = run_relight("relight", setup / "cap" / "hand.npz", "builtin:sky", "--model",
+                        "student", "--checkpoint", ckpt, "--size", "24x20", "-o", out, "-q",
+                        *extra)
+        if r.returncode:
+            return r
+        im = read_exr(str(out))
+        settings = json.loads(im.attributes["relight.provenance"])["settings"]
+        return settings["env_res"], np.stack(
+            [im.channels[c] for c in "RGB"], -1)
+    grid, own = render(tmp_path / "fine.pt")
+    assert grid == [16, 32]
+    grid, coarse = render(tmp_path / "fine.pt", "--env-res", "16x8")
+    assert grid == [8, 16] and np.isfinite(coarse).all() and not np.array_equal(own, coarse)
+    assert render(tmp_path / "train.pt")[0] == [8, 16]
+    assert render(tmp_path / "train.pt", "--env-res", "64x32")[0] == [32, 64]
+    dram = _distill(setup, tmp_path / "dram.pt", "--iters", "1", "--student", "dram")
+    r = render(dram, "--env-res", "32x16")
+    assert r.returncode == 2 and "DRAM" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert render(dram)[0] == [8, 16]
+
+
+def test_student_features_converge_with_the_grid(setup):
+    """Why a student renders on a finer grid than it trained on: its features are
+    integrals over the sphere, and a finer grid's are closer to the finest (under the
+    studio's softboxes; a sun smaller than a cell converges only on average over its
+    positions within the cell)."""
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.envmap import discretize_env
+    from relight_cli.neural import distill as D
+    from relight_cli.neural.config import StudentConfig
+    from relight_cli.neural.data import CaptureData
+    cfg = StudentConfig.from_dict(STUDENT)
+    data = CaptureData(str(setup / "cap"), 16, 1)
+    eye = data.capture.cameras[0].center
+    maps = {}
+    for grid in ((4, 8), (8, 16), (16, 32), (64, 128)):
+        feats = D.StudentFeatures(cfg, env_res=grid)
+        maps[grid] = feats.maps(feats.pose(data.hand, 0),
+                                discretize_env(builtin_envmap("builtin:studio"), *grid), eye)
+    ref = maps[(64, 128)]
+    err = [float(np.abs(maps[g] - ref).mean() / np.abs(ref).mean())
+           for g in ((4, 8), (8, 16), (16, 32))]
+    assert err[0] > err[1] > err[2], err
+    assert err[2] < 0.5 * err[1], err
 
 
 def test_student_refuses_point_lights(setup, tmp_path):

@@ -352,6 +352,10 @@ def test_config_validation_and_presets(tmp_path):
     from relight_cli.neural.linear import resolve_config as linear_config
     student = resolve_config("cpu", presets=STUDENT_PRESETS, config_class=StudentConfig)
     assert student.env_res == (8, 16) and student.head == "linear"
+    assert student.render_env_res == (16, 32)           # renders on the paper's grid
+    dram = resolve_config("cpu", None, {"student": "dram"}, presets=STUDENT_PRESETS,
+                          config_class=StudentConfig)
+    assert dram.render_env_res == ()                    # its light code is env_res's
     # the linear head is the texel-aligned student's at cpu only: DRAM has none, the paper's
     # and tiny presets keep Eq. 11, and a config file or flag still chooses
     for preset, given, head in (("cpu", {"student": "dram"}, "eq11"), ("paper", {}, "eq11"),

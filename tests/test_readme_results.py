@@ -246,6 +246,32 @@ def test_readme_quotes_the_env_truth_and_led_density_studies():
     assert f"tie under env maps (+{env['diff_db']:.2f} ± {env['std_db']:.2f} dB)" in t13
 
 
+def test_readme_quotes_the_student_grid_study():
+    """The student rendered on a finer env grid than it trained on, as the README quotes
+    it, read back from student_grid/student_grid.json; and the ``cpu`` preset renders on
+    the grid the study measured."""
+    from relight_cli.neural.config import STUDENT_PRESET_MODEL, STUDENT_PRESETS
+    rec = json.loads((RESULTS / "student_grid" / "student_grid.json").read_text())
+    lin = rec["results"]["linear"]
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    fine, coarse = lin["grids"]["16x32"], lin["grids"]["8x16"]
+    assert fine["vs_train"]["verdict"] == "better"
+    assert min(a - b for a, b in zip(fine["per_seed"], coarse["per_seed"])) > 0
+    assert (f"the same students are {fine['gap'][0]:.2f} ± {fine['psnr'][1]:.2f} dB short "
+            f"(+{fine['vs_train']['diff_db']:.2f} ± {fine['vs_train']['std_db']:.2f} dB, "
+            f"better on every seed), at {rec['render_s']['linear']['16x32']:.2f} instead of "
+            f"{rec['render_s']['linear']['8x16']:.2f} s per frame") in text
+    d = lin["split_db"]
+    assert (f"{d['teacher'][0]:.2f} ± {d['teacher'][1]:.2f} dB teacher, "
+            f"{d['env_grid'][0]:.2f} ± {d['env_grid'][1]:.2f} dB grid and "
+            f"{d['distillation'][0]:.2f} ± {d['distillation'][1]:.2f} dB distillation") in text
+    assert (f"recovers {-d['render_grid'][0]:.2f} ± {d['render_grid'][1]:.2f} of the grid's "
+            f"{d['env_grid'][0]:.2f} dB ({lin['best_grid'].replace('x', '×')}; 16×32 recovers "
+            f"{fine['vs_train']['diff_db']:.2f}") in text
+    assert rec["grids"][0] == "x".join(map(str, STUDENT_PRESETS["cpu"]["env_res"]))
+    assert STUDENT_PRESET_MODEL["cpu", "student"]["render_env_res"] == (16, 32)
+
+
 @pytest.mark.skipif(not (RESULTS / "student_env.json").exists(), reason="no study table")
 def test_readme_quotes_the_student_env_study():
     """The README's student paragraph quotes student_env.json: each variant's ground-truth

@@ -179,7 +179,9 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
             precision: str = "float32"):
     """``--model student`` over ``frames``: bake-features' texel maps of each pose
     (visibility traced once per pose; the UV rasterizations shared by every pose) under
-    ``denv`` (the env map on the student's own grid), one forward pass, the textures
+    ``denv`` (the env map on the student's render grid, :func:`relight_cli.neural.distill.
+    render_grid`, or any other for the texel-aligned student; DRAM's light code needs its
+    training grid), one forward pass, the textures
     rendered through the frame's G-buffer.
 
     ``precision``: the decoder's arithmetic, ``float32`` or ``bfloat16`` (autocast; the
@@ -201,7 +203,7 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
     kind = "cuda" if str(device).startswith("cuda") else "cpu"
     autocast = (lambda: torch.autocast(kind, dtype=torch.bfloat16)) if precision == "bfloat16" \
         else contextlib.nullcontext
-    features = DI.StudentFeatures(config, cache=1)
+    features = DI.StudentFeatures(config, cache=1, env_res=(denv.height, denv.width))
     for frame in frames:
         seconds = {}
         t0 = time.perf_counter()

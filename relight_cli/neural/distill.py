@@ -370,9 +370,11 @@ class StudentFeatures:
     Channels per hand: diffuse (3) then phong<α> (3 each) when ``specular``.
     """
 
-    def __init__(self, config, cache: int = 16):
+    def __init__(self, config, cache: int = 16, env_res=None):
         from relight_cli import features as FE
         self.config = config
+        #: (H, W) of the directions visibility is traced for (default: the training grid)
+        self.env_res = tuple(config.env_res if env_res is None else env_res)
         self.settings = FE.FeatureSettings(shininess=tuple(float(a) for a in config.shininess),
                                            specular="phong" if config.specular else "none",
                                            visibility=config.visibility)
@@ -389,7 +391,7 @@ class StudentFeatures:
         from relight_cli.bake import PoseFeatures
         n = self.config.tex_res
         return self._poses.get_or(key if key is not None else (id(hand), frame), lambda: PoseFeatures(
-            hand, frame, self.settings, tuple(self.config.env_res), (n, n), "coarse",
+            hand, frame, self.settings, self.env_res, (n, n), "coarse",
             self._rasters, posed=posed))
 
     def maps(self, pose_features, denv, eye) -> np.ndarray:
@@ -454,6 +456,9 @@ class StudentTask:
         # student's time (py-spy)
         self.features = StudentFeatures(config, cache=min(
             FEATURE_POSES, len(poses) + len({f.pose for f in data.heldout_frames}) + 16))
+        #: features on other grids (``render_env_res``: held-out scoring), by (H, W)
+        self._grid_features = {self.features.env_res: self.features}
+        self._heldout_poses = len({f.pose for f in data.heldout_frames})
         cams = [c.name for c in data.capture.cameras]
         self.items = [(p, c) for p in poses for c in cams]
         self.model_name = config.student
@@ -495,9 +500,10 @@ class StudentTask:
         :class:`~relight_cli.neural.student.LinearHeadStudent`)."""
         hand = self.data.eval_hand if held_out else self.data.hand
         key = (held_out, pose)
-        pf = self.features.pose(hand, pose, key=key)
+        features = self.features_on((denv.height, denv.width))
+        pf = features.pose(hand, pose, key=key)
         cam = self.data._cameras[camera]
-        feats = self.features.maps(pf, denv, cam.center)
+        feats = features.maps(pf, denv, cam.center)
         wrists = wrist_rotations(hand, pose)
         textures, raw, s = student_forward(net, self.config, feats, hand_poses(hand, pose), denv,
                                            wrists, device, return_raw=True)
@@ -505,6 +511,20 @@ class StudentTask:
             textures = [raw[k] * s for k in range(raw.shape[0])]
         image = composite(textures, self.data.gbuffer(pose, cam, held_out))
         return (image, raw, s) if return_raw else image
+
+    def features_on(self, grid) -> StudentFeatures:
+        """The student's features with visibility traced on the env grid ``grid`` (H, W):
+        the training grid's, or (``render_env_res``) another's, kept for the held-out
+        poses.  DRAM's light code is its training grid's: another grid is a ValueError."""
+        grid = tuple(int(v) for v in grid)
+        if grid not in self._grid_features:
+            if self.config.student == "dram":
+                raise ValueError(f"DRAM renders on its training grid {tuple(self.config.env_res)}"
+                                 f", got {grid}")
+            self._grid_features[grid] = StudentFeatures(self.config,
+                                                        cache=self._heldout_poses + 16,
+                                                        env_res=grid)
+        return self._grid_features[grid]
 
     def loss(self, net, item, step, device):
         pose, camera = item
@@ -593,6 +613,12 @@ def fit_linear_head(task: StudentTask, net) -> int:
     return samples
 
 
+def render_grid(config) -> tuple:
+    """(H, W) env grid a student renders on after training: ``render_env_res``, else its
+    training grid ``env_res``."""
+    return tuple(config.render_env_res or config.env_res)
+
+
 def hand_poses(hand, frame: int) -> np.ndarray:
     return np.stack([inst.poses[frame] for inst in hand.hands])
 
@@ -654,7 +680,7 @@ def evaluate_student(task: StudentTask, model, device) -> dict:
         rows, best = [], []
         for i in pick:
             pose, env_name, camera, gt, mask = data.env_target(renders[i][1])
-            denv = discretize_env(data.env_map(env_name), *cfg.env_res)
+            denv = discretize_env(data.env_map(env_name), *render_grid(cfg))
             pred = task.render(model, pose, camera.name, denv, device, held_out=True)
             m = _metrics(pred.cpu().numpy(), gt, mask)
             if m:
@@ -667,6 +693,7 @@ def evaluate_student(task: StudentTask, model, device) -> dict:
         if rows:
             scores = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
             scores["samples"] = len(rows)
+            scores["env_res"] = list(render_grid(cfg))
             out["vs_ground_truth"] = attach_ceiling(scores, best)
     model.train()
     return out
