@@ -195,18 +195,25 @@ def throughput(folder: Path, widths: str, tex: int, iters: int, threads: int,
             "peak_rss_mb": result.peak_memory_mb}
 
 
-def env_render_cost(folder: Path, widths: str, tex: int) -> dict:
+def env_render_cost(folder: Path, widths: str, tex: int, channels_last: bool | None = None
+                    ) -> dict:
+    """One env-map render of preset ``widths`` at ``tex``² (``channels_last``: the layout
+    a checkpoint of that setting is loaded in, :mod:`relight_cli.neural.checkpoints`)."""
     from relight_cli.builtin_envs import builtin_envmap
     from relight_cli.envmap import discretize_env
     from relight_cli.neural import teacher as T
+    from relight_cli.neural.checkpoints import _layout
     from relight_cli.neural.config import resolve_config
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.models import build_model
     from relight_cli.render.gbuffer import render_gbuffer
 
-    cfg = resolve_config(widths, None, {"tex_res": tex})
+    values = {"tex_res": tex}
+    if channels_last is not None:
+        values["channels_last"] = channels_last
+    cfg = resolve_config(widths, None, values)
     data = CaptureData(str(folder), tex, 2)
-    model = build_model(cfg, data.pose_dim).eval()
+    model = _layout(build_model(cfg, data.pose_dim).eval(), cfg)
     denv = discretize_env(builtin_envmap("builtin:sky"), 16, 32)
     timing = T.Timing()
     t0 = time.perf_counter()
@@ -219,6 +226,7 @@ def env_render_cost(folder: Path, widths: str, tex: int) -> dict:
         T.render_lights(model, texels, gb, data.poses(0), lights, weights, True, cfg.falloff,
                         timing=timing)
     return {"preset": widths, "tex_res": tex, "directions": int(len(weights)),
+            "channels_last": cfg.channels_last,
             **{k: v for k, v in timing.seconds.items()},
             "network_gflop": flops.forward / 1e9,
             "network_gflops": flops.forward / 1e9 / timing.seconds["network"],
@@ -290,7 +298,8 @@ def markdown(report: dict, quick: bool) -> list[str]:
               "composite | total | network GFLOP | network GFLOP/s |",
               "|---|---|---|---|---|---|---|---|---|---|---|"]
     for e in report["env_render"]:
-        lines.append(f"| {e['preset']} | {e['tex_res']}² | {e['directions']} | "
+        label = e["preset"] + (" (channels_last)" if e.get("channels_last") else "")
+        lines.append(f"| {label} | {e['tex_res']}² | {e['directions']} | "
                      + " | ".join(f"{e.get(k, 0):.3f}" for k in ("geometry", "visibility", "inputs",
                                                                    "network", "composite"))
                      + f" | {e['total']:.3f} | {e['network_gflop']:.1f} | "
@@ -366,6 +375,10 @@ def main():
             report["throughput"].append(throughput(captures["single"], "paper", 256, 2, threads))
         stage("throughput")
         report["env_render"] = [env_render_cost(captures["single"], "tiny", 32)]
+        # the cpu preset in both layouts: what loading its checkpoints in channels_last
+        # buys at inference (the resampling above all)
+        report["env_render"] += [env_render_cost(captures["single"], "cpu", 64, nhwc)
+                                 for nhwc in (False, True)]
         if not args.quick:
             report["env_render"].append(env_render_cost(captures["single"], "paper", 128))
         stage("env render")

@@ -162,7 +162,8 @@ class TeacherConfig(TrainingConfig):
         channels_last: train with the convolutions' weights (and so their activations)
             in NHWC order, which oneDNN's CPU kernels run faster (a speed setting: the
             numbers differ from NCHW's only by float rounding; a run and its resume use
-            the same order, so resume stays exact).
+            the same order, so resume stays exact); a checkpoint that trained so is
+            loaded so for inference too (``relight_cli.neural.checkpoints``).
         lambda_mse, lambda_vgg, lambda_neg: Eq. 5's weights (VGG only with local weights).
         neg_eta, neg_start: Eq. 6's γ schedule η_neg and t_s (an iteration, so that a run
             extended by ``--resume --iters`` keeps the schedule it started with).

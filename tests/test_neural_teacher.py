@@ -572,6 +572,24 @@ def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli, variant):
     first = full.read_bytes()
     assert run_cli("train-teacher", *common, "--iters", "4", "-o", full).exit_code == 0
     assert full.read_bytes() == first
+    # a channels_last run's checkpoint is loaded in that layout for inference, with the
+    # numbers of the same weights in NCHW up to float rounding
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import teacher_model
+    from relight_cli.neural.models import N_INPUT, build_model
+    net, cfg, _ = teacher_model(read_checkpoint(str(full), kind="teacher"))
+    convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert convs and all(c.weight.is_contiguous(memory_format=torch.channels_last)
+                         for c in convs)
+    plain = build_model(cfg, a["pose_dim"]).eval()
+    plain.load_state_dict(a["weights"])
+    assert not plain.net.head.weight.is_contiguous(memory_format=torch.channels_last)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(3, N_INPUT, cfg.tex_res, cfg.tex_res, generator=g)
+    pose = torch.rand(1, a["pose_dim"], generator=g)
+    with torch.no_grad():
+        fast, ref = (m(x, pose, torch.zeros(3, dtype=torch.long)) for m in (net, plain))
+    assert torch.allclose(fast, ref, rtol=1e-5, atol=1e-6)
 
 
 DDP_SCRIPT = """
