@@ -105,7 +105,12 @@ BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "t
          "linear_tshading": "linear", "linear_tl128": "linear_tshading"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
-          "ground_truth")
+          "ground_truth", "ground_truth_texels")
+#: the splits scored against the stage's ground truth (a reference every variant shares):
+#: the capture's own env renders (``distill``'s ``vs_ground_truth``, per vertex on the
+#: converged capture) and the same capture's env renders made again as the stage shades
+#: its LEDs (``eval_env_space: texels``, study_env_truth.py), the consistent truth
+TRUTHS = ("ground_truth", "ground_truth_texels")
 #: samples of the subsampled splits
 SUBSAMPLE = 128
 
@@ -245,13 +250,14 @@ def _score(work: Path, capture: Path, teacher: Path, variant: str, seed: int) ->
     return out
 
 
-def _seed_row(record: dict, scores: dict) -> dict:
+def _seed_row(record: dict, scores: dict, texels: dict) -> dict:
     m = record["metrics"]["metrics"]
     gt = m["vs_ground_truth"]
     row = {"wall_s": record["wall_s"], **scores,
            "ground_truth": {"mse": gt["mse"], "psnr": gt["psnr"], "ssim": gt["ssim"],
                             "samples": gt["samples"], "ceiling": gt["ceiling"]["psnr"],
                             "ceiling_mse": gt["ceiling"]["mse"], "gap": gt["gap_to_ceiling"]},
+           "ground_truth_texels": texels,
            "validation_vs_teacher": m["vs_teacher"]}
     curve = P._curve(record, "vs_teacher")
     iters = curve[-1][0]
@@ -275,9 +281,10 @@ def summarize(runs: dict) -> dict:
         for split in SPLITS:
             entry[split] = {"psnr": T._stats([r[split]["psnr"] for r in rows]),
                             "mse": T._stats([r[split]["mse"] for r in rows])}
-        entry["ground_truth"]["gap"] = T._stats([r["ground_truth"]["gap"] for r in rows])
-        entry["ground_truth"]["ceiling"] = rows[0]["ground_truth"]["ceiling"]
-        entry["ground_truth"]["ceiling_mse"] = rows[0]["ground_truth"]["ceiling_mse"]
+        for split in TRUTHS:
+            entry[split]["gap"] = T._stats([r[split]["gap"] for r in rows])
+            entry[split]["ceiling"] = rows[0][split]["ceiling"]
+            entry[split]["ceiling_mse"] = rows[0][split]["ceiling_mse"]
         gains = [r["gain_tail_db"] for r in rows]
         entry["converged"] = all(r.get("closed_form") or (g is not None and g < P.CONVERGED_DB)
                                  for r, g in zip(rows, gains))
@@ -289,7 +296,7 @@ def summarize(runs: dict) -> dict:
             continue
         out[variant]["versus"] = {"base": BASES[variant], "splits": {}}
         for split in SPLITS:
-            if split != "ground_truth" and teacher_of(variant) != teacher_of(BASES[variant]):
+            if split not in TRUTHS and teacher_of(variant) != teacher_of(BASES[variant]):
                 continue        # against two different teachers: no common reference
             mean, std = T._stats([a[split]["psnr"] - b[split]["psnr"]
                                   for a, b in zip(rows, base)])
@@ -353,8 +360,15 @@ def main(argv=None) -> None:
     with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
         scores = list(pool.map(_score, *zip(*[(work, capture, teacher[teacher_of(v), s], v, s)
                                               for v, s in jobs])))
-    runs = {v: [_seed_row(r, sc) for (vv, _), r, sc in zip(jobs, records, scores) if vv == v]
-            for v in variants}
+    # the consistent env truth: the same capture made again with its env renders shaded
+    # as its LEDs (identical LED frames; study_env_truth.py)
+    import study_env_truth as ET
+    texels = P._capture(teachers, log, stage=ET.stage_of("", "texels"))[0]
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        consistent = list(pool.map(ET.score_student, *zip(*[
+            (str(work), str(teachers), str(texels), v, s, "texels") for v, s in jobs])))
+    runs = {v: [_seed_row(r, sc, tx) for (vv, _), r, sc, tx
+                in zip(jobs, records, scores, consistent) if vv == v] for v in variants}
     record = {"command": B.run_command("study_student_env.py",
                                        sys.argv[1:] if argv is None else argv),
               "machine": limits, "capture": str(capture), "seeds": seeds,
@@ -383,11 +397,15 @@ TOPICS = {"untied": "per-texel biases", "mix": "synthesized env maps",
 NAMES = {"heldout_pose_eval_env": "held-out poses × held-out maps",
          "heldout_pose_train_env": "held-out poses × training maps",
          "train_pose_eval_env": "trained poses × held-out maps",
-         "ground_truth": "ground truth: held-out poses × held-out maps"}
+         "ground_truth": "ground truth: held-out poses × held-out maps",
+         "ground_truth_texels": "consistent ground truth (texels): held-out poses × "
+                                "held-out maps"}
 
 
 def _markdown(record: dict) -> str:
     res = record["results"]
+    # records made before the consistent truth have its splits' predecessors only
+    splits = [s for s in SPLITS if s in next(iter(res.values()))]
     rows_min = sum(v["wall_min"] for v in res.values())
     envs = record["envs"]
     topics = []
@@ -412,21 +430,28 @@ def _markdown(record: dict) -> str:
                 + "; ".join(f"{k}: {v}" for k, v in record["by_hand"].items()) + "."
                 if record.get("by_hand") else ""), "",
              "MSE ×10⁻³ (mean over seeds ± std) against the teacher, then against the "
-             "ground truth with its gap to the ceiling:", "",
-             "| variant | " + " | ".join(NAMES[s] for s in SPLITS) + " | gap to ceiling (dB) "
-             "| converged | min per run |", "|---" * (len(SPLITS) + 4) + "|"]
+             "ground truth with its gap to the ceiling"
+             + (" (the capture's env renders, made per vertex; then the same capture's env "
+                "renders shaded as its LEDs, `eval_env_space: texels`: the consistent "
+                "truth, study_env_truth.py):" if len(splits) > 4 else ":"), "",
+             "| variant | " + " | ".join(NAMES[s] for s in splits[:4]) + " | gap to ceiling "
+             "(dB) | " + "".join(f"{NAMES[s]} | gap (dB) | " for s in splits[4:])
+             + "converged | min per run |", "|---" * (len(splits) + 4 + len(splits[4:]))
+             + "|"]
     for v, e in res.items():
-        cells = [f"{e[s]['mse'][0] * 1e3:.2f} ± {e[s]['mse'][1] * 1e3:.2f}" for s in SPLITS]
-        gap = e["ground_truth"]["gap"]
+        cells = [f"{e[s]['mse'][0] * 1e3:.2f} ± {e[s]['mse'][1] * 1e3:.2f}" for s in splits]
+        gaps = [f"{e[s]['gap'][0]:.2f} ± {e[s]['gap'][1]:.2f}" for s in splits[3:]]
         gains = ", ".join("closed form" if r.get("closed_form") else "?"
                           if r["gain_tail_db"] is None else f"{r['gain_tail_db']:+.2f}"
                           for r in e["seeds"])
-        lines.append(f"| {v} ({json.dumps(record['variants'][v])}) | " + " | ".join(cells)
-                     + f" | {gap[0]:.2f} ± {gap[1]:.2f} | "
-                     f"{'yes' if e['converged'] else 'NOT'} ({gains}) | "
+        lines.append(f"| {v} ({json.dumps(record['variants'][v])}) | "
+                     + " | ".join(cells[:4] + [gaps[0]] + [c for pair in zip(cells[4:], gaps[1:])
+                                                           for c in pair])
+                     + f" | {'yes' if e['converged'] else 'NOT'} ({gains}) | "
                      f"{e['wall_min'] / len(e['seeds']):.1f} |")
-    first = next(iter(res.values()))["ground_truth"]
-    lines += [f"| ceiling (perfect texture) | | | | {first['ceiling_mse'] * 1e3:.2f} | | | |",
+    first = next(iter(res.values()))
+    ceilings = [f"{first[s]['ceiling_mse'] * 1e3:.2f}" for s in splits[3:]]
+    lines += ["| ceiling (perfect texture) | | | | " + " | | ".join(ceilings) + " | | | |",
               "", "Mean PSNR (dB) per split; "
               + (", ".join(f"`{v}` against `{e['versus']['base']}`"
                            for v, e in res.items() if e.get("versus")) or "no comparisons")
@@ -435,7 +460,7 @@ def _markdown(record: dict) -> str:
               "the reference both share):", ""]
     for v, e in res.items():
         lines.append(f"- {v}: " + "; ".join(
-            f"{NAMES[s]} {e[s]['psnr'][0]:.2f} ± {e[s]['psnr'][1]:.2f}" for s in SPLITS))
+            f"{NAMES[s]} {e[s]['psnr'][0]:.2f} ± {e[s]['psnr'][1]:.2f}" for s in splits))
         versus = e.get("versus") or {"splits": {}}
         for s, d in versus["splits"].items():
             lines.append(f"  - vs {versus['base']}, {NAMES[s]}: {d['diff_db']:+.2f} ± "

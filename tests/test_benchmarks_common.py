@@ -58,7 +58,8 @@ def test_plot_draws_every_curve_including_exact_and_nonfinite_points(tmp_path):
 def _env_row(psnr: float, tail: float = 0.05) -> dict:
     import study_student_env as E
     row = {s: {"psnr": psnr, "mse": 10 ** (-psnr / 10)} for s in E.SPLITS}
-    row["ground_truth"].update(gap=34.0 - psnr, ceiling=34.0, ceiling_mse=10 ** -3.4)
+    for truth in E.TRUTHS:
+        row[truth].update(gap=34.0 - psnr, ceiling=34.0, ceiling_mse=10 ** -3.4)
     return {**row, "gain_tail_db": tail, "wall_s": 600.0}
 
 
@@ -93,8 +94,9 @@ def test_student_env_judges_a_student_of_another_teacher_on_the_ground_truth_onl
     runs = {"linear": [_env_row(27.0), _env_row(27.4)],
             "linear_tshading": [_env_row(28.0), _env_row(28.5)]}
     versus = E.summarize(runs)["linear_tshading"]["versus"]
-    assert versus["base"] == "linear" and list(versus["splits"]) == ["ground_truth"]
+    assert versus["base"] == "linear" and list(versus["splits"]) == list(E.TRUTHS)
     assert versus["splits"]["ground_truth"]["verdict"] == "better"
+    assert versus["splits"]["ground_truth_texels"]["verdict"] == "better"
     assert E.teacher_of("linear_tshading") == "shading" and E.teacher_of("linear") == "paper"
     assert "teacher" not in E.student_config("linear_tshading")
     assert E.textures_dir(tmp_path, "paper", 1) == tmp_path / "textures_s1"
@@ -119,9 +121,9 @@ def test_student_env_convergence_reads_the_last_interval_when_validation_is_spar
                                 "gap_to_ceiling": 10.0},
             "vs_teacher": {"psnr": points[-1][1]}}, "details": {"history": history}}}
 
-    sparse = E._seed_row(record([(1000, 20.0), (2000, 22.0), (3000, 23.0), (4000, 23.5)]), {})
+    sparse = E._seed_row(record([(1000, 20.0), (2000, 22.0), (3000, 23.0), (4000, 23.5)]), {}, {})
     assert sparse["tail_from"] == 3000 and abs(sparse["gain_tail_db"] - 0.5) < 1e-12
-    dense = E._seed_row(record([(3000, 23.0), (3500, 23.4), (4000, 23.5)]), {})
+    dense = E._seed_row(record([(3000, 23.0), (3500, 23.4), (4000, 23.5)]), {}, {})
     assert dense["tail_from"] == 3500 and abs(dense["gain_tail_db"] - 0.1) < 1e-12
 
 
