@@ -449,7 +449,6 @@ def test_student_renders_on_its_render_grid(setup, tmp_path):
     """``render_env_res``: trained on the same grid, so bit-identical weights; scored and
     rendered on its own grid (the held-out ground truth records it and differs); ``relight
     --env-res`` takes any grid for the texel-aligned student, DRAM's must be its own."""
-    from conftest import run_relight
     from relight_cli.formats.checkpoint import read_checkpoint
     from relight_cli.formats.exr import read_exr
     runs = {}
@@ -471,12 +470,12 @@ def test_student_renders_on_its_render_grid(setup, tmp_path):
     assert m_fine["vs_ground_truth"]["psnr"] != m_train["vs_ground_truth"]["psnr"]
     assert m_fine["vs_ground_truth"]["ceiling"] == m_train["vs_ground_truth"]["ceiling"]
 
-    def render(ckpt, *extra):
+    def render(ckpt, *extra):             # in process: the subprocess path is tested above
         out = tmp_path / "img.exr"
-        r = run_relight("relight", setup / "cap" / "hand.npz", "builtin:sky", "--model",
-                        "student", "--checkpoint", ckpt, "--size", "24x20", "-o", out, "-q",
-                        *extra)
-        if r.returncode:
+        r = _invoke("relight", setup / "cap" / "hand.npz", "builtin:sky", "--model",
+                    "student", "--checkpoint", ckpt, "--size", "24x20", "-o", out, "-q",
+                    *extra)
+        if r.exit_code:
             return r
         im = read_exr(str(out))
         settings = json.loads(im.attributes["relight.provenance"])["settings"]
@@ -490,7 +489,7 @@ def test_student_renders_on_its_render_grid(setup, tmp_path):
     assert render(tmp_path / "train.pt", "--env-res", "64x32")[0] == [32, 64]
     dram = _distill(setup, tmp_path / "dram.pt", "--iters", "1", "--student", "dram")
     r = render(dram, "--env-res", "32x16")
-    assert r.returncode == 2 and "DRAM" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert r.exit_code == 2 and "DRAM" in r.output and len(r.output.strip().splitlines()) == 1
     assert render(dram)[0] == [8, 16]
 
 
