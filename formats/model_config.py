@@ -303,7 +303,8 @@ class StudentConfig(TrainingConfig):
             features and the teacher's pseudo ground truth Σ_m b_m C_m (paper 16×32).
         render_env_res: (H, W) of the env grid its features are baked on when it renders
             after training (``relight --model student``, distill's ``vs_ground_truth``);
-            empty: ``env_res`` (the paper uses one grid).  Ours: the features are
+            empty: ``env_res`` (the paper's reading: one grid, M = 512 = 16×32 for the
+            features and the pseudo ground truth, RelightableHands Sec. 5).  Ours: the features are
             physically based integrals over the sphere, so a texel-aligned student
             trained on a coarse grid (cheap pseudo ground truth) renders on a finer one
             (sharper shadows and highlights); DRAM's light code is its training grid's

@@ -449,6 +449,7 @@ def test_student_renders_on_its_render_grid(setup, tmp_path):
     """``render_env_res``: trained on the same grid, so bit-identical weights; scored and
     rendered on its own grid (the held-out ground truth records it and differs); ``relight
     --env-res`` takes any grid for the texel-aligned student, DRAM's must be its own."""
+    from relight_cli.builtin_envs import builtin_envmap
     from relight_cli.formats.checkpoint import read_checkpoint
     from relight_cli.formats.exr import read_exr
     runs = {}
@@ -491,6 +492,15 @@ def test_student_renders_on_its_render_grid(setup, tmp_path):
     r = render(dram, "--env-res", "32x16")
     assert r.exit_code == 2 and "DRAM" in r.output and len(r.output.strip().splitlines()) == 1
     assert render(dram)[0] == [8, 16]
+    # the Python job refuses it too (before any frame)
+    from relight_cli.envmap import discretize_env
+    from relight_cli.inputs import load_hand
+    from relight_cli.jobs import relight_hand as J
+    net, config = student_model(read_checkpoint(str(dram), kind="student"))
+    denv = discretize_env(builtin_envmap("builtin:sky"), 16, 32)
+    with pytest.raises(ValueError, match="DRAM renders on its training grid"):
+        next(J.student(load_hand(str(setup / "cap" / "hand.npz")), [0], None, net, config,
+                       denv, 1))
 
 
 def test_student_features_converge_with_the_grid(setup):

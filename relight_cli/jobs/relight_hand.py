@@ -203,6 +203,9 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
     kind = "cuda" if str(device).startswith("cuda") else "cpu"
     autocast = (lambda: torch.autocast(kind, dtype=torch.bfloat16)) if precision == "bfloat16" \
         else contextlib.nullcontext
+    if config.student == "dram" and (denv.height, denv.width) != tuple(config.env_res):
+        raise ValueError(f"DRAM renders on its training grid {tuple(config.env_res)} (its "
+                         f"light code's), got {(denv.height, denv.width)}")
     features = DI.StudentFeatures(config, cache=1, env_res=(denv.height, denv.width))
     for frame in frames:
         seconds = {}

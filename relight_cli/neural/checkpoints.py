@@ -142,9 +142,8 @@ def student_model(checkpoint: dict, device="cpu"):
 def _layout(model, config):
     """The model in the memory layout it trained in: ``channels_last`` (the ``cpu``
     presets) serves inference too — oneDNN's bilinear resampling and convolutions are
-    faster in NHWC (the ``cpu`` OLAT teacher's per-direction textures for a student's
-    pseudo ground truth: 1.6× faster on one core, the same numbers up to float
-    rounding)."""
+    faster in NHWC (the ``cpu`` OLAT teacher's env render at 16×32: network 2.05 → 1.29 s
+    per frame, benchmarks/results/teacher.md; the same numbers up to float rounding)."""
     if getattr(config, "channels_last", False):
         model = model.to(memory_format=torch.channels_last)
     return model
