@@ -339,6 +339,40 @@ def test_student_renders_one_and_two_hands(setup, tmp_path, student):
         assert im.attributes["relight.model"] == "student"
 
 
+def test_dram_traces_no_texel_features(setup, tmp_path, monkeypatch):
+    """DRAM reads no texel features: distill and relight never trace a pose's visibility for
+    it (bake's PoseFeatures made to raise), and its texture is what the network gives with
+    any features of the right size (it reads only their size)."""
+    import relight_cli.bake as bake
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural import distill as DI
+    ckpt = _distill(setup, tmp_path / "dram.pt", "--iters", "2", "--student", "dram")
+    net, config = student_model(read_checkpoint(str(ckpt), kind="student"))
+
+    def traced(*args, **kwargs):
+        raise AssertionError("DRAM traced texel features")
+    monkeypatch.setattr(bake, "PoseFeatures", traced)
+    _distill(setup, tmp_path / "again.pt", "--iters", "2", "--student", "dram")
+    r = _invoke("relight", setup / "cap" / "hand.npz", "builtin:sky", "--model", "student",
+                "--checkpoint", ckpt, "--env-res", "16x8", "--size", "16x12", "-q",
+                "-o", tmp_path / "img.exr")
+    assert r.exit_code == 0, r.output
+    denv = _sky(8, 16)
+    poses = np.zeros((1, (net.film[0].in_features - config.dram_code) // 3 + 1, 3))
+    wrists = [np.eye(3)]
+    n = config.tex_res
+    with torch.no_grad():
+        none = DI.student_forward(net, config, None, poses, denv, wrists, "cpu")[0]
+        feats = np.random.default_rng(0).random((1, 12, n, n)).astype(np.float32)
+        given = DI.student_forward(net, config, feats, poses, denv, wrists, "cpu")[0]
+    assert torch.equal(none, given) and none.shape == (3, n, n)
+    # the same network reads the light: another env map gives another texture
+    with torch.no_grad():
+        other = DI.student_forward(net, config, None, poses, DI.rotate_env(denv, 4), wrists,
+                                   "cpu")[0]
+    assert not torch.equal(none, other)
+
+
 def test_student_is_scale_equivariant(setup, tmp_path):
     """Normalizing by the env's mean radiance: a 10× brighter env gives a 10× brighter image."""
     from relight_cli.envmap import DiscreteEnv

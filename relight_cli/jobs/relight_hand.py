@@ -212,11 +212,12 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
         t0 = time.perf_counter()
         meshes = pose_scene(data, frame, "fine", source)
         view = view_of(frame, meshes)
-        pose = features.pose(data, frame, key=frame)
         gbuffer = render_gbuffer(meshes, view, samples_axis)
         seconds["geometry"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        maps = features.maps(pose, denv, view.center)
+        maps = None                  # DRAM reads no texel features: none are traced
+        if config.student != "dram":
+            maps = features.maps(features.pose(data, frame, key=frame), denv, view.center)
         seconds["features"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         with torch.no_grad():

@@ -405,9 +405,16 @@ class StudentFeatures:
 
 def student_forward(net, config, feats: np.ndarray, poses: np.ndarray, denv, wrists, device,
                     return_raw: bool = False):
-    """Normalized forward pass: (per-hand textures [3, N, N] in radiance, raw, scale s)."""
+    """Normalized forward pass: (per-hand textures [3, N, N] in radiance, raw, scale s).
+
+    ``feats`` None: DRAM, whose only light input is its env code (no texel features are
+    baked for it: it never reads them)."""
     s = env_scale(denv)
-    x = torch.from_numpy(feats / s).to(device)
+    if feats is None:
+        n = int(config.tex_res)
+        x = torch.zeros((len(wrists), 0, n, n), device=device)
+    else:
+        x = torch.from_numpy(feats / s).to(device)
     p = pose_vector(poses).to(device)
     code = None
     if config.student == "dram":
@@ -501,9 +508,10 @@ class StudentTask:
         hand = self.data.eval_hand if held_out else self.data.hand
         key = (held_out, pose)
         features = self.features_on((denv.height, denv.width))
-        pf = features.pose(hand, pose, key=key)
         cam = self.data._cameras[camera]
-        feats = features.maps(pf, denv, cam.center)
+        feats = None                 # DRAM: no texel features (nothing traced per pose)
+        if self.config.student != "dram":
+            feats = features.maps(features.pose(hand, pose, key=key), denv, cam.center)
         wrists = wrist_rotations(hand, pose)
         textures, raw, s = student_forward(net, self.config, feats, hand_poses(hand, pose), denv,
                                            wrists, device, return_raw=True)
