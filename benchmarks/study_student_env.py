@@ -83,6 +83,9 @@ VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper", "head": "eq11
             "untied_mix": {"untied_bias": True, "env_augment": "mix", "head": "eq11"},
             "dram": {"student": "dram", "env_augment": "paper"},
             "dram_mix": {"student": "dram", "env_augment": "mix"},
+            # DRAM with Eq. 11's head scale (the student's lambda_s 25), its head before
+            # the presets put it in texture units (relight_cli.neural.config.DRAM_LAMBDA_S)
+            "dram_eq11": {"student": "dram", "env_augment": "paper", "lambda_s": 25.0},
             "tied_8k": {"untied_bias": False, "env_augment": "paper", "iters": 8000,
                         "head": "eq11"},
             "linear": {"head": "linear", "env_augment": "paper"},
@@ -102,7 +105,7 @@ BASE = "tied"
 #: paper's text), DRAM with synthesized env maps with DRAM on the training maps alone
 BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "tied_8k": BASE,
          "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k",
-         "linear_tshading": "linear", "linear_tl128": "linear_tshading"}
+         "linear_tshading": "linear", "linear_tl128": "linear_tshading", "dram": "dram_eq11"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
           "ground_truth", "ground_truth_texels")

@@ -356,6 +356,17 @@ def test_config_validation_and_presets(tmp_path):
     dram = resolve_config("cpu", None, {"student": "dram"}, presets=STUDENT_PRESETS,
                           config_class=StudentConfig)
     assert dram.render_env_res == ()                    # its light code is env_res's
+    # DRAM's head in texture units at every preset (lambda_s · PAPER_UNIT = 1); the
+    # texel-aligned student keeps Eq. 11's 25, and a config file still chooses
+    from relight_cli.neural.config import PAPER_UNIT
+    for preset in ("tiny", "cpu", "paper"):
+        assert resolve_config(preset, None, {"student": "dram"}, presets=STUDENT_PRESETS,
+                              config_class=StudentConfig).lambda_s * PAPER_UNIT == \
+            pytest.approx(1.0, rel=1e-12)
+        assert resolve_config(preset, presets=STUDENT_PRESETS,
+                              config_class=StudentConfig).lambda_s == 25.0
+    assert resolve_config("cpu", None, {"student": "dram", "lambda_s": 25.0},
+                          presets=STUDENT_PRESETS, config_class=StudentConfig).lambda_s == 25.0
     # the linear head is the texel-aligned student's at cpu only: DRAM has none, the paper's
     # and tiny presets keep Eq. 11, and a config file or flag still chooses
     for preset, given, head in (("cpu", {"student": "dram"}, "eq11"), ("paper", {}, "eq11"),
