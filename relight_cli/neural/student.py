@@ -74,15 +74,14 @@ jumped mid-run and never came back — held-out MSE against the teacher 0.34 →
 The head's scale (ours): DRAM's presets set λ_s = 255π
 (:data:`relight_cli.neural.config.DRAM_LAMBDA_S`), so λ_s · PAPER_UNIT = 1 and the
 decoder's output is in texture units.  App. A.3 does not give DRAM's head; with the
-student's λ_s = 25 the head scales the decoder's output by 0.031, the light-dependent part
-of the texture has to be 32× larger inside the decoder, and DRAM's light path barely
-trained: on the converged capture (``cpu``, seed 0, by hand) its texture at a training
-pose changed over 21 training lightings with a standard deviation of 0.028 where the
-teacher's changes by 0.21 (correlation of the changes 0.23); with the head in texture
-units, 0.141 (0.61).  At ``tiny`` (tests/test_neural_student.py's light gate, seeds 0–2)
-the change between two training maps is 0.96–0.98 of the teacher's (correlation
-0.54–0.58) against 0.39–0.74 (0.36–0.49) at λ_s = 25.  DRAM never reads texel features,
-so none are baked for it (:func:`relight_cli.neural.distill.student_forward`).
+student's λ_s = 25 the head scales the decoder's output by 0.031.  At ``tiny`` the
+texture-unit head lets DRAM's light path train (the change between two training maps
+0.96–0.98 of the teacher's, against 0.39–0.74 at 25, seeds 0–2); at ``cpu`` on the
+converged capture its light path stays near constant in most runs either way (the
+texture's standard deviation over 21 training lightings 0.028–0.032 against the teacher's
+0.21; one run of three reached 0.141): what keeps it there is open (config.py's
+:data:`~relight_cli.neural.config.DRAM_LAMBDA_S` gives the runs).  DRAM never reads texel
+features, so none are baked for it (:func:`relight_cli.neural.distill.student_forward`).
 """
 
 from __future__ import annotations
