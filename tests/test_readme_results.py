@@ -436,3 +436,19 @@ def test_readme_quotes_the_linear_head_at_8000_iterations():
     assert all(d["verdict"] == "better" for d in long["versus"]["splits"].values())
     versus = long["versus"]["splits"][gt]
     assert f"({versus['diff_db']:+.2f} ± {versus['std_db']:.2f} dB against the ground" in text
+
+
+def test_readme_quotes_the_dram_head_study():
+    """DRAM with its head in texture units against Eq. 11's scale at ``cpu``, as the README
+    quotes it (student_dram_head), and the Eq. 11 rows equal to the earlier DRAM table."""
+    rec = json.loads((RESULTS / "student_dram_head" / "student_env.json").read_text())
+    res = rec["results"]
+    new, old = (res[v]["ground_truth_texels"]["psnr"] for v in ("dram", "dram_eq11"))
+    versus = res["dram"]["versus"]["splits"]["ground_truth_texels"]
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert rec["seeds"] == [0, 1] and res["dram"]["versus"]["base"] == "dram_eq11"
+    assert (f"{new[0]:.2f} ± {new[1]:.2f} against {old[0]:.2f} ± {old[1]:.2f} dB on the "
+            f"consistent truth ({versus['diff_db']:+.2f} ± {versus['std_db']:.2f} dB, "
+            f"{versus['verdict']})") in text
+    before = json.loads((RESULTS / "student_dram" / "student_env.json").read_text())
+    assert old == before["results"]["dram"]["ground_truth_texels"]["psnr"]

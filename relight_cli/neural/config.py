@@ -149,8 +149,9 @@ STUDENT_PRESETS = {
 #: light path trains: on the converged capture (seed 0, by hand: the texture's standard
 #: deviation over 21 training lightings at a training pose, the teacher's 0.21) one run
 #: learned the light (0.141, at λ_s = 800) and two did not (0.032 at 4,000 iterations,
-#: 0.031 at 12,000), no better than λ_s = 25 (0.028); the two-seed table is
-#: benchmarks/results/converged/student_dram_head/.  ``--config`` with
+#: 0.031 at 12,000), no better than λ_s = 25 (0.028; seed 1: 0.039 and 0.041 at 25).  The
+#: two-seed table (benchmarks/results/converged/student_dram_head/) is a tie with λ_s = 25
+#: on every split (consistent truth −0.34 ± 0.56 dB).  ``--config`` with
 #: ``{"lambda_s": 25}`` gives the Eq. 11 scale back.
 DRAM_LAMBDA_S = 1.0 / PAPER_UNIT
 STUDENT_PRESET_MODEL = {("cpu", "student"): {"head": "linear", "render_env_res": (16, 32)},

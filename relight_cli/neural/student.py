@@ -78,8 +78,8 @@ student's λ_s = 25 the head scales the decoder's output by 0.031.  At ``tiny`` 
 texture-unit head lets DRAM's light path train (the change between two training maps
 0.96–0.98 of the teacher's, against 0.39–0.74 at 25, seeds 0–2); at ``cpu`` on the
 converged capture its light path stays near constant in most runs either way (the
-texture's standard deviation over 21 training lightings 0.028–0.032 against the teacher's
-0.21; one run of three reached 0.141): what keeps it there is open (config.py's
+texture's standard deviation over 21 training lightings 0.028–0.041 against the teacher's
+0.21; one of the five runs measured reached 0.141): what keeps it there is open (config.py's
 :data:`~relight_cli.neural.config.DRAM_LAMBDA_S` gives the runs).  DRAM never reads texel
 features, so none are baked for it (:func:`relight_cli.neural.distill.student_forward`).
 """
