@@ -79,8 +79,11 @@ texture-unit head lets DRAM's light path train (the change between two training 
 0.96–0.98 of the teacher's, against 0.39–0.74 at 25, seeds 0–2); at ``cpu`` on the
 converged capture its light path stays near constant in most runs either way (the
 texture's standard deviation over 21 training lightings 0.028–0.041 against the teacher's
-0.21; one of the five runs measured reached 0.141): what keeps it there is open (config.py's
-:data:`~relight_cli.neural.config.DRAM_LAMBDA_S` gives the runs).  DRAM never reads texel
+0.21; one of the five runs measured reached 0.141; config.py's
+:data:`~relight_cli.neural.config.DRAM_LAMBDA_S` gives the runs).  The lead, by hand
+(seed 0, texture-unit head, constant lr, the same 8,000 samples): batches of 8 train it
+(std 0.097, correlation with the teacher's changes 0.73 after 1,000 steps) where the
+preset's batches of 2 do not; so does a texture-space loss at batch 2 (0.128, 0.67).  DRAM never reads texel
 features, so none are baked for it (:func:`relight_cli.neural.distill.student_forward`).
 """
 
