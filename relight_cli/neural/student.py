@@ -83,8 +83,9 @@ texture's standard deviation over 21 training lightings 0.028–0.041 against th
 :data:`~relight_cli.neural.config.DRAM_LAMBDA_S` gives the runs).  The lead, by hand
 (seed 0, texture-unit head, constant lr, the same 8,000 samples): batches of 8 train it
 (std 0.097, correlation with the teacher's changes 0.73 after 1,000 steps) where the
-preset's batches of 2 do not; so does a texture-space loss at batch 2 (0.128, 0.67).  DRAM never reads texel
-features, so none are baked for it (:func:`relight_cli.neural.distill.student_forward`).
+preset's batches of 2 do not; so does a texture-space loss at batch 2 (0.128, 0.67).
+DRAM never reads texel features, so none are baked for it
+(:func:`relight_cli.neural.distill.student_forward`).
 """
 
 from __future__ import annotations
