@@ -86,6 +86,13 @@ VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper", "head": "eq11
             # DRAM with Eq. 11's head scale (the student's lambda_s 25), its head before
             # the presets put it in texture units (relight_cli.neural.config.DRAM_LAMBDA_S)
             "dram_eq11": {"student": "dram", "env_augment": "paper", "lambda_s": 25.0},
+            # DRAM on the same 8,000 samples in batches of 8 (1,000 steps; validation,
+            # the negative-light penalty's start and saves scaled with them)
+            "dram_b8": {"student": "dram", "env_augment": "paper", "batch": 8, "iters": 1000,
+                        "neg_start": 250, "val_every": 250, "save_every": 250},
+            # DRAM distilled on its whole texture (``loss_space: texture``, ours) instead
+            # of the camera's image (the paper's)
+            "dram_tex": {"student": "dram", "env_augment": "paper", "loss_space": "texture"},
             "tied_8k": {"untied_bias": False, "env_augment": "paper", "iters": 8000,
                         "head": "eq11"},
             "linear": {"head": "linear", "env_augment": "paper"},
@@ -105,7 +112,8 @@ BASE = "tied"
 #: paper's text), DRAM with synthesized env maps with DRAM on the training maps alone
 BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "tied_8k": BASE,
          "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k",
-         "linear_tshading": "linear", "linear_tl128": "linear_tshading", "dram": "dram_eq11"}
+         "linear_tshading": "linear", "linear_tl128": "linear_tshading", "dram": "dram_eq11",
+         "dram_b8": "dram", "dram_tex": "dram"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
           "ground_truth", "ground_truth_texels")
@@ -391,7 +399,8 @@ def main(argv=None) -> None:
 #: what a variant studies (the table's title)
 TOPICS = {"untied": "per-texel biases", "mix": "synthesized env maps",
           "untied_mix": "per-texel biases and synthesized env maps", "dram": "DRAM",
-          "dram_mix": "DRAM", "tied_8k": "training length",
+          "dram_mix": "DRAM", "dram_b8": "DRAM", "dram_tex": "DRAM",
+          "tied_8k": "training length",
           "linear": "a head linear in its features", "linear_lsq": "a head linear in its features",
           "lsq": "a head linear in its features", "linear_8k": "a head linear in its features",
           "linear_tshading": "a teacher with shading features as input",

@@ -333,6 +333,13 @@ class StudentConfig(TrainingConfig):
             ``lsq`` (the per-texel least-squares fit of the teacher's textures by the
             features, :func:`relight_cli.neural.distill.fit_linear_head`); with ``lsq``,
             ``iters`` may be 0: the closed-form fit is the student.
+        loss_space: where the distillation loss compares the student with its teacher:
+            ``image`` (the paper's, Sec. 4.3: the composited image under the sample's
+            camera, over the hand's pixels) or ``texture`` (ours): the texture itself,
+            over every texel inside the UV charts — the teacher's view-dependent texture
+            for the sample's camera, Σ_m b_m C_m, resampled to the student's N when the
+            teacher's differs.  Every texel is supervised on every sample, not only those
+            the camera sees at the image's resolution.
         dram_code: DRAM's light code size (512).
         lambda_s, lambda_b: Eq. 11 in the paper's units, applied × PAPER_UNIT (the
             teacher's conversion: λ_b = 100 is a floor of 0.125 where a white texel
@@ -361,6 +368,7 @@ class StudentConfig(TrainingConfig):
     env_augment: str = "paper"
     head: str = "eq11"
     head_init: str = "grey"
+    loss_space: str = "image"
     dram_code: int = 64
     cache_mb: int = 2048
     lambda_s: float = 25.0
@@ -377,6 +385,7 @@ class StudentConfig(TrainingConfig):
         check.choice("head_init", ("grey", "lsq"))
         if self.head_init == "lsq" and self.head != "linear":
             check.bad("head_init", "lsq starts the linear head (head: linear)")
+        check.choice("loss_space", ("image", "texture"))
         check.choice("neg_schedule", ("decay", "literal", "constant"))
         check.integer("tex_res", 8, 4096)
         check.widths("decoder")

@@ -505,6 +505,15 @@ class StudentTask:
         """The student's image of (pose, camera) under ``denv``; ``clip`` False: the
         linear head's texture unclipped (its training loss, see
         :class:`~relight_cli.neural.student.LinearHeadStudent`)."""
+        textures, raw, s = self.textures(net, pose, camera, denv, device, held_out, clip)
+        image = composite(textures, self.data.gbuffer(pose, self.data._cameras[camera],
+                                                      held_out))
+        return (image, raw, s) if return_raw else image
+
+    def textures(self, net, pose: int, camera: str, denv, device, held_out: bool = False,
+                 clip: bool = True):
+        """(per-hand textures [3, N, N], raw head output [H, 3, N, N], env scale s) of the
+        student at (pose, camera) under ``denv``; ``clip`` as :meth:`render`."""
         hand = self.data.eval_hand if held_out else self.data.hand
         key = (held_out, pose)
         features = self.features_on((denv.height, denv.width))
@@ -517,8 +526,32 @@ class StudentTask:
                                            wrists, device, return_raw=True)
         if not clip:
             textures = [raw[k] * s for k in range(raw.shape[0])]
-        image = composite(textures, self.data.gbuffer(pose, cam, held_out))
-        return (image, raw, s) if return_raw else image
+        return textures, raw, s
+
+    def chart_mask(self, device) -> torch.Tensor:
+        """[1, 1, N, N] bool: the texels inside the UV charts at the student's N (the UV
+        layout is the same for every pose and hand)."""
+        if getattr(self, "_chart_mask", None) is None:
+            from relight_cli.uvraster import rasterize_uv
+            mesh = self.data.hand.mesh("fine")
+            inside = rasterize_uv(mesh.uv, mesh.faces_uv, int(self.config.tex_res)).inside
+            self._chart_mask = torch.from_numpy(np.ascontiguousarray(inside))[None, None]
+        return self._chart_mask.to(device)
+
+    def _texture_mse(self, net, pose, camera, denv, device, clip):
+        """``loss_space: texture``: the masked MSE between the student's and the teacher's
+        textures (both ÷ s) over the chart texels of every hand, and the student's image
+        (for a perceptual term)."""
+        import torch.nn.functional as F
+        textures, raw, s = self.textures(net, pose, camera, denv, device, False, clip)
+        pred = torch.stack(textures)
+        target = torch.stack(self.targets.texture(pose, camera, denv)).to(device)
+        if target.shape[-2:] != pred.shape[-2:]:
+            target = F.interpolate(target, size=pred.shape[-2:], mode="bilinear",
+                                   align_corners=False, antialias=True)
+        mask = self.chart_mask(device).expand(pred.shape[0], 3, -1, -1)
+        mse = ((pred - target) / s)[mask].pow(2).mean()
+        return mse, textures, raw, s
 
     def features_on(self, grid) -> StudentFeatures:
         """The student's features with visibility traced on the env grid ``grid`` (H, W):
@@ -537,16 +570,25 @@ class StudentTask:
     def loss(self, net, item, step, device):
         pose, camera = item
         denv = self.env_for(step, item)
-        clip = getattr(self.config, "head", "eq11") != "linear"
-        image, raw, s = self.render(net, pose, camera, denv, device, return_raw=True, clip=clip)
-        target = self.targets.image(pose, camera, denv).to(device)
-        gb = self.data.gbuffer(pose, self.data._cameras[camera])
-        mask = torch.from_numpy(gb.mask > 0).to(device)
-        mse = masked_mse(image / s, target / s, mask)
         cfg = self.config
+        clip = getattr(cfg, "head", "eq11") != "linear"
+        gb = self.data.gbuffer(pose, self.data._cameras[camera])
+        perceptual_on = self.vgg is not None and cfg.lambda_vgg > 0
+        if getattr(cfg, "loss_space", "image") == "texture":
+            mse, textures, raw, s = self._texture_mse(net, pose, camera, denv, device, clip)
+            if perceptual_on:
+                image = composite(textures, gb)
+                target = self.targets.image(pose, camera, denv).to(device)
+        else:
+            image, raw, s = self.render(net, pose, camera, denv, device, return_raw=True,
+                                        clip=clip)
+            target = self.targets.image(pose, camera, denv).to(device)
+            mask = torch.from_numpy(gb.mask > 0).to(device)
+            mse = masked_mse(image / s, target / s, mask)
         total = cfg.lambda_mse * mse
         parts = {"mse": float(mse.detach())}
-        if self.vgg is not None and cfg.lambda_vgg > 0:
+        if perceptual_on:
+            mask = torch.from_numpy(gb.mask > 0).to(device)
             perceptual = self.vgg(image / s, target / s, mask)
             total = total + cfg.lambda_vgg * perceptual
             parts["vgg"] = float(perceptual.detach())
