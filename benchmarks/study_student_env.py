@@ -93,6 +93,9 @@ VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper", "head": "eq11
             # DRAM distilled on its whole texture (``loss_space: texture``, ours) instead
             # of the camera's image (the paper's)
             "dram_tex": {"student": "dram", "env_augment": "paper", "loss_space": "texture"},
+            "dram_tex_b8": {"student": "dram", "env_augment": "paper", "loss_space": "texture",
+                            "batch": 8, "iters": 1000, "neg_start": 250, "val_every": 250,
+                            "save_every": 250},
             "tied_8k": {"untied_bias": False, "env_augment": "paper", "iters": 8000,
                         "head": "eq11"},
             "linear": {"head": "linear", "env_augment": "paper"},
@@ -113,7 +116,7 @@ BASE = "tied"
 BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "tied_8k": BASE,
          "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k",
          "linear_tshading": "linear", "linear_tl128": "linear_tshading", "dram": "dram_eq11",
-         "dram_b8": "dram", "dram_tex": "dram"}
+         "dram_b8": "dram", "dram_tex": "dram", "dram_tex_b8": "dram"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
           "ground_truth", "ground_truth_texels")
@@ -261,6 +264,68 @@ def _score(work: Path, capture: Path, teacher: Path, variant: str, seed: int) ->
     return out
 
 
+#: DRAM's light response: training (pose, camera) pairs (evenly spaced) and rotations (in
+#: longitude steps) of each training map; 4 × 7 maps × 3 = 84 textures per run
+LIGHT_PAIRS, LIGHT_ROTATIONS = 4, (0, 5, 10)
+
+
+def _light(work: Path, capture: Path, teacher: Path, variant: str, seed: int) -> dict:
+    """Whether a DRAM run's light path trained (cached): at ``LIGHT_PAIRS`` training
+    (pose, camera) pairs, its texture and the teacher's (first hand, ÷ s, over the UV
+    charts' texels) under every training map at each of ``LIGHT_ROTATIONS``; the
+    variation over these lightings of each, centred per texel: the mean per-texel
+    standard deviation of each (``std``, ``teacher_std``), their correlation (``corr``)
+    and the share of the teacher's variation DRAM's explains, 1 − |a − b|²/|b|²
+    (``explained``; a light path that does not train: ≈ 0)."""
+    name = f"{variant}_s{seed}"
+    path = work / f"{name}.light.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    import numpy as np
+    import torch
+
+    from relight_cli.envmap import discretize_env
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.inputs import load_envmap
+    from relight_cli.neural import distill as DI
+    from relight_cli.neural.checkpoints import student_model
+    torch.set_num_threads(1)
+    model, config = student_model(read_checkpoint(str(work / f"{name}.pt"), kind="student"))
+    data, targets = _targets(str(teacher), str(capture),
+                             str(textures_dir(work, teacher_of(variant), seed)))
+    specs = _env_specs()["train"]
+    grids = [discretize_env(load_envmap(s), *config.env_res) for s in specs]
+    task = DI.StudentTask(data, config, targets, grids, list(range(len(grids))), [], specs)
+    pairs = _train_pairs(data)
+    pick = np.unique(np.linspace(0, len(pairs) - 1, LIGHT_PAIRS).round().astype(int))
+    inside = task.chart_mask("cpu")[0, 0]
+    rows = []
+    for pose, cam in (pairs[i] for i in pick):
+        ours, theirs = [], []
+        for grid in grids:
+            for steps in LIGHT_ROTATIONS:
+                denv = DI.rotate_env(grid, steps) if steps else grid
+                s = DI.env_scale(denv)
+                with torch.no_grad():
+                    ours.append(task.textures(model, pose, cam, denv, "cpu")[0][0][:, inside]
+                                / s)
+                theirs.append(targets.texture(pose, cam, denv)[0][:, inside] / s)
+        a, b = (torch.stack(x).double() for x in (ours, theirs))
+        a, b = a - a.mean(0), b - b.mean(0)
+        rows.append([float(a.std(0).mean()), float(b.std(0).mean()),
+                     float((a * b).sum() / max(float(a.norm() * b.norm()), 1e-30)),
+                     float(1 - (a - b).pow(2).sum() / b.pow(2).sum())])
+    out = dict(zip(("std", "teacher_std", "corr", "explained"),
+                   (float(v) for v in np.mean(rows, 0))))
+    out["pairs"] = len(rows)
+    P.B_write(path, out)
+    return out
+
+
+def is_dram(variant: str) -> bool:
+    return VARIANTS[variant].get("student") == "dram"
+
+
 def _seed_row(record: dict, scores: dict, texels: dict) -> dict:
     m = record["metrics"]["metrics"]
     gt = m["vs_ground_truth"]
@@ -300,6 +365,9 @@ def summarize(runs: dict) -> dict:
         entry["converged"] = all(r.get("closed_form") or (g is not None and g < P.CONVERGED_DB)
                                  for r, g in zip(rows, gains))
         entry["wall_min"] = sum(r["wall_s"] for r in rows) / 60
+        if all("light" in r for r in rows):
+            entry["light"] = {k: T._stats([r["light"][k] for r in rows])
+                              for k in ("std", "teacher_std", "corr", "explained")}
         out[variant] = entry
     for variant, rows in runs.items():
         base = runs.get(BASES.get(variant))
@@ -380,6 +448,13 @@ def main(argv=None) -> None:
             (str(work), str(teachers), str(texels), v, s, "texels") for v, s in jobs])))
     runs = {v: [_seed_row(r, sc, tx) for (vv, _), r, sc, tx
                 in zip(jobs, records, scores, consistent) if vv == v] for v in variants}
+    lit = [(v, s) for v, s in jobs if is_dram(v)]
+    if lit:                 # whether DRAM's light path trained, per run
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+            light = list(pool.map(_light, *zip(*[(work, capture, teacher[teacher_of(v), s],
+                                                   v, s) for v, s in lit])))
+        for (v, s), value in zip(lit, light):
+            runs[v][seeds.index(s)]["light"] = value
     record = {"command": B.run_command("study_student_env.py",
                                        sys.argv[1:] if argv is None else argv),
               "machine": limits, "capture": str(capture), "seeds": seeds,
@@ -399,7 +474,7 @@ def main(argv=None) -> None:
 #: what a variant studies (the table's title)
 TOPICS = {"untied": "per-texel biases", "mix": "synthesized env maps",
           "untied_mix": "per-texel biases and synthesized env maps", "dram": "DRAM",
-          "dram_mix": "DRAM", "dram_b8": "DRAM", "dram_tex": "DRAM",
+          "dram_mix": "DRAM", "dram_b8": "DRAM", "dram_tex": "DRAM", "dram_tex_b8": "DRAM",
           "tied_8k": "training length",
           "linear": "a head linear in its features", "linear_lsq": "a head linear in its features",
           "lsq": "a head linear in its features", "linear_8k": "a head linear in its features",
@@ -478,6 +553,26 @@ def _markdown(record: dict) -> str:
             lines.append(f"  - vs {versus['base']}, {NAMES[s]}: {d['diff_db']:+.2f} ± "
                          f"{d['std_db']:.2f} dB, MSE × {d['mse_ratio']:.2f} → "
                          f"**{d['verdict']}**")
+    lit = {v: e for v, e in res.items() if e.get("light")}
+    if lit:
+        lines += ["", "Whether DRAM's light path trained: at "
+                  f"{LIGHT_PAIRS} training (pose, camera) pairs, its texture and the teacher's "
+                  f"under each training map at {len(LIGHT_ROTATIONS)} rotations (÷ s, UV "
+                  "charts' texels), centred per texel over these lightings: per-texel "
+                  "standard deviation (the teacher's beside it), correlation with the "
+                  "teacher's, and the share of the teacher's variation explained, "
+                  "1 − |a − b|²/|b|² (≈ 0: a light path that does not train); mean ± std "
+                  "over seeds, then each seed's share:", "",
+                  "| variant | std (teacher) | correlation | explained | per seed |",
+                  "|---|---|---|---|---|"]
+        for v, e in lit.items():
+            g = e["light"]
+            lines.append(f"| {v} | {g['std'][0]:.3f} ± {g['std'][1]:.3f} "
+                         f"({g['teacher_std'][0]:.3f}) | {g['corr'][0]:.2f} ± "
+                         f"{g['corr'][1]:.2f} | {g['explained'][0]:.2f} ± "
+                         f"{g['explained'][1]:.2f} | "
+                         + ", ".join(f"{r['light']['explained']:.2f}" for r in e["seeds"])
+                         + " |")
     lines += ["", f"Samples: every held-out (frame, camera) × each held-out map; {SUBSAMPLE} "
               "evenly spaced samples of the other two teacher splits; every held-out env "
               "render of the capture for the ground truth (the ceiling: the perfect texture "

@@ -85,6 +85,35 @@ def test_student_env_verdicts_pair_each_variant_with_its_base():
     assert abs(res["mix"]["ground_truth"]["gap"][0] - 8.7) < 1e-9
 
 
+def test_student_env_reports_whether_drams_light_path_trained():
+    """DRAM runs carry their light response; the summary gives its mean ± std over seeds
+    and the table a row per DRAM variant with each seed's explained share; a variant
+    without it (the texel-aligned student) has no such row."""
+    import study_student_env as E
+
+    def lit(row, explained):
+        return {**row, "light": {"std": 0.1, "teacher_std": 0.2, "corr": 0.5,
+                                 "explained": explained}}
+    runs = {"dram": [lit(_env_row(16.0), 0.01), lit(_env_row(17.0), 0.35)],
+            "dram_b8": [lit(_env_row(17.3), 0.39), lit(_env_row(17.4), 0.36)],
+            "tied": [_env_row(24.0), _env_row(24.5)]}
+    res = E.summarize(runs)
+    assert abs(res["dram"]["light"]["explained"][0] - 0.18) < 1e-12
+    assert abs(res["dram"]["light"]["explained"][1] - 0.34 / 2 ** 0.5) < 1e-12
+    assert "light" not in res["tied"] and E.is_dram("dram_b8") and not E.is_dram("tied")
+    for e in res.values():
+        for r in e["seeds"]:
+            r["curve"] = [[1000, 14.0]]
+    record = {"command": "c", "machine": {"platform": "p", "cpus": 2, "load_average": "1",
+                                          "gemm_gflops": 1.0, "memory_gbs": 1.0},
+              "wall_s": 60.0, "seeds": [0, 1], "envs": {"train": ["builtin:sky"],
+                                                        "eval": ["x.hdr"]},
+              "variants": {v: E.VARIANTS[v] for v in runs}, "results": res}
+    text = E._markdown(record)
+    assert "| dram | 0.100 ± 0.000 (0.200) | 0.50 ± 0.00 | 0.18 ± 0.24 | 0.01, 0.35 |" in text
+    assert "| dram_b8 |" in text and "| tied |" not in text
+
+
 def test_student_env_judges_a_student_of_another_teacher_on_the_ground_truth_only(tmp_path):
     """A variant distilled from another teacher (``linear_tshading``) is compared with its
     base on the ground truth alone (against two different teachers nothing is shared); it

@@ -27,6 +27,14 @@ texture multiplied back.  The paper trains on env maps of one exposure; with the
 normalization the student is exactly scale-equivariant (a 10× brighter env gives a
 10× brighter render), and bright and dim maps weigh alike in the loss.
 
+**Loss** (Sec. 4.3): the paper compares the student's render with the teacher's, in
+image space over the hand's pixels (``loss_space: image``).  ``loss_space: texture``
+(ours) compares the textures themselves — the teacher's for the sample's camera,
+Σ_m b_m C_m, which the pseudo ground truth has anyway — over every texel inside the UV
+charts: every texel is supervised on every sample, where an image supervises the texels
+its camera sees, each as often as it covers pixels.  Measured on DRAM
+(benchmarks/results/converged/student_dram_b8/).
+
 **Student inputs**: bake-features' own pipeline (:class:`relight_cli.bake.PoseFeatures`,
 coarse proxy, visibility traced once per pose) under the (rotated) env map, seen from
 the camera — diffuse + Phong 16/32/64 texel maps.  DRAM's input: the env map rotated
