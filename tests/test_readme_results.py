@@ -452,3 +452,33 @@ def test_readme_quotes_the_dram_head_study():
             f"{versus['verdict']})") in text
     before = json.loads((RESULTS / "student_dram" / "student_env.json").read_text())
     assert old == before["results"]["dram"]["ground_truth_texels"]["psnr"]
+
+
+def test_readme_quotes_the_dram_batch_and_loss_study():
+    """DRAM's light path at ``cpu`` per seed, and batches of 8 and the texture loss against
+    the preset's DRAM, as the README quotes them (student_dram_b8, four seeds)."""
+    rec = json.loads((RESULTS / "student_dram_b8" / "student_env.json").read_text())
+    res = rec["results"]
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert rec["seeds"] == [0, 1, 2, 3]
+
+    def shares(v):
+        return [r["light"]["explained"] for r in res[v]["seeds"]]
+    base = shares("dram")
+    assert ("DRAM's texture explains " + ", ".join(f"{x:.2f}" for x in base[:-1])
+            + f" and {base[-1]:.2f} of the teacher's variation") in text
+    for v, span in (("dram_b8", "every seed ({}–{})"), ("dram_tex_b8", "them most ({}–{})")):
+        lo, hi = min(shares(v)), max(shares(v))
+        assert span.format(f"{lo:.2f}", f"{hi:.2f}") in text, v
+        assert lo > max(base) or v == "dram_b8"           # "most": above every plain run
+        assert lo > min(base) + 0.2                       # "on every seed": no dead run
+    truth = "ground_truth_texels"
+    b8, tex, plain = (res[v][truth]["psnr"] for v in ("dram_b8", "dram_tex_b8", "dram"))
+    assert (f"{b8[0]:.2f} ± {b8[1]:.2f} and {tex[0]:.2f} ± {tex[1]:.2f} dB against DRAM's "
+            f"{plain[0]:.2f} ± {plain[1]:.2f}") in text
+    d = [res[v]["versus"]["splits"][truth] for v in ("dram_b8", "dram_tex_b8")]
+    assert (f"({d[0]['diff_db']:+.2f} ± {d[0]['std_db']:.2f} and {d[1]['diff_db']:+.2f} ± "
+            f"{d[1]['std_db']:.2f} dB, tie)") in text
+    assert all(x["verdict"] == "tie" for x in d)
+    # "does not generalize": the best-lit variant is no better under held-out maps
+    assert tex[0] <= b8[0]

@@ -80,10 +80,14 @@ texture-unit head lets DRAM's light path train (the change between two training 
 converged capture its light path stays near constant in most runs either way (the
 texture's standard deviation over 21 training lightings 0.028–0.041 against the teacher's
 0.21; one of the five runs measured reached 0.141; config.py's
-:data:`~relight_cli.neural.config.DRAM_LAMBDA_S` gives the runs).  The lead, by hand
-(seed 0, texture-unit head, constant lr, the same 8,000 samples): batches of 8 train it
-(std 0.097, correlation with the teacher's changes 0.73 after 1,000 steps) where the
-preset's batches of 2 do not; so does a texture-space loss at batch 2 (0.128, 0.67).
+:data:`~relight_cli.neural.config.DRAM_LAMBDA_S` gives the runs).  Measured over four
+seeds (benchmarks/results/converged/student_dram_b8/, the study's light-response table):
+the preset's DRAM trains its light path in some runs (share of the teacher's variation
+explained 0.01–0.34); batches of 8 (the same 8,000 samples in 1,000 steps) on every seed
+(0.33–0.39); the texture-space loss (``loss_space: texture``) with them most
+(0.58–0.66).  None of them scores better under held-out env maps (ties, +0.4 to
++1.1 dB): a light code that fits the seven training maps does not generalize — the
+overfitting App. A.3's baseline is shown for.
 DRAM never reads texel features, so none are baked for it
 (:func:`relight_cli.neural.distill.student_forward`).
 """
