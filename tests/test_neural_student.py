@@ -412,6 +412,7 @@ def test_help(run_cli):
                                   "missing-envs", "missing-eval-envs", "bad-output-name",
                                   "cache-is-a-file", "output-is-the-teacher",
                                   "env-res-height-first", "bad-env-augment",
+                                  "bad-loss-space",
                                   "linear-head-on-dram", "lsq-start-without-linear-head",
                                   "zero-iters-without-lsq", "negative-iters",
                                   "render-grid-on-dram", "render-grid-bad-shape"])
@@ -441,6 +442,10 @@ def test_distill_bad_input(setup, tmp_path, case):
         code = 2
     elif case == "bad-env-augment":
         (tmp_path / "c.json").write_text(json.dumps({**STUDENT, "env_augment": "rotate"}))
+        args[args.index("--config") + 1] = tmp_path / "c.json"
+        code = 2
+    elif case == "bad-loss-space":
+        (tmp_path / "c.json").write_text(json.dumps({**STUDENT, "loss_space": "pixels"}))
         args[args.index("--config") + 1] = tmp_path / "c.json"
         code = 2
     elif case in ("linear-head-on-dram", "lsq-start-without-linear-head",
