@@ -96,6 +96,10 @@ VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper", "head": "eq11
             "dram_tex_b8": {"student": "dram", "env_augment": "paper", "loss_space": "texture",
                             "batch": 8, "iters": 1000, "neg_start": 250, "val_every": 250,
                             "save_every": 250},
+            # ... and on env maps synthesized from the training maps (``env_augment: mix``)
+            "dram_tex_b8_mix": {"student": "dram", "env_augment": "mix",
+                                "loss_space": "texture", "batch": 8, "iters": 1000,
+                                "neg_start": 250, "val_every": 250, "save_every": 250},
             "tied_8k": {"untied_bias": False, "env_augment": "paper", "iters": 8000,
                         "head": "eq11"},
             "linear": {"head": "linear", "env_augment": "paper"},
@@ -116,7 +120,8 @@ BASE = "tied"
 BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "tied_8k": BASE,
          "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k",
          "linear_tshading": "linear", "linear_tl128": "linear_tshading", "dram": "dram_eq11",
-         "dram_b8": "dram", "dram_tex": "dram", "dram_tex_b8": "dram"}
+         "dram_b8": "dram", "dram_tex": "dram", "dram_tex_b8": "dram",
+         "dram_tex_b8_mix": "dram_tex_b8"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
           "ground_truth", "ground_truth_texels")
@@ -475,6 +480,7 @@ def main(argv=None) -> None:
 TOPICS = {"untied": "per-texel biases", "mix": "synthesized env maps",
           "untied_mix": "per-texel biases and synthesized env maps", "dram": "DRAM",
           "dram_mix": "DRAM", "dram_b8": "DRAM", "dram_tex": "DRAM", "dram_tex_b8": "DRAM",
+          "dram_tex_b8_mix": "DRAM",
           "tied_8k": "training length",
           "linear": "a head linear in its features", "linear_lsq": "a head linear in its features",
           "lsq": "a head linear in its features", "linear_8k": "a head linear in its features",

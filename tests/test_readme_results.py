@@ -482,3 +482,10 @@ def test_readme_quotes_the_dram_batch_and_loss_study():
     assert all(x["verdict"] == "tie" for x in d)
     # "does not generalize": the best-lit variant is no better under held-out maps
     assert tex[0] <= b8[0]
+    mix = res["dram_tex_b8_mix"]["versus"]
+    assert mix["base"] == "dram_tex_b8"
+    d = [mix["splits"][k] for k in ("heldout_pose_eval_env", truth)]
+    assert (f"under held-out maps ({d[0]['diff_db']:+.2f} ± {d[0]['std_db']:.2f} dB, "
+            f"{d[0]['verdict']}) but not to the truth ({d[1]['diff_db']:+.2f} ± "
+            f"{d[1]['std_db']:.2f} dB, {d[1]['verdict']})") in text
+    assert d[0]["verdict"] == "better" and d[1]["verdict"] == "tie"
