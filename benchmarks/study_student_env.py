@@ -219,6 +219,25 @@ def _run(work: Path, capture: Path, teacher: Path, variant: str, seed: int, log)
     return T.run_once(work, name, argv, "study_student_env.py", log)
 
 
+def _student_task(work: Path, capture: Path, teacher: Path, variant: str, seed: int,
+                  specs: list, n_train: int):
+    """(model, CaptureData, TeacherTargets, env grids of ``specs``, StudentTask) of one
+    run's checkpoint, its first ``n_train`` maps the training maps."""
+    from relight_cli.envmap import discretize_env
+    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.inputs import load_envmap
+    from relight_cli.neural import distill as DI
+    from relight_cli.neural.checkpoints import student_model
+    name = f"{variant}_s{seed}"
+    model, config = student_model(read_checkpoint(str(work / f"{name}.pt"), kind="student"))
+    data, targets = _targets(str(teacher), str(capture),
+                             str(textures_dir(work, teacher_of(variant), seed)))
+    grids = [discretize_env(load_envmap(s), *config.env_res) for s in specs]
+    task = DI.StudentTask(data, config, targets, grids, list(range(n_train)),
+                          list(range(n_train, len(specs))), specs)
+    return model, data, targets, grids, task
+
+
 def _score(work: Path, capture: Path, teacher: Path, variant: str, seed: int) -> dict:
     """The checkpoint against its teacher on the study's splits (cached):
     {split: {"mse", "psnr", "ssim", "samples"}}."""
@@ -229,21 +248,12 @@ def _score(work: Path, capture: Path, teacher: Path, variant: str, seed: int) ->
     import numpy as np
     import torch
 
-    from relight_cli.envmap import discretize_env
-    from relight_cli.formats.checkpoint import read_checkpoint
-    from relight_cli.inputs import load_envmap
-    from relight_cli.neural import distill as DI
-    from relight_cli.neural.checkpoints import student_model
     from relight_cli.neural.train import _metrics
-    model, config = student_model(read_checkpoint(str(work / f"{name}.pt"), kind="student"))
-    data, targets = _targets(str(teacher), str(capture),
-                             str(textures_dir(work, teacher_of(variant), seed)))
     envs = _env_specs()
     specs = envs["train"] + envs["eval"]
-    grids = [discretize_env(load_envmap(s), *config.env_res) for s in specs]
     n_train = len(envs["train"])
-    task = DI.StudentTask(data, config, targets, grids, list(range(n_train)),
-                          list(range(n_train, len(specs))), specs)
+    model, data, targets, grids, task = _student_task(work, capture, teacher, variant, seed,
+                                                      specs, n_train)
     held, train = _heldout_pairs(data), _train_pairs(data)
     combos = {"heldout_pose_eval_env": [(p, c, e) for p, c in held
                                         for e in range(n_train, len(specs))],
@@ -289,18 +299,11 @@ def _light(work: Path, capture: Path, teacher: Path, variant: str, seed: int) ->
     import numpy as np
     import torch
 
-    from relight_cli.envmap import discretize_env
-    from relight_cli.formats.checkpoint import read_checkpoint
-    from relight_cli.inputs import load_envmap
     from relight_cli.neural import distill as DI
-    from relight_cli.neural.checkpoints import student_model
     torch.set_num_threads(1)
-    model, config = student_model(read_checkpoint(str(work / f"{name}.pt"), kind="student"))
-    data, targets = _targets(str(teacher), str(capture),
-                             str(textures_dir(work, teacher_of(variant), seed)))
     specs = _env_specs()["train"]
-    grids = [discretize_env(load_envmap(s), *config.env_res) for s in specs]
-    task = DI.StudentTask(data, config, targets, grids, list(range(len(grids))), [], specs)
+    model, data, targets, grids, task = _student_task(work, capture, teacher, variant, seed,
+                                                      specs, len(specs))
     pairs = _train_pairs(data)
     pick = np.unique(np.linspace(0, len(pairs) - 1, LIGHT_PAIRS).round().astype(int))
     inside = task.chart_mask("cpu")[0, 0]

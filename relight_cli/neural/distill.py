@@ -547,9 +547,9 @@ class StudentTask:
         return self._chart_mask.to(device)
 
     def _texture_mse(self, net, pose, camera, denv, device, clip):
-        """``loss_space: texture``: the masked MSE between the student's and the teacher's
-        textures (both ÷ s) over the chart texels of every hand, and the student's image
-        (for a perceptual term)."""
+        """``loss_space: texture``: (the masked MSE between the student's and the
+        teacher's textures, both ÷ s, over the chart texels of every hand; the student's
+        textures, raw head output and s as :meth:`textures` gives them)."""
         import torch.nn.functional as F
         textures, raw, s = self.textures(net, pose, camera, denv, device, False, clip)
         pred = torch.stack(textures)
@@ -580,23 +580,24 @@ class StudentTask:
         denv = self.env_for(step, item)
         cfg = self.config
         clip = getattr(cfg, "head", "eq11") != "linear"
-        gb = self.data.gbuffer(pose, self.data._cameras[camera])
         perceptual_on = self.vgg is not None and cfg.lambda_vgg > 0
-        if getattr(cfg, "loss_space", "image") == "texture":
+        texture_space = getattr(cfg, "loss_space", "image") == "texture"
+        if texture_space:
             mse, textures, raw, s = self._texture_mse(net, pose, camera, denv, device, clip)
-            if perceptual_on:
-                image = composite(textures, gb)
-                target = self.targets.image(pose, camera, denv).to(device)
-        else:
-            image, raw, s = self.render(net, pose, camera, denv, device, return_raw=True,
-                                        clip=clip)
-            target = self.targets.image(pose, camera, denv).to(device)
+        if not texture_space or perceptual_on:         # the image and its target
+            gb = self.data.gbuffer(pose, self.data._cameras[camera])
             mask = torch.from_numpy(gb.mask > 0).to(device)
+            if texture_space:
+                image = composite(textures, gb)
+            else:
+                image, raw, s = self.render(net, pose, camera, denv, device, return_raw=True,
+                                            clip=clip)
+            target = self.targets.image(pose, camera, denv).to(device)
+        if not texture_space:
             mse = masked_mse(image / s, target / s, mask)
         total = cfg.lambda_mse * mse
         parts = {"mse": float(mse.detach())}
         if perceptual_on:
-            mask = torch.from_numpy(gb.mask > 0).to(device)
             perceptual = self.vgg(image / s, target / s, mask)
             total = total + cfg.lambda_vgg * perceptual
             parts["vgg"] = float(perceptual.detach())
