@@ -339,7 +339,9 @@ class StudentConfig(TrainingConfig):
             over every texel inside the UV charts — the teacher's view-dependent texture
             for the sample's camera, Σ_m b_m C_m, resampled to the student's N when the
             teacher's differs.  Every texel is supervised on every sample, not only those
-            the camera sees at the image's resolution.
+            the camera sees at the image's resolution — including texels facing away
+            from the camera, whose teacher targets are views it never trained on: 5 dB
+            worse for the linear-head student, a tie for DRAM (README).
         dram_code: DRAM's light code size (512).
         lambda_s, lambda_b: Eq. 11 in the paper's units, applied × PAPER_UNIT (the
             teacher's conversion: λ_b = 100 is a floor of 0.125 where a white texel

@@ -1382,3 +1382,52 @@ def test_cpu_preset_gives_the_olat_teacher_the_shading_input(tmp_path):
     config.write_text(json.dumps({"model": "ggx", "lr": 1e-3}))
     assert resolve_config("cpu", str(config), {}).lr == 1e-3
 
+
+
+def test_nhwc_unet_keeps_its_layout_and_its_values():
+    """The cpu preset's NHWC U-Net (per-texel biases, channel concatenations): its output
+    and every parameter gradient equal, bit for bit, those of the same weights where the
+    biases are added as plain [C, n, n] tensors and the skips joined by torch.cat (the
+    layout helpers change memory layouts only), and the gradient a concatenation hands
+    back to an NHWC input is NHWC-contiguous (the resize's fast backward path)."""
+    import torch
+
+    from relight_cli.neural import models as M
+    cfg = resolve_config("cpu", overrides={"model": "olat"})
+    torch.manual_seed(0)
+    model = M.build_model(cfg, 6).to(memory_format=torch.channels_last)
+    with torch.no_grad():
+        for p in model.net.untied:
+            p.normal_(0, 0.1)
+    x = torch.randn(3, 7, 64, 64).contiguous(memory_format=torch.channels_last)
+    pose, hand = torch.randn(1, 6), torch.zeros(3, dtype=torch.long)
+
+    def run():
+        model.zero_grad()
+        out = model(x, pose, hand)
+        out.square().mean().backward()
+        return out.detach().clone(), [p.grad.clone() for p in model.parameters()]
+    out, grads = run()
+    assert out.is_contiguous(memory_format=torch.channels_last)
+    helpers = (M._cat_channels, M._bias_like)
+    try:
+        M._cat_channels = lambda tensors: torch.cat(tensors, 1)
+        M._bias_like = lambda bias, h: bias
+        plain_out, plain_grads = run()
+    finally:
+        M._cat_channels, M._bias_like = helpers
+    assert torch.equal(out, plain_out)
+    assert all(torch.equal(a, b) for a, b in zip(grads, plain_grads))
+    # the gradient each NHWC input of a concatenation gets back (seen by a hook on a
+    # non-leaf input, as the resize before it sees it)
+    def layouts(cat):
+        seen = []
+        parts = [torch.randn(2, c, 8, 8).contiguous(memory_format=torch.channels_last)
+                 .requires_grad_() * 1.0 for c in (4, 3)]
+        for t in parts:
+            t.register_hook(lambda g: seen.append(
+                g.is_contiguous(memory_format=torch.channels_last)))
+        cat(parts).mul(torch.randn(2, 7, 8, 8)).sum().backward()
+        return seen
+    assert layouts(M._cat_channels) == [True, True]
+    assert layouts(lambda t: torch.cat(t, 1)) == [False, False]    # torch.cat's slices

@@ -489,3 +489,43 @@ def test_readme_quotes_the_dram_batch_and_loss_study():
             f"{d[0]['verdict']}) but not to the truth ({d[1]['diff_db']:+.2f} ± "
             f"{d[1]['std_db']:.2f} dB, {d[1]['verdict']})") in text
     assert d[0]["verdict"] == "better" and d[1]["verdict"] == "tie"
+
+
+def test_readme_quotes_the_texture_loss_student_study():
+    """The linear-head student on whole textures against the image loss, as the README
+    quotes it (student_linear_tex, three seeds): worse by the 2σ rule, and falling."""
+    rec = json.loads((RESULTS / "student_linear_tex" / "student_env.json").read_text())
+    res = rec["results"]
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert rec["seeds"] == [0, 1, 2]
+    truth = "ground_truth_texels"
+    tex, lin = res["linear_tex"][truth]["psnr"], res["linear"][truth]["psnr"]
+    d = res["linear_tex"]["versus"]["splits"][truth]
+    assert res["linear_tex"]["versus"]["base"] == "linear"
+    assert (f"{tex[0]:.2f} ± {tex[1]:.2f} against {lin[0]:.2f} ± {lin[1]:.2f} dB on the "
+            f"consistent truth ({d['diff_db']:+.2f} ± {d['std_db']:.2f} dB, {d['verdict']})"
+            ) in text
+    assert d["verdict"] == "worse"
+    # "it falls over its last 1,000 iterations on every seed"
+    gains = [r["gain_tail_db"] for r in res["linear_tex"]["seeds"]]
+    assert all(g < 0 for g in gains), gains
+
+
+def test_readme_quotes_the_teacher_network_rate():
+    """The cpu teacher's network and iteration against the same run's GEMM, one and two
+    threads, as the README quotes them (bench_teacher.py --quick runs)."""
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    rows = {}
+    for threads, path in ((1, RESULTS.parent / "teacher_t1" / "teacher.json"),
+                          (2, RESULTS.parent / "teacher.json")):
+        rec = json.loads(path.read_text())
+        assert rec["machine"]["torch_threads"] == threads
+        row = next(t for t in rec["throughput"] if t["preset"] == "cpu" and t["channels_last"])
+        gemm = rec["machine"]["gemm_gflops"]
+        rows[threads] = (row["network_alone"]["gflops"], 100 * row["network_alone"]["gflops"]
+                         / gemm, 100 * row["gflops"] / gemm)
+        assert row["network_alone"]["gflops"] <= rec["machine"]["peak_gflops"]
+    net, net_pct, it_pct = rows[1]
+    assert (f"runs at {net:.1f} GFLOP/s, {net_pct:.0f} % of the same run's GEMM, and a whole "
+            f"training iteration at {it_pct:.0f} %") in text
+    assert f"(two threads: {rows[2][1]:.0f} % and {rows[2][2]:.0f} %;" in text

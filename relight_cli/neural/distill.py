@@ -33,7 +33,12 @@ image space over the hand's pixels (``loss_space: image``).  ``loss_space: textu
 Σ_m b_m C_m, which the pseudo ground truth has anyway — over every texel inside the UV
 charts: every texel is supervised on every sample, where an image supervises the texels
 its camera sees, each as often as it covers pixels.  Measured on DRAM
-(benchmarks/results/converged/student_dram_b8/).
+(benchmarks/results/converged/student_dram_b8/: its light path trains, a tie on the
+scores) and on the ``cpu`` preset's linear-head student
+(benchmarks/results/converged/student_linear_tex/, three seeds: 22.99 against 28.02 dB on
+the consistent truth, worse): the texels a camera does not see have the teacher at view
+directions behind the surface, where it never trained, as targets, and fitting them
+costs the student the texels the camera sees.
 
 **Student inputs**: bake-features' own pipeline (:class:`relight_cli.bake.PoseFeatures`,
 coarse proxy, visibility traced once per pose) under the (rotated) env map, seen from
