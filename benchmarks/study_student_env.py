@@ -37,7 +37,9 @@ training data).  Result: results/converged/student_linear/.
 ``linear_tex`` is the ``cpu`` preset's student distilled on whole textures
 (``loss_space: texture``, which trains DRAM's light path) against ``linear``: 5 dB worse
 (results/converged/student_linear_tex/), the texels its camera does not see pulling on
-those it does.
+those it does.  ``linear_mix`` is it on synthesized env maps (``env_augment: mix``): a
+tie (results/converged/student_linear_mix/), a texture linear in the env map carrying to
+new maps by construction.
 
 ``tied_8k`` is the paper's text trained twice as long (8,000 iterations, the cosine decay
 stretched to match): whether the ``cpu`` preset's 4,000 stop a student that is still
@@ -114,6 +116,8 @@ VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper", "head": "eq11
             # the cpu preset's student distilled on its whole texture (``loss_space:
             # texture``, ours) instead of the camera's image (the paper's)
             "linear_tex": {"head": "linear", "env_augment": "paper", "loss_space": "texture"},
+            # ... and on env maps synthesized from the training maps (``env_augment: mix``)
+            "linear_mix": {"head": "linear", "env_augment": "mix"},
             # the cpu preset's student distilled from the OLAT teacher with the shading
             # features as input (study_teacher_inputs.py's ``shading`` variant)
             "linear_tshading": {"head": "linear", "env_augment": "paper",
@@ -129,7 +133,8 @@ BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "t
          "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k",
          "linear_tshading": "linear", "linear_tl128": "linear_tshading", "dram": "dram_eq11",
          "dram_b8": "dram", "dram_tex": "dram", "dram_tex_b8": "dram",
-         "dram_tex_b8_mix": "dram_tex_b8", "linear_tex": "linear"}
+         "dram_tex_b8_mix": "dram_tex_b8", "linear_tex": "linear",
+         "linear_mix": "linear"}
 #: what the table compares: (split, reference), in order
 SPLITS = ("heldout_pose_eval_env", "heldout_pose_train_env", "train_pose_eval_env",
           "ground_truth", "ground_truth_texels")
@@ -497,7 +502,8 @@ TOPICS = {"untied": "per-texel biases", "mix": "synthesized env maps",
           "lsq": "a head linear in its features", "linear_8k": "a head linear in its features",
           "linear_tshading": "a teacher with shading features as input",
           "linear_tl128": "that teacher on a 128-light stage",
-          "linear_tex": "the loss on whole textures"}
+          "linear_tex": "the loss on whole textures",
+          "linear_mix": "synthesized env maps"}
 
 NAMES = {"heldout_pose_eval_env": "held-out poses × held-out maps",
          "heldout_pose_train_env": "held-out poses × training maps",

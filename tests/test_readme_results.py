@@ -529,3 +529,23 @@ def test_readme_quotes_the_teacher_network_rate():
     assert (f"runs at {net:.1f} GFLOP/s, {net_pct:.0f} % of the same run's GEMM, and a whole "
             f"training iteration at {it_pct:.0f} %") in text
     assert f"(two threads: {rows[2][1]:.0f} % and {rows[2][2]:.0f} %;" in text
+
+
+def test_readme_quotes_the_synthesized_maps_student_study():
+    """The linear-head student on synthesized env maps against the training maps alone,
+    as the README quotes it (student_linear_mix, three seeds): a tie on every split."""
+    rec = json.loads((RESULTS / "student_linear_mix" / "student_env.json").read_text())
+    res = rec["results"]
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert rec["seeds"] == [0, 1, 2]
+    truth = "ground_truth_texels"
+    mix, lin = res["linear_mix"][truth]["psnr"], res["linear"][truth]["psnr"]
+    versus = res["linear_mix"]["versus"]
+    assert versus["base"] == "linear"
+    d = versus["splits"][truth]
+    assert (f"{mix[0]:.2f} ± {mix[1]:.2f} against {lin[0]:.2f} ± {lin[1]:.2f} dB on the "
+            f"consistent truth, {d['diff_db']:+.2f} ± {d['std_db']:.2f} dB, a tie on every "
+            f"split") in text
+    assert all(x["verdict"] == "tie" for x in versus["splits"].values())
+    trained = res["linear"]["train_pose_eval_env"]["psnr"][0]
+    assert f"({trained:.2f} dB against the teacher on trained poses under held-out maps)" in text
