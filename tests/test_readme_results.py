@@ -491,17 +491,24 @@ def test_readme_quotes_the_dram_batch_and_loss_study():
     assert d[0]["verdict"] == "better" and d[1]["verdict"] == "tie"
 
 
+def _linear_student_study(variant: str):
+    """(results, the README as one line, the variant's comparison) of the three-seed
+    study of ``variant`` against the cpu preset's student (results/converged/student_V/)."""
+    rec = json.loads((RESULTS / f"student_{variant}" / "student_env.json").read_text())
+    assert rec["seeds"] == [0, 1, 2]
+    versus = rec["results"][variant]["versus"]
+    assert versus["base"] == "linear"
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    return rec["results"], text, versus
+
+
 def test_readme_quotes_the_texture_loss_student_study():
     """The linear-head student on whole textures against the image loss, as the README
     quotes it (student_linear_tex, three seeds): worse by the 2σ rule, and falling."""
-    rec = json.loads((RESULTS / "student_linear_tex" / "student_env.json").read_text())
-    res = rec["results"]
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
-    assert rec["seeds"] == [0, 1, 2]
+    res, text, versus = _linear_student_study("linear_tex")
     truth = "ground_truth_texels"
     tex, lin = res["linear_tex"][truth]["psnr"], res["linear"][truth]["psnr"]
-    d = res["linear_tex"]["versus"]["splits"][truth]
-    assert res["linear_tex"]["versus"]["base"] == "linear"
+    d = versus["splits"][truth]
     assert (f"{tex[0]:.2f} ± {tex[1]:.2f} against {lin[0]:.2f} ± {lin[1]:.2f} dB on the "
             f"consistent truth ({d['diff_db']:+.2f} ± {d['std_db']:.2f} dB, {d['verdict']})"
             ) in text
@@ -534,14 +541,9 @@ def test_readme_quotes_the_teacher_network_rate():
 def test_readme_quotes_the_synthesized_maps_student_study():
     """The linear-head student on synthesized env maps against the training maps alone,
     as the README quotes it (student_linear_mix, three seeds): a tie on every split."""
-    rec = json.loads((RESULTS / "student_linear_mix" / "student_env.json").read_text())
-    res = rec["results"]
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
-    assert rec["seeds"] == [0, 1, 2]
+    res, text, versus = _linear_student_study("linear_mix")
     truth = "ground_truth_texels"
     mix, lin = res["linear_mix"][truth]["psnr"], res["linear"][truth]["psnr"]
-    versus = res["linear_mix"]["versus"]
-    assert versus["base"] == "linear"
     d = versus["splits"][truth]
     assert (f"{mix[0]:.2f} ± {mix[1]:.2f} against {lin[0]:.2f} ± {lin[1]:.2f} dB on the "
             f"consistent truth, {d['diff_db']:+.2f} ± {d['std_db']:.2f} dB, a tie on every "
