@@ -551,3 +551,31 @@ def test_readme_quotes_the_synthesized_maps_student_study():
     assert all(x["verdict"] == "tie" for x in versus["splits"].values())
     trained = res["linear"]["train_pose_eval_env"]["psnr"][0]
     assert f"({trained:.2f} dB against the teacher on trained poses under held-out maps)" in text
+
+
+def test_readme_quotes_where_the_teacher_env_error_lives():
+    """The per-direction study of the OLAT teacher's env-map error, as the README quotes it
+    (teacher_directions, three seeds): the per-camera errors, the lit share, the LED-angle
+    correlation and camera 1's largest bias are the table's."""
+    import numpy as np
+    rec = json.loads((RESULTS / "teacher_directions" / "teacher_directions.json").read_text())
+    rows = rec["rows"]
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert sorted({r["seed"] for r in rows}) == [0, 1, 2]
+    per_cam = {c: np.mean([r["rel"] for r in rows if r["camera"] == c]) for c in
+               ("cam000", "cam001")}
+    assert (f"relative squared error of {per_cam['cam000']:.4f} on camera 0 and "
+            f"{per_cam['cam001']:.4f} on camera 1") in text
+    # "on every seed and under both maps": camera 1 is worse in every (seed, pose, map)
+    for r in rows:
+        if r["camera"] == "cam001":
+            twin = next(x for x in rows if x["seed"] == r["seed"] and x["pose"] == r["pose"]
+                        and x["env"] == r["env"] and x["camera"] == "cam000")
+            assert r["rel"] > twin["rel"]
+    lit = 100 * np.mean([r["places"]["lit"] for r in rows])
+    shadowed = 100 * np.mean([r["places"]["shadowed"] for r in rows])
+    corr = np.mean([r["corr"] for r in rows])
+    assert (f"{lit:.0f} % of it on texels the light reaches, {shadowed:.0f} % in shadow" in text)
+    assert f"(correlation {corr:+.2f})" in text and abs(corr) < 0.3
+    worst = 100 * max(r["bias"] for r in rows if r["camera"] == "cam001")
+    assert f"(up to {worst:+.1f} % too bright on camera 1)" in text
