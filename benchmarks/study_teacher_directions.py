@@ -25,7 +25,8 @@ texels inside the charts that face the render's camera:
 
 Trains nothing (the teachers of study_teacher_inputs.py, ``--work``); per render cached as
 ``--cache``/directions_s{seed}_r{render}.json.  Writes ``teacher_directions.{md,json}`` to
-``--out``.  Run (the teachers cached: about 75 s on 2 cores)::
+``--out``.  ``--teacher`` names another study_teacher_inputs.py variant trained on the same
+LED frames (default ``paper``).  Run (the teachers cached: about 75 s on 2 cores)::
 
     .venv/bin/python benchmarks/study_teacher_directions.py --seeds 3 --workers 2 \\
         --directions 64 --work benchmarks/out/teacher_inputs \\
@@ -54,10 +55,11 @@ PLACES = ("lit", "grazing", "shadowed", "away")
 
 
 def _render_rows(work: str, capture: str, seed: int, index: int, directions: int,
-                 cache: str) -> dict:
-    """One held-out env render of seed ``seed``'s ``paper`` teacher (cached in ``cache``,
-    per number of directions)."""
-    path = Path(cache) / f"directions{directions}_s{seed}_r{index}.json"
+                 cache: str, teacher: str = "paper") -> dict:
+    """One held-out env render of seed ``seed``'s ``teacher`` (a study_teacher_inputs.py
+    variant; cached in ``cache``, per number of directions)."""
+    name = "" if teacher == "paper" else f"{teacher}_"
+    path = Path(cache) / f"{name}directions{directions}_s{seed}_r{index}.json"
     if path.is_file():
         return json.loads(path.read_text())
     import numpy as np
@@ -67,7 +69,7 @@ def _render_rows(work: str, capture: str, seed: int, index: int, directions: int
     from relight_cli.envmap import discretize_env
     from relight_cli.neural.ceiling import ceiling_of
     torch.set_num_threads(1)
-    data, targets = E._targets(str(Path(work) / f"paper_s{seed}.pt"), capture, None, GRID)
+    data, targets = E._targets(str(Path(work) / f"{teacher}_s{seed}.pt"), capture, None, GRID)
     pose, env_name, camera, _, _ = data.env_target(data.splits()["env"][index][1])
     denv = discretize_env(data.env_map(env_name), *GRID)
     textures = np.asarray(targets.textures(pose, camera.name, True))
@@ -110,7 +112,7 @@ def _render_rows(work: str, capture: str, seed: int, index: int, directions: int
         per_dir.append((e / max(r, 1e-30), float(angle[m])))
     rel = np.array(per_dir)
     diff = (sum_teacher - sum_stage).mean(0)[facing]
-    row = {"seed": seed, "render": index, "env": env_name, "pose": int(pose),
+    row = {"teacher": teacher, "seed": seed, "render": index, "env": env_name, "pose": int(pose),
            "camera": camera.name, "directions": int(len(picked)),
            "energy_share": float(energy[picked].sum() / energy.sum()),
            "rel": err / ref, "places": {k: v / err for k, v in places.items()},
@@ -128,6 +130,9 @@ def main(argv=None) -> None:
                     help="study_teacher_inputs.py's cache: captures and teachers")
     ap.add_argument("--cache", default=str(B.OUT / "teacher_directions"), metavar="DIR",
                     help="where each render's numbers are kept")
+    ap.add_argument("--teacher", default="paper",
+                    help="the study_teacher_inputs.py variant (trained on the 32-LED "
+                    "capture) [default: paper]")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--directions", type=int, default=24,
@@ -135,9 +140,11 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     if args.quick:
         ap.error("no --quick: the teachers are converged cpu-preset runs")
-    out = B.start(args, "study_teacher_directions.py")
     import study_env_truth as ET
     import study_teacher_inputs as T
+    if args.teacher not in T.VARIANTS or args.teacher in T.STAGES:
+        ap.error(f"--teacher: one of {', '.join(v for v in T.VARIANTS if v not in T.STAGES)}")
+    out = B.start(args, "study_teacher_directions.py")
     work = Path(args.work)
     t0 = time.perf_counter()
     limits = B.machine_limits()
@@ -146,16 +153,17 @@ def main(argv=None) -> None:
         print(m, file=sys.stderr, flush=True)
     capture = P._capture(work, log, stage=ET.stage_of("", "texels"))[0]
     for seed in range(args.seeds):               # the teachers train on the LED frames
-        T._run(work, P._capture(work, log)[0], "paper", seed, log)
+        T._run(work, P._capture(work, log)[0], args.teacher, seed, log)
     from relight_cli.neural.config import resolve_config
     from relight_cli.neural.data import CaptureData
     renders = len(CaptureData(str(capture), resolve_config("cpu").tex_res).splits()["env"])
     Path(args.cache).mkdir(parents=True, exist_ok=True)
-    jobs = [(str(work), str(capture), s, r, args.directions, args.cache)
+    jobs = [(str(work), str(capture), s, r, args.directions, args.cache, args.teacher)
             for s in range(args.seeds) for r in range(renders)]
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool:
         rows = list(pool.map(_render_rows, *zip(*jobs)))
     record = {"command": B.run_command("study_teacher_directions.py", argv or sys.argv[1:]),
+              "teacher": args.teacher,
               "machine": limits, "wall_s": time.perf_counter() - t0, "grid": list(GRID),
               "capture": capture.name, "rows": rows}
     P.B_write(out / "teacher_directions.json", record)
@@ -169,7 +177,7 @@ def _markdown(record: dict) -> str:
     rows = record["rows"]
     head = (f"Command: `{record['command']}`  \n{B.machine_line(record['machine'])}  \n"
             f"Wall time: {record['wall_s'] / 60:.1f} min for this invocation (renders in its "
-            f"cache cost nothing); the `paper`-input `cpu` teacher of ")
+            f"cache cost nothing); the `{record.get('teacher', 'paper')}`-input `cpu` teacher of ")
     lines = ["# Where the OLAT teacher's env-map error lives", "",
              head +
              f"each seed, every held-out env render of `{record['capture']}` (consistent env "
