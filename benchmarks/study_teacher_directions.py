@@ -26,7 +26,8 @@ texels inside the charts that face the render's camera:
 Trains nothing (the teachers of study_teacher_inputs.py, ``--work``); per render cached as
 ``--cache``/[TEACHER_]directionsK_sS_rR.json (K directions).  Writes
 ``teacher_directions.{md,json}`` to ``--out``.  ``--teacher`` names another
-study_teacher_inputs.py variant trained on the same LED frames (default ``paper``).  Run (the teachers cached: about 75 s on 2 cores)::
+study_teacher_inputs.py variant trained on the same LED frames (default ``paper``).  Run
+(the teachers cached: about 75 s on 2 cores)::
 
     .venv/bin/python benchmarks/study_teacher_directions.py --seeds 3 --workers 2 \\
         --directions 64 --work benchmarks/out/teacher_inputs \\
