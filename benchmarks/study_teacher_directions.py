@@ -99,10 +99,10 @@ def _render_rows(work: str, capture: str, seed: int, index: int, directions: int
         lit = renderer.light(env=replace(denv, radiance=radiance))
         stage = texels.to_maps(0, ceiling.shader.texel_radiance(
             renderer, lit, [texels.surfaces[0]], camera.center)[0].astype(np.float32))
-        teacher = textures[0, m] * b[m][:, None, None]
-        sum_teacher += teacher
+        ours = textures[0, m] * b[m][:, None, None]
+        sum_teacher += ours
         sum_stage += stage
-        sq = ((teacher - stage) ** 2).mean(0)
+        sq = ((ours - stage) ** 2).mean(0)
         lz, vis = to_map(lights.local_light[m, :, 2]), to_map(lights.visibility[m])
         masks = {"lit": (lz > 0.3) & (vis > 0.5), "grazing": (lz > 0) & (lz <= 0.3) & (vis > 0.5),
                  "shadowed": (lz > 0) & (vis <= 0.5), "away": lz <= 0}

@@ -579,3 +579,22 @@ def test_readme_quotes_where_the_teacher_env_error_lives():
     assert f"(correlation {corr:+.2f})" in text and abs(corr) < 0.3
     worst = 100 * max(r["bias"] for r in rows if r["camera"] == "cam001")
     assert f"(up to {worst:+.1f} % too bright on camera 1)" in text
+
+
+def test_readme_quotes_the_shading_teacher_directions():
+    """The cpu preset's (shading-input) teacher retrained here and its per-direction
+    errors, as the README quotes them (teacher_shading_rerun, teacher_directions_shading)."""
+    import numpy as np
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    rec = json.loads((RESULTS / "teacher_shading_rerun" / "teacher_inputs.json").read_text())
+    res = rec["results"]["shading"]
+    gap = res["all_heldout"]["gap"]
+    minutes = res["wall_min"] / len(res["seeds"])          # the table's "min per run"
+    assert f"held-out gap {gap[0]:.2f} ± {gap[1]:.2f} dB in {minutes:.1f} min per run" in text
+    rows = json.loads((RESULTS / "teacher_directions_shading" / "teacher_directions.json")
+                      .read_text())["rows"]
+    assert {r["teacher"] for r in rows} == {"shading"}
+    cams = [np.mean([r["rel"] for r in rows if r["camera"] == c]) for c in ("cam000", "cam001")]
+    worst = 100 * max(r["bias"] for r in rows)
+    assert (f"{cams[0]:.4f} on camera 0 and {cams[1]:.4f} on camera 1, at most "
+            f"{worst:+.1f} % too bright") in text
