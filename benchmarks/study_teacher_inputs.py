@@ -41,7 +41,10 @@ import bench_presets as P  # noqa: E402
 VARIANTS = {"paper": {"inputs": "paper"}, "half": {"inputs": "half"},
             "code": {"inputs": "paper", "head": "code"},
             "shading": {"inputs": "shading"}, "nopose": {"inputs": "paper", "pose": "none"},
-            "shading_l128": {"inputs": "shading"}}
+            "shading_l128": {"inputs": "shading"},
+            # the cpu preset's teacher blind to the camera (``view: none``): is its
+            # env-map error view-dependent error (study_teacher_directions.py)?
+            "shading_noview": {"inputs": "shading", "view": "none"}}
 #: variants trained on another capture: the converged scale's with these stage settings
 #: overridden.  ``shading_l128``: 128 stage lights instead of 32, the same frames, groups
 #: of 4 and cameras (so as many images, each light lit in 2 grouped frames instead of 8):
@@ -54,7 +57,8 @@ SPLITS = ("heldout", "fully_lit", "env")
 #: what a variant is, in the table's title
 TITLES = {"half": "the half vector added", "code": "the authors' code's head",
           "shading": "the student's shading features added", "nopose": "no pose",
-          "shading_l128": "the same on a 128-light stage"}
+          "shading_l128": "the same on a 128-light stage",
+          "shading_noview": "the same blind to the camera"}
 #: what the table compares: every held-out sample, then the validation's splits
 COMPARED = ("all_heldout", "all_train") + SPLITS
 

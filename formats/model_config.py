@@ -154,6 +154,11 @@ class TeacherConfig(TrainingConfig):
         pose: what the teacher's pose encoder sees.  ``joints``: θ (App. A.1); ``none``
             (ours, an ablation): zeros, so the pose reaches the texture only through the
             per-texel inputs (directions in the posed texel frames and visibility).
+        view: what the OLAT teacher sees of the view.  ``direction``: the local view
+            direction v at every texel (App. A.1); ``none`` (ours, an ablation): zeros
+            for v (and so for the Phong lobes of ``inputs: shading``), a teacher whose
+            texture cannot depend on the camera — no highlights, and no view-dependent
+            error in its diffuse response either.
         iters, batch, lr: Adam iterations, samples (frame × camera) per step, learning rate.
         lr_schedule, lr_final: ``constant`` keeps ``lr`` (the paper: 1e-3 for 100k
             iterations); ``cosine`` (ours, for the ``cpu`` preset's short runs) decays it
@@ -197,6 +202,7 @@ class TeacherConfig(TrainingConfig):
     untied_bias: bool = False
     inputs: str = "paper"
     pose: str = "joints"
+    view: str = "direction"
     aa: int = 0
     holdout: float = 0.25
     cache_poses: int = 64
@@ -209,8 +215,11 @@ class TeacherConfig(TrainingConfig):
         check.choice("head", ("printed", "code"))
         check.choice("inputs", ("paper", "half", "shading"))
         check.choice("pose", ("joints", "none"))
+        check.choice("view", ("direction", "none"))
         if self.model == "ggx" and self.inputs != "paper":
             check.bad("inputs", "is the OLAT teacher's; the GGX baseline builds its own")
+        if self.model == "ggx" and self.view != "direction":
+            check.bad("view", "is the OLAT teacher's; the GGX lobe needs the view")
         check.choice("neg_schedule", ("decay", "literal", "constant"))
         check.integer("tex_res", 8, 4096)
         for name in ("encoder", "decoder", "pose_channels"):

@@ -851,7 +851,8 @@ def _edit_index(cap, edit):
 BAD_CONFIGS = {"bad-config": {"tex_res": 33}, "bad-head": {"head": "inside", "untied_bias": True},
                "bad-inputs": {"inputs": "halfway"},
                "shading-inputs-on-ggx": {"model": "ggx", "inputs": "shading"},
-               "bad-pose": {"pose": "hands"}}
+               "bad-pose": {"pose": "hands"}, "bad-view": {"view": "eye"},
+               "view-none-on-ggx": {"model": "ggx", "view": "none"}}
 
 
 @pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
@@ -1431,3 +1432,28 @@ def test_nhwc_unet_keeps_its_layout_and_its_values():
         return seen
     assert layouts(M._cat_channels) == [True, True]
     assert layouts(lambda t: torch.cat(t, 1)) == [False, False]    # torch.cat's slices
+
+
+@pytest.mark.parametrize("inputs", ["paper", "shading"])
+def test_view_none_makes_the_teacher_blind_to_the_camera(inputs):
+    """``view: none``: two view directions give the same textures (the view enters only
+    through v, and through the Phong lobes of ``inputs: shading``, both zeroed);
+    ``direction`` (the default) tells them apart."""
+    from relight_cli.neural.models import build_model
+
+    torch.manual_seed(0)
+    x1 = torch.rand(2, 7, 16, 16) * 2 - 1
+    x1[:, 2] = x1[:, 2].abs()                 # lights above the surface: lobes non-zero
+    x1[:, 5] = x1[:, 5].abs()
+    x2 = x1.clone()
+    x2[:, 3:6] = torch.flip(x1[:, 3:6], [2, 3])             # other view directions
+    hand_of, pose = torch.zeros(2, dtype=torch.long), torch.zeros(1, 6)
+    out = {}
+    for view in ("direction", "none"):
+        torch.manual_seed(1)
+        model = build_model(TeacherConfig.from_dict({**SMALL, "inputs": inputs,
+                                                     "view": view}), 6)
+        with torch.no_grad():
+            out[view] = (model(x1, pose, hand_of), model(x2, pose, hand_of))
+    assert not torch.allclose(*out["direction"])
+    assert torch.equal(*out["none"])

@@ -59,7 +59,8 @@ against 29.96 ± 0.01 dB (+0.85 ± 0.20 dB, better; gap 2.00 → 1.15 dB), under
 lit frames +0.68 ± 0.14 dB (better), on the training poses gap 0.46 → 0.03 dB, and a tie
 under the held-out env maps (+0.00 ± 0.22 dB).  ``pose: none`` (an ablation: zeros into
 the pose encoder) ties with θ on every split (−0.12 ± 0.21 dB held out): the teacher's
-held-out gap is not a pose code overfitted to the 48 training poses.
+held-out gap is not a pose code overfitted to the 48 training poses.  ``view: none`` (an
+ablation) zeros the view direction (and so the Phong lobes): a teacher blind to the camera.
 
 GGX baseline (App. B, Eq. 12): the same U-Net twice — a shadow U-Net on (local light
 direction, visibility) → S, and a material U-Net on the capture's mean texture T̄ →
@@ -281,12 +282,16 @@ class OLATTeacher(nn.Module):
         self.lambda_b = config.lambda_b * PAPER_UNIT
         self.head = getattr(config, "head", "printed")
         self.pose_input = getattr(config, "pose", "joints")
+        self.view_input = getattr(config, "view", "direction")
 
     def forward(self, inputs: torch.Tensor, pose: torch.Tensor, hand_of: torch.Tensor,
                 mean_texture=None, return_raw: bool = False):
         """Per-light textures C_i [B, 3, N, N] (sr⁻¹) from inputs [B, 7, N, N] (Eq. 10);
         with ``return_raw`` also the pre-ReLU λ_s T_i [B, 3, N, N] (for L_neg)."""
         pose = seen_pose(pose, self.pose_input)
+        if self.view_input == "none":
+            inputs = torch.cat([inputs[:, :3], torch.zeros_like(inputs[:, 3:6]),
+                                inputs[:, 6:]], 1)
         raw = self.net(teacher_inputs(inputs, self.inputs), pose, hand_of)
         scaled, shadow = self.lambda_s * raw[:, :3], raw[:, 3:4]
         if self.head == "code":
