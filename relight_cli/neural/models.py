@@ -61,6 +61,10 @@ under the held-out env maps (+0.00 ± 0.22 dB).  ``pose: none`` (an ablation: ze
 the pose encoder) ties with θ on every split (−0.12 ± 0.21 dB held out): the teacher's
 held-out gap is not a pose code overfitted to the 48 training poses.  ``view: none`` (an
 ablation) zeros the view direction (and so the Phong lobes): a teacher blind to the camera.
+Measured with the shading input (two seeds, benchmarks/results/converged/teacher_noview/):
+−1.89 ± 0.22 dB on every held-out sample (worse), a tie under the held-out env maps
+(−0.68 ± 0.44 dB); the camera-dependent part of its env-map error stays
+(teacher_directions_noview/), so the view input is kept.
 
 GGX baseline (App. B, Eq. 12): the same U-Net twice — a shadow U-Net on (local light
 direction, visibility) → S, and a material U-Net on the capture's mean texture T̄ →
@@ -150,7 +154,8 @@ def _bias_like(bias: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
 
 
 class _LayoutGrad(torch.autograd.Function):
-    """The identity whose backward hands on its gradient in the input's memory layout.
+    """The identity whose backward hands on its gradient NHWC-contiguous (it is applied
+    to NHWC inputs only, :func:`_cat_channels`).
 
     A channel concatenation's gradient reaches each input as a channel slice of the
     output's: in NHWC a strided view that is neither NCHW- nor NHWC-contiguous, where the
