@@ -318,13 +318,11 @@ def synth_capture(folder: Path, hand: str, seed: int, capture: dict, eval_envs: 
     """The one place this runner makes a capture: ``relight synth-capture``'s job
     (:func:`relight_cli.jobs.synth_capture.make_capture`)."""
     from relight_cli.jobs.synth_capture import make_capture
-    make_capture(str(folder), hand, seed=seed, cameras=capture["cameras"],
-                 lights=capture["lights"], group=capture["group"], frames=capture["frames"],
-                 res=capture["res"], tex_res=capture["tex_res"], aa=capture["aa"],
-                 eval_poses=capture["eval_poses"], eval_cameras=capture["eval_cameras"],
-                 eval_envs=eval_envs,
-                 # a scale that does not name it keeps the renders its cached captures have
-                 eval_env_space=capture.get("eval_env_space", "vertices"))
+    # every setting the scale (or a study's stage) names reaches the stage: an unknown one
+    # is an error, not a default (a stage's keyframe_every was once dropped here); a
+    # scale that does not name eval_env_space keeps the renders its cached captures have
+    make_capture(str(folder), hand, seed=seed, eval_envs=eval_envs,
+                 **{"eval_env_space": "vertices", **capture})
 
 
 class Study:

@@ -125,13 +125,19 @@ VARIANTS = {"tied": {"untied_bias": False, "env_augment": "paper", "head": "eq11
             # ... and from the same teacher trained on a 128-light stage (``shading_l128``:
             # same poses, cameras and env maps; the student distills on this capture)
             "linear_tl128": {"head": "linear", "env_augment": "paper",
-                             "teacher": "shading_l128"}}
+                             "teacher": "shading_l128"},
+            # ... and from the same teacher trained on a capture with a key pose every
+            # frame (``shading_k1``: other training poses; the student distills on that
+            # capture's poses, so it sees them too)
+            "linear_tk1": {"head": "linear", "env_augment": "paper",
+                           "teacher": "shading_k1"}}
 BASE = "tied"
 #: what each variant is compared with (paired by seed): the students with ``tied`` (the
 #: paper's text), DRAM with synthesized env maps with DRAM on the training maps alone
 BASES = {"untied": BASE, "mix": BASE, "untied_mix": BASE, "dram_mix": "dram", "tied_8k": BASE,
          "linear": BASE, "linear_lsq": BASE, "lsq": BASE, "linear_8k": "tied_8k",
-         "linear_tshading": "linear", "linear_tl128": "linear_tshading", "dram": "dram_eq11",
+         "linear_tshading": "linear", "linear_tl128": "linear_tshading",
+         "linear_tk1": "linear_tshading", "dram": "dram_eq11",
          "dram_b8": "dram", "dram_tex": "dram", "dram_tex_b8": "dram",
          "dram_tex_b8_mix": "dram_tex_b8", "linear_tex": "linear",
          "linear_mix": "linear"}
@@ -195,6 +201,15 @@ def teacher_of(variant: str) -> str:
 
 def student_config(variant: str) -> dict:
     return {k: v for k, v in VARIANTS[variant].items() if k != "teacher"}
+
+
+def capture_of(variant: str, default: Path, stages: dict) -> Path:
+    """The capture a student variant distills on and is scored on against its teacher:
+    its teacher's stage's (``stages``: teacher variant → capture) when that stage moves
+    the hand through other poses (:func:`study_teacher_inputs.moves`), else ``default``
+    (other stages have the same poses, cameras and env maps)."""
+    teacher = teacher_of(variant)
+    return stages[teacher] if T.moves(T.STAGES.get(teacher, {})) else default
 
 
 def textures_dir(work: Path, teacher: str, seed: int) -> Path:
@@ -439,6 +454,8 @@ def main(argv=None) -> None:
         list(pool.map(lambda job: T._run(teachers, stage[job[0]], *job, log),
                       [(t, s) for t in kinds for s in seeds]))
     teacher = {(t, s): teachers / f"{t}_s{s}.pt" for t in kinds for s in seeds}
+    on = {v: capture_of(v, capture, stage) for v in variants}
+    where_of = {teacher_of(v): on[v] for v in variants}
     for t, s in teacher:
         where = textures_dir(work, t, s)
         marker = where.parent / f"{where.name}.done"
@@ -446,19 +463,19 @@ def main(argv=None) -> None:
             log(f"{t} teacher seed {s}: its per-direction textures, {workers} process(es)")
             where.mkdir(exist_ok=True)
             with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-                list(pool.map(_prefill, *zip(*[(str(teacher[t, s]), str(capture),
+                list(pool.map(_prefill, *zip(*[(str(teacher[t, s]), str(where_of[t]),
                                                 str(where), k, workers)
                                                for k in range(workers)])))
             marker.write_text("done\n")
     jobs = [(v, s) for s in seeds for v in variants]
     with ThreadPoolExecutor(workers) as pool:
         records = list(pool.map(
-            lambda job: _run(work, capture, teacher[teacher_of(job[0]), job[1]], *job, log),
+            lambda job: _run(work, on[job[0]], teacher[teacher_of(job[0]), job[1]], *job, log),
             jobs))
     # spawned, not forked: a child forked from this process (its threads above, torch's
     # thread pools) deadlocked before scoring anything (seen: 1 h 40 min idle)
     with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-        scores = list(pool.map(_score, *zip(*[(work, capture, teacher[teacher_of(v), s], v, s)
+        scores = list(pool.map(_score, *zip(*[(work, on[v], teacher[teacher_of(v), s], v, s)
                                               for v, s in jobs])))
     # the consistent env truth: the same capture made again with its env renders shaded
     # as its LEDs (identical LED frames; study_env_truth.py)
@@ -472,13 +489,14 @@ def main(argv=None) -> None:
     lit = [(v, s) for v, s in jobs if is_dram(v)]
     if lit:                 # whether DRAM's light path trained, per run
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            light = list(pool.map(_light, *zip(*[(work, capture, teacher[teacher_of(v), s],
-                                                   v, s) for v, s in lit])))
+            light = list(pool.map(_light, *zip(*[(work, on[v], teacher[teacher_of(v), s],
+                                                  v, s) for v, s in lit])))
         for (v, s), value in zip(lit, light):
             runs[v][seeds.index(s)]["light"] = value
     record = {"command": B.run_command("study_student_env.py",
                                        sys.argv[1:] if argv is None else argv),
               "machine": limits, "capture": str(capture), "seeds": seeds,
+              "captures": {v: str(on[v]) for v in variants if on[v] != capture},
               "envs": _env_specs(), "wall_s": round(time.perf_counter() - t0, 1),
               "variants": {v: VARIANTS[v] for v in variants},
               "by_hand": {f"{v}_s{s}": r["note"] for (v, s), r in zip(jobs, records)
@@ -502,6 +520,7 @@ TOPICS = {"untied": "per-texel biases", "mix": "synthesized env maps",
           "lsq": "a head linear in its features", "linear_8k": "a head linear in its features",
           "linear_tshading": "a teacher with shading features as input",
           "linear_tl128": "that teacher on a 128-light stage",
+          "linear_tk1": "that teacher and the student on a capture of more poses",
           "linear_tex": "the loss on whole textures",
           "linear_mix": "synthesized env maps"}
 

@@ -132,8 +132,8 @@ def main(argv=None) -> None:
     ap.add_argument("--cache", default=str(B.OUT / "teacher_directions"), metavar="DIR",
                     help="where each render's numbers are kept")
     ap.add_argument("--teacher", default="paper",
-                    help="the study_teacher_inputs.py variant (trained on the 32-LED "
-                    "capture) [default: paper]")
+                    help="the study_teacher_inputs.py variant (one trained on another stage "
+                    "is scored on the same renders) [default: paper]")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--directions", type=int, default=24,
@@ -143,8 +143,8 @@ def main(argv=None) -> None:
         ap.error("no --quick: the teachers are converged cpu-preset runs")
     import study_env_truth as ET
     import study_teacher_inputs as T
-    if args.teacher not in T.VARIANTS or args.teacher in T.STAGES:
-        ap.error(f"--teacher: one of {', '.join(v for v in T.VARIANTS if v not in T.STAGES)}")
+    if args.teacher not in T.VARIANTS:
+        ap.error(f"--teacher: one of {', '.join(T.VARIANTS)}")
     out = B.start(args, "study_teacher_directions.py")
     work = Path(args.work)
     t0 = time.perf_counter()
@@ -152,9 +152,12 @@ def main(argv=None) -> None:
 
     def log(m):
         print(m, file=sys.stderr, flush=True)
+    # every teacher, one of another stage (study_teacher_inputs.STAGES) too, on the
+    # converged capture's env renders: the same images, poses and cameras for all
     capture = P._capture(work, log, stage=ET.stage_of("", "texels"))[0]
     for seed in range(args.seeds):               # the teachers train on the LED frames
-        T._run(work, P._capture(work, log)[0], args.teacher, seed, log)
+        T._run(work, P._capture(work, log, stage=T.STAGES.get(args.teacher))[0],
+               args.teacher, seed, log)
     from relight_cli.neural.config import resolve_config
     from relight_cli.neural.data import CaptureData
     renders = len(CaptureData(str(capture), resolve_config("cpu").tex_res).splits()["env"])

@@ -31,7 +31,8 @@ import os
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -44,7 +45,10 @@ VARIANTS = {"paper": {"inputs": "paper"}, "half": {"inputs": "half"},
             "shading_l128": {"inputs": "shading"},
             # the cpu preset's teacher blind to the camera (``view: none``): is its
             # env-map error view-dependent error (study_teacher_directions.py)?
-            "shading_noview": {"inputs": "shading", "view": "none"}}
+            "shading_noview": {"inputs": "shading", "view": "none"},
+            # the cpu preset's teacher on captures whose hand moves through more key poses
+            # in the same 96 frames: is its held-out error the capture's few poses?
+            "shading_k3": {"inputs": "shading"}, "shading_k1": {"inputs": "shading"}}
 #: variants trained on another capture: the converged scale's with these stage settings
 #: overridden.  ``shading_l128``: 128 stage lights instead of 32, the same frames, groups
 #: of 4 and cameras (so as many images, each light lit in 2 grouped frames instead of 8):
@@ -52,15 +56,30 @@ VARIANTS = {"paper": {"inputs": "paper"}, "half": {"inputs": "half"},
 #: The env renders (eval hand, env maps, cameras) are the same images on both stages;
 #: the held-out and training frames are not (other lights), each scored with its own
 #: ceiling.
-STAGES = {"shading_l128": {"lights": 128}}
+#: ``shading_k3`` / ``shading_k1``: a random key pose every 3rd / every frame instead of
+#: every 10th (``synth-capture --keyframe-every``): the same 96 frames, LEDs, groups and
+#: cameras (so as many images), 24 / 72 key poses before the held-out segment instead of 8.
+#: The env renders' held-out poses are drawn apart from the motion, so they are the same
+#: poses; but the dome is framed on the whole motion (the cameras' focal lengths differ by
+#: up to 7 %), so they are other images, judged like the rest on the gap to their own
+#: ceiling.
+STAGES = {"shading_l128": {"lights": 128}, "shading_k3": {"keyframe_every": 3},
+          "shading_k1": {"keyframe_every": 1}}
 SPLITS = ("heldout", "fully_lit", "env")
 #: what a variant is, in the table's title
 TITLES = {"half": "the half vector added", "code": "the authors' code's head",
           "shading": "the student's shading features added", "nopose": "no pose",
           "shading_l128": "the same on a 128-light stage",
-          "shading_noview": "the same blind to the camera"}
+          "shading_noview": "the same blind to the camera",
+          "shading_k3": "the same on a capture with a key pose every 3rd frame",
+          "shading_k1": "the same on a capture with a key pose every frame"}
 #: what the table compares: every held-out sample, then the validation's splits
-COMPARED = ("all_heldout", "all_train") + SPLITS
+COMPARED = ("all_heldout", "all_train") + SPLITS + ("env_texels",)
+#: ``env_texels``: every held-out env render of the converged capture made again with its
+#: env renders shaded as its LEDs (the consistent truth, study_env_truth.py), the same
+#: images for every variant, one of another stage too (a teacher's texture is scored
+#: through any capture's cameras): compared on the PSNR itself
+SAME_IMAGES = ("env_texels",)
 
 
 def _run(work: Path, capture: Path, variant: str, seed: int, log) -> dict:
@@ -115,10 +134,12 @@ def _score_all(work: Path, capture: Path, variant: str, seed: int) -> dict:
     return out
 
 
-def _seed_row(record: dict, every: dict) -> dict:
+def _seed_row(record: dict, every: dict, consistent: dict | None = None) -> dict:
     m = record["metrics"]["metrics"]
     row = {"wall_s": record["wall_s"], "all_heldout": every["heldout"],
            "all_train": every["train"]}
+    if consistent is not None:
+        row["env_texels"] = {k: consistent[k] for k in ("psnr", "ceiling", "gap")}
     for split in SPLITS:
         s = m.get(split) or {}
         # (the validation's own samples: val_samples of each split)
@@ -146,8 +167,10 @@ def summarize(runs: dict, seeds: list, base: str = "paper") -> dict:
     for variant, rows in runs.items():
         entry = {"seeds": rows}
         for split in COMPARED:
-            psnr = [r[split]["psnr"] for r in rows if r[split]["psnr"] is not None]
-            gap = [r[split]["gap"] for r in rows if r[split]["gap"] is not None]
+            psnr = [r[split]["psnr"] for r in rows if (r.get(split) or {}).get("psnr")
+                    is not None]
+            gap = [r[split]["gap"] for r in rows if (r.get(split) or {}).get("gap")
+                   is not None]
             if psnr:
                 entry[split] = {"psnr": _stats(psnr), "gap": _stats(gap) if gap else None,
                                 "ceiling": rows[0][split]["ceiling"]}
@@ -162,11 +185,13 @@ def summarize(runs: dict, seeds: list, base: str = "paper") -> dict:
         out[variant]["versus_paper"] = {}
         # on another stage the frames are other images: compare the gaps to each one's
         # own ceiling (the env renders are the same images, so there it is the PSNR too)
-        key = "gap" if STAGES.get(variant) != STAGES.get(base_name) else "psnr"
-        sign = -1.0 if key == "gap" else 1.0
+        other = STAGES.get(variant) != STAGES.get(base_name)
         for split in COMPARED:
+            key = "gap" if other and split not in SAME_IMAGES else "psnr"
+            sign = -1.0 if key == "gap" else 1.0
             diffs = [sign * (a[split][key] - b[split][key]) for a, b in zip(rows, base)
-                     if a[split][key] is not None and b[split][key] is not None]
+                     if (a.get(split) or {}).get(key) is not None
+                     and (b.get(split) or {}).get(key) is not None]
             if not diffs:
                 continue
             mean, std = _stats(diffs)
@@ -221,7 +246,13 @@ def main(argv=None) -> None:
     with ThreadPoolExecutor(max(1, args.workers)) as pool:
         records = list(pool.map(lambda job: _run(work, captures[job[0]], *job, log), jobs))
     every = [_score_all(work, captures[v], v, s) for v, s in jobs]
-    runs = {v: [_seed_row(r, e) for (vv, _), r, e in zip(jobs, records, every) if vv == v]
+    import study_env_truth as ET
+    texels = P._capture(work, log, stage=ET.stage_of("", "texels"))[0]
+    with ProcessPoolExecutor(max(1, args.workers), mp_context=get_context("spawn")) as pool:
+        consistent = list(pool.map(ET.score_env, *zip(*[(str(work), str(texels), v, s,
+                                                         "texels") for v, s in jobs])))
+    rows = list(zip(jobs, records, every, consistent))
+    runs = {v: [_seed_row(r, e, c) for (vv, _), r, e, c in rows if vv == v]
             for v in variants}
     record = {"command": B.run_command("study_teacher_inputs.py",
                                        sys.argv[1:] if argv is None else argv),
@@ -236,6 +267,12 @@ def main(argv=None) -> None:
     (out / "teacher_inputs.md").write_text(_markdown(record))
     _plot(record, out / "teacher_inputs.png")
     print((out / "teacher_inputs.md").read_text())
+
+
+def moves(stage: dict) -> bool:
+    """Whether a stage's settings move the hand through other poses (its cameras, framed
+    on the whole motion, then differ too)."""
+    return any(k in stage for k in ("keyframe_every", "frames"))
 
 
 def _markdown(record: dict) -> str:
@@ -256,8 +293,9 @@ def _markdown(record: dict) -> str:
                 f"records say so): {', '.join(record['by_hand'])}." if record.get("by_hand")
                 else ""), "",
              "| input | held-out PSNR, all samples | gap | SSIM | training poses, all: gap | "
-             "held-out PSNR, validation (16) | gap | fully lit gap | env-map gap | converged "
-             "| min per run |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "held-out PSNR, validation (16) | gap | fully lit gap | env-map gap | env maps, "
+             "consistent truth: PSNR | gap | converged | min per run |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def cell(e, split, key):
         s = e.get(split)
@@ -272,7 +310,8 @@ def _markdown(record: dict) -> str:
                      f"{sum(ssim) / len(ssim):.4f} | {cell(e, 'all_train', 'gap')} | "
                      f"{cell(e, 'heldout', 'psnr')}"
                      f" | {cell(e, 'heldout', 'gap')} | {cell(e, 'fully_lit', 'gap')} | "
-                     f"{cell(e, 'env', 'gap')} | {'yes' if e['converged'] else 'NOT'} ("
+                     f"{cell(e, 'env', 'gap')} | {cell(e, 'env_texels', 'psnr')} | "
+                     f"{cell(e, 'env_texels', 'gap')} | {'yes' if e['converged'] else 'NOT'} ("
                      + ", ".join(f"{r['gain_tail_db']:+.2f}" for r in e["seeds"]) + ") | "
                      f"{e['wall_min'] / len(e['seeds']):.1f} |")
     stages = record.get("stages") or {}
@@ -282,15 +321,19 @@ def _markdown(record: dict) -> str:
               + ", ".join(f"{s} {c:.2f} dB" for s, c in ceil.items() if c is not None) + ".",
               *[f"{v} is trained and scored on another capture: the `converged` one with "
                 f"{json.dumps(st)}, whose held-out, training and fully lit frames are other "
-                f"images (other LEDs), so it is compared on its gap to its own ceilings ("
+                f"images ({'other poses' if moves(st) else 'other LEDs'}), so it is "
+                f"compared on its gap to its own ceilings ("
                 + ", ".join(f"{s} {res[v][s]['ceiling']:.2f} dB" for s in COMPARED
-                            if res[v].get(s)) + "); the env renders are the same images."
+                            if res[v].get(s)) + "); the env renders are "
+                + ("the same held-out poses through cameras framed on its own motion."
+                   if moves(st) else "the same images.")
                 for v, st in stages.items()],
               "", f"Against `{base}`, paired by seed (verdict when |difference| > max(2 σ, "
               "0.2 dB)):", ""]
     for v, e in res.items():
         for split, d in (e.get("versus_paper") or {}).items():
-            on = " (gap to its own ceiling)" if d.get("on") == "gap" else ""
+            on = (" (gap to its own ceiling)" if d.get("on") == "gap" else
+                  " (the same images)" if split in SAME_IMAGES and stages.get(v) else "")
             lines.append(f"- {v}, {split}{on}: {d['diff_db']:+.2f} ± {d['std_db']:.2f} dB → "
                          f"**{d['verdict']}**")
     lines += ["", "Per seed (held-out PSNR / gap in dB, all samples; the validation's 16):", ""]
@@ -306,8 +349,10 @@ def _markdown(record: dict) -> str:
               "checkpoint with its ceiling (`relight_cli.neural.evaluate`), and every "
               "image of the training poses likewise; validation: "
               "the 16 evenly spaced held-out samples, fully lit frames and held-out "
-              "env-map renders the training command validates on. Plot: "
-              "teacher_inputs.png.", ""]
+              "env-map renders the training command validates on. Env maps, consistent "
+              "truth: every held-out env render of the converged capture made again as its "
+              "LEDs are shaded (`eval_env_space: texels`, study_env_truth.py), the same "
+              "images for every row. Plot: teacher_inputs.png.", ""]
     return "\n".join(lines)
 
 

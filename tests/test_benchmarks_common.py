@@ -160,7 +160,7 @@ def _teacher_row(psnr: float) -> dict:
     split = {"psnr": psnr, "gap": 32.0 - psnr, "ceiling": 32.0, "ssim": 0.9}
     return {"wall_s": 600.0, "gain_tail_db": 0.1, "curve": [[0, 20.0], [10, psnr]],
             **{s: dict(split) for s in ("all_heldout", "all_train", "heldout", "fully_lit",
-                                        "env")}}
+                                        "env", "env_texels")}}
 
 
 def test_teacher_inputs_judges_against_the_named_base_and_a_stage_is_another_capture(
@@ -182,8 +182,13 @@ def test_teacher_inputs_judges_against_the_named_base_and_a_stage_is_another_cap
     # another stage's frames are other images: judged on the gap to its own ceiling
     assert d["on"] == "gap" and res["paper"]["versus_paper"]["env"]["on"] == "psnr"
     runs["shading_l128"][0]["all_heldout"].update(psnr=40.0, gap=5.0)   # higher, but farther
+    # the consistent env truth is the same images for every stage: judged on the PSNR
+    runs["shading_l128"][0]["env_texels"].update(psnr=40.0, gap=5.0)
     worse = T.summarize(runs, [0, 1], base="shading")["shading_l128"]["versus_paper"]
     assert worse["all_heldout"]["diff_db"] < 0
+    assert worse["env_texels"]["on"] == "psnr" and worse["env_texels"]["diff_db"] > 4
+    del runs["paper"][1]["env_texels"]                  # a run scored before the column
+    assert "env_texels" in T.summarize(runs, [0, 1], base="shading")["paper"]
     made = []
     monkeypatch.setattr(S, "synth_capture", lambda folder, *a: made.append((folder, a[2])))
     plain, _ = P._capture(tmp_path, lambda m: None)
@@ -191,3 +196,34 @@ def test_teacher_inputs_judges_against_the_named_base_and_a_stage_is_another_cap
     assert plain != dense and [m[1]["lights"] for m in made] == [32, 128]
     assert {k: v for k, v in made[1][1].items() if k != "lights"} == \
         {k: v for k, v in made[0][1].items() if k != "lights"}
+
+
+def test_every_capture_setting_of_a_scale_or_stage_reaches_the_stage(monkeypatch):
+    """study_hands.synth_capture hands the stage every setting a scale or a study's stage
+    names (a stage's ``keyframe_every`` was once dropped, so a "more poses" capture was the
+    converged one again under another key), and each of those names is one the stage
+    knows: an unknown one is an error, never a silent default."""
+    import dataclasses
+    import inspect
+    import json
+
+    import study_hands as S
+    import study_teacher_inputs as T
+    from relight_cli.jobs import synth_capture as J
+    from relight_cli.render.capture import StageSettings
+    known = ({f.name for f in dataclasses.fields(StageSettings)}
+             | set(inspect.signature(J.make_capture).parameters))
+    seen = []
+    monkeypatch.setattr(J, "make_capture", lambda folder, hand, **kw: seen.append(kw))
+    scales = json.loads((S.HERE / "studies" / "scales.json").read_text())
+    for stage in T.STAGES.values():
+        capture = {**scales["converged"]["capture"], **stage}
+        S.synth_capture("x", "builtin:right", 0, capture, [])
+        assert all(seen[-1][k] == v for k, v in capture.items())
+        assert seen[-1]["eval_env_space"] == capture.get("eval_env_space", "vertices")
+    assert seen[-1]["keyframe_every"] == 1 != seen[0].get("keyframe_every", 10)
+    for name, scale in scales.items():
+        if isinstance(scale, dict) and "capture" in scale:
+            assert set(scale["capture"]) <= known, name
+    with __import__("pytest").raises(TypeError):
+        StageSettings(**{"keyframes": 3})
