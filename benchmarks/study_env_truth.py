@@ -52,10 +52,19 @@ MODELS = ("ggx", "linear")
 FAR = 100.0
 
 
-def stage_of(variant: str, space: str) -> dict:
-    """The capture settings a teacher variant is scored on in one env space."""
+def stage_of(variant: str, space: str, eval_poses: int | None = None) -> dict:
+    """The capture settings a teacher variant is scored on in one env space; with
+    ``eval_poses``, that many held-out env-render poses instead of the scale's (a
+    capture of its own: its first renders are not the scale's images, measured)."""
     return {**T.STAGES.get(variant, {}), **({"eval_env_space": space} if space == "texels"
-                                            else {})}
+                                            else {}),
+            **({"eval_poses": int(eval_poses)} if eval_poses else {})}
+
+
+def poses_tag(eval_poses: int | None) -> str:
+    """The cache-name tag of scores on a capture of ``eval_poses`` held-out env poses
+    ("" for the scale's own)."""
+    return f".poses{int(eval_poses)}" if eval_poses else ""
 
 
 def superposition(capture: str, space: str, directions: int) -> list:
@@ -121,10 +130,11 @@ def run_model(work: Path, capture: Path, model: str, seed: int, log) -> dict:
     return T.run_once(work, name, argv, "study_env_truth.py", log)
 
 
-def score_env(work: str, capture: str, variant: str, seed: int, space: str) -> dict:
-    """The teacher's (or linear model's) env split on ``capture`` (cached): {psnr,
-    ceiling, gap, samples}."""
-    path = Path(work) / f"{variant}_s{seed}.env_{space}.json"
+def score_env(work: str, capture: str, variant: str, seed: int, space: str,
+              tag: str = "") -> dict:
+    """The teacher's (or linear model's) env split on ``capture`` (cached, ``tag`` in the
+    name: :func:`poses_tag`): {psnr, ceiling, gap, samples}."""
+    path = Path(work) / f"{variant}_s{seed}.env_{space}{tag}.json"
     if path.is_file():
         return json.loads(path.read_text())
     import torch

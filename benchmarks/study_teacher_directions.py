@@ -56,11 +56,11 @@ PLACES = ("lit", "grazing", "shadowed", "away")
 
 
 def _render_rows(work: str, capture: str, seed: int, index: int, directions: int,
-                 cache: str, teacher: str = "paper") -> dict:
+                 cache: str, teacher: str = "paper", tag: str = "") -> dict:
     """One held-out env render of seed ``seed``'s ``teacher`` (a study_teacher_inputs.py
     variant; cached in ``cache``, per number of directions)."""
     name = "" if teacher == "paper" else f"{teacher}_"
-    path = Path(cache) / f"{name}directions{directions}_s{seed}_r{index}.json"
+    path = Path(cache) / f"{name}directions{directions}_s{seed}_r{index}{tag}.json"
     if path.is_file():
         return json.loads(path.read_text())
     import numpy as np
@@ -138,9 +138,14 @@ def main(argv=None) -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--directions", type=int, default=24,
                     help="brightest directions per render [default: 24]")
+    ap.add_argument("--eval-poses", type=int, default=2, metavar="N",
+                    help="held-out poses of the env renders (a capture of its own; the "
+                    "held-out poses are other images than the converged capture's) [default: 2]")
     args = ap.parse_args(argv)
     if args.quick:
         ap.error("no --quick: the teachers are converged cpu-preset runs")
+    if args.eval_poses < 1:
+        ap.error("--eval-poses: at least 1")
     import study_env_truth as ET
     import study_teacher_inputs as T
     if args.teacher not in T.VARIANTS:
@@ -154,7 +159,8 @@ def main(argv=None) -> None:
         print(m, file=sys.stderr, flush=True)
     # every teacher, one of another stage (study_teacher_inputs.STAGES) too, on the
     # converged capture's env renders: the same images, poses and cameras for all
-    capture = P._capture(work, log, stage=ET.stage_of("", "texels"))[0]
+    poses = args.eval_poses if args.eval_poses != T.SCALE_EVAL_POSES else None
+    capture = P._capture(work, log, stage=ET.stage_of("", "texels", poses))[0]
     for seed in range(args.seeds):               # the teachers train on the LED frames
         T._run(work, P._capture(work, log, stage=T.STAGES.get(args.teacher))[0],
                args.teacher, seed, log)
@@ -162,8 +168,8 @@ def main(argv=None) -> None:
     from relight_cli.neural.data import CaptureData
     renders = len(CaptureData(str(capture), resolve_config("cpu").tex_res).splits()["env"])
     Path(args.cache).mkdir(parents=True, exist_ok=True)
-    jobs = [(str(work), str(capture), s, r, args.directions, args.cache, args.teacher)
-            for s in range(args.seeds) for r in range(renders)]
+    jobs = [(str(work), str(capture), s, r, args.directions, args.cache, args.teacher,
+             ET.poses_tag(poses)) for s in range(args.seeds) for r in range(renders)]
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool:
         rows = list(pool.map(_render_rows, *zip(*jobs)))
     record = {"command": B.run_command("study_teacher_directions.py", argv or sys.argv[1:]),

@@ -73,6 +73,8 @@ TITLES = {"half": "the half vector added", "code": "the authors' code's head",
           "shading_noview": "the same blind to the camera",
           "shading_k3": "the same on a capture with a key pose every 3rd frame",
           "shading_k1": "the same on a capture with a key pose every frame"}
+#: held-out env-render poses of the converged scale's capture (studies/scales.json)
+SCALE_EVAL_POSES = 2
 #: what the table compares: every held-out sample, then the validation's splits
 COMPARED = ("all_heldout", "all_train") + SPLITS + ("env_texels",)
 #: ``env_texels``: every held-out env render of the converged capture made again with its
@@ -224,6 +226,9 @@ def main(argv=None) -> None:
     ap = B.parser(__doc__.splitlines()[0])
     ap.add_argument("--work", default=str(B.OUT / "teacher_inputs"), metavar="DIR",
                     help="cache: the capture, checkpoints, metrics")
+    ap.add_argument("--eval-poses", type=int, default=SCALE_EVAL_POSES, metavar="N",
+                    help="held-out poses of the consistent-truth env renders (a capture of "
+                    "its own, other images than the converged capture's) [default: 2]")
     ap.add_argument("--base", default="paper", help="the variant the others are compared "
                     "with (one of --variants) [default: paper]")
     args, variants = parse_variants(ap, argv, VARIANTS, "paper,half", 3,
@@ -240,6 +245,8 @@ def main(argv=None) -> None:
     limits = B.machine_limits()
     if args.base not in variants:
         ap.error(f"--base {args.base} is not among --variants")
+    if args.eval_poses < 1:
+        ap.error("--eval-poses: at least 1")
     captures = {v: P._capture(work, log, stage=STAGES.get(v))[0] for v in variants}
     seeds = list(range(args.seeds))
     jobs = [(v, s) for s in seeds for v in variants]
@@ -247,17 +254,18 @@ def main(argv=None) -> None:
         records = list(pool.map(lambda job: _run(work, captures[job[0]], *job, log), jobs))
     every = [_score_all(work, captures[v], v, s) for v, s in jobs]
     import study_env_truth as ET
-    texels = P._capture(work, log, stage=ET.stage_of("", "texels"))[0]
+    poses = args.eval_poses if args.eval_poses != SCALE_EVAL_POSES else None
+    texels = P._capture(work, log, stage=ET.stage_of("", "texels", poses))[0]
     with ProcessPoolExecutor(max(1, args.workers), mp_context=get_context("spawn")) as pool:
-        consistent = list(pool.map(ET.score_env, *zip(*[(str(work), str(texels), v, s,
-                                                         "texels") for v, s in jobs])))
+        consistent = list(pool.map(ET.score_env, *zip(*[
+            (str(work), str(texels), v, s, "texels", ET.poses_tag(poses)) for v, s in jobs])))
     rows = list(zip(jobs, records, every, consistent))
     runs = {v: [_seed_row(r, e, c) for (vv, _), r, e, c in rows if vv == v]
             for v in variants}
     record = {"command": B.run_command("study_teacher_inputs.py",
                                        sys.argv[1:] if argv is None else argv),
               "machine": limits, "capture": str(captures[args.base]), "seeds": seeds,
-              "base": args.base,
+              "base": args.base, "eval_poses": args.eval_poses,
               "stages": {v: STAGES[v] for v in variants if v in STAGES},
               "wall_s": round(time.perf_counter() - t0, 1),
               "variants": {v: VARIANTS[v] for v in variants},
@@ -351,8 +359,10 @@ def _markdown(record: dict) -> str:
               "the 16 evenly spaced held-out samples, fully lit frames and held-out "
               "env-map renders the training command validates on. Env maps, consistent "
               "truth: every held-out env render of the converged capture made again as its "
-              "LEDs are shaded (`eval_env_space: texels`, study_env_truth.py), the same "
-              "images for every row. Plot: teacher_inputs.png.", ""]
+              "LEDs are shaded (`eval_env_space: texels`, study_env_truth.py)"
+              + (f", with {record['eval_poses']} held-out poses instead of 2"
+                 if record.get("eval_poses", SCALE_EVAL_POSES) != SCALE_EVAL_POSES else "")
+              + ", the same images for every row. Plot: teacher_inputs.png.", ""]
     return "\n".join(lines)
 
 
