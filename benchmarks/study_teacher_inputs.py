@@ -234,6 +234,8 @@ def main(argv=None) -> None:
     args, variants = parse_variants(ap, argv, VARIANTS, "paper,half", 3,
                                     "teacher (minutes); tests/test_neural_teacher.py covers "
                                     "the input itself")
+    if args.eval_poses < 1:              # before anything is written or measured
+        ap.error("--eval-poses: at least 1")
     out = B.start(args, "study_teacher_inputs.py")
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -245,8 +247,6 @@ def main(argv=None) -> None:
     limits = B.machine_limits()
     if args.base not in variants:
         ap.error(f"--base {args.base} is not among --variants")
-    if args.eval_poses < 1:
-        ap.error("--eval-poses: at least 1")
     captures = {v: P._capture(work, log, stage=STAGES.get(v))[0] for v in variants}
     seeds = list(range(args.seeds))
     jobs = [(v, s) for s in seeds for v in variants]

@@ -227,3 +227,18 @@ def test_every_capture_setting_of_a_scale_or_stage_reaches_the_stage(monkeypatch
             assert set(scale["capture"]) <= known, name
     with __import__("pytest").raises(TypeError):
         StageSettings(**{"keyframes": 3})
+
+
+def test_eval_poses_below_one_is_a_usage_error_before_anything_is_written(tmp_path, capsys):
+    """``--eval-poses 0`` (study_teacher_inputs, study_teacher_directions): exit 2 with one
+    line naming the option, and no output folder made."""
+    import study_teacher_directions as D
+    import study_teacher_inputs as T
+    for main, extra in ((T.main, ["--variants", "shading", "--base", "shading"]),
+                        (D.main, [])):
+        out = tmp_path / "out"
+        with pytest.raises(SystemExit) as e:
+            main(["--eval-poses", "0", "--out", str(out), "--work", str(tmp_path / "w"),
+                  *extra])
+        assert e.value.code == 2 and "--eval-poses" in capsys.readouterr().err
+        assert not out.exists() and not (tmp_path / "w").exists()
