@@ -242,3 +242,47 @@ def test_eval_poses_below_one_is_a_usage_error_before_anything_is_written(tmp_pa
                   *extra])
         assert e.value.code == 2 and "--eval-poses" in capsys.readouterr().err
         assert not out.exists() and not (tmp_path / "w").exists()
+
+
+def _preset_record(model: str, last: float, gap: float, ceiling: float = 33.0) -> dict:
+    """A ``--metrics-out`` record as train-teacher (a teacher) or distill (a student)
+    writes it: the validation curve and the final scores with their ceiling."""
+    def split(psnr):
+        return {"psnr": psnr, "ceiling": {"psnr": ceiling}, "gap_to_ceiling": ceiling - psnr,
+                "samples": 8}
+    key = "heldout" if model in ("olat", "ggx", "linear") else "vs_ground_truth"
+    history = [{"step": s, key: {"psnr": v}} for s, v in ((1000, 20.0), (4000, last - 0.1),
+                                                          (5000, last))]
+    final = {key: split(ceiling - gap)}
+    if key == "heldout":
+        final["heldout_all"] = split(ceiling - gap)
+        final["heldout"] = split(ceiling - gap - 2.0)     # the 16 validation samples
+        final["env"] = split(ceiling - 1.5)
+    else:
+        final["vs_teacher"] = {"psnr": 30.0}
+    return {"wall_s": 600.0, "metrics": {"metrics": final, "details": {"history": history}}}
+
+
+def test_presets_judge_a_teacher_on_every_held_out_sample_and_a_student_on_env_maps(tmp_path):
+    """bench_presets: a teacher's goal is read on every held-out LED sample (not the 16 of
+    its curve), a student's under env maps against the ground truth, where the table
+    splits off its teacher's own env error; the students' commands distil the olat
+    teacher the run trains, which is always among the commands."""
+    import bench_presets as P
+    rows = [P._row("olat", _preset_record("olat", 30.0, 0.9)),
+            P._row("student", _preset_record("student", 29.0, 3.0))]
+    assert rows[0]["goal"]["gap"] == pytest.approx(0.9) and rows[0]["converged"]
+    assert rows[1]["goal_split"] == "env" and rows[1]["vs_teacher_psnr"] == 30.0
+    machine = {"platform": "p", "cpus": 2, "load_average": "0", "gemm_gflops": 1.0,
+               "memory_gbs": 1.0}
+    md = P._markdown({"command": "x", "machine": machine, "threads": 1, "workers": 2,
+                      "preset": "cpu", "quick": False, "wall_s": 60.0, "rows": rows})
+    assert "| olat | 5000 | 10.0 | 32.10 | 33.00 | +0.90 | 31.50 | 33.00 | +1.50 | — |" in md
+    assert "| student | 5000 | 10.0 | — | — | — | 30.00 | 33.00 | +3.00 | 30.00 |" in md
+    assert "3.00 dB below the ceiling, 1.50 of it the teacher's, 1.50 its own" in md
+    assert "| yes |" in md and "| no (env) |" in md
+    envs = {"train": ["a.hdr"], "eval": ["b.hdr"]}
+    cmds = P._commands(["dram", "linear"], tmp_path, tmp_path / "cap", envs, "cpu")
+    assert list(cmds) == ["olat", "dram", "linear"]
+    assert cmds["dram"][:2] == ["distill", tmp_path / "olat.pt"]
+    assert cmds["olat"][-2] == tmp_path / "olat.json" and "--model" in cmds["olat"]
