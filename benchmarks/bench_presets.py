@@ -19,11 +19,11 @@ once), measured here: the outputs hold no timings.
 Every finished run is cached under ``--work`` (capture, checkpoint, metrics, wall time),
 so an interrupted run continues where it stopped; ``--models`` picks a subset.  Writes
 ``presets.{md,json,png}`` to ``--out``.  ``--quick`` (``make benchmarks QUICK=1``) is a
-smoke run of the machinery: the tiny preset on the tiny study capture.  Run (about an
-hour on 2 CPU cores for all five, two at a time on one thread each)::
+smoke run of the machinery: the tiny preset on the tiny study capture.  Run (28.5 min
+on 2 CPU cores for all five, two at a time on one thread each, measured)::
 
     .venv/bin/python benchmarks/bench_presets.py --work benchmarks/out/presets \\
-        --out benchmarks/results --threads 1 --workers 2 [--models olat,ggx]
+        --out benchmarks/results/converged/presets --threads 1 --workers 2 [--models olat,ggx]
 """
 
 from __future__ import annotations
@@ -112,19 +112,23 @@ def _row(model: str, record: dict) -> dict:
     if model in TEACHERS:
         goal, env, curve = _split(m.get("heldout_all") or m["heldout"]), _split(m.get("env")), \
             _curve(record, "heldout")
-        teacher = None
+        teacher, along = None, _split(m["heldout"])
     else:
         # a capture without env renders (--quick's): against the teacher only
         goal = env = _split(m.get("vs_ground_truth"))
         teacher = m["vs_teacher"]["psnr"]
         curve = _curve(record, "vs_ground_truth" if goal else "vs_teacher")
+        along = goal
     iters = curve[-1][0]
-    start = [v for s, v in curve if (1 - TAIL) * iters <= s < iters]
-    gain = curve[-1][1] - start[0] if start else None
+    # the last 20 %, or the last validation interval where validations are sparser
+    start = [(s, v) for s, v in curve if (1 - TAIL) * iters <= s < iters] or curve[-2:-1]
+    gain = curve[-1][1] - start[0][1] if start else None
     return {"model": model, "iters": iters, "wall_s": record["wall_s"],
+            "tail_from": start[0][0] if start else None,
             "goal_split": "heldout_all" if model in TEACHERS else "env", "goal": goal,
             "env": env, "vs_teacher_psnr": teacher, "gain_tail_db": gain,
-            "converged": None if gain is None else gain < CONVERGED_DB, "curve": curve}
+            "converged": None if gain is None else gain < CONVERGED_DB, "curve": curve,
+            "curve_ceiling": along["ceiling"] if along else None}
 
 
 def _commands(models: list, work: Path, capture: Path, envs: dict, preset: str) -> dict:
@@ -231,7 +235,9 @@ def _markdown(record: dict) -> str:
             f"| {r['model']} | {r['iters']} | {r['wall_s'] / 60:.1f} | {_cells(led)} | "
             f"{_cells(r['env'])} | "
             + (f"{r['vs_teacher_psnr']:.2f}" if r["vs_teacher_psnr"] is not None else "—")
-            + " | " + (f"{r['gain_tail_db']:+.2f}" if r["gain_tail_db"] is not None else "—") + " | "
+            + " | " + (f"{r['gain_tail_db']:+.2f}" if r["gain_tail_db"] is not None else "—")
+            + (f" (from {r['tail_from']})" if r.get("tail_from") is not None
+               and r["tail_from"] < (1 - TAIL) * r["iters"] else "") + " | "
             + {True: "yes", False: "no", None: "—"}[r["converged"]] + " | "
             + ("—" if gap is None else "yes" if gap <= GOAL_DB else "no")
             + (" (env)" if r["goal_split"] == "env" else "") + " |")
@@ -255,7 +261,9 @@ def _markdown(record: dict) -> str:
               "model's texel centres through the same compositing and pixel sampling (not a "
               "strict bound: a texture fitted through the bilinear lookup can beat it). "
               "Converged: the validation curve (a teacher's 16 held-out samples, a student's "
-              "env renders) gained < 0.2 dB over the last 20 % of iterations. "
+              "env renders) gained < 0.2 dB over the last 20 % of iterations (over the last "
+              "validation interval, from the iteration shown, where validations are "
+              "sparser). "
               "Plot: presets.png.", ""]
     return "\n".join(lines)
 
@@ -266,12 +274,12 @@ def _plot(record: dict, path: Path) -> None:
         steps = [p[0] for p in r["curve"]]
         label = r["model"] + (" (env maps)" if r["goal_split"] == "env" else "")
         line, = ax.plot(steps, [p[1] for p in r["curve"]], marker="o", label=label)
-        if r["goal"] and r["goal"]["ceiling"] is not None:
-            ax.axhline(r["goal"]["ceiling"], color=line.get_color(), linestyle=":",
+        if r.get("curve_ceiling") is not None:    # the ceiling of the curve's own samples
+            ax.axhline(r["curve_ceiling"], color=line.get_color(), linestyle=":",
                        linewidth=1)
     ax.set_xlabel("iteration")
     ax.set_ylabel("validation PSNR (dB); dotted: ceiling")
-    ax.set_title(f"{record['preset']} presets: held-out PSNR against iterations")
+    ax.set_title(f"{record['preset']} presets: validation PSNR against iterations")
     ax.grid(True, alpha=0.3)
     ax.legend()
     B.save(fig, path, record["machine"])

@@ -1,7 +1,8 @@
 """The README's numbers from the converged study are the committed tables' numbers: each
-figure quoted in README "Do the papers' claims hold?" is read back from
-benchmarks/results/converged/study_*.json (a rerun that moves a number fails here until the
-README says what the table says)."""
+figure quoted in README "Do the papers' claims hold?" (or in benchmarks/README.md's
+expansion of it, table by table) is read back from benchmarks/results/converged/*.json,
+and its two summary tables are benchmarks/readme_tables.py's output (a rerun that moves a
+number fails here until the README says what the table says)."""
 
 from __future__ import annotations
 
@@ -15,20 +16,27 @@ from conftest import ROOT
 RESULTS = ROOT / "benchmarks" / "results" / "converged"
 
 
+def _docs() -> str:
+    """README.md and benchmarks/README.md, where the README's summary of the converged
+    tables is expanded table by table (the sections below are read from either)."""
+    return "\n".join((ROOT / f).read_text(encoding="utf-8")
+                     for f in ("README.md", "benchmarks/README.md"))
+
+
 def _readme_section() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    text = _docs()
     return text.split("**URHand Table 2, converged**", 1)[1].split(
         "**URHand Table 3, converged**", 1)[0]
 
 
 def _readme_t3() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    text = _docs()
     return text.split("**URHand Table 3, converged**", 1)[1].split(
         "**RelightableHands Table 1/3, converged**", 1)[0]
 
 
 def _readme_rh_t13() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    text = _docs()
     return text.split("**RelightableHands Table 1/3, converged**", 1)[1].split(
         "**RelightableHands Table 2, converged**", 1)[0]
 
@@ -40,7 +48,7 @@ def _listed(words) -> str:
 
 
 def _readme_rh_t2() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    text = _docs()
     return text.split("**RelightableHands Table 2, converged**", 1)[1].split(
         "`make test` runs the orderings", 1)[0]
 
@@ -147,7 +155,7 @@ def test_readme_quotes_the_teacher_inputs_study():
     """The teacher's gap on every sample (and the half vector's gain) as the README's Table
     1/3 and presets paragraphs quote them, read back from teacher_inputs.json."""
     rec = json.loads((RESULTS / "teacher_inputs.json").read_text())["results"]
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    text = _docs()
     t13 = _readme_rh_t13()
     paper, half = rec["paper"], rec["half"]
     held, train = paper["all_heldout"]["gap"][0], paper["all_train"]["gap"][0]
@@ -174,7 +182,7 @@ def test_readme_quotes_the_shading_input_study():
     rec = json.loads((RESULTS / "teacher_shading" / "teacher_inputs.json").read_text())
     res = rec["results"]
     t13 = " ".join(_readme_rh_t13().split())
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     paper, ours = res["paper"], res["shading"]
     vs = ours["versus_paper"]
     held, lit = vs["all_heldout"], vs["fully_lit"]
@@ -214,7 +222,7 @@ def test_readme_quotes_the_env_truth_and_led_density_studies():
     rec = json.loads((RESULTS / "env_truth" / "env_truth.json").read_text())
     res, sup = rec["results"], rec["superposition"]
     t13 = " ".join(_readme_rh_t13().split())
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     assert (f"up to {100 * sup['vertices']['max']:.0f} % (relative MSE; median "
             f"{100 * sup['vertices']['median']:.2f} %)") in t13
     assert sup["texels"]["max"] < 1e-3 and \
@@ -253,7 +261,7 @@ def test_readme_quotes_the_consistent_truth_of_the_student_tables():
     res = rec["results"]
     lin, tied = res["linear"]["ground_truth_texels"], res["tied"]["ground_truth_texels"]
     d = res["linear"]["versus"]["splits"]["ground_truth_texels"]
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     assert d["verdict"] == "better"
     assert (f"the linear head reaches {lin['psnr'][0]:.2f} ± {lin['psnr'][1]:.2f} dB against "
             f"the paper head's {tied['psnr'][0]:.2f} ± {tied['psnr'][1]:.2f} "
@@ -272,7 +280,7 @@ def test_readme_quotes_the_dram_rerun():
     res = rec["results"]
     d, tx = res["dram"], res["dram"]["ground_truth_texels"]
     mix = res["dram_mix"]["versus"]["splits"]["ground_truth_texels"]
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     assert rec["seeds"] == [0, 1] and mix["verdict"] == "tie"
     assert (f"{tx['psnr'][0]:.2f} ± {tx['psnr'][1]:.2f} dB against the consistent env truth "
             f"(gap {tx['gap'][0]:.2f} dB)") in text
@@ -289,7 +297,7 @@ def test_readme_quotes_the_student_grid_study():
     from relight_cli.neural.config import STUDENT_PRESET_MODEL, STUDENT_PRESETS
     rec = json.loads((RESULTS / "student_grid" / "student_grid.json").read_text())
     lin = rec["results"]["linear"]
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     fine, coarse = lin["grids"]["16x32"], lin["grids"]["8x16"]
     assert fine["vs_train"]["verdict"] == "better"
     assert min(a - b for a, b in zip(fine["per_seed"], coarse["per_seed"])) > 0
@@ -382,7 +390,7 @@ def test_readme_quotes_the_linear_head_study():
     res = json.loads((RESULTS / "student_linear" / "student_env.json").read_text())["results"]
     long = json.loads((RESULTS / "student_iters" / "student_env.json").read_text())["results"]
     text = " ".join(_readme_rh_t2().split())
-    whole = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    whole = " ".join(_docs().split())
     gt = "ground_truth"
     tied, lin, lsq, start = res["tied"], res["linear"], res["lsq"], res["linear_lsq"]
     held, train = "heldout_pose_eval_env", "heldout_pose_train_env"
@@ -445,7 +453,7 @@ def test_readme_quotes_the_dram_head_study():
     res = rec["results"]
     new, old = (res[v]["ground_truth_texels"]["psnr"] for v in ("dram", "dram_eq11"))
     versus = res["dram"]["versus"]["splits"]["ground_truth_texels"]
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     assert rec["seeds"] == [0, 1] and res["dram"]["versus"]["base"] == "dram_eq11"
     assert (f"{new[0]:.2f} ± {new[1]:.2f} against {old[0]:.2f} ± {old[1]:.2f} dB on the "
             f"consistent truth ({versus['diff_db']:+.2f} ± {versus['std_db']:.2f} dB, "
@@ -459,7 +467,7 @@ def test_readme_quotes_the_dram_batch_and_loss_study():
     the preset's DRAM, as the README quotes them (student_dram_b8, four seeds)."""
     rec = json.loads((RESULTS / "student_dram_b8" / "student_env.json").read_text())
     res = rec["results"]
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     assert rec["seeds"] == [0, 1, 2, 3]
 
     def shares(v):
@@ -498,7 +506,7 @@ def _linear_student_study(variant: str):
     assert rec["seeds"] == [0, 1, 2]
     versus = rec["results"][variant]["versus"]
     assert versus["base"] == "linear"
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     return rec["results"], text, versus
 
 
@@ -521,7 +529,7 @@ def test_readme_quotes_the_texture_loss_student_study():
 def test_readme_quotes_the_teacher_network_rate():
     """The cpu teacher's network and iteration against the same run's GEMM, one and two
     threads, as the README quotes them (bench_teacher.py --quick runs)."""
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     rows = {}
     for threads, path in ((1, RESULTS.parent / "teacher_t1" / "teacher.json"),
                           (2, RESULTS.parent / "teacher.json")):
@@ -560,7 +568,7 @@ def test_readme_quotes_where_the_teacher_env_error_lives():
     import numpy as np
     rec = json.loads((RESULTS / "teacher_directions" / "teacher_directions.json").read_text())
     rows = rec["rows"]
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     assert sorted({r["seed"] for r in rows}) == [0, 1, 2]
     per_cam = {c: np.mean([r["rel"] for r in rows if r["camera"] == c]) for c in
                ("cam000", "cam001")}
@@ -585,7 +593,7 @@ def test_readme_quotes_the_shading_teacher_directions():
     """The cpu preset's (shading-input) teacher retrained here and its per-direction
     errors, as the README quotes them (teacher_shading_rerun, teacher_directions_shading)."""
     import numpy as np
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     rec = json.loads((RESULTS / "teacher_shading_rerun" / "teacher_inputs.json").read_text())
     res = rec["results"]["shading"]
     gap = res["all_heldout"]["gap"]
@@ -604,7 +612,7 @@ def test_readme_quotes_the_camera_blind_teacher():
     """``view: none`` against the preset's teacher and its per-direction errors, as the
     README quotes them (teacher_noview, teacher_directions_noview)."""
     import numpy as np
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    text = " ".join(_docs().split())
     rec = json.loads((RESULTS / "teacher_noview" / "teacher_inputs.json").read_text())
     assert rec["base"] == "shading"          # stored as versus_paper whatever the base
     versus = rec["results"]["shading_noview"]["versus_paper"]
@@ -617,3 +625,74 @@ def test_readme_quotes_the_camera_blind_teacher():
     cams = [np.mean([r["rel"] for r in rows if r["camera"] == c]) for c in ("cam000", "cam001")]
     assert f"({cams[0]:.4f} on camera 0, {cams[1]:.4f} on camera 1:" in text
     assert cams[1] > 1.5 * cams[0]
+
+
+def _block(text: str, name: str) -> str:
+    return text.split(f"<!-- {name}:start -->\n", 1)[1].split(f"\n<!-- {name}:end -->", 1)[0]
+
+
+def _tables():
+    import sys
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import readme_tables
+    return readme_tables
+
+
+@pytest.mark.skipif(not (RESULTS / "presets" / "presets.json").exists(),
+                    reason="no committed presets run")
+def test_readme_summary_tables_are_the_committed_results():
+    """The README's per-model table and its table of verdicts are what
+    benchmarks/readme_tables.py makes from the committed results, and the sentence that
+    counts the verdicts counts them."""
+    R = _tables()
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert _block(readme, "presets") == R.presets()
+    assert _block(readme, "verdicts") == R.verdicts()
+    claims = {t: json.loads((RESULTS / f"study_{t}.json").read_text())["claims"]
+              for t in R.TABLES}
+    small = {t: {c["text"]: c for c in json.loads(
+        (RESULTS.parent / f"study_{t}.json").read_text())["claims"]} for t in R.TABLES}
+    held = [(t, c) for t, cs in claims.items() for c in cs
+            if all(h["verdict"] == "reproduced" for h in c["hands"].values())]
+    newly = [c for t, c in held if any(h["verdict"] != "reproduced"
+                                       for h in small[t][c["text"]]["hands"].values())]
+    total = sum(map(len, claims.values()))
+    rows = {r["model"]: r for r in json.loads(
+        (RESULTS / "presets" / "presets.json").read_text())["rows"]}
+    prose = " ".join(readme.split("<!-- presets:end -->", 1)[1].split(
+        "**The papers' claims**", 1)[0].split())
+    teacher, student = rows["olat"], rows["student"]
+    assert f"the OLAT teacher {teacher['goal']['gap']:.2f} dB below it" in prose
+    assert rows["ggx"]["goal"]["gap"] < 0 and rows["linear"]["goal"]["gap"] < 0
+    assert (f"the teacher is {teacher['env']['gap']:.2f} dB below, GGX "
+            f"{rows['ggx']['env']['gap']:.2f} and the linear model, which renders an env map "
+            f"in one pass, {rows['linear']['env']['gap']:.2f}") in prose
+    own = student["env"]["gap"] - teacher["env"]["gap"]
+    assert (f"is {student['env']['gap']:.2f} dB below: {teacher['env']['gap']:.2f} of it is "
+            f"its teacher's error on the same renders, {own:.2f} its own") in prose
+    assert f"DRAM stays {rows['dram']['env']['gap']:.2f} dB below" in prose
+    after = " ".join(readme.split("<!-- verdicts:end -->", 1)[1].split())
+    assert rows["ggx"]["goal"]["psnr"] > teacher["goal"]["psnr"]
+    assert (f"({rows['ggx']['goal']['psnr']:.2f} against {teacher['goal']['psnr']:.2f} dB in "
+            "the table above)") in after
+    said = " ".join(readme.split())
+    assert f"Converged, {len(held)} of the {total} claims hold, {len(newly)} of them" in said
+
+
+def test_the_verdict_table_reads_every_verdict_from_the_results(tmp_path):
+    """A verdict moved in a committed table moves the README's cell (the table is read,
+    not typed): flip one converged verdict in a copy of the results."""
+    import shutil
+    R = _tables()
+    shutil.copytree(RESULTS.parent, tmp_path / "results",
+                    ignore=shutil.ignore_patterns("*.png", "*.md", "*.csv"))
+    before = R.verdicts(tmp_path / "results")
+    assert before == R.verdicts()
+    path = tmp_path / "results" / "converged" / "study_ur_t3.json"
+    rec = json.loads(path.read_text())
+    claim = next(c for c in rec["claims"] if "refiner" in c["text"])
+    claim["hands"]["right"]["verdict"] = "not reproduced (reversed)"
+    path.write_text(json.dumps(rec))
+    after = R.verdicts(tmp_path / "results")
+    row = next(x for x in after.splitlines() if "refiner" in x)
+    assert row.endswith("| tie | **reversed** |") and after != before

@@ -1,0 +1,118 @@
+"""The README's two summary tables, made from the committed results, never typed by hand.
+
+``presets``: each learned model at ``--preset cpu`` against its ceiling
+(``benchmarks/results/converged/presets/presets.json``, made by bench_presets.py).
+``verdicts``: each claim of the papers' tables that study_hands.py tests, its verdict per
+hand at the small scale (``benchmarks/results/study_*.json``: the tiny preset's sizes, a
+few hundred iterations) beside the converged one (``benchmarks/results/converged/``:
+every model at its ``cpu`` preset).  Each sits in README.md between
+``<!-- NAME:start -->`` and ``<!-- NAME:end -->``; tests/test_readme_results.py checks the
+README holds exactly what this prints, so a rerun that moves a verdict or a number fails
+there until the README is rewritten::
+
+    .venv/bin/python benchmarks/readme_tables.py            # print both tables
+    .venv/bin/python benchmarks/readme_tables.py --write    # put them into README.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+RESULTS = HERE / "results"
+TABLES = {"rh_t13": "RelightableHands Tables 1, 3", "rh_t2": "RelightableHands Table 2",
+          "ur_t2": "URHand Table 2", "ur_t3": "URHand Table 3"}
+#: the words of study_hands.py's verdicts, shortened for one table cell
+SHORT = (("not reproduced (reversed)", "**reversed**"),
+         ("not reproduced (within 2σ", "not reproduced (within 2σ)"),
+         ("tie", "tie"), ("reproduced", "**reproduced**"))
+#: what each model is, for the presets table
+WHAT = {"olat": "OLAT teacher (RelightableHands)", "ggx": "GGX baseline (RH Table 3)",
+        "linear": "URHand's linear model", "student": "student, distilled (RelightableHands)",
+        "dram": "DRAM [4] baseline, distilled (RH Table 2)"}
+PRESETS = RESULTS / "converged" / "presets" / "presets.json"
+
+
+def _short(verdict: str) -> str:
+    return next(s for prefix, s in SHORT if verdict.startswith(prefix))
+
+
+def _cell(hands: dict) -> str:
+    """One claim's verdicts over the hands: ``**reproduced**`` when one hand or all agree,
+    else each verdict with the hands that have it (``tie: right, left; ...``)."""
+    groups: dict = {}
+    for hand, h in hands.items():
+        groups.setdefault(_short(h["verdict"]), []).append(hand)
+    if len(groups) == 1:
+        (verdict, names), = groups.items()
+        return verdict + (f" ({', '.join(names)})" if len(names) > 1 else "")
+    return "; ".join(f"{v}: {', '.join(names)}" for v, names in groups.items())
+
+
+def verdicts(results: Path = RESULTS) -> str:
+    """The claims table: small scale against converged, claim by claim."""
+    small = {t: json.loads((results / f"study_{t}.json").read_text()) for t in TABLES}
+    big = {t: json.loads((results / "converged" / f"study_{t}.json").read_text())
+           for t in TABLES}
+    n_small = {len(r["seeds"]) for r in small.values()}
+    n_big = {len(r["seeds"]) for r in big.values()}
+    lines = [f"| the paper's claim | table | small scale ({'/'.join(map(str, sorted(n_small)))}"
+             f" seeds) | converged ({'/'.join(map(str, sorted(n_big)))} seeds) |",
+             "|---|---|---|---|"]
+    for t, name in TABLES.items():
+        before = {c["text"]: c for c in small[t]["claims"]}
+        for claim in big[t]["claims"]:
+            old = before.get(claim["text"])
+            lines.append(f"| {claim['text']} | {name} | "
+                         + (_cell(old["hands"]) if old else "—") + f" | {_cell(claim['hands'])} |")
+    return "\n".join(lines)
+
+
+def presets(path: Path = PRESETS) -> str:
+    """The presets table: each model's wall time, what it is judged on, PSNR, ceiling, gap."""
+    record = json.loads(path.read_text())
+    lines = ["| model | iterations | wall (min) | judged on | PSNR (dB) | ceiling | gap | "
+             "within 1 dB | held-out env maps: gap |", "|---|---|---|---|---|---|---|---|---|"]
+    olat = next((r for r in record["rows"] if r["model"] == "olat"), None)
+    for r in record["rows"]:
+        g = r["goal"]
+        on = ("held-out poses, LED frames" if r["goal_split"] == "heldout_all"
+              else "held-out poses, held-out env maps")
+        gap = f"{g['gap']:.2f}"
+        if r["goal_split"] == "env" and olat and olat.get("env"):
+            gap += f" ({olat['env']['gap']:.2f} the teacher's)"
+        lines.append(f"| {WHAT[r['model']]} | {r['iters']} | {r['wall_s'] / 60:.1f} | {on} | "
+                     f"{g['psnr']:.2f} | {g['ceiling']:.2f} | {gap} | "
+                     + ("yes" if g["gap"] <= 1.0 else "no") + " | "
+                     + (f"{r['env']['gap']:.2f}" if r.get("env") else "—") + " |")
+    return "\n".join(lines)
+
+
+def put(text: str, name: str, table: str) -> str:
+    """``text`` with the block between ``<!-- name:start -->`` and ``<!-- name:end -->``
+    replaced by ``table``."""
+    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    head, rest = text.split(start, 1)
+    return head + start + "\n" + table + "\n" + end + rest.split(end, 1)[1]
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--write", action="store_true", help="put the tables into README.md")
+    args = ap.parse_args(argv)
+    tables = {"presets": presets(), "verdicts": verdicts()}
+    if not args.write:
+        print("\n\n".join(tables.values()))
+        return
+    readme = ROOT / "README.md"
+    text = readme.read_text(encoding="utf-8")
+    for name, table in tables.items():
+        text = put(text, name, table)
+    readme.write_text(text, encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()
