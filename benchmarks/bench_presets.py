@@ -136,9 +136,10 @@ def _commands(models: list, work: Path, capture: Path, envs: dict, preset: str) 
     teacher this run trains (so ``olat`` is always among the commands they need)."""
     train = [a for e in envs["train"] for a in ("--envs", e)]
     held = [a for e in envs["eval"] for a in ("--eval-envs", e)]
-    need = (["olat"] if any(m not in TEACHERS for m in models) or "olat" in models else [])
+    students = any(m not in TEACHERS for m in models)
     cmds = {}
-    for model in need + [m for m in models if m != "olat"]:
+    for model in (["olat"] if students or "olat" in models else []) + \
+            [m for m in models if m != "olat"]:
         if model in TEACHERS:
             cmd = ["train-teacher", capture, "--preset", preset, "--model", model]
         else:
@@ -163,8 +164,9 @@ def main(argv=None) -> None:
         ap.error("--workers and --threads must be at least 1")
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     unknown = [m for m in models if m not in MODELS]
-    if unknown:
-        ap.error(f"unknown model(s) {', '.join(unknown)}; use {', '.join(MODELS)}")
+    if unknown or not models:
+        ap.error(f"unknown model(s) {', '.join(unknown) or '(none named)'}; "
+                 f"use {', '.join(MODELS)}")
     out = B.start(args, "bench_presets.py")
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)

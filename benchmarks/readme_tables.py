@@ -95,6 +95,9 @@ def put(text: str, name: str, table: str) -> str:
     """``text`` with the block between ``<!-- name:start -->`` and ``<!-- name:end -->``
     replaced by ``table``."""
     start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    if start not in text or end not in text.split(start, 1)[1]:
+        raise SystemExit(f"readme_tables.py: error: no {start} … {end} block to fill "
+                         "(README.md)")
     head, rest = text.split(start, 1)
     return head + start + "\n" + table + "\n" + end + rest.split(end, 1)[1]
 

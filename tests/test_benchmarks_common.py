@@ -286,3 +286,20 @@ def test_presets_judge_a_teacher_on_every_held_out_sample_and_a_student_on_env_m
     assert list(cmds) == ["olat", "dram", "linear"]
     assert cmds["dram"][:2] == ["distill", tmp_path / "olat.pt"]
     assert cmds["olat"][-2] == tmp_path / "olat.json" and "--model" in cmds["olat"]
+
+
+@pytest.mark.parametrize("argv", [["--workers", "0"], ["--threads", "0"], ["--models", ","],
+                                  ["--models", "olat,teacher"]])
+def test_presets_bad_options_are_usage_errors_before_anything_is_written(tmp_path, capsys,
+                                                                         argv):
+    """bench_presets: a worker or thread count below 1, no model or an unknown one is exit
+    2 with one line, before the output or work folder is made or a model trained."""
+    import bench_presets as P
+    out, work = tmp_path / "out", tmp_path / "work"
+    with pytest.raises(SystemExit) as e:
+        P.main([*argv, "--out", str(out), "--work", str(work)])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    named = argv[0] if argv[0] != "--models" else "model"
+    assert ": error: " in err[-1] and named in err[-1]
+    assert not out.exists() and not work.exists()

@@ -696,3 +696,15 @@ def test_the_verdict_table_reads_every_verdict_from_the_results(tmp_path):
     after = R.verdicts(tmp_path / "results")
     row = next(x for x in after.splitlines() if "refiner" in x)
     assert row.endswith("| tie | **reversed** |") and after != before
+
+
+def test_the_tables_go_only_where_the_readme_marks_them():
+    """readme_tables.put fills the marked block and nothing else; a README without the
+    markers is one line and exit 1, the text untouched."""
+    R = _tables()
+    text = "a\n<!-- x:start -->\nold\n<!-- x:end -->\nb"
+    assert R.put(text, "x", "new") == "a\n<!-- x:start -->\nnew\n<!-- x:end -->\nb"
+    for broken in ("a\nb", "a\n<!-- x:start -->\nold"):
+        with pytest.raises(SystemExit) as e:
+            R.put(broken, "x", "new")
+        assert str(e.value).startswith("readme_tables.py: error: no <!-- x:start -->")
