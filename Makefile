@@ -42,7 +42,7 @@ demo: install
 	# frames between filled by slerp; rendered open (frame 0), closing (90) and pinched (180), palm side,
 	# in one process (--frames A:B:S: the model, BVH and caches are built once)
 	if [ -f $(SHARED)/hands/leap/pinch.json ]; then \
-	  $(RELIGHT) fit-geometry --keypoints $(SHARED)/hands/leap/pinch.json --frame-range 0:300:10 \
+	  $(RELIGHT) fit-geometry --keypoints $(SHARED)/hands/leap/pinch.json --frames 0:300:10 \
 	    --interpolate -o demo/leap_hand.npz --report demo/leap_fit.json && \
 	  $(RELIGHT) camera --eye -0.2,0.0,-0.2 --target 0.03,0.16,0.03 --fov 35 --size 256x256 -o demo/leap_cam.json && \
 	  $(RELIGHT) relight demo/leap_hand.npz builtin:studio --model physical --camera demo/leap_cam.json \
@@ -63,7 +63,7 @@ demo: install
 		-o demo/hand_cam001.exr --preview demo/hand_cam001.png
 	$(RELIGHT) camera --from demo/hand_cam001.exr -o demo/hand_cam001_from_exr.json
 	# a small synthetic light-stage capture (fully lit + grouped-light frames, held-out env renders)
-	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --leds 32 --frames 6 --size 96 --eval-poses 1 --eval-cameras 2 \
+	$(RELIGHT) synth-capture -o demo/capture --cameras 6 --leds 32 --n-frames 6 --size 96 --eval-poses 1 --eval-cameras 2 \
 		--preview demo/capture.png
 	# RelightableHands' OLAT teacher learned from that capture (tiny preset, ~1 min), with its
 	# validation scores; rendered under an env map (a sum over 16x32 directions) and one near point light
@@ -183,7 +183,7 @@ test: install
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 man: install
-	$(PY) -m relight_cli.manpage man
+	$(PY) -m relight_cli.cli.manpage man
 	mkdir -p $(VENV)/share/man/man1 && cp man/*.1 $(VENV)/share/man/man1/
 
 # Every benchmark writes its table, data and plot under $(BENCH_OUT); QUICK=1 runs the

@@ -15,11 +15,24 @@
 * :func:`plot` draws time against error: every curve, each point labelled, log axes,
   a grid, and the machine line under the axes; exact (zero) errors sit on the axis
   floor with their own marker instead of vanishing from a log plot.
+* The teacher benchmarks' capture, physical upper bound, timed training and env-map
+  render cost (``bench_teacher.py``, ``bench_linear.py``): :func:`make_capture`,
+  :func:`physical_upper_bound`, :func:`train_variant`, :func:`env_render_cost`,
+  :func:`write_plot`.
+* The studies' captures (``study_hands.py``, ``bench_presets.py``): the env maps
+  (:func:`env_specs`), the capture columns (:data:`HANDS`), the one place a capture is
+  made (:func:`synth_capture`), a scale's capture made once under its settings' key
+  (:func:`study_capture`), and :func:`write_json` (atomic).
+
+How a model is judged (converged, verdict, gate: DESIGN.md) is not here but in the
+library, :mod:`relight_cli.neural.judging`, which every script calls.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import math
 import os
 import platform
@@ -27,10 +40,15 @@ import sys
 import time
 from pathlib import Path
 
-OUT = Path(__file__).resolve().parent / "out"
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "out"
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:          # run as a script from anywhere: import the checkout
     sys.path.insert(0, str(ROOT))
+#: the studies' sizes (tiny: the CI gate's; converged: every model at its cpu preset)
+SCALES = HERE / "studies" / "scales.json"
+#: the shared Poly Haven HDRIs, when this checkout sits beside them
+HDRI_DIR = (ROOT / ".." / "shared" / "data" / "envmaps" / "polyhaven").resolve()
 
 
 def parser(doc: str, quick: str = "a smoke run: fewer, smaller configurations"):
@@ -445,3 +463,239 @@ class recorded:
         self._redirect.__exit__(*exc)
         self.text = self._stream.copy.getvalue()
         return False
+
+
+# ------------------------------------------------------------------ the studies' captures
+
+#: synth-capture's HAND argument and motion seed per capture column: one subject (the
+#: default --skin-seed 0) captured right, left and with two interacting hands; the
+#: two-hand capture's own motion seed makes every one of its poses new to the teachers
+HANDS = {"right": ("builtin:right", 0), "left": ("builtin:left", 0), "both": ("builtin:two", 3)}
+#: bump when synth-capture renders the same settings differently (cached captures)
+CAPTURE_VERSION = 2
+
+
+def env_specs() -> dict:
+    """The env maps of the studies: the shared Poly Haven HDRIs when present (the last two
+    sorted ones held out: never trained on, the captures' ground-truth env renders),
+    else built-ins."""
+    hdris = sorted(str(p) for p in HDRI_DIR.glob("*.hdr")) if HDRI_DIR.is_dir() else []
+    if len(hdris) >= 3:
+        return {"source": f"Poly Haven HDRIs ({HDRI_DIR})",
+                "train": ["builtin:sky", "builtin:studio", "builtin:uniform"] + hdris[:-2],
+                "eval": hdris[-2:]}
+    return {"source": "built-in env maps (the shared Poly Haven HDRIs are absent)",
+            "train": ["builtin:studio", "builtin:uniform", "builtin:point"],
+            "eval": ["builtin:sky"]}
+
+
+def digest(obj) -> str:
+    """A cache key: 16 hex digits of the SHA-256 of ``obj``'s sorted JSON."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def synth_capture(folder: Path, hand: str, seed: int, capture: dict, eval_envs: list) -> None:
+    """The one place the studies make a capture: ``relight synth-capture``'s job
+    (:func:`relight_cli.jobs.synth_capture.make_capture`)."""
+    from relight_cli.jobs.synth_capture import make_capture
+    # every setting the scale (or a study's stage) names reaches the stage: an unknown one
+    # is an error, not a default (a stage's keyframe_every was once dropped here); a
+    # scale that does not name eval_env_space keeps the renders its cached captures have
+    make_capture(str(folder), hand, seed=seed, eval_envs=eval_envs,
+                 **{"eval_env_space": "vertices", **capture})
+
+
+def study_capture(work: Path, log, scale: str = "converged", stage: dict | None = None):
+    """``(folder, env maps)``: the study scale's right-hand capture, made once under
+    ``work`` (``capture-KEY``, keyed by its settings); ``stage`` overrides some of the
+    scale's capture settings (e.g. ``{"lights": 128}``: another capture, its own key)."""
+    settings = json.loads(SCALES.read_text())[scale]
+    settings["capture"].update(stage or {})
+    envs = env_specs()
+    key = digest({"capture": settings["capture"], "eval": envs["eval"], "v": CAPTURE_VERSION})
+    folder = Path(work) / f"capture-{key}"
+    if not (folder / "capture.json").is_file():
+        log(f"making the capture {folder}")
+        synth_capture(folder, *HANDS["right"], settings["capture"], envs["eval"])
+    return folder, envs
+
+
+def write_json(path: Path, obj, ensure_ascii: bool = False) -> None:
+    """``obj`` as indented JSON, atomically (the project's output helper): an interrupted
+    run leaves no half file."""
+    from relight_cli.fileio import write_text_atomic
+    write_text_atomic(str(path), json.dumps(obj, indent=1, ensure_ascii=ensure_ascii) + "\n")
+
+
+# ------------------------------------------------------------------ the teacher benchmarks
+# (bench_teacher.py and bench_linear.py: their capture, baselines and timed training)
+
+
+def timed_teacher_task(data, cfg, evaluate: bool = True):
+    """A TeacherTask that times every training step (data, forward, backward, Adam;
+    validation excluded) and counts the conv FLOPs each step runs; ``evaluate=False``
+    skips the final validation (a throughput run does not need its scores)."""
+    from relight_cli.neural.train import TeacherTask
+
+    class Timed(TeacherTask):
+        def evaluate(self, model, device):
+            return super().evaluate(model, device) if evaluate else {}
+
+        def __init__(self):
+            super().__init__(data, cfg)
+            self.steps = []              # (seconds, flops fwd+bwd, flops fwd) per step
+            self.flops = None
+
+        def build(self, device, resume=None):
+            model = super().build(device, resume)
+            self.flops = ConvFlops(model, training_only=True)
+            return model
+
+        def before_step(self, optimizer, step):
+            self._start = (time.perf_counter(), self.flops.total, self.flops.forward)
+
+        def after_step(self, step, world):
+            t0, total, forward = self._start
+            self.steps.append((time.perf_counter() - t0, self.flops.total - total,
+                               self.flops.forward - forward))
+    return Timed()
+
+
+def make_capture(folder: Path, two_hands: bool, frames: int, quick: bool) -> Path:
+    """The benchmark's capture, through ``relight synth-capture``'s job."""
+    from relight_cli.jobs import synth_capture as J
+    settings = dict(cameras=4 if quick else 6, lights=32, group=4, res=48 if quick else 64,
+                    tex_res=128, aa=1, eval_poses=2, eval_cameras=2,
+                    eval_envs=("builtin:sky", "builtin:studio"))
+    if two_hands:
+        from relight_cli.formats.hand_npz import write_hand
+        from relight_cli.hand.model import builtin_hand
+        from relight_cli.hand.scene import two_hands as pair
+        from relight_cli.render.capture import hand_motion
+        motion = folder.parent / f"{folder.name}_motion.npz"
+        write_hand(str(motion), pair(hand_motion(builtin_hand("right"), frames, seed=5)))
+        J.make_capture(str(folder), str(motion), motion="file", **settings)
+    else:
+        J.make_capture(str(folder), frames=frames, **settings)
+    return folder
+
+
+def physical_upper_bound(folder: Path) -> dict:
+    """Held-out frames re-rendered with the stage's own renderer and true materials."""
+    import numpy as np
+
+    from relight_cli.formats import capture as C
+    from relight_cli.neural.data import CaptureData
+    from relight_cli.neural.train import _metrics
+    from relight_cli.render.appearance import hand_materials
+    from relight_cli.render.capture import FrameRenderer, Plan, StageSettings
+    from relight_cli.render.shading import PointLights
+
+    data = CaptureData(str(folder), 32, holdout=0.25)
+    s = data.capture.settings
+    settings = StageSettings(**{k: v for k, v in s.items() if k in StageSettings.__dataclass_fields__})
+    materials = hand_materials(data.hand, "fine", max(settings.tex_res, 256), settings.seed)
+    plan = Plan(data.hand, data.capture.cameras,
+                PointLights(data.capture.light_positions, data.capture.light_intensity),
+                data.capture.light_names, data.capture.frames, np.zeros(3), data.capture.key)
+    renderer = FrameRenderer(plan, materials, settings)
+    rows = []
+    for frame in data.heldout_frames:
+        for cam, result in renderer.frame(frame, [data.capture.camera(n) for n in frame.images]):
+            gt, mask = C.read_image(os.path.join(str(folder), C.image_path(frame.index, cam.name)))
+            m = _metrics(result.image, gt, mask)
+            if m:
+                rows.append(m)
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+
+
+def validation(iters: int) -> dict:
+    """Validation every sixth of the run on 6 samples; a quick run (< 60 iterations) gets a
+    few points on 2 samples, so that validation does not cost more than training."""
+    if iters >= 60:
+        return {"val_every": max(1, iters // 6), "val_samples": 6}
+    return {"val_every": max(2, iters // 3), "val_samples": 2}
+
+
+def train_variant(folder: Path, variant: str, iters: int) -> dict:
+    """One ``tiny`` OLAT teacher (``teacher``, ``no-visibility`` or ``ggx``) trained on
+    ``folder`` for ``iters`` iterations, timed: metrics, seconds, iterations/s, the
+    held-out MSE against training seconds (validation excluded)."""
+    import numpy as np
+    import torch
+
+    from relight_cli.neural.config import resolve_config
+    from relight_cli.neural.data import CaptureData
+    from relight_cli.neural.train import fit
+
+    overrides = {"iters": iters, **validation(iters),
+                 "lambda_vgg": 0.0, "neg_start": iters // 4}
+    if variant == "no-visibility":
+        overrides["visibility"] = False
+    if variant == "ggx":
+        overrides["model"] = "ggx"
+    cfg = resolve_config("tiny", None, overrides)
+    data = CaptureData(str(folder), cfg.tex_res, cfg.aa, cfg.visibility, cfg.falloff, cfg.holdout)
+    task = timed_teacher_task(data, cfg)
+    t0 = time.perf_counter()
+    result = fit(task, cfg, torch.device("cpu"), show_progress=False)
+    total = time.perf_counter() - t0
+    task.flops.close()
+    # training seconds (validation excluded) at each validation step
+    elapsed = np.cumsum([0.0] + [t for t, _, _ in task.steps])
+    curve = [(float(elapsed[min(h["step"], len(task.steps))]), h.get("heldout", {}).get("mse"))
+             for h in result.history]
+    train_seconds = float(elapsed[-1])
+    return {"metrics": result.metrics, "seconds": total, "train_seconds": train_seconds,
+            "its": len(task.steps) / train_seconds, "peak_rss_mb": result.peak_memory_mb,
+            "curve": curve}
+
+
+def env_render_cost(folder: Path, widths: str, tex: int, channels_last: bool | None = None
+                    ) -> dict:
+    """One env-map render of preset ``widths`` at ``tex``² (``channels_last``: the layout
+    a checkpoint of that setting is loaded in, :mod:`relight_cli.neural.checkpoints`)."""
+    import torch
+
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.envmap import discretize_env
+    from relight_cli.neural import teacher as T
+    from relight_cli.neural.checkpoints import _layout
+    from relight_cli.neural.config import resolve_config
+    from relight_cli.neural.data import CaptureData
+    from relight_cli.neural.models import build_model
+    from relight_cli.render.gbuffer import render_gbuffer
+
+    values = {"tex_res": tex}
+    if channels_last is not None:
+        values["channels_last"] = channels_last
+    cfg = resolve_config(widths, None, values)
+    data = CaptureData(str(folder), tex, 2)
+    model = _layout(build_model(cfg, data.pose_dim).eval(), cfg)
+    denv = discretize_env(builtin_envmap("builtin:sky"), 16, 32)
+    timing = T.Timing()
+    t0 = time.perf_counter()
+    texels = data.texels(0)
+    cam = data.capture.cameras[0]
+    gb = render_gbuffer(texels.meshes, cam, 2, scene=texels.renderer.scene)
+    timing.add("geometry", time.perf_counter() - t0)
+    lights, weights = T.env_light_inputs(texels, denv, True, timing)
+    with ConvFlops(model) as flops:
+        T.render_lights(model, texels, gb, data.poses(0), lights, weights, True, cfg.falloff,
+                        timing=timing)
+    return {"preset": widths, "tex_res": tex, "directions": int(len(weights)),
+            "channels_last": cfg.channels_last,
+            **{k: v for k, v in timing.seconds.items()},
+            "network_gflop": flops.forward / 1e9,
+            "network_gflops": flops.forward / 1e9 / timing.seconds["network"],
+            "threads": torch.get_num_threads(),
+            "total": float(sum(timing.seconds.values()))}
+
+
+def write_plot(path: Path, curves: dict, machine: dict, what: str = "teacher"):
+    """Held-out MSE (×1e-3) against training seconds, every curve."""
+    fig, (ax,) = figure(1, 7.2, 4.6)
+    plot(ax, {name: [(t, m * 1e3) for t, m in curve if m] for name, curve in curves.items()},
+           "training seconds (validation excluded)", "held-out MSE x 1e-3 (log)",
+           f"{what}: validation during training", logx=False, labels=False)
+    save(fig, path, machine)

@@ -6,7 +6,7 @@
 2. Render per frame, seconds split into geometry, visibility and network (features + one
    forward pass): the group of a capture frame (point lights) and an env map at 16×32
    directions, for the linear model at tiny and paper widths, against the teacher's
-   per-direction sum (:func:`bench_teacher.env_render_cost`).  URHand reports 25.7 ms
+   per-direction sum (:func:`_common.env_render_cost`).  URHand reports 25.7 ms
    (grouped lights) and 31.9 ms (env map) on an A100 at 1024².
 3. Quality (masked MSE, PSNR, SSIM) on held-out poses under grouped lights, on fully lit
    frames (novel illumination) and on the capture's env-map ground truth, for the full
@@ -36,8 +36,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as B  # noqa: E402
-from bench_teacher import (env_render_cost, make_capture,  # noqa: E402
-                           physical_upper_bound, train_variant, validation, write_plot)
+from _common import (env_render_cost, make_capture,  # noqa: E402
+                     physical_upper_bound, train_variant, validation, write_plot)
 
 QUICK_VARIANTS = ("linear (ours: residual start)", "non-linear light path")
 

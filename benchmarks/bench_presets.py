@@ -12,7 +12,8 @@ there, against the ground truth, where its gap includes its teacher's own error 
 row's env gap, same renders).  Each score comes with the ceiling (the perfect texture
 through the same compositing and pixel sampling, :mod:`relight_cli.neural.evaluate`) and
 the gap to it.  A row is *converged* when its validation curve gained < 0.2 dB over the
-last 20 % of iterations; it *meets the preset's goal* when its gap is ≤ 1 dB.  Wall time
+last 20 % of iterations; it *meets the preset's goal* when its gap is ≤ 1 dB (both rules
+are :mod:`relight_cli.neural.judging`'s).  Wall time
 is the command's own (subprocess, ``--threads`` torch threads, ``--workers`` models at
 once), measured here: the outputs hold no timings.
 
@@ -37,28 +38,14 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common as B  # noqa: E402
+from relight_cli.neural import judging as J  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 RELIGHT = str(Path(sys.executable).parent / "relight")
 MODELS = ("olat", "ggx", "linear", "student", "dram")
-CONVERGED_DB, TAIL, GOAL_DB = 0.2, 0.2, 1.0
-
-
-def _capture(work: Path, log, scale: str = "converged", stage: dict | None = None) -> Path:
-    """The study scale's right-hand capture (made once); ``stage`` overrides some of the
-    scale's capture settings (e.g. ``{"lights": 128}``: another capture, its own key)."""
-    sys.path.insert(0, str(HERE))
-    import study_hands as S
-    settings = json.loads((HERE / "studies" / "scales.json").read_text())[scale]
-    settings["capture"].update(stage or {})
-    envs = S.env_specs()
-    key = S.digest({"capture": settings["capture"], "eval": envs["eval"],
-                    "v": S.CAPTURE_VERSION})
-    folder = work / f"capture-{key}"
-    if not (folder / "capture.json").is_file():
-        log(f"making the capture {folder}")
-        S.synth_capture(folder, *S.HANDS["right"], settings["capture"], envs["eval"])
-    return folder, envs
+#: the tail a run's convergence is read over (DESIGN.md's "converged": the library's rule,
+#: :mod:`relight_cli.neural.judging`, as is a preset's 1-dB goal)
+TAIL = J.CONVERGED_TAIL
 
 
 def _run(name: str, argv: list, work: Path, threads: int, log) -> dict:
@@ -75,13 +62,8 @@ def _run(name: str, argv: list, work: Path, threads: int, log) -> dict:
         raise SystemExit(f"bench_presets.py: error: {name} failed:\n{r.stderr[-2000:]}")
     record = {"argv": [str(a) for a in argv], "wall_s": round(wall, 1),
               "metrics": json.loads((work / f"{name}.json").read_text())}
-    B_write(done, record)
+    B.write_json(done, record, ensure_ascii=True)
     return record
-
-
-def B_write(path: Path, obj) -> None:
-    from relight_cli.provenance import write_text_atomic
-    write_text_atomic(str(path), json.dumps(obj, indent=1) + "\n")
 
 
 TEACHERS = ("olat", "ggx", "linear")
@@ -121,13 +103,12 @@ def _row(model: str, record: dict) -> dict:
         along = goal
     iters = curve[-1][0]
     # the last 20 %, or the last validation interval where validations are sparser
-    start = [(s, v) for s, v in curve if (1 - TAIL) * iters <= s < iters] or curve[-2:-1]
-    gain = curve[-1][1] - start[0][1] if start else None
+    gain, tail_from = J.tail_gain(curve, iters, metric="psnr", last_interval=True)
     return {"model": model, "iters": iters, "wall_s": record["wall_s"],
-            "tail_from": start[0][0] if start else None,
+            "tail_from": tail_from,
             "goal_split": "heldout_all" if model in TEACHERS else "env", "goal": goal,
             "env": env, "vs_teacher_psnr": teacher, "gain_tail_db": gain,
-            "converged": None if gain is None else gain < CONVERGED_DB, "curve": curve,
+            "converged": J.converged([gain]), "curve": curve,
             "curve_ceiling": along["ceiling"] if along else None}
 
 
@@ -183,8 +164,8 @@ def main(argv=None) -> None:
         work = work / "quick"
         work.mkdir(parents=True, exist_ok=True)
     # env renders shaded as the stage shades its LEDs: synth-capture's default
-    capture, envs = _capture(work, log, "tiny" if args.quick else "converged",
-                             stage={"eval_env_space": "texels"})
+    capture, envs = B.study_capture(work, log, "tiny" if args.quick else "converged",
+                                    stage={"eval_env_space": "texels"})
     cmds = _commands(models, work, capture, envs, preset)
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(args.workers) as pool:
@@ -203,7 +184,7 @@ def main(argv=None) -> None:
               "machine": limits, "threads": args.threads, "workers": args.workers,
               "capture": str(capture), "preset": preset, "quick": bool(args.quick),
               "wall_s": round(wall, 1), "rows": rows}
-    B_write(out / "presets.json", record)
+    B.write_json(out / "presets.json", record, ensure_ascii=True)
     (out / "presets.md").write_text(_markdown(record))
     _plot(record, out / "presets.png")
     print((out / "presets.md").read_text())
@@ -241,7 +222,7 @@ def _markdown(record: dict) -> str:
             + (f" (from {r['tail_from']})" if r.get("tail_from") is not None
                and r["tail_from"] < (1 - TAIL) * r["iters"] else "") + " | "
             + {True: "yes", False: "no", None: "—"}[r["converged"]] + " | "
-            + ("—" if gap is None else "yes" if gap <= GOAL_DB else "no")
+            + {True: "yes", False: "no", None: "—"}[J.within_goal(gap)]
             + (" (env)" if r["goal_split"] == "env" else "") + " |")
     olat = next((r for r in record["rows"] if r["model"] == "olat"), None)
     lines += ["", "Held-out LED frames: every sample of the capture's held-out poses "

@@ -185,7 +185,7 @@ def quality(iters: int, work: Path) -> tuple:
     commands' defaults: ({row: {"metrics", "seconds"}}, {"train": envs, "eval": envs})."""
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
     from relight_cli.formats.metrics_json import make_record
-    from relight_cli.inputs import load_envmap
+    from relight_cli.cli.inputs import load_envmap
     from relight_cli.jobs import distill as JD
     from relight_cli.jobs.synth_capture import make_capture
     from relight_cli.jobs import train_teacher as JT

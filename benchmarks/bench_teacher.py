@@ -47,118 +47,6 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _common as B  # noqa: E402
 
 
-def _timed_task(data, cfg, evaluate: bool = True):
-    """A TeacherTask that times every training step (data, forward, backward, Adam;
-    validation excluded) and counts the conv FLOPs each step runs; ``evaluate=False``
-    skips the final validation (a throughput run does not need its scores)."""
-    from relight_cli.neural.train import TeacherTask
-
-    class Timed(TeacherTask):
-        def evaluate(self, model, device):
-            return super().evaluate(model, device) if evaluate else {}
-
-        def __init__(self):
-            super().__init__(data, cfg)
-            self.steps = []              # (seconds, flops fwd+bwd, flops fwd) per step
-            self.flops = None
-
-        def build(self, device, resume=None):
-            model = super().build(device, resume)
-            self.flops = B.ConvFlops(model, training_only=True)
-            return model
-
-        def before_step(self, optimizer, step):
-            self._start = (time.perf_counter(), self.flops.total, self.flops.forward)
-
-        def after_step(self, step, world):
-            t0, total, forward = self._start
-            self.steps.append((time.perf_counter() - t0, self.flops.total - total,
-                               self.flops.forward - forward))
-    return Timed()
-
-
-def make_capture(folder: Path, two_hands: bool, frames: int, quick: bool) -> Path:
-    """The benchmark's capture, through ``relight synth-capture``'s job."""
-    from relight_cli.jobs import synth_capture as J
-    settings = dict(cameras=4 if quick else 6, lights=32, group=4, res=48 if quick else 64,
-                    tex_res=128, aa=1, eval_poses=2, eval_cameras=2,
-                    eval_envs=("builtin:sky", "builtin:studio"))
-    if two_hands:
-        from relight_cli.formats.hand_npz import write_hand
-        from relight_cli.hand.model import builtin_hand
-        from relight_cli.hand.scene import two_hands as pair
-        from relight_cli.render.capture import hand_motion
-        motion = folder.parent / f"{folder.name}_motion.npz"
-        write_hand(str(motion), pair(hand_motion(builtin_hand("right"), frames, seed=5)))
-        J.make_capture(str(folder), str(motion), motion="file", **settings)
-    else:
-        J.make_capture(str(folder), frames=frames, **settings)
-    return folder
-
-
-def physical_upper_bound(folder: Path) -> dict:
-    """Held-out frames re-rendered with the stage's own renderer and true materials."""
-    from relight_cli.formats import capture as C
-    from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.train import _metrics
-    from relight_cli.render.appearance import hand_materials
-    from relight_cli.render.capture import FrameRenderer, Plan, StageSettings
-    from relight_cli.render.shading import PointLights
-
-    data = CaptureData(str(folder), 32, holdout=0.25)
-    s = data.capture.settings
-    settings = StageSettings(**{k: v for k, v in s.items() if k in StageSettings.__dataclass_fields__})
-    materials = hand_materials(data.hand, "fine", max(settings.tex_res, 256), settings.seed)
-    plan = Plan(data.hand, data.capture.cameras,
-                PointLights(data.capture.light_positions, data.capture.light_intensity),
-                data.capture.light_names, data.capture.frames, np.zeros(3), data.capture.key)
-    renderer = FrameRenderer(plan, materials, settings)
-    rows = []
-    for frame in data.heldout_frames:
-        for cam, result in renderer.frame(frame, [data.capture.camera(n) for n in frame.images]):
-            gt, mask = C.read_image(os.path.join(str(folder), C.image_path(frame.index, cam.name)))
-            m = _metrics(result.image, gt, mask)
-            if m:
-                rows.append(m)
-    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-
-
-def validation(iters: int) -> dict:
-    """Validation every sixth of the run on 6 samples; a quick run (< 60 iterations) gets a
-    few points on 2 samples, so that validation does not cost more than training."""
-    if iters >= 60:
-        return {"val_every": max(1, iters // 6), "val_samples": 6}
-    return {"val_every": max(2, iters // 3), "val_samples": 2}
-
-
-def train_variant(folder: Path, variant: str, iters: int) -> dict:
-    from relight_cli.neural.config import resolve_config
-    from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.train import fit
-
-    overrides = {"iters": iters, **validation(iters),
-                 "lambda_vgg": 0.0, "neg_start": iters // 4}
-    if variant == "no-visibility":
-        overrides["visibility"] = False
-    if variant == "ggx":
-        overrides["model"] = "ggx"
-    cfg = resolve_config("tiny", None, overrides)
-    data = CaptureData(str(folder), cfg.tex_res, cfg.aa, cfg.visibility, cfg.falloff, cfg.holdout)
-    task = _timed_task(data, cfg)
-    t0 = time.perf_counter()
-    result = fit(task, cfg, torch.device("cpu"), show_progress=False)
-    total = time.perf_counter() - t0
-    task.flops.close()
-    # training seconds (validation excluded) at each validation step
-    elapsed = np.cumsum([0.0] + [t for t, _, _ in task.steps])
-    curve = [(float(elapsed[min(h["step"], len(task.steps))]), h.get("heldout", {}).get("mse"))
-             for h in result.history]
-    train_seconds = float(elapsed[-1])
-    return {"metrics": result.metrics, "seconds": total, "train_seconds": train_seconds,
-            "its": len(task.steps) / train_seconds, "peak_rss_mb": result.peak_memory_mb,
-            "curve": curve}
-
-
 def throughput(folder: Path, widths: str, tex: int, iters: int, threads: int,
                channels_last: bool | None = None) -> dict:
     """Training throughput of preset ``widths`` at ``tex``² (``channels_last``: the
@@ -177,7 +65,7 @@ def throughput(folder: Path, widths: str, tex: int, iters: int, threads: int,
     for step in range(iters):      # warm the geometry caches of every sample the steps draw
         for i in batch_indices(cfg.seed, step, len(items), cfg.batch):
             data.sample(*items[int(i)], with_image=False)
-    task = _timed_task(data, cfg, evaluate=False)
+    task = B.timed_teacher_task(data, cfg, evaluate=False)
     result = fit(task, cfg, torch.device("cpu"), show_progress=False)
     task.flops.close()
     assert torch.get_num_threads() == threads
@@ -228,54 +116,6 @@ def network_alone(data, cfg, items, iters: int) -> dict:
         seconds = time.perf_counter() - t0
     return {"sec_per_it": seconds / iters, "gflop_per_it": flops.total / iters / 1e9,
             "gflops": flops.total / seconds / 1e9, "iterations": iters}
-
-
-def env_render_cost(folder: Path, widths: str, tex: int, channels_last: bool | None = None
-                    ) -> dict:
-    """One env-map render of preset ``widths`` at ``tex``² (``channels_last``: the layout
-    a checkpoint of that setting is loaded in, :mod:`relight_cli.neural.checkpoints`)."""
-    from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.envmap import discretize_env
-    from relight_cli.neural import teacher as T
-    from relight_cli.neural.checkpoints import _layout
-    from relight_cli.neural.config import resolve_config
-    from relight_cli.neural.data import CaptureData
-    from relight_cli.neural.models import build_model
-    from relight_cli.render.gbuffer import render_gbuffer
-
-    values = {"tex_res": tex}
-    if channels_last is not None:
-        values["channels_last"] = channels_last
-    cfg = resolve_config(widths, None, values)
-    data = CaptureData(str(folder), tex, 2)
-    model = _layout(build_model(cfg, data.pose_dim).eval(), cfg)
-    denv = discretize_env(builtin_envmap("builtin:sky"), 16, 32)
-    timing = T.Timing()
-    t0 = time.perf_counter()
-    texels = data.texels(0)
-    cam = data.capture.cameras[0]
-    gb = render_gbuffer(texels.meshes, cam, 2, scene=texels.renderer.scene)
-    timing.add("geometry", time.perf_counter() - t0)
-    lights, weights = T.env_light_inputs(texels, denv, True, timing)
-    with B.ConvFlops(model) as flops:
-        T.render_lights(model, texels, gb, data.poses(0), lights, weights, True, cfg.falloff,
-                        timing=timing)
-    return {"preset": widths, "tex_res": tex, "directions": int(len(weights)),
-            "channels_last": cfg.channels_last,
-            **{k: v for k, v in timing.seconds.items()},
-            "network_gflop": flops.forward / 1e9,
-            "network_gflops": flops.forward / 1e9 / timing.seconds["network"],
-            "threads": torch.get_num_threads(),
-            "total": float(sum(timing.seconds.values()))}
-
-
-def write_plot(path: Path, curves: dict, machine: dict, what: str = "teacher"):
-    """Held-out MSE (×1e-3) against training seconds, every curve."""
-    fig, (ax,) = B.figure(1, 7.2, 4.6)
-    B.plot(ax, {name: [(t, m * 1e3) for t, m in curve if m] for name, curve in curves.items()},
-           "training seconds (validation excluded)", "held-out MSE x 1e-3 (log)",
-           f"{what}: validation during training", logx=False, labels=False)
-    B.save(fig, path, machine)
 
 
 def _f(v, spec):
@@ -405,9 +245,9 @@ def main():
     stage("machine limits")
     work = Path(tempfile.mkdtemp(prefix="bench_teacher_"))
     try:
-        captures = {"single": make_capture(work / "single", False, frames, args.quick)}
+        captures = {"single": B.make_capture(work / "single", False, frames, args.quick)}
         if not args.quick:
-            captures["two"] = make_capture(work / "two", True, frames, args.quick)
+            captures["two"] = B.make_capture(work / "two", True, frames, args.quick)
         report["capture_seconds"] = time.perf_counter() - stage_t[0]
         stage("captures")
         report["throughput"] = [throughput(captures["single"], "tiny", 32,
@@ -423,13 +263,13 @@ def main():
         if not args.quick:
             report["throughput"].append(throughput(captures["single"], "paper", 256, 2, threads))
         stage("throughput")
-        report["env_render"] = [env_render_cost(captures["single"], "tiny", 32)]
+        report["env_render"] = [B.env_render_cost(captures["single"], "tiny", 32)]
         # the cpu preset in both layouts: what loading its checkpoints in channels_last
         # buys at inference (the resampling above all)
-        report["env_render"] += [env_render_cost(captures["single"], "cpu", 64, nhwc)
+        report["env_render"] += [B.env_render_cost(captures["single"], "cpu", 64, nhwc)
                                  for nhwc in (False, True)]
         if not args.quick:
-            report["env_render"].append(env_render_cost(captures["single"], "paper", 128))
+            report["env_render"].append(B.env_render_cost(captures["single"], "paper", 128))
         stage("env render")
         quality = {}
         curves = {}
@@ -437,12 +277,12 @@ def main():
                                                                     "ggx")
         for cname, folder in captures.items():
             for variant in variants:
-                r = train_variant(folder, variant, iters)
+                r = B.train_variant(folder, variant, iters)
                 quality[f"{cname}/{variant}"] = r
                 curves[f"{cname} {variant}"] = r["curve"]
                 stage(f"quality {cname}/{variant}")
             quality[f"{cname}/physical (true materials)"] = {
-                "metrics": {"heldout": physical_upper_bound(folder)}}
+                "metrics": {"heldout": B.physical_upper_bound(folder)}}
             stage(f"quality {cname}/physical")
         report["quality"] = quality
     finally:
@@ -459,7 +299,7 @@ def main():
     lines = markdown(report, args.quick)
     (out / "teacher.md").write_text("\n".join(lines) + "\n")
     (out / "teacher.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
-    write_plot(out / "teacher.png", curves, report["machine"])
+    B.write_plot(out / "teacher.png", curves, report["machine"])
     print("\n".join(lines))
     if report["inconsistent"]:
         print(f"bench_teacher.py: warning: {len(report['inconsistent'])} rate(s) above the "

@@ -43,9 +43,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import hashlib
 import json
-import math
 import os
 import platform
 import sys
@@ -53,9 +51,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# the captures and their cache keys are shared with bench_presets.py (_common); the
+# judging rules (converged, verdict, gate) are the library's, DESIGN.md's
+from _common import (CAPTURE_VERSION, HANDS, SCALES, digest,  # noqa: E402,F401
+                     env_specs, synth_capture, write_json)
+from relight_cli.neural import judging as J  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
-SCALES = HERE / "studies" / "scales.json"
-HDRI_DIR = (HERE.parent / ".." / "shared" / "data" / "envmaps" / "polyhaven").resolve()
 RESULTS = HERE / "results"
 #: bump when a change of this runner changes what a cached row holds
 CACHE_VERSION = 2
@@ -284,45 +287,11 @@ def load_scale(name: str) -> dict:
     return scales[name]
 
 
-def env_specs() -> dict:
-    """The env maps of the studies: the shared Poly Haven HDRIs when present (the last two
-    sorted ones held out: never trained on, the captures' ground-truth env renders),
-    else built-ins."""
-    hdris = sorted(str(p) for p in HDRI_DIR.glob("*.hdr")) if HDRI_DIR.is_dir() else []
-    if len(hdris) >= 3:
-        return {"source": f"Poly Haven HDRIs ({HDRI_DIR})",
-                "train": ["builtin:sky", "builtin:studio", "builtin:uniform"] + hdris[:-2],
-                "eval": hdris[-2:]}
-    return {"source": "built-in env maps (the shared Poly Haven HDRIs are absent)",
-            "train": ["builtin:studio", "builtin:uniform", "builtin:point"],
-            "eval": ["builtin:sky"]}
-
-
-def digest(obj) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
 # ---------------------------------------------------------------------------- captures
 
-#: synth-capture's HAND argument and motion seed per capture column: one subject (the
-#: default --skin-seed 0) captured right, left and with two interacting hands; the
-#: two-hand capture's own motion seed makes every one of its poses new to the teachers
-HANDS = {"right": ("builtin:right", 0), "left": ("builtin:left", 0), "both": ("builtin:two", 3)}
 #: the columns no model trains on: scored with the right and left hands' models
+#: (HANDS, the columns' synth-capture arguments, and synth_capture are _common's)
 EVAL_ONLY = {"both": ("right", "left")}
-#: bump when synth-capture renders the same settings differently (cached captures)
-CAPTURE_VERSION = 2
-
-
-def synth_capture(folder: Path, hand: str, seed: int, capture: dict, eval_envs: list) -> None:
-    """The one place this runner makes a capture: ``relight synth-capture``'s job
-    (:func:`relight_cli.jobs.synth_capture.make_capture`)."""
-    from relight_cli.jobs.synth_capture import make_capture
-    # every setting the scale (or a study's stage) names reaches the stage: an unknown one
-    # is an error, not a default (a stage's keyframe_every was once dropped here); a
-    # scale that does not name eval_env_space keeps the renders its cached captures have
-    make_capture(str(folder), hand, seed=seed, eval_envs=eval_envs,
-                 **{"eval_env_space": "vertices", **capture})
 
 
 class Study:
@@ -590,7 +559,7 @@ class Study:
         return _final_splits(base, score, splits, curve)(data, config)
 
     def _student_task(self, folder, config, teacher_row):
-        from relight_cli.inputs import load_envmap
+        from relight_cli.cli.inputs import load_envmap
         from relight_cli.envmap import discretize_env
         from relight_cli.formats.checkpoint import read_checkpoint
         from relight_cli.neural import distill as D
@@ -757,18 +726,16 @@ def gate_spread(study: "Study", seeds: list, path: Path) -> dict:
         frozen = gate_metrics(dead, seeds[0], list(GAP_GATE))
     checks = {}
     for name, (metric, better) in GATE_METRIC.items():
-        stats = mean_std([per_seed[s][name][metric] for s in seeds])
-        if metric == "mse_ratio":
-            low = min(stats["values"])
-            checks[name] = {**stats, "min": low, "robust": low > 1.0,
-                            "threshold": 1.0 + (low - 1.0) / 2 if low > 1.0 else None}
-        else:
-            high, dead_gap = max(stats["values"]), frozen[name][metric]
-            checks[name] = {**stats, "max": high, "untrained": dead_gap,
-                            "robust": dead_gap > high,
-                            "threshold": high + (dead_gap - high) / 2 if dead_gap > high
-                            else None}
-        checks[name].update({"metric": metric, "better": better})
+        values = [per_seed[s][name][metric] for s in seeds]
+        stats = mean_std(values)
+        if metric == "mse_ratio":      # against 1: no effect
+            check = J.gate(values, 1.0, better)
+            checks[name] = {**stats, "min": check.worst}
+        else:                          # against the same row never trained
+            check = J.gate(values, frozen[name][metric], better)
+            checks[name] = {**stats, "max": check.worst, "untrained": check.sabotaged}
+        checks[name].update({"robust": check.robust, "threshold": check.threshold,
+                             "metric": metric, "better": better})
     record = {"scale": study.scale, "hand": GATE_HAND, "seeds": seeds, "checks": checks,
               "machine": machine(), "settings": study.settings}
     write_json(path, record)
@@ -835,46 +802,26 @@ def gate_markdown(record: dict, command: str) -> str:
 # ---------------------------------------------------------------------------- statistics
 
 
-def mean_std(values: list) -> dict:
-    vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
-    if not vals:
-        return {"mean": None, "std": None, "n": 0, "values": []}
-    m = sum(vals) / len(vals)
-    s = math.sqrt(sum((v - m) ** 2 for v in vals) / (len(vals) - 1)) if len(vals) > 1 else 0.0
-    return {"mean": m, "std": s, "n": len(vals), "values": vals}
-
-
-#: a row is converged when its validation curve gains less than this over the last
-#: CONVERGED_TAIL of its iterations (issue 21's rule)
-CONVERGED_DB = 0.2
-CONVERGED_TAIL = 0.2
+#: mean ± sample std over seeds, the finite values only (the library's)
+mean_std = J.mean_std
+#: a row is converged when its validation curve gains less than CONVERGED_DB over the
+#: last CONVERGED_TAIL of its iterations (issue 21's rule, DESIGN.md's "converged")
+CONVERGED_DB = J.CONVERGED_DB
+CONVERGED_TAIL = J.CONVERGED_TAIL
 
 
 def converged(curves: list, iters: list, metric: str) -> dict:
     """Per seed, the held-out gain in dB over the last 20 % of iterations — the curve's
     final value against its first point at ≥ 80 % of the iterations (MSE as
-    10·log10(mse₈₀ / mse_end), PSNR as a difference) — and whether every seed gained less
-    than :data:`CONVERGED_DB` (None where a curve has no point in the window)."""
-    gains = []
-    for curve, n in zip(curves, iters):
-        points = [(s, v) for s, v in curve if v is not None]
-        start = [v for s, v in points
-                 if n is not None and (1 - CONVERGED_TAIL) * n <= s < n]
-        if n is None or not points or not start or points[-1][0] != n:
-            gains.append(None)
-            continue
-        a, b = start[0], points[-1][1]
-        if metric == "mse":
-            gain = 10 * math.log10(a / b) if a > 0 and b > 0 else None
-        elif metric == "ssim":
-            gain = None
-        else:
-            gain = b - a
-        gains.append(gain)
+    10·log10(mse₈₀ / mse_end), PSNR as a difference; :func:`relight_cli.neural.judging.
+    tail_gain`) — and whether every seed gained less than :data:`CONVERGED_DB`
+    (:func:`relight_cli.neural.judging.converged`: None where a curve has no point in the
+    window and none still rises)."""
+    gains = [J.tail_gain(curve, n, metric=metric)[0] if n is not None else None
+             for curve, n in zip(curves, iters)]
     known = [g for g in gains if g is not None]
     return {"gain_db": mean_std(known) if known else None,
-            "converged": (all(g < CONVERGED_DB for g in known) if len(known) == len(gains)
-                          and known else None)}
+            "converged": J.converged(gains) if gains else None}
 
 
 def summarize(table: Table, runs: dict) -> dict:
@@ -920,14 +867,16 @@ def summarize(table: Table, runs: dict) -> dict:
 
 
 #: the smallest effect a verdict may rest on (dB): a smaller difference is a tie
-MIN_EFFECT_DB = 0.2
+MIN_EFFECT_DB = J.MIN_EFFECT_DB
 
 
 def verdict(table: Table, claim: Claim, runs: dict) -> dict:
-    """Per hand: the paired (same seed) difference worse − better in the paper's direction;
-    a ``tie`` when the effect is below max(:data:`MIN_EFFECT_DB`, 2σ over seeds) in dB
-    (PSNR, or 10 log10 of an MSE ratio); else ``reproduced`` when the mean exceeds 2σ
-    (and is > 0), ``reversed`` when it is below −2σ, else ``within 2σ``."""
+    """Per hand: the paired (same seed) difference worse − better in the paper's direction,
+    judged by :func:`relight_cli.neural.judging.verdict`: a ``tie`` when the effect in dB
+    (PSNR, or 10 log10 of an MSE ratio) is within max(:data:`MIN_EFFECT_DB`, 2σ over
+    seeds), or rests on one seed; else ``reproduced`` when the difference itself exceeds
+    2σ in the paper's direction, ``reversed`` when it does the other way, else ``within
+    2σ``.  A metric with no dB (SSIM) is judged on 2σ alone."""
     split, metric = claim.metric.split(".")
     sign = 1.0 if metric in LOWER else -1.0
     per_hand = {}
@@ -942,27 +891,23 @@ def verdict(table: Table, claim: Claim, runs: dict) -> dict:
         stats = mean_std(gaps)
         # the effect in dB (PSNR directly; MSE as 10 log10 of the ratio), for the minimum
         # size a verdict needs
-        if metric == "psnr":
-            effect = mean_std(gaps)
-        elif metric in ("mse", "mae") and all(better[s] > 0 and worse[s] > 0 for s in pairs):
-            effect = mean_std([10 * math.log10(worse[s] / better[s]) for s in pairs])
-        else:
-            effect = None
-        bar = max(2 * stats["std"], 0.0) if stats["n"] else 0.0
-        small = (effect is not None and effect["n"]
-                 and abs(effect["mean"]) < max(MIN_EFFECT_DB, 2 * effect["std"]))
+        effect = [J.gain_db(worse[s], better[s], metric) for s in pairs]
+        effect = None if metric not in ("psnr",) + J.RATIO_METRICS or None in effect \
+            else J.verdict(effect)
+        spread = J.verdict(gaps, min_effect=0.0)      # the difference itself against 2σ
         if not stats["n"]:
             word = "not measured"
-        elif small:
-            word = "tie (smaller than max(0.2 dB, 2σ over seeds))"
-        elif stats["mean"] > 0 and stats["mean"] > bar:
+        elif effect is not None and effect.word == "tie":
+            word = ("tie (one seed: no seed spread to exceed)" if effect.n < 2 else
+                    "tie (smaller than max(0.2 dB, 2σ over seeds))")
+        elif spread.word == "better":
             word = "reproduced"
-        elif stats["mean"] < 0 and -stats["mean"] > bar:
+        elif spread.word == "worse":
             word = "not reproduced (reversed)"
         else:
             word = "not reproduced (within 2σ of the seed spread)"
         per_hand[hand] = {"verdict": word, "gap": stats,
-                          "effect_db": effect["mean"] if effect and effect["n"] else None}
+                          "effect_db": effect.mean if effect and effect.n else None}
     return {"text": claim.text, "better": claim.better, "worse": claim.worse,
             "metric": claim.metric, "hands": per_hand, "explain": claim.explain}
 
@@ -1149,7 +1094,7 @@ def plot(table: Table, record: dict, path: Path) -> None:
         ax.legend(fontsize=8)
     fig.suptitle(f"{table.title} ({record['scale']}, seeds {record['seeds']})", fontsize=9)
     fig.tight_layout()
-    from relight_cli.provenance import atomic_path
+    from relight_cli.fileio import atomic_path
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110, metadata={"Software": None})
     plt.close(fig)
@@ -1179,18 +1124,12 @@ def portable(obj):
 
 
 def write_table(table: Table, record: dict, results: Path) -> None:
-    from relight_cli.provenance import write_text_atomic
+    from relight_cli.fileio import write_text_atomic
     record = portable(record)
     results.mkdir(parents=True, exist_ok=True)
     write_json(results / f"study_{table.name}.json", record)
     write_text_atomic(str(results / f"study_{table.name}.md"), markdown(table, record))
     plot(table, record, results / f"study_{table.name}.png")
-
-
-def write_json(path: Path, obj) -> None:
-    """Atomically (the project's output helper): an interrupted run leaves no half file."""
-    from relight_cli.provenance import write_text_atomic
-    write_text_atomic(str(path), json.dumps(obj, indent=1, ensure_ascii=False) + "\n")
 
 
 def require_matplotlib() -> None:
@@ -1267,7 +1206,7 @@ def main(argv=None):
     if args.gate_spread:
         path = Path(args.gate_spread)
         record = gate_spread(study, list(range(args.seeds)), path)
-        from relight_cli.provenance import write_text_atomic
+        from relight_cli.fileio import write_text_atomic
         write_text_atomic(str(path.with_suffix(".md")), gate_markdown(record, command))
         print(json.dumps(record["checks"], indent=1))
         return

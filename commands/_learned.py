@@ -34,7 +34,7 @@ def training_options(validation: str):
 
 def check_inputs(config_file: str | None, vgg_weights: str | None, resume: str | None) -> None:
     """--config (or - for stdin), --vgg-weights and --resume are readable files."""
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     for path, role in ((config_file, "--config"), (vgg_weights, None), (resume, None)):
         if path is not None:
             check_input(path, stdin=role)
@@ -45,7 +45,7 @@ def check_capture(capture: str, index_ok: bool = True) -> str:
     DataError if it is neither, its capture.json checked when present."""
     import os
 
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.errors import DataError
     if not os.path.isdir(capture):
         if index_ok and os.path.exists(capture) and os.path.basename(capture) == "capture.json":
@@ -65,7 +65,7 @@ def file_inputs(vgg_weights: str | None, resume: str | None, config_file: str | 
 
 def read_captures(folders, config, cache_poses: int | None = None) -> list:
     """One CaptureData per capture folder, at ``config``'s geometry settings."""
-    from relight_cli.inputs import load_capture
+    from relight_cli.cli.inputs import load_capture
     return [load_capture(folder, config, cache_poses) for folder in folders]
 
 
@@ -82,7 +82,7 @@ def saver(output: str):
     its progress), outside the command's output transaction."""
     def save(checkpoint):
         from relight_cli.formats.checkpoint import write_checkpoint
-        from relight_cli.provenance import outside_transaction
+        from relight_cli.fileio import outside_transaction
         with outside_transaction():
             write_checkpoint(output, checkpoint)
     return save
@@ -90,7 +90,7 @@ def saver(output: str):
 
 def check_outputs(output: str, metrics_out: str | None, no_clobber: bool) -> None:
     """-o is a .pt checkpoint, --metrics-out a .json (or -); registered before any work."""
-    from relight_cli.clitools import check_output
+    from relight_cli.cli.tools import check_output
     check_output(output, no_clobber, kind="pt")
     check_output(metrics_out, no_clobber, kind="json", what="--metrics-out")
 

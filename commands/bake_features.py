@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (check_output, log, no_clobber_option, preview_option,
-                                  quiet_option, renamed_option)
+from relight_cli.cli.tools import (check_output, log, no_clobber_option, preview_option,
+                                   quiet_option, renamed_option)
+from relight_cli.sequence import FRAME_HELP, FRAMES_HELP
 
 
 @click.command("bake-features",
@@ -14,11 +15,12 @@ from relight_cli.clitools import (check_output, log, no_clobber_option, preview_
 @click.argument("envs", metavar="ENV...", nargs=-1, required=True)
 @click.option("-o", "--output", required=True,
               help="Output EXR. May hold {frame} (e.g. {frame:04d}) and {env} (the env map's "
-                   "name); required with --all-frames / several env maps.")
-@click.option("--frame", type=int, default=None, help="Frame to bake [default: 0].")
-@click.option("--all-frames", "frames_all", is_flag=True,
-              help="Bake every frame (the output needs {frame}; formerly --frames all).")
-@renamed_option("--frames", "--all-frames", why="--frames is a count in other commands")
+                   "name); required with --frames / several env maps.")
+@click.option("--frame", type=int, default=None, help=FRAME_HELP)
+@click.option("--frames", "frames", default=None, metavar="all|A:B[:S]",
+              help=FRAMES_HELP + " Every output needs {frame}.")
+@renamed_option("--all-frames", "--frames all", takes_value=False,
+                why="one frame grammar in every command")
 @click.option("--mesh", type=click.Choice(["coarse", "fine"]), default="coarse", show_default=True,
               help="Receivers and occluders: the coarse proxy, or the fine mesh (ablations).")
 @click.option("--env-res", default="32x16", show_default=True,
@@ -43,7 +45,7 @@ from relight_cli.clitools import (check_output, log, no_clobber_option, preview_
                 "layer with its exposure (may hold {frame}, {env}).")
 @no_clobber_option
 @quiet_option
-def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, shininess, specular,
+def command(hand, envs, output, frame, frames, mesh, env_res, texture_res, shininess, specular,
             roughness, eye, camera, no_visibility, per_vertex, preview, no_clobber, quiet):
     """Bake shading features of the posed hand(s) in HAND (a hand.npz, or
     builtin:right|left|two[:POSE]) under each ENV (EXR/HDR env map or
@@ -58,33 +60,27 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
     Examples:
       relight bake-features hand.npz stage.exr -o feats.exr
       relight bake-features hand.npz a.exr b.exr -o 'feats_{env}.exr'
-      relight bake-features hand.npz builtin:sky --all-frames -o 'f_{frame:04d}.exr'
+      relight bake-features hand.npz builtin:sky --frames all -o 'f_{frame:04d}.exr'
     """
-    from relight_cli import inputs as I
-    from relight_cli.errors import UsageProblem
+    from relight_cli.cli import inputs as I
     from relight_cli.jobs import bake_features as job
+    from relight_cli.sequence import select
 
     # ---- options (usage errors, before any work)
-    options, rough_value, env_names = _options(envs, env_res, texture_res, shininess, specular,
-                                               roughness, eye, camera, frame, frames_all, mesh,
-                                               no_visibility, (output, per_vertex, preview))
+    options, rough_value, env_names, patterns = _options(
+        envs, env_res, texture_res, shininess, specular, roughness, eye, camera, frame,
+        frames, mesh, no_visibility, (output, per_vertex, preview))
 
     # ---- inputs (data errors)
     data = I.load_hand(hand)
-    if frames_all:
-        frames = list(range(data.n_frames))
-    else:
-        frames = [frame or 0]
-        if frames[0] >= data.n_frames:
-            raise UsageProblem(f"--frame {frames[0]} is out of range: {hand} has "
-                               f"{data.n_frames} frame(s)")
-    targets = _targets(frames, env_names, (output, per_vertex, preview), no_clobber)
+    selected = select(frame, frames, data.n_frames, hand)
+    targets = _targets(selected, env_names, patterns, no_clobber)
     if camera is not None:
         options.viewer = I.load_camera(camera).center
     env_maps = [I.load_envmap(spec) for spec in envs]
     if rough_value is None:
         options.roughness_map = I.read_roughness_map(roughness)
-    baked = job.bake(data, frames, env_maps, options, names=envs, source=hand, quiet=quiet)
+    baked = job.bake(data, selected, env_maps, options, names=envs, source=hand, quiet=quiet)
     log(f"read {hand}: {len(data.hands)} hand(s), {data.n_frames} frame(s); "
         f"{len(envs)} env map(s)", quiet)
     env_h, env_w = options.env_res
@@ -107,16 +103,17 @@ def command(hand, envs, output, frame, frames_all, mesh, env_res, texture_res, s
 
 
 def _options(envs, env_res, texture_res, shininess, specular, roughness, eye, camera, frame,
-             frames_all, mesh, no_visibility, patterns):
+             frames, mesh, no_visibility, patterns):
     """The options' usage errors (exit 2), before any work: (BakeOptions, the scalar
-    roughness or None for a map, the env maps' names)."""
+    roughness or None for a map, the env maps' names, the outputs' OutputPatterns)."""
     import numpy as np
 
     from relight_cli import features as FE
-    from relight_cli import inputs as I
-    from relight_cli.clitools import parse_size, parse_vector
+    from relight_cli.cli import inputs as I
+    from relight_cli.cli.tools import parse_size, parse_vector
     from relight_cli.errors import UsageProblem
     from relight_cli.jobs.bake_features import BakeOptions
+    from relight_cli.sequence import OutputPattern, check_frame
 
     env_h, env_w = I.env_grid(env_res)
     tex_w, tex_h = parse_size(texture_res, "--res", maximum=8192)
@@ -130,10 +127,7 @@ def _options(envs, env_res, texture_res, shininess, specular, roughness, eye, ca
         raise UsageProblem("--specular phong needs at least one --shininess exponent")
     if eye is not None and camera is not None:
         raise UsageProblem("give --eye or --camera, not both")
-    if frame is not None and frames_all:
-        raise UsageProblem("give --frame N or --all-frames, not both")
-    if frame is not None and frame < 0:
-        raise UsageProblem(f"--frame must be ≥ 0, got {frame}")
+    check_frame(frame, frames)
     rough_value = I.roughness_value(roughness)
     if rough_value is not None:
         settings.roughness = rough_value
@@ -141,32 +135,33 @@ def _options(envs, env_res, texture_res, shininess, specular, roughness, eye, ca
     env_names = [_env_name(e) for e in envs]
     if len(set(env_names)) != len(env_names):
         raise UsageProblem("two env maps have the same name; {env} would not tell them apart")
-    for pattern in filter(None, patterns):
-        if len(envs) > 1 and "{env" not in pattern:
+    parsed = {}
+    for pattern, what in zip(patterns, ("-o", "--per-vertex", "--preview")):
+        parsed[what] = None if pattern is None else OutputPattern(pattern, what)
+        if pattern is None:
+            continue
+        if len(envs) > 1 and not parsed[what].holds("env"):
             raise UsageProblem(f"several env maps need {{env}} in every output name: {pattern}")
-        _check_pattern(pattern)
+        if frames is not None and not parsed[what].holds("frame"):
+            raise UsageProblem(f"--frames needs {{frame}} in every output name: {pattern}")
     options = BakeOptions(settings, (env_h, env_w), (tex_h, tex_w), mesh, eye_pos,
                           roughness_label=roughness)
-    return options, rough_value, env_names
+    return options, rough_value, env_names, parsed
 
 
 def _targets(frames, env_names, patterns, no_clobber):
     """[(frame, env index, exr, npz or None, png or None)], every output checked."""
     from relight_cli.errors import UsageProblem
-    output, per_vertex, _ = patterns
-    for pattern in filter(None, patterns):
-        if len(frames) > 1 and "{frame" not in pattern:
-            raise UsageProblem(f"--all-frames needs {{frame}} in every output name: {pattern}")
+    from relight_cli.sequence import plan_outputs
+    plan = plan_outputs(patterns, frames, tuple(env_names))
     targets = []
-    for fr in frames:
-        for k, name in enumerate(env_names):
-            paths = [None if p is None else p.format(frame=fr, env=name) for p in patterns]
-            for p, kind, what in zip(paths, ("exr", "npz", "png"),
-                                     ("-o", "--per-vertex", "--preview")):
-                check_output(p, no_clobber, kind=kind, what=what)
-            targets.append((fr, k, *paths))
-    if per_vertex is not None and output.format(frame=0, env="x") == per_vertex.format(
-            frame=0, env="x"):
+    for (fr, name), paths in plan.items():
+        for what, kind in (("-o", "exr"), ("--per-vertex", "npz"), ("--preview", "png")):
+            check_output(paths[what], no_clobber, kind=kind, what=what)
+        targets.append((fr, env_names.index(name), paths["-o"], paths["--per-vertex"],
+                        paths["--preview"]))
+    per_vertex = patterns["--per-vertex"]
+    if per_vertex is not None and patterns["-o"].format(0, "x") == per_vertex.format(0, "x"):
         raise UsageProblem("--per-vertex must differ from -o")
     return targets
 
@@ -212,29 +207,6 @@ def _write(result, k, env, exr_path, npz_path, png_path, inputs, options, data, 
                             + ",".join(f"{float(x):.2f}" for x in viewer),
             charts=charts[0]))
         log(f"wrote {png_path}", quiet)
-
-
-def _check_pattern(pattern: str) -> None:
-    """Output names may hold {frame} and {env} fields (with a format spec such as
-    {frame:04d}) and nothing else: no attribute or index access, no conversions."""
-    import string
-
-    from relight_cli.errors import UsageProblem
-    bad = None
-    try:
-        for _, field, spec, conversion in string.Formatter().parse(pattern):
-            if field is None:
-                continue
-            if field not in ("frame", "env") or conversion is not None or "{" in (spec or ""):
-                bad = "{" + field + ("!" + conversion if conversion else "") + "}"
-                break
-        else:
-            pattern.format(frame=0, env="x")
-    except (KeyError, IndexError, ValueError) as exc:
-        bad = f"({type(exc).__name__}: {exc})"
-    if bad is not None:
-        raise UsageProblem(f"output name {pattern!r} may only use {{frame}} and {{env}} "
-                           f"fields, found {bad}")
 
 
 def _env_name(spec: str) -> str:

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_output, log, no_clobber_option, parse_vector,
-                                  quiet_option)
+from relight_cli.cli.tools import (FiniteFloat, check_output, log, no_clobber_option, parse_vector,
+                                   quiet_option)
 
 
 @click.command("camera", short_help="Make cameras (look-at, orbit, dome) or import them (COLMAP, nerfstudio).")
@@ -146,7 +146,7 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
     if source is None:
         width, height = 256, 256
         if size is not None:
-            from relight_cli.clitools import parse_size
+            from relight_cli.cli.tools import parse_size
             width, height = parse_size(size, "--size")
         fov_deg = 40.0 if fov is None else fov
         centre = parse_vector(target, 3, "--target") if target is not None else (0.0, 0.0, 0.0)
@@ -210,7 +210,7 @@ def _import(path: str, drop_distortion: bool):
     """(cameras, provenance inputs, what kind of source) of --from."""
     import os
 
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats import camera_imports as CI
 

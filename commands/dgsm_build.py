@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                  parse_size, preview_option, quiet_option, seed_option)
+from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
+                                   parse_size, preview_option, quiet_option, seed_option)
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
@@ -122,7 +122,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     """
     import time
 
-    from relight_cli.clitools import parse_vector
+    from relight_cli.cli.tools import parse_vector
     from relight_cli.errors import UsageProblem
     from relight_cli.jobs.dgsm_build import DgsmOptions, build
 
@@ -174,7 +174,7 @@ def _load(occluders, receivers, offset, lights_spec, auto_k, preview_camera):
 
     from relight_cli.formats.lights_json import read_lights
     from relight_cli.gaussians.from_mesh import load_gaussians
-    from relight_cli.inputs import load_placed, parse_occluder
+    from relight_cli.cli.inputs import load_placed, parse_occluder
 
     offset = None if offset is None else np.array(offset)
     parsed = [parse_occluder(spec, "OCCLUDER") for spec in occluders]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import log, no_clobber_option, quiet_option
+from relight_cli.cli.tools import log, no_clobber_option, quiet_option
 
 from ._learned import training_options
 
@@ -75,7 +75,7 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     """
     import os
 
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.errors import UsageProblem
 
     from . import _learned as L
@@ -100,7 +100,7 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     import torch  # noqa: F401
 
     from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
-    from relight_cli.inputs import env_grid, load_envmap
+    from relight_cli.cli.inputs import env_grid, load_envmap
     from relight_cli.jobs import distill as job
     from relight_cli.neural.train import resolve_device
     from relight_cli.provenance import file_sha256, provenance

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_output, dumps_json, log, no_clobber_option,
-                                  parse_size, preview_option, quiet_option)
+from relight_cli.cli.tools import (FiniteFloat, check_output, dumps_json, log, no_clobber_option,
+                                   parse_size, preview_option, quiet_option)
 
 
 @click.command("envmap", short_help="Convert, resample, rotate and inspect environment maps.")
@@ -53,7 +53,7 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
     from relight_cli.formats.envmap import FORMAT, VERSION, write_envmap
     from relight_cli.provenance import provenance
 
-    from relight_cli.inputs import load_envmap
+    from relight_cli.cli.inputs import load_envmap
 
     if output is None and preview is None and not show_info:
         raise UsageProblem("nothing to do: give -o OUT, --preview PNG or --info")
@@ -130,7 +130,7 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
                           title=f"envmap {input}" + (f" -> {exr_out}" if exr_out else ""))
         log(f"wrote {preview}", quiet)
     if show_info:
-        from relight_cli.provenance import write_text_atomic
+        from relight_cli.fileio import write_text_atomic
         payload = dict(stats)
         payload["source"] = input
         write_text_atomic(output if info_to_file else "-", dumps_json(payload))

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_json, log,
-                                  no_clobber_option, parse_size, quiet_option, seed_option)
+from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, dumps_json, log,
+                                   no_clobber_option, parse_size, quiet_option, renamed_option,
+                                   seed_option)
+from relight_cli.sequence import parse_frames
 
 
 @click.command("fit-geometry", short_help="Pose or fit the articulated hand; write hand.npz.")
@@ -15,8 +17,8 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_
 @click.option("--pose", default=None,
               help="Without targets: a named pose (open relaxed fist point pinch ok spread claw), "
                    "'random', or a JSON file of poses. Default: relaxed.")
-@click.option("--frames", type=int, default=1, show_default=True,
-              help="Number of frames for --pose random.")
+@click.option("--n-frames", "n_frames", type=int, default=1, show_default=True,
+              help="Number of frames to make for --pose random.")
 @click.option("--keypoints", default=None,
               help="3D keypoints to fit: JSON or .npy, (N, 25, 3) or (N, 25, 4) with confidence "
                    "(0 = missing), metres, template joint order (formats/keypoints.md).")
@@ -28,9 +30,10 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_
               help="Leap: the hand to fit, by type or Leap hand id (default: the type present "
                    "in most frames). Frames without it are missing, not filled unless "
                    "--interpolate.")
-@click.option("--frame-range", default=None, metavar="START:STOP[:STEP]",
-              help="Fit only the keypoint frames numbered START, START+STEP, … below STOP "
-                   "(Python slice; e.g. 0:300:10).")
+@click.option("--frames", "frame_range", default=None, metavar="all|A:B[:S]",
+              help="Fit only the keypoint frames numbered A, A+S, … below B (the frame "
+                   "grammar of every command: a Python slice, e.g. 0:300:10) [default: all].")
+@renamed_option("--frame-range", "--frames", why="one frame grammar in every command")
 @click.option("--scans", default=None,
               help="Scan meshes to fit (PLY/OBJ/STL), one per frame in sorted order; a glob "
                    "pattern like 'scan_*.ply' (quote it).")
@@ -55,7 +58,7 @@ from relight_cli.clitools import (FiniteFloat, check_input, check_output, dumps_
 @seed_option
 @no_clobber_option
 @quiet_option
-def command(output, template, pose, frames, keypoints, keypoints_format, hand_choice,
+def command(output, template, pose, n_frames, keypoints, keypoints_format, hand_choice,
             frame_range, scans, interpolate, iterations, no_bone_scales, offsets, smooth,
             two_hands, report, preview, preview_size, seed, no_clobber, quiet):
     """Write the articulated hand as hand.npz: posed (--pose) or fitted to 3D
@@ -68,22 +71,23 @@ def command(output, template, pose, frames, keypoints, keypoints_format, hand_ch
     \b
     Examples:
       relight fit-geometry --pose fist -o hand.npz --preview hand.png
-      relight fit-geometry --pose random --frames 10 --seed 3 -o poses.npz
+      relight fit-geometry --pose random --n-frames 10 --seed 3 -o poses.npz
       relight fit-geometry --template hand.glb --keypoints kp.npy -o fit.npz --report fit.json
       relight fit-geometry --keypoints kp.json --scans 'scan_*.ply' --offsets -o fit.npz
-      relight fit-geometry --keypoints pinch.json --hand right --frame-range 0:300:10 \
+      relight fit-geometry --keypoints pinch.json --hand right --frames 0:300:10 \
           --interpolate -o pinch.npz --report pinch_fit.json   # a Leap Motion recording
     """
-    from relight_cli import inputs as I
+    from relight_cli.cli import inputs as I
     from relight_cli.formats.hand_npz import FORMAT, VERSION, write_hand
     from relight_cli.jobs import fit_geometry as job
     from relight_cli.provenance import provenance
 
-    size = _check_usage(output, pose, frames, keypoints, keypoints_format, hand_choice,
+    size = _check_usage(output, pose, n_frames, keypoints, keypoints_format, hand_choice,
                         frame_range, scans, interpolate, iterations, offsets, report, preview,
                         preview_size, no_clobber)
     leap_hand = I.leap_hand(hand_choice)
-    frame_slice = None if frame_range is None else I.frame_range(frame_range)
+    frame_slice = None if frame_range is None else \
+        parse_frames(frame_range, "--frames", count_option="--n-frames").as_slice()
     scan_paths = None if scans is None else I.scan_paths(scans)
     if keypoints is not None:
         check_input(keypoints)
@@ -94,7 +98,7 @@ def command(output, template, pose, frames, keypoints, keypoints_format, hand_ch
     settings = {"template": template, "seed": seed, "two_hands": two_hands}
     say = (lambda message: log(message, quiet))
     if keypoints is None and scans is None:
-        poses, trans = I.load_poses(pose or "relaxed", frames, seed, template_hand)
+        poses, trans = I.load_poses(pose or "relaxed", n_frames, seed, template_hand)
         fitted = job.pose(template_hand, poses, trans, two_hands, template, log=say)
         settings["pose"] = pose or "relaxed"
         if pose is not None and pose.endswith(".json"):
@@ -121,7 +125,7 @@ def command(output, template, pose, frames, keypoints, keypoints_format, hand_ch
     write_hand(output, hand, provenance(FORMAT, VERSION, inputs, settings))
     log(f"wrote {output}: {len(hand.hands)} hand(s), {hand.n_frames} frame(s)", quiet)
     if report is not None:
-        from relight_cli.provenance import write_text_atomic
+        from relight_cli.fileio import write_text_atomic
         write_text_atomic(report, dumps_json({
             "format": "relight/fit-report", "version": 1, **fitted.report,
             "provenance": provenance("relight/fit-report", 1, inputs, settings)}))
@@ -130,7 +134,7 @@ def command(output, template, pose, frames, keypoints, keypoints_format, hand_ch
         log(f"wrote {preview}", quiet)
 
 
-def _check_usage(output, pose, frames, keypoints, keypoints_format, hand_choice, frame_range,
+def _check_usage(output, pose, n_frames, keypoints, keypoints_format, hand_choice, frame_range,
                  scans, interpolate, iterations, offsets, report, preview, preview_size,
                  no_clobber):
     """The options' usage errors (exit 2), before any work; the preview size (W, H)."""
@@ -148,10 +152,10 @@ def _check_usage(output, pose, frames, keypoints, keypoints_format, hand_choice,
     if fitting and pose is not None:
         raise UsageProblem("--pose poses the template; it cannot be combined with "
                            "--keypoints/--scans")
-    if not 1 <= frames <= 100_000:
-        raise UsageProblem(f"--frames must be in [1, 100000], got {frames}")
-    if frames != 1 and pose != "random":
-        raise UsageProblem("--frames applies to --pose random only")
+    if not 1 <= n_frames <= 100_000:
+        raise UsageProblem(f"--n-frames must be in [1, 100000], got {n_frames}")
+    if n_frames != 1 and pose != "random":
+        raise UsageProblem("--n-frames applies to --pose random only")
     if not 1 <= iterations <= 1_000_000:
         raise UsageProblem(f"--iterations must be in [1, 1000000], got {iterations}")
     if offsets and scans is None:
@@ -160,9 +164,11 @@ def _check_usage(output, pose, frames, keypoints, keypoints_format, hand_choice,
         raise UsageProblem("--interpolate needs --keypoints with frame numbers")
     if keypoints is None and (hand_choice is not None or frame_range is not None
                               or keypoints_format != "auto"):
-        raise UsageProblem("--hand, --frame-range and --keypoints-format need --keypoints")
+        raise UsageProblem("--hand, --frames and --keypoints-format need --keypoints")
+    if frame_range is not None:
+        parse_frames(frame_range, "--frames", count_option="--n-frames")
     if frame_range is not None and scans is not None:
-        raise UsageProblem("--frame-range selects keypoint frames; it cannot be combined "
+        raise UsageProblem("--frames selects keypoint frames; it cannot be combined "
                            "with --scans (one scan per keypoint frame)")
     if keypoints_format == "keypoints" and hand_choice is not None:
         raise UsageProblem("--hand applies to Leap recordings only")

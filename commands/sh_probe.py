@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (FiniteFloat, SquareSize, check_input, check_output, log,
-                                  no_clobber_option, parse_vector, preview_option, quiet_option)
+from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_output, log,
+                                   no_clobber_option, parse_vector, preview_option, quiet_option)
 
 
 @click.command("sh-probe", short_help="Fit an SH light probe to an env map or a Gaussian scene.")
@@ -87,7 +87,7 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
     position = None
     env = None
     if is_scene:
-        from relight_cli.clitools import progress
+        from relight_cli.cli.tools import progress
         from relight_cli.formats.gaussians_ply import read_gaussians
         position = parse_vector(at, 3, "--at")
         scene = read_gaussians(check_input(input))
@@ -97,7 +97,7 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
                                                                 quiet=quiet))
         settings.update(at=list(position), face_size=face_size, near=near)
     else:
-        from relight_cli.inputs import load_envmap
+        from relight_cli.cli.inputs import load_envmap
         env = load_envmap(input, nonfinite=nonfinite)
         log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
         samples = PR.env_samples(env)

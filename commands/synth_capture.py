@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import (SquareSize, check_output, log, no_clobber_option,
-                                  preview_option, quiet_option, renamed_option, seed_option)
+from relight_cli.cli.tools import (SquareSize, check_output, log, no_clobber_option, preview_option,
+                                   quiet_option, renamed_option, seed_option)
 
 
 @click.command("synth-capture",
@@ -20,7 +20,10 @@ from relight_cli.clitools import (SquareSize, check_output, log, no_clobber_opti
                 why="--lights is a lights JSON file in dgsm-build and relight")
 @click.option("--group", type=int, default=5, show_default=True,
               help="Lights on in a grouped (partially lit) frame.")
-@click.option("--frames", type=int, default=12, show_default=True, help="Frames of hand motion.")
+@click.option("--n-frames", "frames", type=int, default=12, show_default=True,
+              help="Number of frames of hand motion (formerly --frames).")
+@renamed_option("--frames", "--n-frames N",
+                why="--frames selects frames (all|A:B[:S]) in every command; a count is --n-frames")
 @click.option("--full-every", type=int, default=3, show_default=True,
               help="Every N-th frame is fully lit (1: all frames fully lit).")
 @click.option("--size", "res", type=SquareSize(), default=128, show_default=True,
@@ -84,17 +87,17 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
 
     \b
     Examples:
-      relight synth-capture -o capture/ --cameras 20 --leds 64 --frames 30
+      relight synth-capture -o capture/ --cameras 20 --leds 64 --n-frames 30
       relight synth-capture builtin:two -o both/ --seed 3
       relight synth-capture hand.npz -o capture/ --motion file --size 256
-      relight synth-capture -o capture/ --cameras 8 --frames 6 --preview capture.png
+      relight synth-capture -o capture/ --cameras 8 --n-frames 6 --preview capture.png
     """
     import os
     import time
 
     from relight_cli.errors import UsageProblem
     from relight_cli.formats import capture as C
-    from relight_cli.inputs import load_envmap, load_hand
+    from relight_cli.cli.inputs import load_envmap, load_hand
     from relight_cli.jobs.synth_capture import StageSettings, light_stage, write_capture_folder
 
     # ---- usage checks before any work
@@ -143,11 +146,11 @@ def _check_usage(hand, output, cameras, leds, group, frames, full_every, res, mo
 
     from relight_cli.errors import UsageProblem
     from relight_cli.formats import capture as C
-    from relight_cli.inputs import env_grid
+    from relight_cli.cli.inputs import env_grid
     from relight_cli.jobs.synth_capture import env_name
 
     for name, value, lo, hi in (("--cameras", cameras, 1, 1000), ("--leds", leds, 1, 10000),
-                                ("--group", group, 1, 10000), ("--frames", frames, 1, 100000),
+                                ("--group", group, 1, 10000), ("--n-frames", frames, 1, 100000),
                                 ("--full-every", full_every, 1, 100000), ("--size", res, 8, 4096),
                                 ("--keyframe-every", keyframe_every, 1, 100000),
                                 ("--tex-res", tex_res, 8, 4096), ("--aa", aa, 1, 8),

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.clitools import SquareSize, log, no_clobber_option, quiet_option
+from relight_cli.cli.tools import SquareSize, log, no_clobber_option, quiet_option
+from relight_cli.neural.registry import architectures, for_architecture, names
 
 from ._learned import training_options
 
@@ -29,7 +30,7 @@ from ._learned import training_options
 @click.option("--config", "config_file", default=None, metavar="FILE.json",
               help="JSON object of config fields overriding the preset (see "
                    "formats/checkpoint.md; '-': stdin).")
-@click.option("--model", type=click.Choice(["olat", "ggx", "linear"]), default=None,
+@click.option("--model", type=click.Choice(architectures(trainer="train-teacher")), default=None,
               help="olat: the neural OLAT teacher (App. A.1); ggx: the physically based "
                    "baseline (App. B, Eq. 12); linear: URHand's linear lighting model with "
                    "its physical branch (Sec. 4) [default: olat].")
@@ -99,9 +100,11 @@ def command(captures, output, preset, config_file, model, iters, batch, lr, tex_
     # ---- usage checks before any work
     if iters is not None and iters < 1:
         raise UsageProblem(f"--iters must be ≥ 1, got {iters}")
-    if len(captures) > 1 and (model in ("olat", "ggx") or (model is None and resume is None)):
-        raise UsageProblem(f"several CAPTUREs (one per subject) train --model linear only, "
-                           f"not --model {model or 'olat'}; give one capture")
+    default = architectures(trainer="train-teacher")[0]
+    if len(captures) > 1 and resume is None and not for_architecture(model or default).subjects:
+        raise UsageProblem(f"several CAPTUREs (one per subject) train --model "
+                           f"{' or '.join(names(subjects=True))} only, not --model "
+                           f"{model or default}; give one capture")
     folders = []
     for capture in captures:
         capture = L.check_capture(capture)

@@ -6,7 +6,7 @@ import json
 import os
 
 from relight_cli.errors import DataError
-from relight_cli.provenance import MAX_JSON_BYTES  # noqa: F401  (the documented limit)
+from relight_cli.fileio import MAX_JSON_BYTES  # noqa: F401  (the documented limit)
 
 
 def check_format_version(found_format, found_version, format_name: str, max_version: int,
@@ -39,12 +39,12 @@ def read_json(path: str):
 
 def read_text(path: str, what: str = "a JSON file") -> str:
     """A UTF-8 text file's content (``-``: stdin, read once per command, see
-    relight_cli.provenance.stdin_bytes); one-line DataErrors naming the file.
+    relight_cli.fileio.stdin_bytes); one-line DataErrors naming the file.
 
     A JSON input may be a FIFO or a device (``<(...)``, ``/dev/stdin``), read once
     per command; any input is read at most MAX_JSON_BYTES (256 MiB), and a larger
     one is refused, so ``--probe /dev/zero`` ends with one line."""
-    from relight_cli.provenance import read_input_bytes, stdin_bytes
+    from relight_cli.fileio import read_input_bytes, stdin_bytes
     if path == "-":
         try:
             return stdin_bytes().decode("utf-8")

@@ -168,7 +168,7 @@ def dumps_cameras(cameras: list[Camera], provenance: dict | None = None) -> str:
 
 def write_cameras(path: str, cameras: list[Camera], provenance: dict | None = None) -> None:
     """Write one camera or a rig atomically ('-' for stdout)."""
-    from relight_cli.provenance import write_text_atomic
+    from relight_cli.fileio import write_text_atomic
     for cam in cameras:
         values = np.concatenate([np.ravel(cam.K), np.ravel(cam.R), np.ravel(cam.t)])
         if not np.isfinite(values).all():

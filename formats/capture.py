@@ -118,7 +118,7 @@ def to_json(capture: Capture) -> dict:
 
 def write_capture(path: str, capture: Capture) -> None:
     """Write ``capture.json`` atomically (rounding-free floats)."""
-    from relight_cli.provenance import write_text_atomic
+    from relight_cli.fileio import write_text_atomic
     validate(capture, path)
     write_text_atomic(path, json.dumps(to_json(capture), indent=1, allow_nan=False) + "\n")
 
@@ -325,7 +325,7 @@ def immediate_writes():
     """Writes inside this block land at once, even inside a command's all-or-nothing
     output transaction: a resumable capture must keep every finished frame when a
     later one fails or the run is interrupted."""
-    from relight_cli.provenance import outside_transaction
+    from relight_cli.fileio import outside_transaction
     return outside_transaction()
 
 

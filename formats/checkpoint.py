@@ -44,7 +44,7 @@ def write_checkpoint(path: str, checkpoint: dict) -> None:
     """Write atomically (temp file in the same folder, then rename)."""
     import torch
 
-    from relight_cli.provenance import atomic_path
+    from relight_cli.fileio import atomic_path
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             torch.save(checkpoint, f)
@@ -68,9 +68,7 @@ _DTYPES = ("float32", "float64", "float16", "bfloat16", "uint8", "int8", "int16"
 def config_class(kind: str):
     """The configuration dataclass of a checkpoint kind."""
     from .model_config import LinearConfig, StudentConfig, TeacherConfig
-    if kind == "linear":
-        return LinearConfig
-    return StudentConfig if kind == "student" else TeacherConfig
+    return {"teacher": TeacherConfig, "student": StudentConfig, "linear": LinearConfig}[kind]
 
 
 def read_checkpoint(path: str, kind: str | None = None, model: str | None = None) -> dict:

@@ -191,7 +191,7 @@ def write_exr(path: str, channels: dict[str, np.ndarray], attributes: dict | Non
     """
     import OpenEXR
 
-    from relight_cli.provenance import atomic_path
+    from relight_cli.fileio import atomic_path
 
     dtype = np.float16 if half else np.float32
     pixels = {}

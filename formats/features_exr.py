@@ -130,7 +130,7 @@ def write_vertex_features(path: str, arrays: dict, provenance: dict) -> None:
             ``phong16`` …, ``visibility``; hand-prefixed ``left.diffuse`` with several hands).
         provenance: the provenance record (stored as JSON in ``provenance``).
     """
-    from relight_cli.provenance import atomic_path
+    from relight_cli.fileio import atomic_path
 
     from ._common import save_npz
 

@@ -317,7 +317,7 @@ def write_gaussians(path: str, g: Gaussians, provenance: dict | None = None) -> 
     """
     import plyfile
 
-    from relight_cli.provenance import atomic_path
+    from relight_cli.fileio import atomic_path
 
     validate(g, str(path))
     n, k = len(g), g.sh.shape[1]

@@ -180,7 +180,7 @@ def to_arrays(hand: HandData, provenance: dict | None = None) -> dict[str, np.nd
 
 def write_hand(path: str, hand: HandData, provenance: dict | None = None) -> None:
     """Validate ``hand`` and write it to ``path`` atomically (compressed npz, no pickles)."""
-    from relight_cli.provenance import atomic_path
+    from relight_cli.fileio import atomic_path
 
     from ._common import save_npz
 

@@ -20,7 +20,7 @@ def write_png(path: str, display: np.ndarray) -> None:
 
     from relight_cli.errors import OutputError
     from relight_cli.formats.exr import write_failure
-    from relight_cli.provenance import atomic_path
+    from relight_cli.fileio import atomic_path
 
     pixels = np.ascontiguousarray(np.clip(np.rint(np.asarray(display) * 255.0), 0, 255).astype(np.uint8))
     if pixels.ndim == 2:

@@ -131,7 +131,7 @@ def write_keypoints(path: str, kp: Keypoints, provenance: dict | None = None) ->
     the format's only missing marker (JSON has no NaN) — whatever their
     coordinates were (a Leap reader leaves them NaN).
     """
-    from relight_cli.provenance import write_text_atomic
+    from relight_cli.fileio import write_text_atomic
 
     missing = kp.confidence <= 0
     positions = np.where(missing[..., None], 0.0, kp.positions)

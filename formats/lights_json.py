@@ -69,7 +69,7 @@ def lights_to_json(lights: Lights) -> dict:
 
 def write_lights(path: str, lights: Lights, provenance: dict | None = None) -> None:
     """Write atomically ('-' for stdout); floats round-trip exactly."""
-    from relight_cli.provenance import write_text_atomic
+    from relight_cli.fileio import write_text_atomic
     if provenance is not None:
         lights.provenance = provenance
     validate(lights, path)

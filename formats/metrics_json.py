@@ -85,7 +85,7 @@ def dumps(record: dict) -> str:
 
 def write_metrics(path: str, record: dict) -> None:
     """Write atomically (``-`` = stdout)."""
-    from relight_cli.provenance import write_text_atomic
+    from relight_cli.fileio import write_text_atomic
     write_text_atomic(path, dumps(record))
 
 

@@ -54,7 +54,7 @@ def probe_to_json(probe: ShProbe) -> dict:
 
 def write_probe(path: str, probe: ShProbe) -> None:
     """Write a probe atomically ('-' for stdout); floats round-trip exactly (repr)."""
-    from relight_cli.provenance import write_text_atomic
+    from relight_cli.fileio import write_text_atomic
     if not np.isfinite(probe.coefficients).all():
         raise DataError("probe coefficients hold NaN/Inf", path)
     write_text_atomic(path, json.dumps(probe_to_json(probe), indent=2, allow_nan=False) + "\n")

@@ -34,8 +34,8 @@ class EnvGrid(NamedTuple):
     """A lat-long direction grid, the one place its two orders meet: the engine indexes
     it (height, width) like the arrays it shapes, so ``EnvGrid`` *is* that tuple
     (``discretize_env(env, *grid)``, ``config.env_res = grid``), while users write it
-    ``WxH``, width first like every size (``str(grid)``, :meth:`from_text` via
-    :func:`relight_cli.inputs.env_grid`)."""
+    ``WxH``, width first like every size (``str(grid)``, :meth:`from_wh` via
+    :func:`relight_cli.cli.inputs.env_grid`)."""
 
     height: int
     width: int

@@ -17,7 +17,7 @@ import time
 INTERVAL = 5.0
 
 # The running command's name for the plain lines ("relight synth-capture"); the CLI
-# sets it (clitools.quiet_option), library use keeps "relight".
+# sets it (relight_cli.cli.tools.quiet_option), library use keeps "relight".
 _COMMAND = ["relight"]
 
 

@@ -12,17 +12,22 @@ parent packages.
 
 The layers, bottom to top (a module may import its own layer and those below):
 
-    base      relight_cli (__version__), relight_cli.errors, relight_cli.provenance
-    formats   relight_cli.formats.*: file formats (plain arrays, small dataclasses)
-    engine    every other relight_cli.* module
-    jobs      relight_cli.jobs.*: whole runs the commands drive
-    commands  relight_cli.commands.*: one module per subcommand, plus the private
-              shared helpers commands/_*.py (which must not import a command)
-    cli       relight_cli.cli (the click group) and relight_cli.manpage
+    base       relight_cli (__version__), relight_cli.errors and relight_cli.fileio (the
+               I/O base: atomic writes, stdin/stdout, the input/output registry)
+    formats    relight_cli.formats.*: file formats (plain arrays, small dataclasses)
+    engine     every other relight_cli.* module (relight_cli.provenance among them)
+    jobs       relight_cli.jobs.*: whole runs the commands drive
+    the CLI, the only layers that may import click:
+    cli-tools  relight_cli.cli.* but the group and the man pages: the options and checks
+               every command shares (cli.tools) and input resolution (cli.inputs)
+    commands   relight_cli.commands.*: one module per subcommand, plus the private
+               shared helpers commands/_*.py (which must not import a command)
+    cli-group  relight_cli.cli (the click group) and relight_cli.cli.manpage
 
 Prints the graph, one line per module (``module [layer] -> deps``), then the
 violations: an import circle (two or more modules), a module importing a layer above
-its own (a format importing the engine, say), a command importing another command; and
+its own (a format importing the engine, say), a command importing another command, a
+module below the CLI importing click (at module level or inside a function); and
 the short module aliases that read two ways: one alias (``D``, ``EV``: one to three
 capitals) naming two modules in different files (``D`` as ``gaussians.dgsm`` here and
 ``neural.distill`` there), or a file that binds an alias it imports a module as to a
@@ -44,9 +49,13 @@ SOURCES = {
     "relight_cli.commands": ROOT / "commands",
     "relight_cli.formats": ROOT / "formats",
 }
-LAYERS = ("base", "formats", "engine", "jobs", "commands", "cli")
-BASE = {"relight_cli", "relight_cli.errors", "relight_cli.provenance"}
-CLI = {"relight_cli.cli", "relight_cli.manpage"}
+LAYERS = ("base", "formats", "engine", "jobs", "cli-tools", "commands", "cli-group")
+#: the command-line layers: the only ones whose modules may import click
+CLI_LAYERS = ("cli-tools", "commands", "cli-group")
+BASE = {"relight_cli", "relight_cli.errors", "relight_cli.fileio"}
+CLI_GROUP = {"relight_cli.cli", "relight_cli.cli.manpage"}
+#: third-party packages that only the CLI layers may import
+CLI_ONLY = ("click",)
 
 
 def module_files(sources: dict | None = None) -> dict:
@@ -121,16 +130,42 @@ def graph(sources: dict | None = None) -> dict:
             for name, (path, is_package) in sorted(modules.items())}
 
 
+def outside_imports(source: str) -> set:
+    """The top-level names of the packages outside relight_cli that a module's text
+    imports anywhere (``import click``, ``from click import echo`` inside a function:
+    ``{"click"}``); relative imports are the package's own and left out."""
+    found = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.add(node.module.split(".")[0])
+    found.discard(PACKAGE)
+    return found
+
+
+def cli_only_imports(sources: dict | None = None) -> dict:
+    """module -> the :data:`CLI_ONLY` packages (click) it imports, for the modules that
+    import any."""
+    found = {}
+    for name, (path, _) in sorted(module_files(sources).items()):
+        used = outside_imports(path.read_text()) & set(CLI_ONLY)
+        if used:
+            found[name] = used
+    return found
+
+
 def layer(module: str) -> str:
     """The layer of a package module (see the module docstring)."""
     if module in BASE:
         return "base"
-    if module in CLI:
-        return "cli"
-    for name in ("formats", "jobs", "commands"):
+    if module in CLI_GROUP:
+        return "cli-group"
+    for name, what in (("formats", "formats"), ("jobs", "jobs"), ("commands", "commands"),
+                       ("cli", "cli-tools")):
         package = f"{PACKAGE}.{name}"
         if module == package or module.startswith(package + "."):
-            return name
+            return what
     return "engine"
 
 
@@ -215,9 +250,17 @@ def _path(graph: dict, component: set, source: str, target: str) -> list:
     return path[::-1]
 
 
-def violations(graph: dict) -> list:
-    """Human-readable breaches of the layering of ``graph`` (module -> imported modules)."""
+def violations(graph: dict, outside: dict | None = None) -> list:
+    """Human-readable breaches of the layering of ``graph`` (module -> imported modules);
+    ``outside``: module -> the :data:`CLI_ONLY` packages it imports
+    (:func:`cli_only_imports`), each one a breach below the CLI."""
     found = [f"import circle: {' -> '.join(walk)}" for walk in cycles(graph)]
+    for module, packages in sorted((outside or {}).items()):
+        mine = layer(module)
+        if mine not in CLI_LAYERS:
+            for package in sorted(packages):
+                found.append(f"{mine} module {module} imports {package} (only the CLI "
+                             f"may: {', '.join(CLI_LAYERS)})")
     for module in sorted(graph):
         mine = layer(module)
         for dep in sorted(graph[module]):
@@ -230,7 +273,7 @@ def violations(graph: dict) -> list:
                     module != f"{PACKAGE}.commands":
                 what = "command" if is_command(module) else "shared commands helper"
                 found.append(f"{what} {module} imports command {dep} (move what they share "
-                             f"into the engine, e.g. relight_cli/inputs.py)")
+                             f"below the commands, e.g. relight_cli/cli/inputs.py or a job)")
     return found
 
 
@@ -297,7 +340,7 @@ def main() -> int:
     counts = {name: sum(layer(m) == name for m in edges) for name in LAYERS}
     print(f"\n{len(edges)} modules: "
           + ", ".join(f"{counts[name]} {name}" for name in LAYERS))
-    problems = violations(edges)
+    problems = violations(edges, cli_only_imports())
     print(f"{len(problems)} violation{'s' * (len(problems) != 1)}")
     for problem in problems:
         print(f"  {problem}")

@@ -105,7 +105,7 @@ def main() -> int:
     cap = a.out / "cap"
     if not (cap / "capture.json").exists():
         r = _run(["synth-capture", "-o", cap, "--cameras", "2", "--leds", "6", "--group", "2",
-                  "--frames", "4", "--size", "16", "--tex-res", "32", "--aa", "1",
+                  "--n-frames", "4", "--size", "16", "--tex-res", "32", "--aa", "1",
                   "--eval-poses", "1", "--eval-cameras", "1", "--eval-envs", "builtin:sky",
                   "--eval-env-res", "16x8", "-q"])
         assert r.returncode == 0, r.stderr

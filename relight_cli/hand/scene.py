@@ -112,6 +112,29 @@ def two_hands(hand, separation: float = 0.20):
     return out
 
 
+def parse_builtin_hand(spec: str) -> tuple[str, str]:
+    """``builtin:right|left|two[:POSE]`` → (which, pose), pose ``relaxed`` when not given;
+    ValueError naming the choices for any other spec (the CLI's usage error)."""
+    from .poses import POSE_NAMES
+    parts = spec.split(":")[1:]
+    which = parts[0] if parts else "right"
+    pose = parts[1] if len(parts) > 1 else "relaxed"
+    if which not in ("right", "left", "two") or len(parts) > 2 or pose not in POSE_NAMES:
+        raise ValueError(f"unknown built-in hand {spec!r}; use builtin:right|left|two"
+                         f"[:POSE] with POSE one of {', '.join(POSE_NAMES)}")
+    return which, pose
+
+
+def builtin_hands(spec: str):
+    """The HandData a ``builtin:right|left|two[:POSE]`` spec names (:func:`parse_builtin_hand`;
+    ``two``: the right hand and its mirror image, :func:`two_hands`)."""
+    from .model import builtin_hand
+    which, pose = parse_builtin_hand(spec)
+    if which == "two":
+        return two_hands(builtin_hand("right", pose))
+    return builtin_hand(which, pose)
+
+
 def preview_camera(meshes: list[PosedMesh], width: int = 256, height: int = 256,
                    direction=(0.25, 0.35, 1.0), fov_y_deg: float = 30.0):
     """An OpenCV Camera framing all ``meshes`` from ``direction`` (world, towards the camera)."""

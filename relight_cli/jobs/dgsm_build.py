@@ -198,34 +198,19 @@ def preview_sheet(shadow_map, occluders, receivers, options: DgsmOptions, mappin
 
 
 def estimate_lights(scene, k: int, spec: str = "auto", character=None, variant: str = "paper"):
-    """K point lights estimated from ``scene`` (relight_cli.gaussians.lights, if present)
+    """K point lights estimated from ``scene`` by relight_cli.gaussians.lights' estimator,
     as a relight/lights record; ``spec`` names the request in errors."""
-    import importlib
-
-    from relight_cli.errors import UsageProblem
+    from relight_cli.errors import DataError
     from relight_cli.formats.lights_json import Lights
+    from relight_cli.gaussians.lights import estimate_lights as estimate
     try:
-        module = importlib.import_module("relight_cli.gaussians.lights")
-    except ImportError:
-        module = None
-    estimator = getattr(module, "estimate_lights", None) if module is not None else None
-    if estimator is None:
-        raise UsageProblem("--lights auto:K is not available in this build (no light estimator "
-                           "in relight_cli.gaussians.lights); give a lights JSON file", spec)
-    try:
-        result = estimator(scene, k, character=character, variant=variant)   # deterministic
+        result = estimate(scene, k, character=character, variant=variant)   # deterministic
     except ValueError as exc:
-        from relight_cli.errors import DataError
         raise DataError(f"light estimation failed: {exc}", spec) from None
-    if isinstance(result, Lights):
-        return result
-    if hasattr(result, "positions"):
-        return Lights(result.positions, getattr(result, "colors", None),
-                      getattr(result, "intensities", None),
-                      extra={"estimator": "relight_cli.gaussians.lights.estimate_lights",
-                             "variant": variant, "count": int(k),
-                             "character": "the occluders (alpha-weighted centroid)"})
-    return Lights(np.asarray(result, np.float64).reshape(-1, 3))
+    return Lights(result.positions, result.colors, result.intensities,
+                  extra={"estimator": "relight_cli.gaussians.lights.estimate_lights",
+                         "variant": variant, "count": int(k),
+                         "character": "the occluders (alpha-weighted centroid)"})
 
 
 def lights_inside(mix, positions, threshold: float = 1.0):

@@ -98,14 +98,14 @@ def configure(preset: str = "tiny", config_file: str | None = None,
     ``overrides`` (None: not given; ``student``, ``iters``, ``seed``, ``env_res`` as
     (H, W) …); with ``resume`` (a read student checkpoint) its own configuration, where
     only ``iters`` may change (UsageProblem otherwise)."""
-    from relight_cli.neural.config import (STUDENT_PRESETS, StudentConfig, resolve_config,
-                                           resume_config)
+    from relight_cli.neural import registry
+    from relight_cli.neural.config import resume_config
+    spec = registry.get("student")
     overrides = dict(overrides or {})
     if resume is not None:
-        return resume_config(resume, StudentConfig, overrides, config_file,
+        return resume_config(resume, spec.load_attr("config"), overrides, config_file,
                              overrides.get("iters"), resume_name)
-    return resolve_config(preset, config_file, overrides, presets=STUDENT_PRESETS,
-                          config_class=StudentConfig)
+    return spec.load_attr("resolve")(preset, config_file, overrides)
 
 
 def run(teacher: Teacher, data, envs: dict, options: Options, provenance=None, save=None,
@@ -169,7 +169,7 @@ def run(teacher: Teacher, data, envs: dict, options: Options, provenance=None, s
     grid = grids[0]
     targets = DI.TeacherTargets(teacher.net, teacher.config, data, grid, options.cache_dir,
                                 config.cache_mb, device, teacher.mean_texture,
-                                identity=teacher.identity)
+                                identity=teacher.identity, log=log)
     if options.vgg is None and ckpt is None:
         config.lambda_vgg = 0.0
     task = DI.StudentTask(data, config, targets, grids, train_idx, eval_idx, env_names,

@@ -3,11 +3,11 @@
     pose(template, poses, translations, ...)    the template posed (``--pose``)
     fit(template, keypoints, scans, options)    fitted to 3D keypoints and/or scan points
 
-Both take a loaded template (:func:`relight_cli.inputs.load_template`: one hand, rest
+Both take a loaded template (:func:`relight_cli.cli.inputs.load_template`: one hand, rest
 frame) and return a :class:`Fitted`: the hand to write (``hand.npz``), the report's
 fields and the settings the provenance records.  Inputs come loaded
-(:func:`relight_cli.inputs.load_poses`, :func:`~relight_cli.inputs.load_keypoints`,
-:func:`~relight_cli.inputs.load_scans`); ``names`` only label them in messages and
+(:func:`relight_cli.cli.inputs.load_poses`, :func:`~relight_cli.cli.inputs.load_keypoints`,
+:func:`~relight_cli.cli.inputs.load_scans`); ``names`` only label them in messages and
 errors.  Log lines go to ``log`` (a callable, or None for silence), the frame bar to
 :mod:`relight_cli.progress`.
 """

@@ -41,6 +41,63 @@ class FrameRender:
     passes: int = 0
 
 
+@dataclass(frozen=True)
+class PhysicalOptions:
+    """The options only ``--model physical`` takes, as given (None: the default): the
+    renderer's :class:`~relight_cli.render.shading.RenderSettings` fields, its materials
+    (albedo, roughness: a map's path or a number) and AOVs.  A learned model has its own
+    texture, materials and shadows."""
+
+    hand_mesh: str | None = None
+    tex_res: int | None = None
+    no_shadows: bool = False
+    no_specular: bool = False
+    no_sss: bool = False
+    sss_scale: float | None = None
+    bounce: bool = False
+    albedo_map: str | None = None
+    roughness_map: str | None = None
+    aov: str | None = None
+
+    def check(self, aa: int | None) -> tuple:
+        """(tex_res, samples per axis, AOV names, the roughness number or None for a map);
+        ValueError naming the option that is out of range."""
+        tex = 256 if self.tex_res is None else self.tex_res
+        if not 8 <= tex <= 4096:
+            raise ValueError(f"--tex-res must be in [8, 4096], got {tex}")
+        samples_axis = 2 if aa is None else aa
+        if not 1 <= samples_axis <= 8:
+            raise ValueError(f"--aa must be in [1, 8], got {samples_axis}")
+        aovs = [v.strip() for v in self.aov.split(",") if v.strip()] if self.aov else []
+        if self.aov is not None and not aovs:
+            raise ValueError("--aov needs at least one of normal, uv, depth")
+        bad = [v for v in aovs if v not in AOVS]
+        if bad:
+            raise ValueError(f"--aov takes normal, uv, depth; unknown: {', '.join(bad)}")
+        rough_value = None
+        if self.roughness_map is not None:
+            try:
+                rough_value = float(self.roughness_map)
+            except ValueError:
+                rough_value = None                   # a map's path
+            else:
+                if not 0 < rough_value <= 1:
+                    raise ValueError(f"--roughness must be in (0, 1], got {self.roughness_map}")
+        return tex, samples_axis, aovs, rough_value
+
+    def render_settings(self, tex_res: int, samples_axis: int, env_res):
+        """The renderer's settings (``env_res``: (H, W))."""
+        from relight_cli.render.shading import RenderSettings
+        return RenderSettings(tex_res=tex_res, aa=samples_axis, shadows=not self.no_shadows,
+                              specular=not self.no_specular, sss=not self.no_sss,
+                              sss_scale=1.0 if self.sss_scale is None else self.sss_scale,
+                              env_res=tuple(env_res), bounce=self.bounce)
+
+
+#: The physical renderer's extra EXR layers.
+AOVS = ("normal", "uv", "depth")
+
+
 def physical(data, frames, view_of, materials, settings, lights=None, envmap=None,
              background=(0.0, 0.0, 0.0), mesh: str = "fine", aovs=(), source: str = ""):
     """``--model physical`` over ``frames``: yields a :class:`FrameRender` per frame.
@@ -203,9 +260,7 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
     kind = "cuda" if str(device).startswith("cuda") else "cpu"
     autocast = (lambda: torch.autocast(kind, dtype=torch.bfloat16)) if precision == "bfloat16" \
         else contextlib.nullcontext
-    if config.student == "dram" and (denv.height, denv.width) != tuple(config.env_res):
-        raise ValueError(f"DRAM renders on its training grid {tuple(config.env_res)} (its "
-                         f"light code's), got {(denv.height, denv.width)}")
+    DI.check_render_grid(config, (denv.height, denv.width))
     features = DI.StudentFeatures(config, cache=1, env_res=(denv.height, denv.width))
     for frame in frames:
         seconds = {}
@@ -216,7 +271,7 @@ def student(data, frames, view_of, net, config, denv, samples_axis: int,
         seconds["geometry"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         maps = None                  # DRAM reads no texel features: none are traced
-        if config.student != "dram":
+        if DI.reads_texel_features(config):
             maps = features.maps(features.pose(data, frame, key=frame), denv, view.center)
         seconds["features"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -287,25 +342,150 @@ def _rgba(rgb: np.ndarray, mask: np.ndarray) -> dict:
     return {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": mask}
 
 
-def select_frames(spec: str | None, n_frames: int) -> list:
-    """Frame indices of ``--frames`` (``all``, ``A:B`` or ``A:B:S``, B exclusive and
-    clipped to the recording, as a Python slice) against a recording of ``n_frames``;
-    ValueError on a malformed or empty selection."""
-    text = (spec or "").strip()
-    if text == "all":
-        return list(range(n_frames))
-    parts = text.split(":")
-    if len(parts) not in (2, 3):
-        raise ValueError(f"--frames takes all, A:B or A:B:S, got {spec!r}")
-    try:
-        values = [int(p) if p.strip() else None for p in parts]
-    except ValueError:
-        raise ValueError(f"--frames takes integers (all, A:B or A:B:S), got {spec!r}") from None
-    if any(v is not None and v < 0 for v in values):
-        raise ValueError(f"--frames takes frame indices ≥ 0, got {spec!r}")
-    if len(values) == 3 and (values[2] is None or values[2] < 1):
-        raise ValueError(f"--frames step must be ≥ 1, got {spec!r}")
-    frames = list(range(n_frames))[slice(*values)]
-    if not frames:
-        raise ValueError(f"--frames {spec} selects no frame of a recording of {n_frames}")
-    return frames
+
+# ----------------------------------------------------------------------------- the models
+# What ``relight HAND --model NAME`` does with a learned model, per registry entry
+# (relight_cli.neural.registry: ``render``): build it from read checkpoints, pick the env
+# grid and samples it renders with, render the frames, name the settings provenance
+# records.  The command reads the checkpoint files and writes the frames.
+
+
+class ModelProblem(ValueError):
+    """A checkpoint that does not fit (``path``: the checkpoint at fault, else None: the
+    hand is) or, with ``usage``, a request the model cannot serve (a usage error)."""
+
+    def __init__(self, message: str, path=None, usage: bool = False):
+        super().__init__(message)
+        self.path, self.usage = path, usage
+
+
+class PerHandModels:
+    """The teacher (OLAT or GGX) and URHand's linear model: hand k by the checkpoint
+    trained on its handedness (or one checkpoint for every hand), one network pass per
+    light or env direction and hand (teacher; linear: one per lighting and hand),
+    visibility traced against every hand (:func:`learned`)."""
+
+    def __init__(self, spec, checkpoints: list, names: list, data, device, log=None):
+        """``checkpoints``: read checkpoint dicts of ``spec``'s kind, ``names`` their files.
+        Raises :class:`ModelProblem`."""
+        from relight_cli.errors import UsageProblem
+        from relight_cli.hand.scene import handedness
+        from relight_cli.neural import evaluate as EV
+        self.spec, self.device = spec, device
+        models = []
+        for ckpt, name in zip(checkpoints, names):
+            try:
+                models.append(EV.load_hand_model(ckpt, device, name=name))
+            except (ValueError, UsageProblem) as exc:
+                raise ModelProblem(getattr(exc, "message", str(exc)), name) from None
+        try:
+            self.per_hand = EV.assign_models(models, handedness(data))
+        except ValueError as exc:
+            raise ModelProblem(str(exc), usage=True) from None
+        try:
+            EV.check_hands(self.per_hand, data)
+        except ValueError as exc:
+            raise ModelProblem(str(exc), getattr(exc, "path", None)) from None
+        self.config = self.per_hand[0].config
+        for k, (m, side) in enumerate(zip(self.per_hand, handedness(data))):
+            if log is not None and m.sides and side not in m.sides:
+                log(f"note: hand {k} ({side}) is rendered by {m.name}, trained on the "
+                    f"{'/'.join(m.sides)} hand; give one --checkpoint per hand for its own "
+                    f"model")
+
+    def env_grid(self, requested):
+        """(H, W) the env map is integrated over: ``requested`` (the default grid when
+        None)."""
+        return tuple(requested) if requested is not None else DEFAULT_ENV_GRID
+
+    def samples_axis(self, aa: int | None) -> int:
+        """Sub-pixel samples per axis: ``aa``, else the sampling the model trained with
+        where its registry entry says so (the teacher's config ``aa``), else 2."""
+        if aa is not None:
+            return aa
+        return (self.config.aa or 2) if self.spec.trained_sampling else 2
+
+    def passes(self, data, denv, lights):
+        """Network passes of one frame (a progress bar's total)."""
+        lit = 0 if denv is None else int(np.count_nonzero(denv.lit))
+        return (lit + (0 if lights is None else len(lights.positions))) * len(data.hands)
+
+    def render(self, data, frames, view_of, samples_axis, lights, denv, background,
+               source: str = "", progress=None):
+        return learned(data, frames, view_of, self.per_hand, samples_axis, lights, denv,
+                       background, self.device, source, progress)
+
+    def settings(self, env_res, samples_axis, background) -> dict:
+        return learned_settings(self.spec.name, self.per_hand, env_res, samples_axis,
+                                background)
+
+
+class StudentModel:
+    """RelightableHands' student (or DRAM): one checkpoint for every hand, an env map
+    only (:func:`student`)."""
+
+    def __init__(self, spec, checkpoints: list, names: list, data, device, log=None):
+        from relight_cli.errors import UsageProblem
+        from relight_cli.neural.checkpoints import student_model
+        if len(checkpoints) != 1:
+            raise ModelProblem(f"--model {spec.name} takes one --checkpoint (one student "
+                               f"renders every hand)", usage=True)
+        self.spec, self.device, self.checkpoint = spec, device, checkpoints[0]
+        try:
+            self.net, self.config = student_model(self.checkpoint, device)
+        except (ValueError, UsageProblem) as exc:
+            raise ModelProblem(getattr(exc, "message", str(exc)), names[0]) from None
+        try:
+            check_student(self.checkpoint, data)
+        except ValueError as exc:
+            raise ModelProblem(str(exc)) from None
+        self.precision = "float32"
+
+    def env_grid(self, requested):
+        """The student's own render grid (:func:`relight_cli.neural.distill.render_grid`)
+        unless ``requested``; DRAM renders only on its training grid (a usage error)."""
+        from relight_cli.neural import distill as DI
+        grid = DI.render_grid(self.config) if requested is None else tuple(requested)
+        try:
+            DI.check_render_grid(self.config, grid)
+        except ValueError as exc:
+            raise ModelProblem(str(exc), usage=True) from None
+        return grid
+
+    def samples_axis(self, aa: int | None) -> int:
+        return 2 if aa is None else aa
+
+    def passes(self, data, denv, lights):
+        """None: one decoder pass per frame (no bar over passes)."""
+        return None
+
+    def render(self, data, frames, view_of, samples_axis, lights, denv, background,
+               source: str = "", progress=None):
+        return student(data, frames, view_of, self.net, self.config, denv, samples_axis,
+                       background, self.device, source, self.precision)
+
+    def settings(self, env_res, samples_axis, background) -> dict:
+        return student_settings(self.config, self.checkpoint["step"], self.precision,
+                                env_res, samples_axis, background)
+
+
+#: (H, W) of the lat-long grid an env map is integrated over when nobody says (the
+#: physical renderer, bake-features and the teacher: 32x16 WxH).
+DEFAULT_ENV_GRID = (16, 32)
+
+
+def timing_summary(done: list, output: str, sequence: bool, wall: float,
+                   passes: bool = False) -> str:
+    """What a run of :class:`FrameRender` s cost, for its closing log line: the single
+    frame's size and stage times, or a sequence's frames/s and median time per stage."""
+    if not sequence:
+        r = done[0]
+        return (f"{output} ({r.view.width}x{r.view.height}, "
+                + (f"{r.passes} pass(es), " if passes else "") + f"{wall:.2f} s: "
+                + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in r.seconds.items()) + ")")
+    stages = list(dict.fromkeys(k for r in done for k in r.seconds))
+    median = {k: float(np.median([r.seconds.get(k, 0.0) for r in done])) for k in stages}
+    rendered = sum(sum(r.seconds.values()) for r in done)
+    return (f"{len(done)} frames to {output} ({wall:.1f} s in all, "
+            f"{len(done) / max(rendered, 1e-9):.2f} frames/s rendering; median per frame: "
+            + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in median.items()) + ")")

@@ -137,11 +137,18 @@ def make_capture(output: str, hand: str = "builtin:right", *, motion: str = "ran
     folders): the hand and env maps loaded from their specs, :func:`light_stage`, then
     :func:`write_capture_folder`.  ``settings``: :class:`StageSettings` fields (``lights``
     is the command's ``--leds``, ``res`` its ``--size``).  → (Capture, rendered, skipped).
-    The command's usage checks are not repeated here (ValueError/TypeError from the
-    engine instead)."""
-    from relight_cli.inputs import load_envmap, load_hand
+    ``hand`` is ``builtin:right|left|two[:POSE]`` or a hand.npz, each env map
+    ``builtin:NAME`` or a file, read by the engine and the formats (the command's own
+    loaders, :mod:`relight_cli.cli.inputs`, live in the CLI).  The command's usage
+    checks are not repeated here (ValueError/TypeError from the engine instead)."""
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.formats.envmap import read_envmap
+    from relight_cli.formats.hand_npz import read_hand
+    from relight_cli.hand.scene import builtin_hands
     envs = list(eval_envs) if eval_poses else []
-    stage = light_stage(load_hand(hand), [load_envmap(spec) for spec in envs],
+    loaded = builtin_hands(hand) if hand.startswith("builtin:") else read_hand(hand)
+    stage = light_stage(loaded, [builtin_envmap(spec) if spec.startswith("builtin:")
+                                 else read_envmap(spec) for spec in envs],
                         StageSettings(**settings), motion, eval_poses)
     return write_capture_folder(output, stage, hand, envs, eval_cameras, quiet)
 

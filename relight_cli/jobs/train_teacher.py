@@ -64,40 +64,60 @@ class Trained:
 
 
 def configure(model: str | None, preset: str = "tiny", config_file: str | None = None,
-              overrides: dict | None = None, linear_only: dict | None = None,
+              overrides: dict | None = None, only: dict | None = None,
               resume: dict | None = None, resume_name: str | None = None,
               n_subjects: int = 1):
     """The configuration of a run: ``preset``, then ``config_file``'s JSON object, then
-    ``overrides`` (None: not given; ``model``, ``iters``, ``seed`` …); the linear model
-    also takes ``linear_only`` (``light_path``, ``features`` …).  With ``resume`` (a read
+    ``overrides`` (None: not given; ``model``, ``iters``, ``seed`` …); ``only``: the
+    fields of one model's own flags (its registry entry's ``trainer_options``: the linear
+    model's ``light_path``, ``features`` …), refused for another.  With ``resume`` (a read
     checkpoint) its own configuration, whose kind decides the model (only ``iters`` may
     change).  UsageProblem for flags of another model or several subjects of a teacher;
     DataError (naming ``resume_name``) for a checkpoint holding no teacher."""
-    from relight_cli.errors import DataError, UsageProblem
-    from relight_cli.neural.config import TeacherConfig, resolve_config, resume_config
+    from relight_cli.errors import UsageProblem
+    from relight_cli.neural import registry
+    from relight_cli.neural.config import resume_config
 
     overrides = dict(overrides or {}, model=model)
-    linear_only = dict(linear_only or {})
-    kind = resume["kind"] if resume is not None else ("linear" if model == "linear" else "teacher")
-    config_class, resolve = TeacherConfig, resolve_config
-    if kind == "linear":
-        from relight_cli.neural import linear
-        overrides.update(linear_only)
-        config_class, resolve = linear.LinearConfig, linear.resolve_config
-    elif kind != "teacher":
-        raise DataError(f"checkpoint holds a {kind!r} model, expected a teacher", resume_name)
-    elif n_subjects > 1:
+    only = dict(only or {})
+    default = registry.architectures(trainer="train-teacher")[0]
+    spec = (_resumed_spec(resume, resume_name) if resume is not None
+            else registry.for_architecture(model or default))
+    config_class, resolve = spec.load_attr("config"), spec.load_attr("resolve")
+    others = [o for name in registry.names(trainer="train-teacher")
+              for o in registry.get(name).trainer_options
+              if o not in spec.trainer_options and only.get(o) is not None]
+    if n_subjects > 1 and not spec.subjects:
         what = (f"{resume_name} holds the {resume['model']} teacher" if resume is not None
-                else f"not --model {model or 'olat'}")
-        raise UsageProblem(f"several CAPTUREs (one per subject) train --model linear only; "
+                else f"not --model {model or default}")
+        raise UsageProblem(f"several CAPTUREs (one per subject) train --model "
+                           f"{' or '.join(registry.names(subjects=True))} only; "
                            f"{what}: give one capture")
-    elif any(v is not None for v in linear_only.values()):
+    if others:
+        owners = [n for n in registry.names(trainer="train-teacher")
+                  if set(others) & set(registry.get(n).trainer_options)]
         raise UsageProblem("--light-path, --linearity-loss, --features, --no-specular and "
-                           "--no-refiner belong to --model linear")
+                           f"--no-refiner belong to --model {' or '.join(owners)}")
+    overrides.update({k: v for k, v in only.items() if k in spec.trainer_options})
     if resume is not None:
         return resume_config(resume, config_class, overrides, config_file,
                              overrides.get("iters"), resume_name)
     return resolve(preset, config_file, overrides)
+
+
+def _resumed_spec(resume: dict, resume_name):
+    """The registry entry of a resumed checkpoint: one train-teacher trains (DataError
+    naming the file otherwise)."""
+    from relight_cli.errors import DataError
+    from relight_cli.neural import registry
+    kind = resume["kind"]
+    try:
+        spec = registry.for_kind(kind)
+    except ValueError:
+        spec = None
+    if spec is None or spec.trainer != "train-teacher":
+        raise DataError(f"checkpoint holds a {kind!r} model, expected a teacher", resume_name)
+    return spec
 
 
 def run(subjects, options: Options, provenance=None, save=None, log=None,

@@ -1,8 +1,9 @@
-"""One checkpoint registry: a read checkpoint's ``kind`` → the loader that builds its model.
+"""The checkpoint loaders: a read checkpoint's ``kind`` → the model it holds.
 
 Every reader of a learned model (``relight HAND --model …``, ``relight CAPTURE/``,
-``distill``'s teacher, the studies) goes through :func:`load` or one of its loaders, so a
-kind is turned into a module in exactly one place:
+``distill``'s teacher, the benchmarks) goes through :func:`load` or one of its loaders;
+which loader serves a kind is the model registry's entry
+(:mod:`relight_cli.neural.registry`, ``loader``):
 
     kind      model (config ``model`` / ``student``)          loader
     teacher   OLAT teacher (``olat``) or GGX baseline (``ggx``)   :func:`teacher_model`
@@ -32,11 +33,8 @@ from .weights import build_checked
 
 def load(checkpoint: dict, device="cpu"):
     """(model in eval mode, config, mean texture T̄ or None) of any kind of checkpoint."""
-    kind = checkpoint["kind"]
-    if kind not in LOADERS:
-        raise ValueError(f"no model loader for checkpoint kind {kind!r} (known: "
-                         f"{', '.join(LOADERS)})")
-    out = LOADERS[kind](checkpoint, device)
+    from .registry import for_kind
+    out = for_kind(checkpoint["kind"]).load_attr("loader")(checkpoint, device)
     return out if len(out) == 3 else (*out, None)
 
 
@@ -147,7 +145,3 @@ def _layout(model, config):
     if getattr(config, "channels_last", False):
         model = model.to(memory_format=torch.channels_last)
     return model
-
-
-#: checkpoint kind → loader (the registry)
-LOADERS = {"teacher": teacher_model, "linear": linear_model, "student": student_model}

@@ -102,6 +102,13 @@ def resolve_config(preset: str = "tiny", config_file: str | None = None,
     return config_class.from_dict(values)
 
 
+def resolve_student_config(preset: str = "tiny", config_file: str | None = None,
+                           overrides: dict | None = None):
+    """:func:`resolve_config` for the student (its presets and configuration class)."""
+    return resolve_config(preset, config_file, overrides, presets=STUDENT_PRESETS,
+                          config_class=StudentConfig)
+
+
 STUDENT_PRESETS = {
     "tiny": {},
     # A workstation CPU: 64² maps (distill from a ``cpu`` teacher), a decoder between the

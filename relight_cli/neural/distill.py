@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 from collections import OrderedDict
 
 import numpy as np
@@ -203,8 +204,8 @@ class TeacherTargets:
             damaged entry is a miss (see :meth:`textures`).
         budget_mb: memory kept.  device: torch device.  mean_texture: GGX teachers' T̄.
         chunk: directions per teacher pass.
-        log: callable(str) for the one note about damaged cache entries (default: stderr,
-            unless the running command was given ``-q``).
+        log: callable(str) for the one note about damaged cache entries (default: a line
+            on stderr; the distill job passes the command's log, silent under ``-q``).
     """
 
     def __init__(self, model, config, data: CaptureData, grid, cache_dir: str | None = None,
@@ -315,7 +316,7 @@ class TeacherTargets:
                      f"damaged entry) ({path})")
 
     def _write_cached(self, path: str, value: np.ndarray) -> None:
-        from relight_cli.provenance import atomic_path, outside_transaction
+        from relight_cli.fileio import atomic_path, outside_transaction
         os.makedirs(self.cache_dir, exist_ok=True)
         with outside_transaction(), atomic_path(path, suffix=".npy") as tmp:
             with open(tmp, "wb") as f:
@@ -366,12 +367,10 @@ class TeacherTargets:
 
 
 def _stderr_note(message: str) -> None:
-    """A note on stderr as the running command's log lines are (silent under its -q)."""
-    import click
-    ctx = click.get_current_context(silent=True)
-    if ctx is not None and ctx.params.get("quiet"):
-        return
-    click.echo(message, err=True)
+    """A note on stderr, one line (the default ``log`` of Python use: a command passes
+    its own, silent under its -q)."""
+    sys.stderr.write(message + "\n")
+    sys.stderr.flush()
 
 
 # ---------------------------------------------------------------- student inputs
@@ -430,7 +429,7 @@ def student_forward(net, config, feats: np.ndarray, poses: np.ndarray, denv, wri
         x = torch.from_numpy(feats / s).to(device)
     p = pose_vector(poses).to(device)
     code = None
-    if config.student == "dram":
+    if not reads_texel_features(config):
         code = torch.from_numpy(np.stack([np.log1p(wrist_env(denv, r) / s) for r in wrists])
                                 .astype(np.float32)).to(device)
     tex, raw = net(x, p, code, return_raw=True)
@@ -532,7 +531,7 @@ class StudentTask:
         features = self.features_on((denv.height, denv.width))
         cam = self.data._cameras[camera]
         feats = None                 # DRAM: no texel features (nothing traced per pose)
-        if self.config.student != "dram":
+        if reads_texel_features(self.config):
             feats = features.maps(features.pose(hand, pose, key=key), denv, cam.center)
         wrists = wrist_rotations(hand, pose)
         textures, raw, s = student_forward(net, self.config, feats, hand_poses(hand, pose), denv,
@@ -572,9 +571,7 @@ class StudentTask:
         poses.  DRAM's light code is its training grid's: another grid is a ValueError."""
         grid = tuple(int(v) for v in grid)
         if grid not in self._grid_features:
-            if self.config.student == "dram":
-                raise ValueError(f"DRAM renders on its training grid {tuple(self.config.env_res)}"
-                                 f", got {grid}")
+            check_render_grid(self.config, grid)
             self._grid_features[grid] = StudentFeatures(self.config,
                                                         cache=self._heldout_poses + 16,
                                                         env_res=grid)
@@ -681,6 +678,23 @@ def render_grid(config) -> tuple:
     """(H, W) env grid a student renders on after training: ``render_env_res``, else its
     training grid ``env_res``."""
     return tuple(config.render_env_res or config.env_res)
+
+
+def reads_texel_features(config) -> bool:
+    """Whether the student reads bake-features' texel maps (RelightableHands' student);
+    DRAM (App. A.3) reads a light code of the env map instead, so none are traced."""
+    return config.student != "dram"
+
+
+def check_render_grid(config, grid) -> None:
+    """The one check of the grid (H, W) a student renders on: the texel-aligned student
+    renders on any grid; DRAM's light code is its training grid's (App. A.3), so another
+    grid is a ValueError."""
+    if not reads_texel_features(config) and tuple(int(v) for v in grid) != tuple(config.env_res):
+        from relight_cli.envmap import EnvGrid
+        raise ValueError(f"DRAM renders on its training grid: the DRAM student was trained on "
+                         f"a {EnvGrid(*config.env_res)} (WxH) env grid, its light code's; "
+                         f"--env-res must match")
 
 
 def hand_poses(hand, frame: int) -> np.ndarray:

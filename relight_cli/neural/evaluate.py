@@ -93,13 +93,16 @@ def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel
     """A :class:`HandModel` from a read checkpoint (``formats.checkpoint.read_checkpoint``)
     of kind ``teacher`` or ``linear``.  Raises ValueError for a checkpoint that does not
     build (the caller names the file)."""
+    from . import registry
     from .checkpoints import load, subjects_from_checkpoint
     kind = checkpoint["kind"]
-    if kind not in ("teacher", "linear"):
-        raise ValueError(f"a {kind!r} checkpoint is not a per-hand model (use a teacher or "
-                         f"linear checkpoint)")
+    spec = registry.for_kind(kind)
+    if not spec.one_per_hand:
+        per_hand = " or ".join(registry.names(one_per_hand=True))
+        raise ValueError(f"a {kind!r} checkpoint is not a per-hand model (use a {per_hand} "
+                         f"checkpoint)")
     net, config, mean = load(checkpoint, device)
-    subjects = subjects_from_checkpoint(checkpoint, device) if kind == "linear" else []
+    subjects = subjects_from_checkpoint(checkpoint, device) if spec.subjects else []
     extra = checkpoint.get("extra", {})
     hands = extra.get("hands") or []
     if isinstance(hands, str):
@@ -206,8 +209,9 @@ def model_texture(model: HandModel, texels, k: int, pose, light_inputs, intensit
     """Hand k's texture [3, N, N] under L lights (LightInputs of hand k, [L, 3] weights)
     seen from ``eye``, by a teacher (per-light passes summed, Eq. 2) or the linear model
     (one pass over the summed features)."""
+    from .registry import for_kind
     intensity = np.asarray(intensity, np.float64)
-    if model.kind == "teacher":
+    if not for_kind(model.kind).sums_features:      # one pass per light, summed (Eq. 2)
         cfg = model.config
         return hand_texture(model.net, texels, k, pose, light_inputs, intensity, cfg.visibility,
                             cfg.falloff, eye, device, mean_texture=model.mean_texture,
@@ -359,11 +363,13 @@ class CaptureEvaluator:
         texture (Table 2's "unseen subject"; Sec. 5.4 feeds a new person's T̄ without
         finetuning), never a trained subject's.  Teachers are returned as they are."""
         import dataclasses
+
+        from . import registry
         key = self.data.key
         made = {}
         out = []
         for m in models:
-            if m.kind != "linear" or m.mean_texture is None:
+            if not registry.for_kind(m.kind).subjects or m.mean_texture is None:
                 out.append(m)
                 continue
             if id(m) not in made:

@@ -15,8 +15,8 @@ import warnings
 
 import click
 
-from . import __version__
-from .errors import RelightError
+from .. import __version__
+from ..errors import RelightError
 
 # name -> "module:attribute"; the only place a subcommand is registered.
 COMMANDS: dict[str, str] = {
@@ -48,10 +48,10 @@ class RelightGroup(click.Group):
         return getattr(importlib.import_module(module_name), attr)
 
     def invoke(self, ctx):
-        from .provenance import output_transaction
+        from ..fileio import output_transaction
         try:
             # Library warnings (numpy, torch, pygltflib...) would come before the one error
-            # line or mix with progress: the subcommand's --debug option (clitools.quiet_option,
+            # line or mix with progress: the subcommand's --debug option (tools.quiet_option,
             # which also sees `relight --debug CMD`) silences them inside this block unless
             # --debug was given.
             with output_transaction(), warnings.catch_warnings():
@@ -91,7 +91,7 @@ class RelightGroup(click.Group):
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         args = list(sys.argv[1:] if args is None else args)
-        from .provenance import set_command_line
+        from ..provenance import set_command_line
         set_command_line(args)
         try:
             return self._main(args, prog_name, complete_var, standalone_mode, **extra)
@@ -153,7 +153,7 @@ _STOP_SIGNALS = ("SIGTERM", "SIGHUP")
 
 
 def _terminate(signal_number, frame):
-    from .provenance import defer_stop_signal
+    from ..fileio import defer_stop_signal
     if defer_stop_signal(signal_number):   # raised again once the temporary file is known
         return
     # `timeout` signals the process and then its whole group: the second copy must
@@ -166,7 +166,7 @@ def _terminate(signal_number, frame):
 
 def _interrupt(signal_number, frame):
     """Ctrl-C: KeyboardInterrupt, as Python's own handler, but held like SIGTERM."""
-    from .provenance import defer_stop_signal
+    from ..fileio import defer_stop_signal
     if not defer_stop_signal(signal_number):
         raise KeyboardInterrupt
 
@@ -231,7 +231,7 @@ def _is_placeholder(path: str) -> bool:
 
 
 def _run_files() -> tuple[list[str], list[str]]:
-    from .provenance import run_files
+    from ..fileio import run_files
     return run_files()
 
 
@@ -251,7 +251,7 @@ def _is_reader(frame) -> bool:
 
 
 def _input_in_traceback(exc: BaseException) -> str | None:
-    """The input file (one the command declared: relight_cli.provenance.declare_input)
+    """The input file (one the command declared: relight_cli.fileio.declare_input)
     that the innermost reader frame of ``exc``'s traceback was given: the file a reader
     was reading when it failed without saying which (a MemoryError from an .npy header,
     an OSError without a file name).  None when no reader frame holds one."""
@@ -303,7 +303,7 @@ def _os_error(exc: OSError) -> RelightError:
             return RelightError(f"cannot read: {reason}", where)
         return RelightError(f"input/output error: {reason}")
     name = os.fsdecode(name) if isinstance(name, bytes) else str(name)
-    from .provenance import TEMP_MARK
+    from ..fileio import TEMP_MARK
     _, outputs = _run_files()
     writing = TEMP_MARK in os.path.basename(name) or any(_same_file(name, o) for o in outputs)
     return RelightError(f"cannot {'write' if writing else 'read'}: {reason}", name)

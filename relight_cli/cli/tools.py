@@ -15,7 +15,7 @@ import click
 
 def _quiet(ctx, param, value):
     """-q after the subcommand, or before it (``relight -q CMD``): either silences."""
-    from .progress import set_command
+    from ..progress import set_command
     names = []
     while ctx.parent is not None:
         names.append(ctx.info_name)
@@ -145,7 +145,7 @@ class SquareSize(click.ParamType):
         self.minimum, self.maximum = minimum, maximum
 
     def convert(self, value, param, ctx):
-        from .errors import UsageProblem
+        from ..errors import UsageProblem
         what = param.opts[0] if param is not None and param.opts else "size"
         if isinstance(value, int):
             w = h = value
@@ -197,13 +197,13 @@ def check_output(path: str | None, no_clobber: bool = False, text: bool = False,
 
     Usage errors (exit 2): an empty name, a folder, a missing folder, a block
     device or socket, an output that is one of the command's inputs or outputs
-    (see relight_cli.provenance.declare_output), a name whose extension is not
+    (see relight_cli.fileio.declare_output), a name whose extension is not
     ``kind``'s (see OUTPUT_KINDS; character devices and FIFOs, which have no
     extension, are exempt), ``-`` for anything but JSON; a folder where no file
     can be created exits 1.
     """
-    from .errors import UsageProblem
-    from .provenance import declare_output
+    from ..errors import UsageProblem
+    from ..fileio import declare_output
     if path is None:
         return
     text = text or kind in TEXT_KINDS
@@ -211,7 +211,7 @@ def check_output(path: str | None, no_clobber: bool = False, text: bool = False,
         if not text:
             raise UsageProblem(f"{what} is binary and cannot go to stdout ('-' is for JSON "
                                f"outputs); give a file name")
-        from .provenance import check_stdout
+        from ..fileio import check_stdout
         check_stdout()   # `-o - >&-`: one line (stdout), exit 1, before any work
         return
     if no_clobber and os.path.lexists(path):
@@ -232,7 +232,7 @@ def check_extension(path: str, kind: str, what: str = "-o") -> None:
     an existing character device or FIFO (``/dev/null``, a named pipe) passes."""
     import stat
 
-    from .errors import UsageProblem
+    from ..errors import UsageProblem
     extensions, noun = OUTPUT_KINDS[kind]
     if path.lower().endswith(extensions):
         return
@@ -258,14 +258,14 @@ def check_input(path: str, stdin: str | None = None) -> str:
     A FIFO, device or socket is refused (exit 1) unless the input is JSON (``stdin``
     given, or a name ending .json/.jsonl): binary readers (EXR, PLY, npz, checkpoints)
     would block on a FIFO with no writer or read /dev/zero without end."""
-    from .errors import DataError, UsageProblem
+    from ..errors import DataError, UsageProblem
     if path.startswith("builtin:"):
         return path
     if path == "-":
         if stdin is None:
             raise UsageProblem("this input cannot come from stdin ('-' reads JSON inputs "
                                "only); give a file name")
-        from .provenance import claim_stdin
+        from ..fileio import claim_stdin
         claim_stdin(stdin)
         return path
     if not os.path.exists(path):
@@ -278,7 +278,7 @@ def check_input(path: str, stdin: str | None = None) -> str:
                         path)
     if not os.access(path, os.R_OK):
         raise DataError("file is not readable (permissions)", path)
-    from .provenance import declare_input
+    from ..fileio import declare_input
     declare_input(path)
     return path
 
@@ -306,7 +306,7 @@ def log(message: str, quiet: bool = False) -> None:
 def progress(iterable=None, total=None, desc: str = "", quiet: bool = False, **kwargs):
     """Progress on stderr: a tqdm bar on a terminal, else a plain line every few
     seconds and a final one (relight_cli.progress); silent under --quiet."""
-    from .progress import progress as make
+    from ..progress import progress as make
     return make(iterable, total=total, desc=desc, quiet=quiet, **kwargs)
 
 
@@ -320,7 +320,7 @@ def parse_size(text: str, what: str = "--size", single: bool = True, minimum: in
     """Parse ``WxH`` (width first, as OpenImageIO writes sizes), or a single ``N``
     meaning N×N where ``single``, into (width, height); else a usage error naming
     ``what``.  Every size option of every command goes through here."""
-    from .errors import UsageProblem
+    from ..errors import UsageProblem
     form = "WxH or N" if single else "WxH"
     parts = text.strip().lower().split("x")
     try:
@@ -342,7 +342,7 @@ def parse_env_res(text: str, what: str = "--env-res") -> tuple[int, int]:
     """``WxH`` of a lat-long integration grid → (width, height), at least 2x2 and at
     least as wide as tall: an old ``HxW`` spelling (``16x32``, from before sizes were
     written width first everywhere) is a usage error that says the right one."""
-    from .errors import UsageProblem
+    from ..errors import UsageProblem
     w, h = parse_size(text, what, single=False, minimum=2, maximum=8192)
     if w < h:
         raise UsageProblem(f"{what} is WxH, width first (e.g. 32x16): a lat-long grid is at "
@@ -354,7 +354,7 @@ def parse_env_res(text: str, what: str = "--env-res") -> tuple[int, int]:
 
 def parse_vector(text: str, n: int, what: str, minimum: float | None = None) -> tuple[float, ...]:
     """``"x,y,z"`` → n finite floats (each ≥ ``minimum`` when given); else a usage error."""
-    from .errors import UsageProblem
+    from ..errors import UsageProblem
     try:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
@@ -368,3 +368,21 @@ def parse_vector(text: str, n: int, what: str, minimum: float | None = None) -> 
 
 def _finite(x: float) -> bool:
     return x == x and abs(x) != float("inf")
+
+
+def given_options(ctx) -> dict:
+    """The options given on the command line (not defaulted): parameter name → its flag."""
+    from click.core import ParameterSource
+    return {p.name: p.opts[0] for p in ctx.command.params
+            if isinstance(p, click.Option) and ctx.params.get(p.name) is not None
+            and ctx.get_parameter_source(p.name) == ParameterSource.COMMANDLINE}
+
+
+def refuse_given(ctx, names, message: str) -> None:
+    """A usage error (exit 2) naming the given options among ``names`` (parameter names):
+    ``message`` with ``{}`` standing for them, e.g. "{} only apply to --model physical"."""
+    from relight_cli.errors import UsageProblem
+    given = given_options(ctx)
+    named = [flag for name, flag in given.items() if name in set(names)]
+    if named:
+        raise UsageProblem(message.format(", ".join(named)))

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 def env_grid(text: str, what: str = "--env-res"):
     """A ``WxH`` lat-long grid option → :class:`relight_cli.envmap.EnvGrid` ((height,
-    width) to the engine); usage errors as :func:`relight_cli.clitools.parse_env_res`."""
-    from relight_cli.clitools import parse_env_res
+    width) to the engine); usage errors as :func:`relight_cli.cli.tools.parse_env_res`."""
+    from relight_cli.cli.tools import parse_env_res
     from relight_cli.envmap import EnvGrid
     return EnvGrid.from_wh(*parse_env_res(text, what))
 
@@ -24,7 +24,7 @@ def load_envmap(spec: str, nonfinite: str = "error"):
     if spec.startswith("builtin:"):
         from relight_cli.builtin_envs import builtin_envmap
         return builtin_envmap(spec)
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.formats.envmap import read_envmap
     check_input(spec)
     return read_envmap(spec, nonfinite=nonfinite)
@@ -34,19 +34,13 @@ def load_hand(spec: str):
     """HandData from a hand.npz or builtin:right|left|two[:POSE]."""
     from relight_cli.errors import UsageProblem
     if spec.startswith("builtin:"):
-        from relight_cli.hand.model import builtin_hand
-        from relight_cli.hand.poses import POSE_NAMES
-        parts = spec.split(":")[1:]
-        which = parts[0] if parts else "right"
-        pose = parts[1] if len(parts) > 1 else "relaxed"
-        if which not in ("right", "left", "two") or len(parts) > 2 or pose not in POSE_NAMES:
-            raise UsageProblem(f"unknown built-in hand {spec!r}; use builtin:right|left|two"
-                               f"[:POSE] with POSE one of {', '.join(POSE_NAMES)}")
-        if which == "two":
-            from relight_cli.hand.scene import two_hands
-            return two_hands(builtin_hand("right", pose))
-        return builtin_hand(which, pose)
-    from relight_cli.clitools import check_input
+        from relight_cli.hand.scene import builtin_hands, parse_builtin_hand
+        try:
+            parse_builtin_hand(spec)
+        except ValueError as exc:
+            raise UsageProblem(str(exc)) from None
+        return builtin_hands(spec)
+    from relight_cli.cli.tools import check_input
     from relight_cli.formats.hand_npz import read_hand
     check_input(spec)
     return read_hand(spec)
@@ -106,7 +100,7 @@ def load_placed(source: str, placement, spec: str, offset=None):
 def roughness_value(text: str, what: str = "--roughness"):
     """A roughness option: a number in (0, 1] → float; anything else is a UV-space EXR
     map's path, checked to exist now and read by :func:`read_roughness_map` → None."""
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.errors import UsageProblem
     try:
         value = float(text)
@@ -120,7 +114,7 @@ def roughness_value(text: str, what: str = "--roughness"):
 
 def load_camera(spec: str, what: str = "--camera"):
     """The (first) camera of an OpenCV camera JSON file (``-`` reads stdin)."""
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.formats.camera import read_camera
     check_input(spec, stdin=what)
     return read_camera(spec)
@@ -132,7 +126,7 @@ def load_camera(spec: str, what: str = "--camera"):
 def load_template(spec: str):
     """A fitting template (HandData, one hand, one rest frame): ``builtin:right|left``, a
     skinned glTF/GLB hand, or a hand.npz (its first hand, poses zeroed)."""
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.errors import DataError, UsageProblem
 
     if spec.startswith("builtin:"):
@@ -169,7 +163,7 @@ def load_poses(spec: str, frames: int, seed: int, template):
     optional translations [N, 3]) → (poses [N, J, 3], translations [N, 3])."""
     import numpy as np
 
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.hand import poses as P
 
@@ -212,22 +206,6 @@ def load_poses(spec: str, frames: int, seed: int, template):
     return p, t
 
 
-def frame_range(text: str, what: str = "--frame-range") -> slice:
-    """``START:STOP[:STEP]`` (frame numbers, a Python slice; START or STOP may be empty)."""
-    from relight_cli.errors import UsageProblem
-    parts = text.split(":")
-    try:
-        if len(parts) not in (2, 3):
-            raise ValueError
-        start, stop, step = (int(p) if p.strip() else None for p in parts + [""] * (3 - len(parts)))
-    except ValueError:
-        raise UsageProblem(f"{what} must be START:STOP[:STEP] with integers, got "
-                           f"{text!r}") from None
-    if (start or 0) < 0 or (stop is not None and stop < 0) or (step is not None and step < 1):
-        raise UsageProblem(f"{what} takes frame numbers ≥ 0 and STEP ≥ 1, got {text!r}")
-    return slice(start, stop, step)
-
-
 def leap_hand(text: str | None):
     """``--hand`` of a Leap recording: None (automatic), ``left``, ``right`` or a Leap hand
     id (int); anything else is a usage error."""
@@ -243,7 +221,7 @@ def load_keypoints(spec: str, template, reader: str = "auto", hand=None, frames=
     """3D keypoints of ``spec`` (relight/keypoints JSON/.npy, or a Leap recording) in
     ``template``'s joint order (a :class:`relight_cli.formats.keypoints.Keypoints`),
     checked against the template's handedness and cut to the ``frames`` slice of frame
-    numbers (:func:`frame_range`).  ``reader``: auto|keypoints|leap; ``hand``: the Leap
+    numbers (``--frames``: :func:`relight_cli.sequence.parse_frames`).  ``reader``: auto|keypoints|leap; ``hand``: the Leap
     hand (:func:`leap_hand`)."""
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.keypoints import read_keypoints
@@ -262,7 +240,7 @@ def load_keypoints(spec: str, template, reader: str = "auto", hand=None, frames=
         if frames.stop is not None:
             keep &= f < frames.stop
         if not keep.any():
-            raise DataError(f"no keypoint frames in --frame-range {start}:"
+            raise DataError(f"no keypoint frames in --frames {start}:"
                             f"{'' if frames.stop is None else frames.stop}:{step} (the file has "
                             f"frames {f[0]}…{f[-1]})", spec)
         kp.positions, kp.confidence, kp.frames = \
@@ -275,7 +253,7 @@ def scan_paths(spec: str, what: str = "--scans") -> list:
     files in sorted order (a pattern matching nothing is a usage error)."""
     import glob
 
-    from relight_cli.clitools import check_input
+    from relight_cli.cli.tools import check_input
     from relight_cli.errors import UsageProblem
     paths = sorted(glob.glob(spec)) if any(c in spec for c in "*?[") else [spec]
     if not paths:
@@ -329,3 +307,25 @@ def load_capture(folder: str, config, cache_poses: int | None = None):
     from relight_cli.neural.data import CaptureData
     return CaptureData(folder, config.tex_res, config.aa, config.visibility, config.falloff,
                        config.holdout, config.cache_poses if cache_poses is None else cache_poses)
+
+
+def load_point_lights(path):
+    """--lights as the physical renderer's PointLights (radiance colour × intensity)."""
+    if path is None:
+        return None
+    from relight_cli.formats.lights_json import read_lights
+    from relight_cli.render.shading import PointLights
+    raw = read_lights(path)
+    return PointLights(raw.positions, raw.colors * raw.intensities[:, None])
+
+
+def load_albedo(path):
+    """--albedo's [H, W, 3] UV albedo (None without one)."""
+    if path is None:
+        return None
+    from relight_cli.errors import DataError
+    from relight_cli.formats.image import read_image
+    pixels, _names = read_image(path)
+    if pixels.shape[2] < 3:
+        raise DataError("albedo map needs 3 colour channels", path)
+    return pixels[..., :3]

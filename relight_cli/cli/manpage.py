@@ -1,4 +1,4 @@
-"""Generate man pages from the click metadata: ``python -m relight_cli.manpage man/``.
+"""Generate man pages from the click metadata: ``python -m relight_cli.cli.manpage man/``.
 
 One page per subcommand (``relight-<cmd>.1``) plus ``relight.1``.  No dates or
 versions that change between runs, so a test can detect a stale ``man/``.
@@ -59,6 +59,12 @@ def render_page(words: list[str], command: click.Command, ctx: click.Context) ->
     options = _option_lines(command, ctx)
     if options:
         page += [".SH OPTIONS", *options]
+    for description, mode in getattr(command, "mode_commands", lambda: [])():
+        # a dispatcher (relight relight): each mode's own synopsis, description, options
+        mode_ctx = click.Context(mode, info_name=words[-1], parent=ctx.parent)
+        page += [f".SH MODE: {_escape(description.upper())}",
+                 f"\\fB{_escape(full)}\\fR {_escape(' '.join(mode.collect_usage_pieces(mode_ctx)))}",
+                 _paragraphs(mode.help or ""), *_option_lines(mode, mode_ctx)]
     if isinstance(command, click.Group):
         page.append(".SH COMMANDS")
         for sub in command.list_commands(ctx):

@@ -1,0 +1,346 @@
+"""``relight relight AVATAR.ply``: Gaussians relit by an SH probe, shadowed by a DGSM.
+
+The Gaussian mode of ``relight relight`` (commands/relight.py dispatches on IN): IN (+
+``--object``) relit by per-Gaussian SH radiance transfer from ``--probe`` (paper Eq.
+9-10), shadowed with ``--dgsm`` over ``--receivers`` (Sec. 3.3), written as one PLY or,
+with ``--camera``, an EXR view; ``--shadow-matte`` renders the receivers-only matte of the
+paper's protocol (Sec. 4.2).  The work is :mod:`relight_cli.jobs.relight_gaussians`; its
+options are :class:`~relight_cli.jobs.relight_gaussians.GaussianOptions`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import click
+
+from relight_cli.cli.tools import (FiniteFloat, ShadowStrength, check_input, check_output, log,
+                                   no_clobber_option, parse_vector, quiet_option, renamed_option,
+                                   seed_option)
+
+#: What IN may be in this mode: a Gaussians PLY, a mesh, or a built-in Gaussian object.
+FILES = (".ply", ".obj", ".glb", ".gltf", ".stl", ".off")
+BUILTINS = ("builtin:hand", "builtin:room", "builtin:sphere")
+#: The inputs that make a hand (IN = HAND.npz) a Gaussian scene: its posed hand as
+#: Gaussians (fine mesh, the hand's albedo; frame=K in its placement picks the pose).
+SCENE_OPTIONS = ("probe", "dgsm", "receivers", "shadow_matte", "objects")
+#: What the dispatcher says IN is in this mode.
+DESCRIPTION = "Gaussians (IN = AVATAR.ply)"
+
+
+def accepts(spec: str, given: set) -> bool:
+    """Whether IN ``spec`` is relit in this mode, ``given`` the options on the command
+    line (parameter names): a Gaussians file or built-in object, or a hand .npz given
+    one of :data:`SCENE_OPTIONS`."""
+    from relight_cli.gaussians.placement import split_spec
+    lower = split_spec(spec)[0].lower()
+    if lower.endswith(FILES) or lower in BUILTINS:
+        return True
+    return lower.endswith(".npz") and bool(given & set(SCENE_OPTIONS))
+
+
+@dataclass(frozen=True)
+class Run:
+    """This mode's options as given (the click parameters, one field each)."""
+
+    input: str
+    output: str
+    probe: str | None
+    dgsm: str | None
+    receivers: str | None
+    objects: tuple
+    receivers_out: str | None
+    footprint: str
+    samples: int
+    shadow_strength: object
+    light_weights: str | None
+    direct_light: bool
+    shadow_matte: str | None
+    lobe: float
+    intensity: float
+    t_max: float | None
+    normals: str
+    camera: str | None
+    background: str
+    preview: str | None
+    seed: int
+    no_clobber: bool
+    quiet: bool
+
+
+@click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows).")
+@click.argument("input", metavar="IN")
+@click.option("-o", "--output", required=True,
+              help="The relit Gaussians PLY, or with --camera an EXR image.")
+@click.option("--probe", default=None, metavar="PROBE.json",
+              help="SH light probe (relight sh-probe) lighting the avatar ('-': "
+                   "stdin).")
+@click.option("--dgsm", default=None, metavar="SHADOWS.exr",
+              help="Deep Gaussian Shadow Map (relight dgsm-build) darkening --receivers.")
+@click.option("--receivers", default=None, metavar="SCENE.ply",
+              help="Scene Gaussians: shadowed by --dgsm, and rendered with --camera.")
+@click.option("--object", "objects", multiple=True, metavar="SPEC",
+              help="Another object inserted beside IN (repeatable): a PLY, mesh or "
+                   "builtin:, with a placement SOURCE:KEY=VALUE;... as in dgsm-build. Relit "
+                   "by --probe like IN; with a grouped --dgsm, IN and the objects (in this "
+                   "order, matching dgsm-build's OCCLUDERs) shadow each other.")
+@click.option("--receivers-out", default=None, metavar="PLY",
+              help="Also write the shadowed receivers as a PLY.")
+@click.option("--footprint", type=click.Choice(["centre", "stencil", "mc"]), default="stencil",
+              show_default=True,
+              help="DGSM lookup over a receiver: centre sample, 7-point stencil, or "
+                   "seeded Monte Carlo (--samples) in its principal frame.  The paper's default "
+                   "is mc (Sec. 3.3); stencil is ours: 7 deterministic lookups that reproduce "
+                   "the Gaussian's mean and covariance exactly (no sampling noise).")
+@click.option("--samples", type=click.IntRange(1, 1024), default=16, show_default=True,
+              help="Monte Carlo samples per receiver for --footprint mc.")
+@click.option("--shadow-strength", type=ShadowStrength(), default="auto", show_default=True,
+              help="Direct share s of a receiver's colour: colour × ((1 − s) + "
+                   "s·Σ w_l T_l / Σ w_l) per channel.  A number in [0, 1] for every receiver (1, "
+                   "the paper's reading: the whole colour is direct light, a full shadow is "
+                   "black), or auto: per receiver, the share of its light the DGSM's lights "
+                   "deliver against the probe's irradiance, E_d / (E_d + E_probe).")
+@click.option("--light-weights", type=click.Choice(["intensity", "irradiance", "equal"]),
+              default=None,
+              help="Each light's share w_l of the direct light (paper Sec. 3.3): "
+                   "intensity × colour (from the DGSM), also × |n·ω|/r² at each receiver "
+                   "(irradiance), or equal (the plain mean T of older versions).  Default: "
+                   "irradiance with --shadow-strength auto (so the shadow is exactly each "
+                   "light's irradiance times its T), else intensity.")
+@click.option("--direct-light", is_flag=True,
+              help="With --dgsm: the DGSM's point lights also light IN and the "
+                   "objects directly, albedo × Σ I_l C_l max(n·ω_l, 0)/(π r_l²) added to the "
+                   "probe's shading (ours: the paper lights avatars by the probe only), each "
+                   "light's term shadowed by the other objects.")
+@click.option("--shadow-matte", type=click.Choice(["dgsm", "mesh"]), default=None,
+              help="With --camera: the receivers-only shadow matte of the paper's "
+                   "protocol (Sec. 4.2): receivers coloured by shadow strength 1 − Σw_l V_l/Σw_l, "
+                   "nothing else drawn; dgsm: V = the DGSM's transmittance; mesh: V = embree "
+                   "shadow rays against IN (and --object) as triangle meshes, the pseudo ground "
+                   "truth.  Lights and weights come from --dgsm in both.")
+@click.option("--lobe", type=FiniteFloat(0, 1e4, min_open=True), default=1.0, show_default=True,
+              help="Cosine lobe exponent q of the transfer (1 = Lambertian).")
+@click.option("--intensity", type=FiniteFloat(0, 1e6), default=1.0, show_default=True,
+              help="Global intensity γ.")
+@click.option("--shading-clip", "t_max", type=FiniteFloat(0, min_open=True), default=None,
+              help="Clip t_max of the shading factor (default: no clip; formerly "
+                   "--t-max).")
+@renamed_option("--t-max", "--shading-clip",
+                why="--t-max is dgsm-build's radial extent in metres")
+@click.option("--normals", type=click.Choice(["auto", "axis", "pca", "stored"]), default="auto",
+              show_default=True,
+              help="Normals: shortest ellipsoid axis, local PCA of neighbours, the "
+                   "file's nx ny nz; auto = stored if present, else axis. Oriented outward.")
+@click.option("--camera", "camera", default=None, metavar="CAMERA.json",
+              help="The OpenCV camera of a view (relight camera; formats/camera.md; '-': "
+                   "stdin): render the receivers and the relit objects to -o as an EXR (R, G, "
+                   "B, A) instead of writing a PLY (formerly --render).")
+@renamed_option("--render", "--camera", why="one camera option for hands and Gaussians")
+@click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
+              help="Background radiance of the rendered view.")
+@click.option("--preview", default=None, metavar="PNG",
+              help="With --camera: a tone-mapped PNG of the view too.")
+@seed_option
+@no_clobber_option
+@quiet_option
+def command(**options):
+    """Relight IN = AVATAR.ply (3DGS Gaussians; also a mesh or
+    builtin:hand|room|sphere, optionally placed as SOURCE:KEY=VALUE;... like
+    dgsm-build's OCCLUDERs): per-Gaussian SH radiance transfer from --probe
+    (paper Eq. 9-10): colour = γ · albedo · clip(S(n), 0, t_max), t_max =
+    --shading-clip, S the cosine-lobe (exponent q) weighted mean probe radiance
+    around the normal n (normals per object).  --object inserts more objects,
+    relit the same way.  With --dgsm and --receivers, each light's
+    transmittance attenuates that light's share of a receiver's direct light
+    (paper Sec. 3.3): colour × ((1 − s) + s·Σ w_l T_l / Σ w_l) per channel,
+    s = --shadow-strength, w_l = the light's intensity × colour stored in the
+    DGSM (--light-weights); with a DGSM of several OCCLUDERs, each object is
+    also multiplied by the transmittance through the OTHER objects (never its
+    own).  Writes the relit objects as one PLY, or with --camera an EXR view of
+    receivers + objects.  A HAND.npz given with --probe, --dgsm, --receivers,
+    --object or --shadow-matte is its posed hand as Gaussians (fine mesh, the
+    hand's albedo; frame=K in its placement picks the pose), as in dgsm-build.
+
+    \b
+    Examples:
+      relight relight avatar.ply --probe probe.json -o avatar-relit.ply
+      relight relight avatar.ply --probe probe.json --dgsm shadows.exr \\
+          --receivers room.ply --camera cam.json -o view.exr --preview view.png
+      relight relight 'builtin:hand:translate=0,0.25,0' --object 'donut.ply:fit=0.15;on-floor' \\
+          --probe probe.json --dgsm shadows.exr --receivers room.ply --camera cam.json -o view.exr
+    """
+    _gaussians(Run(**options))
+
+
+def _gaussians(a) -> None:
+    """Gaussian mode: IN (+ --object) relit by --probe, shadowed by --dgsm with
+    --receivers, → a PLY or with --camera an EXR view (relight_cli.jobs.relight_gaussians)."""
+    import time
+
+    from relight_cli.errors import DataError
+    from relight_cli.formats.sh_probe_json import read_probe
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    from relight_cli.cli.inputs import load_placed, parse_occluder
+    from relight_cli.jobs import relight_gaussians as G
+
+    bg = _gaussian_usage(a)
+    specs = [a.input] + list(a.objects)
+    parsed = [parse_occluder(spec, "IN/--object") for spec in specs]
+    for path in [source for source, _ in parsed] + [a.dgsm, a.receivers]:
+        if path is not None:
+            check_input(path)
+    for path, role in ((a.probe, "--probe"), (a.camera, "--camera")):
+        if path is not None:
+            check_input(path, stdin=role)
+    start = time.perf_counter()
+    if a.shadow_matte is not None:
+        return _shadow_matte(a, specs, parsed, bg, start)
+    probe = read_probe(a.probe)
+    shadow_map = _read_dgsm(a.dgsm) if a.dgsm is not None else None
+    objects = []
+    for spec, (source, placement) in zip(specs, parsed):
+        objects.append(load_placed(source, placement, spec))
+        log(f"read {spec}: {len(objects[-1])} Gaussians", a.quiet)
+    scene = None
+    if a.receivers is not None:
+        scene = load_gaussians(a.receivers)   # PLY, mesh or builtin:
+        log(f"read {a.receivers}: {len(scene)} receiver Gaussians", a.quiet)
+    if shadow_map is not None and shadow_map.groups is not None \
+            and len(shadow_map.groups) != len(objects):
+        raise DataError(f"the shadow map has {len(shadow_map.groups)} occluder groups "
+                        f"({', '.join(shadow_map.group_names)}) but {len(objects)} "
+                        f"object(s) were given (IN + --object, in dgsm-build's order)", a.dgsm)
+    view = _read_view(a.camera)
+    relit = G.relight(objects, probe, _gaussian_options(a), shadow_map, scene, view, bg,
+                      names=[source for source, _ in parsed], log=lambda m: log(m, a.quiet))
+    settings = dict(relit.settings, objects=specs)
+    inputs = _gaussian_inputs(a, parsed, camera=False)
+    if a.receivers_out is not None:
+        _write_ply(a.receivers_out, relit.receivers, inputs, dict(settings, role="receivers"))
+        log(f"wrote {a.receivers_out}", a.quiet)
+    if view is None:
+        _write_ply(a.output, relit.objects, inputs, settings)
+        log(f"wrote {a.output} ({time.perf_counter() - start:.2f} s)", a.quiet)
+        return
+    _write_view(a, relit.channels, relit.rgb, view, _gaussian_inputs(a, parsed, camera=True),
+                dict(settings, background=list(bg)), {})
+    log(f"wrote {a.output} ({view.width}x{view.height}, {relit.rendered} Gaussians, "
+        f"{time.perf_counter() - start:.2f} s)", a.quiet)
+    if a.preview is not None:
+        log(f"wrote {a.preview}", a.quiet)
+
+
+def _gaussian_usage(a) -> tuple:
+    """The Gaussian mode's usage checks (before any work): the background."""
+    from relight_cli.errors import UsageProblem
+    if a.probe is None and a.shadow_matte is None:
+        raise UsageProblem("Gaussian relighting needs --probe PROBE.json (make one with relight "
+                           "sh-probe)")
+    for wrong, message in (
+            (a.dgsm is not None and a.receivers is None,
+             "--dgsm shadows receivers: give --receivers SCENE.ply"),
+            (a.direct_light and a.dgsm is None,
+             "--direct-light takes its lights from --dgsm SHADOWS.exr"),
+            (a.receivers_out is not None and a.receivers is None,
+             "--receivers-out needs --receivers"),
+            (a.preview is not None and a.camera is None,
+             "--preview needs --camera (a rendered view)"),
+            (a.shadow_matte is not None and (a.camera is None or a.dgsm is None),
+             "--shadow-matte renders a matte: give --camera CAMERA.json and --dgsm "
+             "SHADOWS.exr (its lights)")):
+        if wrong:
+            raise UsageProblem(message)
+    bg = parse_vector(a.background, 3, "--background", minimum=0)
+    if a.camera is not None and not a.output.lower().endswith(".exr"):
+        raise UsageProblem("with --camera, -o is an EXR image (name it .exr)", a.output)
+    if a.camera is None and not a.output.lower().endswith(".ply"):
+        raise UsageProblem("-o is the relit Gaussians PLY (name it .ply), or use --camera CAM "
+                           "-o IMAGE.exr", a.output)
+    check_output(a.output, a.no_clobber)
+    check_output(a.receivers_out, a.no_clobber, kind="ply", what="--receivers-out")
+    check_output(a.preview, a.no_clobber, kind="png", what="--preview")
+    return bg
+
+
+def _gaussian_options(a):
+    from relight_cli.jobs.relight_gaussians import GaussianOptions
+    return GaussianOptions(lobe=a.lobe, intensity=a.intensity, t_max=a.t_max, normals=a.normals,
+                           footprint=a.footprint, samples=a.samples, seed=a.seed,
+                           shadow_strength=a.shadow_strength, light_weights=a.light_weights,
+                           direct_light=a.direct_light)
+
+
+def _gaussian_inputs(a, parsed, camera: bool) -> dict:
+    """The provenance roles of the Gaussian mode's input files."""
+    inputs = {"input": parsed[0][0]}
+    if a.shadow_matte is None:
+        inputs["probe"] = a.probe
+    inputs.update({f"object{j}": source for j, (source, _) in enumerate(parsed[1:])})
+    inputs.update({role: path for role, path in (("receivers", a.receivers), ("dgsm", a.dgsm))
+                   if path})
+    if camera:
+        inputs["camera"] = a.camera
+    return inputs
+
+
+def _shadow_matte(a, specs, parsed, bg, start) -> None:
+    """The receivers-only shadow matte of the paper's Sec. 4.2 (``--shadow-matte``)."""
+    import time
+
+    from relight_cli.errors import DataError
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    from relight_cli.jobs import relight_gaussians as G
+
+    shadow_map = _read_dgsm(a.dgsm)
+    scene = load_gaussians(a.receivers)
+    view = _read_view(a.camera)
+    meshes = None
+    if a.shadow_matte == "mesh":
+        from relight_cli.gaussians import shadow_matte as SM
+        meshes = []
+        for spec, (source, placement) in zip(specs, parsed):
+            try:
+                meshes.append(SM.load_placed_mesh(source, placement))
+            except ValueError as exc:
+                raise DataError(str(exc), spec) from None
+    options = _gaussian_options(a)
+    options.light_weights = a.light_weights or "intensity"
+    matte = G.shadow_matte(a.shadow_matte, scene, shadow_map, view, options, meshes, bg,
+                           log=lambda m: log(m, a.quiet))
+    _write_view(a, matte.channels, matte.rgb, view, _gaussian_inputs(a, parsed, camera=True),
+                dict(matte.settings, objects=specs),
+                {"relight.matte": f"shadow strength ({a.shadow_matte})"})
+    log(f"wrote {a.output} (shadow matte, {a.shadow_matte}: "
+        f"{int((matte.strength > 0.1).sum())} of {len(matte.strength)} receivers > 0.1, "
+        f"{time.perf_counter() - start:.2f} s)", a.quiet)
+
+
+def _write_ply(path, gaussians, inputs, settings) -> None:
+    from relight_cli.formats.gaussians_ply import FORMAT, VERSION, write_gaussians
+    from relight_cli.provenance import provenance
+    write_gaussians(path, gaussians, provenance(FORMAT, VERSION, inputs, settings))
+
+
+def _write_view(a, channels, rgb, view, inputs, settings, attributes) -> None:
+    """A rendered Gaussian view: -o's EXR (R, G, B, A) and the --preview PNG."""
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.provenance import provenance
+    write_exr(a.output, channels, attributes={**attributes, "relight.camera": view.to_json()},
+              provenance=provenance("relight/render", 1, inputs, settings), camera=view)
+    if a.preview is not None:
+        from relight_cli.preview import write_preview
+        write_preview(a.preview, rgb)
+
+
+def _read_view(path):
+    """The camera of --camera (None without one)."""
+    if path is None:
+        return None
+    from relight_cli.formats.camera import read_camera
+    return read_camera(path)
+
+
+def _read_dgsm(path: str):
+    """The DGSM of --dgsm (formats/dgsm_exr.py)."""
+    from relight_cli.formats.dgsm_exr import read_dgsm
+    return read_dgsm(path)
