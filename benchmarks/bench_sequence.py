@@ -89,7 +89,7 @@ def fit_recordings(work: Path, names, quick: bool) -> dict:
         args = ["fit-geometry", "--keypoints", str(src), "-o", str(work / f"{name}.npz"),
                 "--report", str(work / f"{name}_fit.json"), "-q"]
         if quick:
-            args[3:3] = ["--frame-range", "0:5"]
+            args[3:3] = ["--frames", "0:5"]
         t0 = time.perf_counter()
         subprocess.run(relight_exe() + args, check=True)
         seconds = time.perf_counter() - t0

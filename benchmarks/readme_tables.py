@@ -6,7 +6,7 @@
 hand at the small scale (``benchmarks/results/study_*.json``: the tiny preset's sizes, a
 few hundred iterations) beside the converged one (``benchmarks/results/converged/``:
 every model at its ``cpu`` preset).  Each sits in README.md between
-``<!-- NAME:start -->`` and ``<!-- NAME:end -->``; tests/test_readme_results.py checks the
+``<!-- NAME:start -->`` and ``<!-- NAME:end -->``; tests/system/test_readme_results.py checks the
 README holds exactly what this prints, so a rerun that moves a verdict or a number fails
 there until the README is rewritten::
 

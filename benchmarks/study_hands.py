@@ -642,7 +642,7 @@ def _final_splits(base, score, splits, curve):
 
 # ---------------------------------------------------------------------------- the CI gate
 
-#: the orderings measured for tests/test_study_gate.py at the tiny scale: check → (kind,
+#: the orderings measured for tests/system/test_study_gate.py at the tiny scale: check → (kind,
 #: the paper's better row, its worse row, split.metric), each as the ratio
 #: MSE(worse) / MSE(better) (> 1: the paper's ordering holds).  Only those robust over
 #: the measured seeds are gated (tests/baseline/study_gate_spread.json says which).  Rows
@@ -745,7 +745,7 @@ def gate_spread(study: "Study", seeds: list, path: Path) -> dict:
 def gate_markdown(record: dict, command: str) -> str:
     """The gate's margins and the spread they come from (tests/baseline/study_gate.md)."""
     lines = ["# The studies' CI gate: margins and seeds", "",
-             "`tests/test_study_gate.py` trains the rows below at the `tiny` scale "
+             "`tests/system/test_study_gate.py` trains the rows below at the `tiny` scale "
              f"(benchmarks/studies/scales.json), {record['hand']} hand, **seed 0**, and "
              "compares each gated value with `tests/baseline/study_gate.json` through "
              "`relight metrics compare` (`--better CHECK.METRIC=higher|lower`, `--atol` "

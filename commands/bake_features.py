@@ -115,7 +115,8 @@ def _options(envs, env_res, texture_res, shininess, specular, roughness, eye, ca
     from relight_cli.jobs.bake_features import BakeOptions
     from relight_cli.sequence import OutputPattern, check_frame
 
-    env_h, env_w = I.env_grid(env_res)
+    from relight_cli.envmap import DEFAULT_GRID
+    env_h, env_w = I.env_grid(env_res) if env_res is not None else DEFAULT_GRID
     tex_w, tex_h = parse_size(texture_res, "--res", maximum=8192)
     try:
         alphas = tuple(float(a) for a in shininess.split(",") if a.strip()) if shininess else ()

@@ -47,7 +47,7 @@ class Dispatch(click.Command):
         options = {m: _options(m.command) for m in modules}
         positionals, given = _scan(args, options)
         if not positionals:
-            if any(a in ("-h", "--help") for a in args) or not args:
+            if any(a in ("-h", "--help") for a in args):
                 click.echo(ctx.get_help(), color=ctx.color)
                 ctx.exit()
             raise click.UsageError("Missing argument 'IN'.", ctx)

@@ -372,6 +372,7 @@ def _view_options(a) -> tuple:
     plain names for one frame, ``{frame}`` patterns with --frames, not with --frame)."""
     from relight_cli.cli.inputs import env_grid
     from relight_cli.cli.tools import check_extension, parse_size
+    from relight_cli.envmap import DEFAULT_GRID
     from relight_cli.errors import UsageProblem
     from relight_cli.sequence import Outputs, check_frame
     if a.env is None and a.hand_lights is None:
@@ -382,7 +383,7 @@ def _view_options(a) -> tuple:
     width, height = 256, 256
     if a.hand_size is not None:
         width, height = parse_size(a.hand_size, "--size", maximum=8192)
-    env_h, env_w = env_grid(a.env_res or "32x16")
+    env_h, env_w = env_grid(a.env_res) if a.env_res is not None else DEFAULT_GRID
     check_frame(a.hand_frame, a.hand_frames)
     outputs = Outputs(a.hand_frames, {"-o": (a.output, "exr"), "--preview": (a.preview, "png")})
     return width, height, env_h, env_w, outputs

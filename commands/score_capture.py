@@ -100,6 +100,7 @@ def _capture(a) -> None:
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.capture import index_path
     from relight_cli.cli.inputs import env_grid
+    from relight_cli.envmap import DEFAULT_GRID
     from relight_cli.neural import registry
     from relight_cli.neural.evaluate import SPLITS
 
@@ -120,7 +121,7 @@ def _capture(a) -> None:
         raise UsageProblem(f"--eval-samples must be ≥ 1, got {a.eval_samples}")
     if a.aa is not None and not 1 <= a.aa <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {a.aa}")
-    grid = env_grid(a.env_res or "32x16")
+    grid = env_grid(a.env_res) if a.env_res is not None else DEFAULT_GRID
     index = index_path(a.input)   # names a folder without capture.json and a capture.json that is a folder
     for path in (index, *a.checkpoint):
         check_input(path)

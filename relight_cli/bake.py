@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from relight_cli import features as FE
+from relight_cli.envmap import DEFAULT_GRID
 from relight_cli.errors import DataError
 
 
@@ -51,7 +52,7 @@ class PoseFeatures:
         posed: already posed meshes (skips step 1).
     """
 
-    def __init__(self, hand, frame: int, settings: FE.FeatureSettings, env_res=(16, 32),
+    def __init__(self, hand, frame: int, settings: FE.FeatureSettings, env_res=DEFAULT_GRID,
                  tex_res=(128, 128), mesh: str = "coarse", rasters: dict | None = None,
                  source: str = "", posed=None):
         t0 = time.perf_counter()

@@ -48,6 +48,11 @@ class EnvGrid(NamedTuple):
         return f"{self.width}x{self.height}"
 
 
+#: The lat-long grid an env map is integrated over when nobody says otherwise: 32x16
+#: (WxH), 512 directions (RelightableHands sums its env maps over 16×32 directions).
+DEFAULT_GRID = EnvGrid(16, 32)
+
+
 def _latlong_edges(height: int, width: int):
     """Cell bounds: latitude [H, 2] (top, bottom) and longitude [W, 2] (left, right), radians."""
     y = np.arange(height, dtype=np.float64)

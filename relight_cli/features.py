@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from relight_cli.brdf import MIN_ROUGHNESS, ggx_cosine, ggx_cosine_torch
-from relight_cli.envmap import DiscreteEnv, discretize_env
+from relight_cli.envmap import DEFAULT_GRID, DiscreteEnv, discretize_env
 from relight_cli.formats.envmap import EnvMap
 from relight_cli.geometry import (GEMM_SINGLE, Receivers, matvec, dot3, reflect, scene_diagonal,
                                   vertex_normals, view_directions)
@@ -438,7 +438,7 @@ class FeatureBaker:
     """
 
     def __init__(self, meshes: list[PoseMesh], settings: FeatureSettings | None = None,
-                 env_res: tuple[int, int] = (16, 32), grid: DiscreteEnv | None = None,
+                 env_res: tuple[int, int] = DEFAULT_GRID, grid: DiscreteEnv | None = None,
                  threads: int | None = None):
         from relight_cli import envmap as E
 

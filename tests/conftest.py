@@ -1,4 +1,4 @@
-"""Shared test fixtures: the real-data folder, CLI runners."""
+"""Shared test fixtures: the real-data folder, CLI runners, the run's tiny trained models."""
 
 from __future__ import annotations
 
@@ -67,17 +67,39 @@ def run_cli():
     return run
 
 
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory):
+    """The run's shared tiny captures and models (tests/models.py): ``tiny_models.get(kind,
+    capture_args, train_args, config=None, teacher=None) -> Path``, each made once per run,
+    by whichever xdist worker asks first."""
+    from models import TinyModels
+    base = tmp_path_factory.getbasetemp()
+    # under xdist each worker's basetemp is RUN/popen-gwN: the cache is shared in RUN
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "tiny-models"
+    return TinyModels(root)
+
+
 #: The test files that take longest under ``make test`` (seconds summed over their tests,
-#: two workers on a 2-core AMD EPYC, 2026-12-04: readme_example 147, neural_student 145,
-#: neural_teacher 125, study_gate 96, neural_linear 74, outputs_and_bad_inputs 69; the
+#: two workers on a 2-core AMD EPYC, 2026-12-04: readme_example 147, neural/test_student 145,
+#: neural/test_teacher 125, study_gate 96, neural_linear 74, outputs_and_bad_inputs 69; the
 #: whole suite 1005).  They are collected first so that xdist (``--dist loadfile
 #: --no-loadscope-reorder``) hands them out first: by default it orders files by how many
 #: tests they hold, which left the single two-minute README pipeline running alone at the end.
-SLOW_FILES = ("test_readme_example.py", "test_neural_student.py", "test_neural_teacher.py",
-              "test_study_gate.py", "test_neural_linear.py", "test_outputs_and_bad_inputs.py")
+#: Paths are relative to tests/ (two files may share a basename: tests/formats/test_camera.py).
+SLOW_FILES = ("system/test_readme_example.py", "neural/test_student.py", "neural/test_teacher.py",
+              "system/test_study_gate.py", "neural/test_linear.py",
+              "system/test_outputs_and_bad_inputs.py")
+TESTS = Path(__file__).resolve().parent
+
+
+def _tests_path(path: Path) -> str:
+    try:
+        return path.resolve().relative_to(TESTS).as_posix()
+    except ValueError:
+        return path.name
 
 
 def pytest_collection_modifyitems(config, items):
     """The slow files first (in :data:`SLOW_FILES` order); every other test keeps its place."""
     rank = {name: i for i, name in enumerate(SLOW_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+    items.sort(key=lambda item: rank.get(_tests_path(item.path), len(rank)))

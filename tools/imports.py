@@ -31,7 +31,7 @@ module below the CLI importing click (at module level or inside a function); and
 the short module aliases that read two ways: one alias (``D``, ``EV``: one to three
 capitals) naming two modules in different files (``D`` as ``gaussians.dgsm`` here and
 ``neural.distill`` there), or a file that binds an alias it imports a module as to a
-value too (``T`` a module and an array).  Exits 1 if there is any.  ``tests/test_tools_imports.py`` runs it on the package.
+value too (``T`` a module and an array).  Exits 1 if there is any.  ``tests/system/test_tools_imports.py`` runs it on the package.
 """
 
 from __future__ import annotations

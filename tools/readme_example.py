@@ -2,7 +2,7 @@
 
 The lines between ``<!-- example:begin -->`` and ``<!-- example:end -->`` in
 README.md (inside a ```sh fence) are the pipeline a newcomer copies; ``make
-example`` runs them with this script, and tests/test_readme_example.py runs it
+example`` runs them with this script, and tests/system/test_readme_example.py runs it
 in a scratch copy so the README cannot drift from what works.
 
     python tools/readme_example.py [--print] [--cwd DIR] [README.md]

@@ -89,41 +89,6 @@ class FiniteFloat(click.FloatRange):
         return f"{lo}{'<' if self.min_open else '<='}x{'<' if self.max_open else '<='}{hi}"
 
 
-class ModeGroupedCommand(click.Command):
-    """A command whose ``--help`` lists its options in sections by the mode tag that
-    starts each option's help (``[Gaussians] …``, ``[hand] …``, ``[capture] …``): a
-    user of one mode reads that mode's options and the common ones, not all of them.
-    Options without a tag are common; the order inside a section is the declared one."""
-
-    SECTIONS = (("Gaussians", "Gaussian options (IN = AVATAR.ply, a mesh or builtin:hand|room|sphere)"),
-                ("hand", "Hand options (IN = HAND.npz or builtin:right|left|two)"),
-                ("capture", "Capture options (IN = CAPTURE/)"))
-
-    def section_of(self, help_text: str) -> str | None:
-        text = (help_text or "").lstrip()
-        if not text.startswith("["):
-            return None
-        tag = text[1:text.find("]")].split(",")[0].strip()
-        return next((name for name, _ in self.SECTIONS if name == tag), None)
-
-    def format_options(self, ctx, formatter):
-        groups = {name: [] for name, _ in self.SECTIONS}
-        common = []
-        for param in self.get_params(ctx):
-            record = None if isinstance(param, click.Argument) else param.get_help_record(ctx)
-            if record is None:
-                continue
-            section = self.section_of(getattr(param, "help", None))
-            (groups[section] if section else common).append(record)
-        if common:
-            with formatter.section("Options"):
-                formatter.write_dl(common)
-        for name, title in self.SECTIONS:
-            if groups[name]:
-                with formatter.section(title):
-                    formatter.write_dl(groups[name])
-
-
 class ShadowStrength(click.ParamType):
     """``auto`` or a finite number in [0, 1] (``relight --shadow-strength``)."""
 

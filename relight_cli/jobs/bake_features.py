@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from relight_cli.envmap import DEFAULT_GRID
+
 
 @dataclass
 class BakeOptions:
@@ -35,7 +37,7 @@ class BakeOptions:
     """
 
     settings: object
-    env_res: tuple = (16, 32)
+    env_res: tuple = DEFAULT_GRID
     tex_res: tuple = (128, 128)
     mesh: str = "coarse"
     viewer: object = None

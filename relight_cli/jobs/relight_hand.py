@@ -396,7 +396,8 @@ class PerHandModels:
     def env_grid(self, requested):
         """(H, W) the env map is integrated over: ``requested`` (the default grid when
         None)."""
-        return tuple(requested) if requested is not None else DEFAULT_ENV_GRID
+        from relight_cli.envmap import DEFAULT_GRID
+        return tuple(requested) if requested is not None else DEFAULT_GRID
 
     def samples_axis(self, aa: int | None) -> int:
         """Sub-pixel samples per axis: ``aa``, else the sampling the model trained with
@@ -468,10 +469,6 @@ class StudentModel:
         return student_settings(self.config, self.checkpoint["step"], self.precision,
                                 env_res, samples_axis, background)
 
-
-#: (H, W) of the lat-long grid an env map is integrated over when nobody says (the
-#: physical renderer, bake-features and the teacher: 32x16 WxH).
-DEFAULT_ENV_GRID = (16, 32)
 
 
 def timing_summary(done: list, output: str, sequence: bool, wall: float,

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from relight_cli.envmap import DEFAULT_GRID
+
 
 def _quiet(message: str) -> None:
     pass
@@ -27,7 +29,7 @@ class CaptureOptions:
     splits: list | None = None
     eval_samples: int | None = None
     aa: int | None = None
-    env_res: tuple = (16, 32)
+    env_res: tuple = DEFAULT_GRID
     model: str = "teacher"
 
 

@@ -150,7 +150,7 @@ STUDENT_PRESETS = {
 #: decoder's output is in the texture's own units (ours; App. A.3 does not give DRAM's
 #: head, we reuse Eq. 11's form).  With the student's λ_s = 25 the head multiplies the
 #: decoder's output by 0.031, so the light-dependent part of the texture has to be 32×
-#: larger inside the decoder.  At ``tiny`` (tests/test_neural_student.py's light gate,
+#: larger inside the decoder.  At ``tiny`` (tests/neural/test_student.py's light gate,
 #: seeds 0–2) DRAM's texture change between its two training maps is 0.96–0.98 of the
 #: teacher's with it and 0.39–0.74 at 25.  At ``cpu`` it does not settle whether DRAM's
 #: light path trains: on the converged capture (seed 0, by hand: the texture's standard

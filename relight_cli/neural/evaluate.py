@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from relight_cli.envmap import DEFAULT_GRID
 from relight_cli.errors import DataError
 
 from .ceiling import Ceiling, ceiling_of  # noqa: F401
@@ -317,7 +318,7 @@ class CaptureEvaluator:
     """
 
     def __init__(self, capture, models: list, device="cpu", aa: int | None = None,
-                 env_res=(16, 32), cache_poses: int = 8):
+                 env_res=DEFAULT_GRID, cache_poses: int = 8):
         from relight_cli.hand.scene import handedness
 
         from .data import CaptureData
@@ -504,7 +505,7 @@ class CaptureEvaluator:
 
 
 def evaluate_capture(capture, models: list, splits=None, max_samples: int | None = None,
-                     device="cpu", aa: int | None = None, env_res=(16, 32),
+                     device="cpu", aa: int | None = None, env_res=DEFAULT_GRID,
                      progress=None) -> dict:
     """Score learned models (one per hand, or one for all) on a capture.
 

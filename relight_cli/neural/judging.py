@@ -2,7 +2,7 @@
 
 DESIGN.md, "How a learned model is judged", asks three things of every table row and of
 every claim read from one, and this module is the one implementation of each (the
-benchmarks and ``make study`` call it; tests/test_judging.py holds it to the rules):
+benchmarks and ``make study`` call it; tests/neural/test_judging.py holds it to the rules):
 
 - **converged** (:func:`tail_gain`, :func:`converged`): "a table row from a model whose
   validation curve still rises says nothing about the paper; state convergence per row".

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from relight_cli.envmap import DEFAULT_GRID
 from relight_cli.errors import DataError, UsageProblem
 
 from .config import TeacherConfig
@@ -155,7 +156,7 @@ def _metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
 
 
 def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=None,
-             mean_texture=None, env_res=(16, 32), every: bool = False) -> dict:
+             mean_texture=None, env_res=DEFAULT_GRID, every: bool = False) -> dict:
     """Per split {mse, psnr, ssim, mae, samples}: means over at most ``val_samples``
     evenly spaced samples (``every``: all of them), masked by the ground-truth hand mask
     (> 0.5)."""
@@ -173,7 +174,7 @@ def evaluate(model, data: CaptureData, config: TeacherConfig, device, splits=Non
 
 
 def evaluate_splits(model, data: CaptureData, val_samples: int, predict_frame, predict_env,
-                    splits=None, env_res=(16, 32)) -> dict:
+                    splits=None, env_res=DEFAULT_GRID) -> dict:
     """The validation loop of any model: ``predict_frame(item)`` → (prediction, image, mask)
     of a capture (frame, camera) item; ``predict_env(texels, gbuffer, poses, discretized
     env)`` → the prediction of an ``eval/`` env render (held-out hand)."""

@@ -137,7 +137,7 @@ def light_group(positions: np.ndarray, size: int, rng) -> list:
 # facing pose, and slides in along that direction until the closest pair of fine-mesh
 # vertices is TWO_HAND_GAP metres apart (a random gap per key pose, interpolated).  Sliding
 # in from outside never passes through the other hand, and the resulting surface distance
-# stays above TWO_HAND_MARGIN (tests/test_synth_capture.py measures it exactly).
+# stays above TWO_HAND_MARGIN (tests/render/test_capture.py measures it exactly).
 TWO_HAND_GAP = (0.006, 0.025)
 TWO_HAND_MARGIN = 0.005
 TWO_HAND_CONE_DEG = 50.0

@@ -43,7 +43,7 @@ import numpy as np
 from .appearance import bilinear
 from relight_cli import features as FE
 from relight_cli.brdf import ggx_cosine
-from relight_cli.envmap import DiscreteEnv, discretize_env
+from relight_cli.envmap import DEFAULT_GRID, DiscreteEnv, discretize_env
 from relight_cli.geometry import Receivers, vertex_normals, view_directions
 from relight_cli.visibility import VisibilityCache
 
@@ -131,7 +131,7 @@ class RenderSettings:
     specular: bool = True
     sss: bool = True
     sss_scale: float = 1.0
-    env_res: tuple = (16, 32)
+    env_res: tuple = DEFAULT_GRID
     bounce: bool = False
     bounce_res: tuple = (8, 16)
     env_space: str = "vertices"
@@ -651,7 +651,7 @@ class HandRenderer:
         :meth:`_point_specular` shades an LED: the lobe per sample, the visibility h_m
         looked up bilinearly in the texel maps (``env_space="texels"``; traced once by
         :meth:`_env_visibility`, not the diffuse transport again).  So an env render is the sum over its directions of
-        what the stage renders for one far LED each (tests/test_synth_capture.py)."""
+        what the stage renders for one far LED each (tests/render/test_capture.py)."""
         _, cache = self._env_visibility(k, env, FE.FeatureSettings(
             shininess=(), specular="none", f0=f0, visibility=self.settings.shadows))
         surf = self.surfaces[k]

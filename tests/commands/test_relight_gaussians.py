@@ -1,0 +1,354 @@
+"""``relight relight`` on Gaussians (commands/relight_gaussians.py): relit PLYs, renders, hands as
+Gaussians, the console script, bad input, DGSM shadows, light weights, direct light."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from conftest import run_relight
+from relight_cli.formats.camera import Camera, write_cameras
+from relight_cli.formats.gaussians_ply import (Gaussians, matrix_to_quaternion, read_gaussians,
+                                               rgb_to_sh_dc, write_gaussians)
+from relight_cli.formats.sh_probe_json import ShProbe, write_probe
+from relight_cli.gaussians import transfer as TF
+from relight_cli.sh import sh_basis
+
+
+def sphere_of_splats(n=400, radius=0.5, seed=0, flat_axis=2):
+    """Flat Gaussians tangent to a sphere (shortest axis = radial), random in-plane rotation."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # Rotation whose column `flat_axis` is the radial direction.
+    helper = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    t1 = np.cross(d, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(d, t1)
+    cols = [t1, t2]
+    cols.insert(flat_axis, d)
+    R = np.stack(cols, axis=2)
+    if np.linalg.det(R[0]) < 0:
+        R[:, :, (flat_axis + 1) % 3] *= -1
+    R = R * np.sign(np.linalg.det(R))[:, None, None]
+    scales = np.full((n, 3), 0.03)
+    scales[:, flat_axis] = 0.002
+    rgb = rng.uniform(0.2, 0.9, (n, 3))
+    return Gaussians(d * radius + [0.1, 1.0, -0.2], scales, matrix_to_quaternion(R),
+                     np.full(n, 0.9), rgb_to_sh_dc(rgb)[:, None, :], 0), d
+
+
+# ------------------------------------------------------------------ CLI
+
+
+@pytest.fixture
+def files(tmp_path):
+    g, _ = sphere_of_splats(n=300)
+    write_gaussians(str(tmp_path / "avatar.ply"), g)
+    c = np.zeros((4, 3))
+    c[0] = math.sqrt(4 * math.pi)
+    c[1] = -0.5                                                   # −C1·y: brighter from above
+    write_probe(str(tmp_path / "probe.json"), ShProbe(c, 1, 0.0, "test"))
+    floor = Gaussians(np.column_stack([np.linspace(-1, 1, 50), np.zeros(50), np.zeros(50)]),
+                      np.full((50, 3), 0.1), np.tile([1.0, 0, 0, 0], (50, 1)), np.full(50, 0.8),
+                      np.zeros((50, 1, 3)), 0)
+    write_gaussians(str(tmp_path / "scene.ply"), floor)
+    write_cameras(str(tmp_path / "cam.json"),
+                  [Camera.look_at([0.1, 1.0, 2.5], [0.1, 1.0, -0.2], width=40, height=30)])
+    return tmp_path
+
+
+def test_cli_help(run_cli):
+    r = run_cli("relight", "--help")
+    assert r.exit_code == 0 and "--probe" in r.output and "--dgsm" in r.output
+
+
+def test_cli_relit_ply(run_cli, files):
+    out = files / "relit.ply"
+    r = run_cli("relight", files / "avatar.ply", "--probe", files / "probe.json", "-o", out, "-q")
+    assert r.exit_code == 0, r.output
+    relit, avatar = read_gaussians(str(out)), read_gaussians(str(files / "avatar.ply"))
+    ratio = relit.colors() / avatar.colors()
+    # Probe L = 1 + 0.5·C1·y (c_1,−1 = −0.5 on −C1·y) ⇒ S(n) = 1 + (2/3)·0.5·C1·n_y (q = 1);
+    # float32 PLY storage of colours ~1e-6 relative.
+    expected = 1 + (2 / 3) * 0.5 * math.sqrt(3 / (4 * math.pi)) * relit.normals[:, 1]
+    np.testing.assert_allclose(ratio, expected[:, None].repeat(3, 1), rtol=1e-5)
+    assert ratio[relit.normals[:, 1] > 0.5].min() > 1.05                 # lit from above
+    assert relit.provenance["format"] == "relight/gaussians"
+    assert set(relit.provenance["inputs"]) == {"input", "probe"}
+
+
+def test_cli_render(run_cli, files):
+    from relight_cli.formats.exr import read_exr
+    out = files / "view.exr"
+    r = run_cli("relight", files / "avatar.ply", "--probe", files / "probe.json", "--receivers",
+                files / "scene.ply", "--camera", files / "cam.json", "-o", out, "--preview",
+                files / "view.png", "-q")
+    assert r.exit_code == 0, r.output
+    img = read_exr(str(out))
+    assert set(img.channels) == {"R", "G", "B", "A"} and img.width == 40 and img.height == 30
+    assert img.channels["A"].max() > 0.9 and (files / "view.png").exists()
+
+
+def test_cli_hand_npz_as_gaussians(run_cli, files):
+    """With Gaussian options a hand.npz is its posed hand as Gaussians: relit, shadowed
+    into a scene, and the mesh pseudo-GT matte (Sec. 4.2) reads the same posed mesh."""
+    from relight_cli.formats.exr import read_exr
+    hand = files / "hand.npz"
+    assert run_cli("fit-geometry", "--pose", "fist", "-o", hand, "-q").exit_code == 0
+    r = run_cli("relight", hand, "--probe", files / "probe.json", "-o", files / "hand.ply", "-q")
+    assert r.exit_code == 0, r.output
+    relit = read_gaussians(str(files / "hand.ply"))
+    assert len(relit) > 1000 and relit.provenance["inputs"]["input"]["path"].endswith("hand.npz")
+    write_cameras(str(files / "hcam.json"),
+                  [Camera.look_at([0.0, 0.25, 0.45], [0, 0.03, 0], width=48, height=36)])
+    lights = files / "lights.json"
+    lights.write_text('{"format": "relight/lights", "version": 1, "lights": [{"position": '
+                      '[0.1, 1.5, 0.2], "color": [1, 1, 1], "intensity": 5}]}')
+    xs, zs = np.meshgrid(np.linspace(-0.3, 0.3, 40), np.linspace(-0.3, 0.3, 40))
+    n = xs.size
+    floor = Gaussians(np.column_stack([xs.ravel(), np.zeros(n), zs.ravel()]),
+                      np.tile([0.012, 0.001, 0.012], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                      np.full(n, 0.9), np.full((n, 1, 3), 1.0), 0)
+    write_gaussians(str(files / "floor.ply"), floor)
+    spec = f"{hand}:translate=0,0.1,0"
+    assert run_cli("dgsm-build", spec, "--receivers", files / "floor.ply", "--lights", lights,
+                   "--size", "64", "-o", files / "sh.exr", "-q").exit_code == 0
+    mattes = {}
+    for mode in ("dgsm", "mesh"):
+        r = run_cli("relight", spec, "--shadow-matte", mode, "--dgsm", files / "sh.exr",
+                    "--receivers", files / "floor.ply", "--camera", files / "hcam.json",
+                    "-o", files / f"{mode}.exr", "-q")
+        assert r.exit_code == 0, r.output
+        mattes[mode] = read_exr(str(files / f"{mode}.exr")).channels["R"]
+    assert mattes["mesh"].max() > 0.5                     # the hand does shadow the floor
+    shadowed = mattes["mesh"] > 0.5
+    assert np.abs(mattes["dgsm"] - mattes["mesh"]).mean() < 0.05
+    assert np.abs(mattes["dgsm"] - mattes["mesh"])[shadowed].mean() < 0.2
+
+
+def test_cli_subprocess(files):
+    r = run_relight("relight", files / "avatar.ply", "--probe", files / "probe.json", "-o",
+                    files / "relit2.ply", "--normals", "pca", "--lobe", "3", "--shading-clip", "2")
+    assert r.returncode == 0, r.stderr
+    assert len(read_gaussians(str(files / "relit2.ply"))) == 300
+
+
+@pytest.mark.parametrize("args, code, message", [
+    (["hand.npz"], 2, "give an env map ENV"),   # hand mode: lighting is required
+    (["thing.xyz", "--probe", "probe.json"], 2, "IN must be a Gaussians .ply"),
+    (["thing.obj", "--probe", "probe.json"], 1, "no such file"),   # meshes are Gaussian inputs
+    (["hand.npz", "--object", "avatar.ply"], 2, "needs --probe"),   # a hand.npz as Gaussians
+    (["avatar.ply:scale=0", "--probe", "probe.json"], 2, "scale must be > 0"),
+    (["avatar.ply", "--object", "avatar.ply:spin=3", "--probe", "probe.json"], 2,
+     "unknown placement key 'spin'"),
+    (["avatar.ply"], 2, "needs --probe"),
+    (["avatar.ply", "--probe", "probe.json", "--dgsm", "x.exr"], 2, "give --receivers"),
+    (["avatar.ply", "--probe", "probe.json", "--lobe", "0"], 2, "--lobe"),
+    (["avatar.ply", "--probe", "probe.json", "--camera", "cam.json"], 2, "-o is an EXR"),
+    (["avatar.ply", "--probe", "missing.json"], 1, "no such file"),
+    (["avatar.ply", "--probe", "bad_probe.json"], 1, "version 9 is newer"),
+    (["avatar.ply", "--probe", "probe.json", "--normals", "stored"], 1, "no stored normals"),
+    (["nan.ply", "--probe", "probe.json"], 1, "non-finite"),
+    # renamed (issue 16): dgsm-build's --t-max is metres; relight's clip is --shading-clip
+    (["avatar.ply", "--probe", "probe.json", "--t-max", "2"], 2, "--t-max was renamed "
+                                                                 "--shading-clip"),
+    (["avatar.ply", "--probe", "probe.json", "--preview", "view.exr", "--camera", "cam.json"],
+     2, "name it .png"),
+])
+def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
+    monkeypatch.chdir(files)
+    (files / "bad_probe.json").write_text('{"format": "relight/sh-probe", "version": 9}')
+    g, _ = sphere_of_splats(n=5)
+    write_gaussians("nan.ply", g)
+    import plyfile
+    ply = plyfile.PlyData.read("nan.ply", mmap=False)
+    ply["vertex"].data["x"][2] = np.nan
+    ply.write("nan.ply")
+    target = "out.exr" if "--camera" in args and "-o is an EXR" not in message else "out.ply"
+    r = run_cli("relight", *args, "-o", target)
+    assert r.exit_code == code, r.output
+    assert message in r.output, r.output
+    assert not (files / "out.ply").exists() and not (files / "out.exr").exists()
+
+
+def _ball_over_floor(tmp_path, lights, grid, intensities=None):
+    """An opaque ball of Gaussians at 1 m over a grey floor grid (nx, nz, half-width in x);
+    writes ball.ply, floor.ply, a uniform probe p.json and the DGSM s.exr for ``lights``."""
+    from relight_cli.formats import dgsm_exr
+    from relight_cli.gaussians.dgsm import build_dgsm
+    from relight_cli.provenance import provenance
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ball = Gaussians(d * 0.15 + [0, 1.0, 0], np.full((400, 3), 0.05), np.tile([1.0, 0, 0, 0], (400, 1)),
+                     np.full(400, 0.95), np.zeros((400, 1, 3)), 0)
+    nx, nz, half = grid
+    xs, zs = np.meshgrid(np.linspace(-half, half, nx), np.linspace(-1, 1, nz))
+    m = xs.size
+    floor = Gaussians(np.column_stack([xs.ravel(), np.zeros(m), zs.ravel()]),
+                      np.tile([0.05, 0.002, 0.05], (m, 1)),           # flat splats, normal ±y
+                      np.tile([1.0, 0, 0, 0], (m, 1)), np.full(m, 0.9),
+                      rgb_to_sh_dc(np.full((m, 3), 0.6))[:, None, :], 0)
+    shadow = build_dgsm(ball, np.asarray(lights, float), floor.means, size=(32, 32), bins=16,
+                        intensities=intensities)
+    dgsm_exr.write_dgsm(str(tmp_path / "s.exr"), shadow, provenance(dgsm_exr.FORMAT, dgsm_exr.VERSION))
+    write_gaussians(str(tmp_path / "ball.ply"), ball)
+    write_gaussians(str(tmp_path / "floor.ply"), floor)
+    c = np.zeros((1, 3))
+    c[0] = math.sqrt(4 * math.pi)
+    write_probe(str(tmp_path / "p.json"), ShProbe(c, 0))
+    return shadow, floor
+
+
+def test_cli_dgsm_shadows_receivers(run_cli, tmp_path):
+    """An opaque ball between a point light and a floor: receivers under it darken by the DGSM's
+    transmittance (equal to the engine's footprint lookup), receivers away from it do not."""
+    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr",
+                                   reason="formats/dgsm_exr.py (DGSM format) not in this tree")
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    shadow, floor = _ball_over_floor(tmp_path, [[0.0, 2.5, 0.0]], (15, 15, 1.0))
+    r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                tmp_path / "floor-shadowed.ply", "--footprint", "centre", "--shadow-strength", "1",
+                "-o", tmp_path / "o.ply", "-q")
+    assert r.exit_code == 0, r.output
+    out = read_gaussians(str(tmp_path / "floor-shadowed.ply"))
+    ratio = out.colors()[:, 0] / floor.colors()[:, 0]
+    T = sample_transmittance(shadow, floor.means, footprint="centre")[0]
+    np.testing.assert_allclose(ratio, T, atol=1e-5)   # float32 table and PLY storage
+    centre = np.argmin(np.linalg.norm(floor.means, axis=1))
+    corner = np.argmax(np.linalg.norm(floor.means, axis=1))
+    assert ratio[centre] < 0.2 and ratio[corner] > 0.999
+    prov = read_gaussians(str(tmp_path / "floor-shadowed.ply")).provenance
+    settings = (prov or {}).get("settings", {})
+    if settings:
+        assert settings["dgsm_mapping"] == "avg" and settings["light_weights"] == "intensity"
+
+
+def test_cli_dgsm_weights_lights_by_intensity(run_cli, tmp_path):
+    """Two lights, each casting the ball's shadow on a different spot: the spot of the light of
+    intensity 3 darkens to (3·T + 1)/4, the one of intensity 1 to (3 + T)/4 (white lights)."""
+    dgsm_exr = pytest.importorskip("relight_cli.formats.dgsm_exr")
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    shadow, floor = _ball_over_floor(tmp_path, [[-0.5, 2.0, 0.0], [0.5, 2.0, 0.0]], (21, 9, 1.5),
+                                     intensities=[3.0, 1.0])
+    T = sample_transmittance(shadow, floor.means, footprint="centre")           # [2, M]
+    for mode, want in (("intensity", (3 * T[0] + T[1]) / 4), ("equal", T.mean(axis=0))):
+        r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                    tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                    tmp_path / f"f-{mode}.ply", "--footprint", "centre", "--light-weights", mode,
+                    "--shadow-strength", "1", "-o", tmp_path / "o.ply", "-q")
+        assert r.exit_code == 0, r.output
+        ratio = read_gaussians(str(tmp_path / f"f-{mode}.ply")).colors() / floor.colors()
+        np.testing.assert_allclose(ratio, np.repeat(want[:, None], 3, axis=1), atol=1e-5)
+    assert T.min(axis=1).max() < 0.2          # both lights really cast a shadow on the floor
+
+
+def test_auto_strength_is_the_lights_share_against_the_probe(run_cli, tmp_path):
+    """--shadow-strength auto (the default): a receiver's shadow takes away the lights' share
+    of its light, E_d/(E_d + E_probe), E_d = I cosθ/r² of the light, E_probe = π·L for a
+    uniform probe of radiance L (= 1 here): closed form against the CLI's receivers."""
+    pytest.importorskip("relight_cli.formats.dgsm_exr")
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    light = np.array([0.0, 2.5, 0.0])
+    shadow, floor = _ball_over_floor(tmp_path, [light], (15, 15, 1.0), intensities=[25.0])
+    r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                tmp_path / "f.ply", "--footprint", "centre", "-o", tmp_path / "o.ply", "-q")
+    assert r.exit_code == 0, r.output
+    ratio = read_gaussians(str(tmp_path / "f.ply")).colors()[:, 0] / floor.colors()[:, 0]
+    v = light - floor.means
+    r2 = (v * v).sum(axis=1)
+    e_direct = 25.0 * (v[:, 1] / np.sqrt(r2)) / r2         # floor normal +y, towards the light
+    s = e_direct / (e_direct + math.pi)
+    T = sample_transmittance(shadow, floor.means, footprint="centre")[0]
+    np.testing.assert_allclose(ratio, 1 - s * (1 - T), atol=1e-5)
+    centre = np.argmin(np.linalg.norm(floor.means, axis=1))
+    assert T[centre] < 0.05 and 0.3 < ratio[centre] < 0.6      # grey, not black: the probe's light
+    settings = read_gaussians(str(tmp_path / "f.ply")).provenance["settings"]
+    assert settings["shadow_strength"] == "auto" and settings["light_weights"] == "irradiance"
+
+
+def test_cli_direct_light_lights_objects_one_sided(run_cli, tmp_path):
+    """--direct-light: an object's colour is its albedo × (probe shading + Σ I max(n·ω, 0)/(π r²))
+    (normals stored, radial): the side facing the light brightens, the far side keeps the probe's."""
+    pytest.importorskip("relight_cli.formats.dgsm_exr")
+    light = np.array([0.0, 2.5, 0.0])
+    _ball_over_floor(tmp_path, [light], (5, 5, 1.0), intensities=[4.0])
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    obj = Gaussians(d * 0.1 + [0.5, 0.3, 0.0], np.tile([0.02, 0.02, 0.002], (300, 1)),
+                    np.tile([1.0, 0, 0, 0], (300, 1)), np.full(300, 0.9),
+                    rgb_to_sh_dc(np.full((300, 3), 0.4))[:, None, :], 0, d.copy())
+    write_gaussians(str(tmp_path / "obj.ply"), obj)
+    r = run_cli("relight", tmp_path / "obj.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "s.exr", "--receivers", tmp_path / "floor.ply", "--direct-light",
+                "-o", tmp_path / "o.ply", "-q")
+    assert r.exit_code == 0, r.output
+    got = read_gaussians(str(tmp_path / "o.ply")).colors()[:, 0]
+    v = light - obj.means
+    dist = np.linalg.norm(v, axis=1)
+    cos = np.maximum((v * d).sum(axis=1) / dist, 0)
+    np.testing.assert_allclose(got, 0.4 * (1.0 + 4.0 * cos / (math.pi * dist ** 2)), rtol=1e-5)
+    r = run_cli("relight", tmp_path / "obj.ply", "--probe", tmp_path / "p.json",
+                "--direct-light", "-o", tmp_path / "x.ply", "-q")
+    assert r.exit_code == 2 and "--direct-light takes its lights from --dgsm" in r.output
+    r = run_cli("relight", tmp_path / "obj.ply", "--probe", tmp_path / "p.json",
+                "--shadow-strength", "most", "-o", tmp_path / "x.ply", "-q")
+    assert r.exit_code == 2 and "--shadow-strength" in r.output
+
+
+def test_cli_dgsm_version1_file_weights_lights_equally(run_cli, tmp_path):
+    """A version 1 shadow map (no intensities, mapping 'eq5') still relights: equal weights, said."""
+    from relight_cli.formats.exr import read_exr, write_exr
+    from relight_cli.gaussians.dgsm import sample_transmittance
+    from relight_cli.provenance import provenance
+    shadow, floor = _ball_over_floor(tmp_path, [[-0.5, 2.0, 0.0], [0.5, 2.0, 0.0]], (21, 9, 1.5),
+                                     intensities=[3.0, 1.0])
+    img = read_exr(str(tmp_path / "s.exr"))
+    attrs = {k: v for k, v in img.attributes.items() if k.startswith("relight.dgsm.")
+             and k not in ("relight.dgsm.light_intensities", "relight.dgsm.light_colors")}
+    attrs["relight.dgsm.mapping"] = "eq5"
+    write_exr(str(tmp_path / "v1.exr"), dict(img.channels), attributes=attrs,
+              provenance=provenance("relight/dgsm", 1))
+    r = run_cli("relight", tmp_path / "ball.ply", "--probe", tmp_path / "p.json", "--dgsm",
+                tmp_path / "v1.exr", "--receivers", tmp_path / "floor.ply", "--receivers-out",
+                tmp_path / "f.ply", "--footprint", "centre", "-o", tmp_path / "o.ply")
+    assert r.exit_code == 0, r.output
+    assert "version 1" in r.output and "equally" in r.output
+    out = read_gaussians(str(tmp_path / "f.ply"))
+    T = sample_transmittance(shadow, floor.means, footprint="centre")
+    np.testing.assert_allclose(out.colors()[:, 0] / floor.colors()[:, 0], T.mean(axis=0), atol=1e-5)
+    assert out.provenance["settings"]["dgsm_mapping"] == "peak"
+    assert out.provenance["settings"]["light_weights"] == "equal"
+
+
+def test_real_robot_view_dependence_survives_placement_and_relighting(shared):
+    """The real SH-degree-2 robot: placement (rotate-x=180, as captured it is upside down)
+    rotates its view-dependent bands, c'(d) = c(Qᵀd), and relighting by a uniform probe of
+    radiance 2 doubles its colour from every view direction (bands scaled with the DC)."""
+    from relight_cli.gaussians.placement import axis_rotation, parse_placement, place
+    robot = read_gaussians(str(shared("gaussians", "playbot-lod3.ply")))
+    assert robot.sh_degree == 2
+    rng = np.random.default_rng(0)
+    sub = robot.subset(rng.choice(len(robot), 400, replace=False))
+    sub = sub.subset(np.flatnonzero(sub.colors(clamp=False).min(axis=1) > 0))  # DC unclamped
+    placed = place(sub, parse_placement("rotate-x=180;translate=0.5,0,0"))
+    Q = axis_rotation("x", 180)
+    d = rng.normal(size=(len(sub), 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+
+    def colour(g, dirs):           # 3DGS colour before the clamp, seen along dirs
+        return 0.5 + np.einsum("nk,nkc->nc", sh_basis(dirs, g.sh_degree), g.sh)
+
+    view_dependent = np.abs(colour(sub, d) - colour(sub, -d)).max()
+    assert view_dependent > 0.05                       # the bands really carry something
+    np.testing.assert_allclose(colour(placed, d), colour(sub, d @ Q), atol=1e-9)
+    c = np.zeros((9, 3))
+    c[0] = 2.0 * math.sqrt(4 * math.pi)                 # uniform radiance 2 → factor 2
+    relit = TF.relight_gaussians(placed, c)
+    np.testing.assert_allclose(colour(relit, d), 2 * colour(placed, d), atol=1e-9)

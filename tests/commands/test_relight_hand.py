@@ -1,0 +1,171 @@
+"""`relight relight HAND ENV --model physical`: CLI runs, outputs, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import run_relight
+from relight_cli.formats.camera import Camera, write_cameras
+from relight_cli.formats.exr import read_exr
+
+FAST = ["--tex-res", "64", "--aa", "1", "--mesh", "coarse"]
+
+
+@pytest.fixture
+def files(tmp_path):
+    write_cameras(str(tmp_path / "cam.json"),
+                  [Camera.look_at([0.0, 0.06, 0.5], [0.0, 0.06, 0.0], fov_y_deg=30,
+                                  width=24, height=20)])
+    (tmp_path / "lights.json").write_text(json.dumps({
+        "format": "relight/lights", "version": 1,
+        "lights": [{"position": [0.2, 0.3, 0.4], "intensity": 0.5},
+                   {"position": [-0.3, 0.1, 0.3], "color": [1.0, 0.8, 0.6]}]}))
+    return tmp_path
+
+
+def test_help(run_cli, tmp_path):
+    """``relight relight --help`` names the modes; ``relight relight IN --help`` lists the
+    options of IN's mode and only those (no table of which option applies where)."""
+    r = run_cli("relight", "--help")
+    assert r.exit_code == 0
+    assert "relight relight IN --help" in r.output
+    for mode in ("IN = CAPTURE/", "IN = AVATAR.ply", "IN = HAND.npz"):
+        assert mode in r.output
+    hand = run_cli("relight", "builtin:right", "--help")
+    gaussians = run_cli("relight", "avatar.ply", "--help")
+    capture = run_cli("relight", tmp_path, "--help")
+    assert hand.exit_code == gaussians.exit_code == capture.exit_code == 0
+    for flag in ("--model", "--camera", "--lights", "--env-res", "--no-sss", "--aov",
+                 "--frames", "--precision"):
+        assert flag in hand.output
+    for flag in ("--probe", "--dgsm", "--receivers", "--footprint", "--splits"):
+        assert flag not in hand.output
+    for flag in ("--probe", "--dgsm", "--receivers", "--footprint", "--camera"):
+        assert flag in gaussians.output
+    for flag in ("--model", "--lights", "--env-res", "--no-sss", "--splits", "--checkpoint"):
+        assert flag not in gaussians.output
+    for flag in ("--model", "--checkpoint", "--splits", "--eval-samples"):
+        assert flag in capture.output
+    for flag in ("--camera", "--lights", "--probe", "--size", "--preview"):
+        assert flag not in capture.output
+
+
+def test_env_render_with_aovs(run_cli, files):
+    out, png = files / "hand.exr", files / "hand.png"
+    r = run_cli("relight", "builtin:right", "builtin:sky", "--model", "physical", "--camera",
+                files / "cam.json", "-o", out, "--preview", png, "--aov", "normal,uv,depth",
+                *FAST, "-q")
+    assert r.exit_code == 0, r.output
+    image = read_exr(str(out))
+    assert image.attributes["relight.format"] == "relight/render"
+    assert image.width == 24 and image.height == 20
+    for name in ("R", "G", "B", "A", "normal.X", "normal.Y", "normal.Z", "uv.U", "uv.V",
+                 "depth.Z"):
+        assert name in image.channels
+    mask = image.channels["A"]
+    assert 0.05 < mask.mean() < 0.95
+    rgb = image.layer("")
+    assert np.isfinite(rgb).all() and rgb[mask == 1].min() > 0       # sky lights every pixel
+    assert (rgb[mask == 0] == 0).all()
+    depth = image.channels["depth.Z"][mask == 1]
+    assert 0.4 < depth.min() and depth.max() < 0.6                     # camera 0.5 m away
+    assert png.exists()
+    record = image.provenance()
+    assert record["settings"]["model"] == "physical" and "camera" in record["inputs"]
+
+
+def test_lights_render_and_ablations_differ(run_cli, files):
+    base = ["relight", "builtin:right:point", "--lights", files / "lights.json", "--camera",
+            files / "cam.json", *FAST, "-q"]
+    outs = {}
+    for name, extra in (("full", []), ("noshadow", ["--no-shadows"]),
+                        ("nospec", ["--no-specular"])):
+        outs[name] = files / f"{name}.exr"
+        r = run_cli(*base, "-o", outs[name], *extra)
+        assert r.exit_code == 0, r.output
+    img = {k: read_exr(str(v)).layer("") for k, v in outs.items()}
+    assert (img["noshadow"] >= img["full"] - 1e-6).all() and (img["noshadow"] > img["full"]).any()
+    assert (img["nospec"] <= img["full"] + 1e-6).all() and (img["nospec"] < img["full"]).any()
+
+
+def test_default_camera_and_size(run_cli, files):
+    out = files / "d.exr"
+    r = run_cli("relight", "builtin:left", "builtin:uniform", "--size", "16x12", "-o", out,
+                *FAST, "-q")
+    assert r.exit_code == 0, r.output
+    image = read_exr(str(out))
+    assert (image.width, image.height) == (16, 12)
+
+
+def test_subprocess(files):
+    out = files / "s.exr"
+    r = run_relight("relight", "builtin:right", "builtin:studio", "--model", "physical",
+                    "--camera", files / "cam.json", "-o", out, *FAST)
+    assert r.returncode == 0, r.stderr
+    assert out.exists() and "wrote" in r.stderr and r.stdout == ""
+
+
+@pytest.mark.parametrize("args, code, message", [
+    (["builtin:right", "-o", "o.exr"], 2, "give an env map ENV and/or --lights"),
+    (["builtin:right", "builtin:sky", "--model", "neural", "-o", "o.exr"], 2, "not available"),
+    (["builtin:right", "builtin:sky", "-o", "o.png"], 2, "name it .exr"),
+    (["builtin:right", "builtin:sky", "--aov", "albedo", "-o", "o.exr"], 2, "unknown: albedo"),
+    (["builtin:right", "builtin:sky", "--frame", "3", "-o", "o.exr"], 2, "out of range"),
+    (["builtin:right", "builtin:sky", "--probe", "p.json", "-o", "o.exr"], 2,
+     "only apply to Gaussians"),
+    (["builtin:right", "builtin:sky", "--direct-light", "--shading-clip", "2", "-o", "o.exr"], 2,
+     "--direct-light, --shading-clip only apply to Gaussians"),     # once ignored silently
+    (["builtin:right", "builtin:sky", "--light-weights", "equal", "-o", "o.exr"], 2,
+     "--light-weights only apply to Gaussians"),
+    (["builtin:right", "builtin:sky", "--roughness", "0", "-o", "o.exr"], 2, "--roughness"),
+    (["builtin:right", "builtin:sky", "--tex-res", "2", "-o", "o.exr"], 2, "--tex-res"),
+    (["builtin:right", "builtin:sky", "--env-res", "1x4", "-o", "o.exr"], 2, "--env-res"),
+    (["builtin:right", "builtin:sky", "--env-res", "16x32", "-o", "o.exr"], 2,
+     "did you mean 32x16"),                               # sizes are WxH (issue 16)
+    (["builtin:right", "builtin:sky", "--tex-res", "16x8", "-o", "o.exr"], 2, "not square"),
+    (["builtin:right", "builtin:sky", "--preview", "p.jpg", "-o", "o.exr"], 2, "name it .png"),
+    (["builtin:nobody", "builtin:sky", "-o", "o.exr"], 2, "unknown built-in hand"),
+    (["avatar.ply", "builtin:sky", "-o", "o.ply"], 2, "only apply to a hand"),
+    (["builtin:right", "missing.exr", "-o", "o.exr"], 1, "no such file"),
+    (["missing.npz", "builtin:sky", "-o", "o.exr"], 1, "no such file"),
+    (["builtin:right", "builtin:sky", "--camera", "bad.json", "-o", "o.exr"], 1, "invalid JSON"),
+    (["builtin:right", "builtin:sky", "--lights", "bad.json", "-o", "o.exr"], 1, "invalid JSON"),
+    (["junk.npz", "builtin:sky", "-o", "o.exr"], 1, "junk.npz"),
+])
+def test_bad_input(run_cli, files, monkeypatch, args, code, message):
+    monkeypatch.chdir(files)
+    (files / "bad.json").write_text("{not json")
+    (files / "junk.npz").write_bytes(b"PK\x03\x04 not really a zip")
+    r = run_cli("relight", *args)
+    assert r.exit_code == code, r.output
+    assert message in r.output, r.output
+    assert len(r.output.strip().splitlines()) == 1 and "Traceback" not in r.output
+    assert not (files / "o.exr").exists() and not (files / "o.png").exists()
+
+
+def test_image_maps(run_cli, files):
+    from relight_cli.formats.exr import write_exr
+    from relight_cli.formats.image import write_png
+    write_png(str(files / "grey.png"), np.full((8, 8, 3), 0.5))
+    write_png(str(files / "white.png"), np.full((8, 8, 3), 1.0))
+    write_exr(str(files / "rough.exr"), {"Y": np.full((8, 8), 0.3, np.float32)})
+    write_exr(str(files / "hot.exr"), {"R": np.full((8, 8), 2.0, np.float32),
+                                       "G": np.ones((8, 8), np.float32),
+                                       "B": np.ones((8, 8), np.float32)})
+    base = ["relight", "builtin:right", "builtin:uniform", "--camera", files / "cam.json",
+            "--no-specular", "--no-sss", *FAST, "-q"]
+    for name in ("grey", "white"):
+        r = run_cli(*base, "--albedo", files / f"{name}.png", "--roughness", files / "rough.exr",
+                    "-o", files / f"{name}.exr")
+        assert r.exit_code == 0, r.output
+    grey = read_exr(str(files / "grey.exr")).layer("")
+    white = read_exr(str(files / "white.exr")).layer("")
+    lit = white > 1e-4
+    # Diffuse only: radiance is exactly proportional to the albedo (8-bit 128/255 vs 1).
+    np.testing.assert_allclose(grey[lit] / white[lit], 128 / 255, rtol=1e-5)
+    r = run_cli(*base, "--albedo", files / "hot.exr", "-o", files / "hot_out.exr")
+    assert r.exit_code == 1 and "albedo map values" in r.output and "hot.exr" in r.output
+    assert not (files / "hot_out.exr").exists()

@@ -1,0 +1,170 @@
+"""Gaussians PLY I/O: round trips, the INRIA f_rest order, activations, bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import plyfile
+import pytest
+from scipy.spatial.transform import Rotation
+
+from relight_cli.errors import DataError
+from relight_cli.formats.gaussians_ply import (SH_C0, Gaussians, concatenate, matrix_to_quaternion,
+                                               quaternion_to_matrix, read_gaussians, rgb_to_sh_dc,
+                                               write_gaussians)
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DONUT = DATA / "gaussians" / "donut-fused.ply"
+
+
+def random_gaussians(n=50, degree=2, seed=0, normals=False) -> Gaussians:
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2
+    return Gaussians(means=rng.normal(size=(n, 3)),
+                     scales=np.exp(rng.uniform(-5, -1, size=(n, 3))),
+                     rotations=Rotation.random(n, random_state=seed).as_quat()[:, [3, 0, 1, 2]],
+                     opacities=rng.uniform(0.01, 0.99, n),
+                     sh=rng.normal(size=(n, k, 3)), sh_degree=degree,
+                     normals=rng.normal(size=(n, 3)) if normals else None)
+
+
+def write_raw(path, columns: dict, obj_info=()):
+    data = np.empty(len(next(iter(columns.values()))), dtype=[(k, "<f4") for k in columns])
+    for k, v in columns.items():
+        data[k] = v
+    plyfile.PlyData([plyfile.PlyElement.describe(data, "vertex")], obj_info=list(obj_info)).write(
+        str(path))
+
+
+def raw_columns(n=4, degree=0, seed=1):
+    rng = np.random.default_rng(seed)
+    cols = {a: rng.normal(size=n) for a in "xyz"}
+    for c in range(3):
+        cols[f"f_dc_{c}"] = rng.normal(size=n)
+    for i in range(3 * ((degree + 1) ** 2 - 1)):
+        cols[f"f_rest_{i}"] = rng.normal(size=n)
+    cols["opacity"] = rng.normal(size=n)
+    for i in range(3):
+        cols[f"scale_{i}"] = rng.uniform(-6, -2, n)
+    for i in range(4):
+        cols[f"rot_{i}"] = rng.normal(size=n)
+    return cols
+
+
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_round_trip(tmp_path, degree):
+    g = random_gaussians(degree=degree, normals=degree == 1)
+    path = tmp_path / "g.ply"
+    write_gaussians(str(path), g, {"format": "relight/gaussians", "version": 1})
+    h = read_gaussians(str(path))
+    assert h.sh_degree == degree and len(h) == len(g)
+    # float32 storage: relative precision 2^-24 ≈ 6e-8 of values of order ≤ 4.
+    np.testing.assert_allclose(h.means, g.means, atol=1e-6)
+    np.testing.assert_allclose(h.sh, g.sh, atol=1e-6)
+    np.testing.assert_allclose(h.scales, g.scales, rtol=1e-6)   # exp(float32 log): rel. error ~1e-7·|log|
+    np.testing.assert_allclose(h.opacities, g.opacities, atol=1e-6)
+    np.testing.assert_allclose(np.abs(np.sum(h.rotations * g.rotations, 1)), 1, atol=1e-6)
+    if g.normals is None:
+        assert h.normals is None
+    else:
+        np.testing.assert_allclose(h.normals, g.normals, atol=1e-6)
+    assert h.provenance == {"format": "relight/gaussians", "version": 1}
+    assert not list(tmp_path.glob(".*tmp*")), "temporary file left behind"
+
+
+def test_inria_rest_order_and_activations(tmp_path):
+    cols = raw_columns(n=5, degree=2)
+    path = tmp_path / "raw.ply"
+    write_raw(path, cols)
+    g = read_gaussians(str(path))
+    assert g.sh_degree == 2
+    # INRIA: features_rest [N, 8, 3] is saved transposed as [N, 3, 8]: f_rest_{c·8+j} = sh[:, 1+j, c].
+    f32 = lambda a: np.asarray(a, np.float32).astype(np.float64)  # noqa: E731
+    for c in range(3):
+        for j in range(8):
+            np.testing.assert_array_equal(g.sh[:, 1 + j, c], f32(cols[f"f_rest_{c * 8 + j}"]))
+    np.testing.assert_allclose(g.opacities, 1 / (1 + np.exp(-f32(cols["opacity"]))), rtol=1e-12)
+    np.testing.assert_allclose(g.scales[:, 1], np.exp(f32(cols["scale_1"])), rtol=1e-12)
+    q = np.stack([f32(cols[f"rot_{i}"]) for i in range(4)], 1)
+    np.testing.assert_allclose(g.rotations, q / np.linalg.norm(q, axis=1, keepdims=True), atol=1e-12)
+
+
+def test_covariance_against_scipy():
+    g = random_gaussians(n=20, degree=0)
+    # Independent reference: scipy's quaternion convention is scalar-last.
+    R = Rotation.from_quat(g.rotations[:, [1, 2, 3, 0]]).as_matrix()
+    ref = R @ np.stack([np.diag(s ** 2) for s in g.scales]) @ R.transpose(0, 2, 1)
+    np.testing.assert_allclose(g.covariances(), ref, atol=1e-14)
+    np.testing.assert_allclose(quaternion_to_matrix(g.rotations), R, atol=1e-14)
+    q = matrix_to_quaternion(R)
+    np.testing.assert_allclose(np.abs(np.sum(q * g.rotations, 1)), 1, atol=1e-12)
+
+
+def test_colors_and_dc():
+    rgb = np.array([[0.2, 0.5, 0.9], [1.5, 0.0, 0.3]])
+    g = Gaussians(np.zeros((2, 3)), np.ones((2, 3)), [[1, 0, 0, 0]] * 2, [0.5, 0.5],
+                  rgb_to_sh_dc(rgb)[:, None, :], 0)
+    np.testing.assert_allclose(g.colors(), rgb, atol=1e-15)
+    np.testing.assert_allclose(g.sh[:, 0] * SH_C0 + 0.5, rgb, atol=1e-15)
+    both = concatenate([g, random_gaussians(n=3, degree=1)])
+    assert both.sh_degree == 1 and len(both) == 5 and np.all(both.sh[:2, 1:] == 0)
+
+
+def test_donut_loads():
+    if not DONUT.exists():
+        pytest.skip(f"shared data not present: {DONUT}")
+    g = read_gaussians(str(DONUT))
+    assert len(g) == 45624 and g.sh_degree == 0 and g.normals is None
+    assert np.all((g.opacities > 0) & (g.opacities < 1))
+    np.testing.assert_allclose(np.linalg.norm(g.rotations, axis=1), 1, atol=1e-12)
+    assert g.scales.max() < 0.1  # a ~20 cm donut: no splat wider than 10 cm
+    assert np.isfinite(g.covariances()).all()
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing", "missing 3DGS field(s) opacity"),
+    ("nan", "field scale_1 has 1 non-finite value(s) (first at Gaussian 2)"),
+    ("zero_quat", "zero quaternion(s) (first at Gaussian 1)"),
+    ("rest_count", "f_rest_* fields must be"),
+    ("newer", "version 2 is newer"),
+    ("overflow", "overflows exp()"),
+])
+def test_bad_input(tmp_path, case, message):
+    cols = raw_columns(n=4)
+    info = ()
+    if case == "missing":
+        del cols["opacity"]
+    elif case == "nan":
+        cols["scale_1"][2] = np.nan
+    elif case == "zero_quat":
+        for i in range(4):
+            cols[f"rot_{i}"][1] = 0.0
+    elif case == "rest_count":
+        cols["f_rest_0"] = np.zeros(4)
+    elif case == "newer":
+        info = ("relight.format relight/gaussians 2",)
+    elif case == "overflow":
+        cols["scale_0"][0] = 1000.0
+    path = tmp_path / "bad.ply"
+    write_raw(path, cols, info)
+    with pytest.raises(DataError) as exc:
+        read_gaussians(str(path))
+    assert message in str(exc.value) and str(path) in str(exc.value)
+
+
+def test_not_a_ply(tmp_path):
+    path = tmp_path / "x.ply"
+    path.write_text("hello\n")
+    with pytest.raises(DataError, match="not a readable PLY"):
+        read_gaussians(str(path))
+    with pytest.raises(DataError, match="no such file"):
+        read_gaussians(str(tmp_path / "absent.ply"))
+
+
+def test_write_refuses_nan(tmp_path):
+    g = random_gaussians(n=3, degree=0)
+    g.means[1, 0] = np.nan
+    with pytest.raises(DataError, match="means"):
+        write_gaussians(str(tmp_path / "o.ply"), g)
+    assert not list(tmp_path.iterdir())
