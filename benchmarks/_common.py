@@ -585,18 +585,19 @@ def physical_upper_bound(folder: Path) -> dict:
     import numpy as np
 
     from relight_cli.formats import capture as C
+    from relight_cli.formats.lights_json import Lights
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.train import _metrics
     from relight_cli.render.appearance import hand_materials
     from relight_cli.render.capture import FrameRenderer, Plan, StageSettings
-    from relight_cli.render.shading import PointLights
 
     data = CaptureData(str(folder), 32, holdout=0.25)
     s = data.capture.settings
     settings = StageSettings(**{k: v for k, v in s.items() if k in StageSettings.__dataclass_fields__})
     materials = hand_materials(data.hand, "fine", max(settings.tex_res, 256), settings.seed)
     plan = Plan(data.hand, data.capture.cameras,
-                PointLights(data.capture.light_positions, data.capture.light_intensity),
+                Lights.from_radiant_intensity(data.capture.light_positions,
+                                              data.capture.light_intensity),
                 data.capture.light_names, data.capture.frames, np.zeros(3), data.capture.key)
     renderer = FrameRenderer(plan, materials, settings)
     rows = []

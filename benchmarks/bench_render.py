@@ -26,20 +26,20 @@ import _common as B  # noqa: E402
 
 
 def _scene():
+    from relight_cli.formats.lights_json import Lights
     from relight_cli.hand.model import builtin_hand
     from relight_cli.hand.scene import posed_meshes, preview_camera
     from relight_cli.render.appearance import hand_materials
-    from relight_cli.render.shading import PointLights
 
     hand = builtin_hand(pose="relaxed")
     meshes = posed_meshes(hand, 0, "fine")
     materials = hand_materials(hand, "fine", 512, seed=0)
     camera = preview_camera(meshes, 256, 256)
     c = meshes[0].vertices.mean(0)
-    lights = PointLights(c + np.array([[0.5, 0.5, 0.8], [-0.5, 0.3, 0.6], [0.0, 1.0, 0.3],
-                                       [0.3, -0.4, 0.7], [0.0, 0.0, 1.0]]),
-                         [[0.3, 0.3, 0.3], [0.2, 0.2, 0.25], [0.3, 0.28, 0.25], [0.1, 0.1, 0.1],
-                          [0.25, 0.25, 0.25]])
+    lights = Lights.from_radiant_intensity(
+        c + np.array([[0.5, 0.5, 0.8], [-0.5, 0.3, 0.6], [0.0, 1.0, 0.3], [0.3, -0.4, 0.7],
+                      [0.0, 0.0, 1.0]]),
+        [[0.3, 0.3, 0.3], [0.2, 0.2, 0.25], [0.3, 0.28, 0.25], [0.1, 0.1, 0.1], [0.25, 0.25, 0.25]])
     return meshes, materials, camera, lights
 
 

@@ -120,7 +120,8 @@ def build_models(work: Path, hand, wanted, quick: bool, linear_tex: int, teacher
     loaded back as the CLI loads them: {kind: {path, loaded model, config, description}}."""
     import torch
 
-    from relight_cli.formats.checkpoint import make_checkpoint, read_checkpoint, write_checkpoint
+    from relight_cli.formats.checkpoint import make_checkpoint, write_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural import linear as L
     from relight_cli.neural.config import PRESETS, STUDENT_PRESETS, StudentConfig, \
         TeacherConfig, resolve_config

@@ -183,7 +183,8 @@ def quality(iters: int, work: Path) -> tuple:
     the jobs of ``relight train-teacher`` and ``relight distill``
     (:mod:`relight_cli.jobs.train_teacher`, :mod:`relight_cli.jobs.distill`) with the
     commands' defaults: ({row: {"metrics", "seconds"}}, {"train": envs, "eval": envs})."""
-    from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
+    from relight_cli.formats.checkpoint import write_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.formats.metrics_json import make_record
     from relight_cli.cli.inputs import load_envmap
     from relight_cli.jobs import distill as JD

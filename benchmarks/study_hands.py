@@ -410,7 +410,8 @@ class Study:
         state when a previous run was stopped."""
         import torch
 
-        from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
+        from relight_cli.formats.checkpoint import write_checkpoint
+        from relight_cli.neural.checkpoints import read_checkpoint
         from relight_cli.neural.train import TrainingDiverged, fit
         partial, notes = runs / f"{key}.partial.pt", runs / f"{key}.partial.json"
         resume, before, spent = None, [], 0.0
@@ -509,7 +510,7 @@ class Study:
         against both, scored on every grouped-light frame of ``hand``'s capture (all its
         poses are new to them) as the table's ``split``.  None when ``wait`` is False and
         another runner is training one of those models."""
-        from relight_cli.formats.checkpoint import read_checkpoint
+        from relight_cli.neural.checkpoints import read_checkpoint
         from relight_cli.neural.evaluate import evaluate_capture, load_hand_model
 
         parts = [self.row(kind, h, overrides, seed, (split,), (split, "mse"), wait=wait)
@@ -561,7 +562,7 @@ class Study:
     def _student_task(self, folder, config, teacher_row):
         from relight_cli.cli.inputs import load_envmap
         from relight_cli.envmap import discretize_env
-        from relight_cli.formats.checkpoint import read_checkpoint
+        from relight_cli.neural.checkpoints import read_checkpoint
         from relight_cli.neural import distill as D
         from relight_cli.neural.checkpoints import teacher_model
 

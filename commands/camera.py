@@ -99,12 +99,34 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
       relight camera --from render.exr
       cat transforms.json | relight camera --from - | jq '.cameras | length'
     """
-    from relight_cli import cameras as CAM
-    from relight_cli.errors import UsageProblem
     from relight_cli.formats.camera import FORMAT, VERSION, write_cameras
+    from relight_cli.jobs import camera as job
     from relight_cli.provenance import provenance
 
-    # ---- usage checks before any work
+    # ---- options (usage errors, before any work)
+    options = _options(output, eye, target, up, fov, size, orbit, dome, radius, elevation,
+                       azimuth, name, source, select, drop_distortion, no_clobber)
+
+    # ---- inputs (data errors), the job, the output
+    imported, inputs = None, {}
+    if source is not None:
+        cameras, inputs, kind = _import(source, drop_distortion)
+        imported = (cameras, kind)
+    made = job.run(options, imported, source)
+    cameras = made.cameras
+    write_cameras(output, cameras, provenance(FORMAT, VERSION, inputs, made.settings))
+    if output != "-":
+        log(f"wrote {output} ({len(cameras)} camera{'s' if len(cameras) != 1 else ''}, "
+            f"{cameras[0].width}x{cameras[0].height})", quiet)
+
+
+def _options(output, eye, target, up, fov, size, orbit, dome, radius, elevation, azimuth, name,
+             source, select, drop_distortion, no_clobber):
+    """The options' usage errors (exit 2), before any work: the job's CameraOptions."""
+    from relight_cli.cli.tools import parse_size
+    from relight_cli.errors import UsageProblem
+    from relight_cli.jobs.camera import CameraOptions
+
     made = {"--eye": eye, "--orbit": orbit, "--dome": dome}
     modes = [k for k, v in {**made, "--from": source}.items() if v is not None]
     if len(modes) != 1:
@@ -139,56 +161,23 @@ def command(output, eye, target, up, fov, size, orbit, dome, radius, elevation, 
             raise UsageProblem("--select needs at least one camera name")
         if len(set(names)) != len(names):
             raise UsageProblem("--select names a camera twice")
-
-    # ---- cameras
-    settings: dict = {}
-    inputs: dict = {}
-    if source is None:
-        width, height = 256, 256
-        if size is not None:
-            from relight_cli.cli.tools import parse_size
-            width, height = parse_size(size, "--size")
-        fov_deg = 40.0 if fov is None else fov
-        centre = parse_vector(target, 3, "--target") if target is not None else (0.0, 0.0, 0.0)
-        settings.update(fov=fov_deg, size=[width, height], target=list(centre))
-        if eye is not None:
-            position = parse_vector(eye, 3, "--eye")
-            up_vector = parse_vector(up, 3, "--up") if up is not None else (0.0, 1.0, 0.0)
-            try:
-                cameras = [CAM.look_at(position, centre, up_vector, fov_deg, width, height,
-                                       name or "")]
-            except ValueError as exc:
-                raise UsageProblem(f"--eye, --target, --up: {exc}") from None
-            settings.update(mode="look-at", eye=list(position), up=list(up_vector))
-        else:
-            elevations = _elevations(elevation, dome is not None)
-            start = 0.0 if azimuth is None else azimuth
-            prefix = "cam" if name is None else name
-            if orbit is not None:
-                cameras = CAM.orbit(orbit, radius, elevations, centre, start, fov_deg, width,
-                                    height, prefix)
-                settings.update(mode="orbit", n=orbit)
-            else:
-                cameras = CAM.dome(dome, radius, elevations[0], centre, start, fov_deg, width,
-                                   height, prefix)
-                settings.update(mode="dome", n=dome)
-            settings.update(radius=radius, elevation=elevations, azimuth=start)
+    if source is not None:
+        return CameraOptions("import", select=names, drop_distortion=drop_distortion)
+    options = CameraOptions({"--eye": "look-at", "--orbit": "orbit", "--dome": "dome"}[modes[0]],
+                            fov=40.0 if fov is None else fov, name=name, select=names)
+    if size is not None:
+        options.size = parse_size(size, "--size")
+    if target is not None:
+        options.target = parse_vector(target, 3, "--target")
+    if eye is not None:
+        options.eye = parse_vector(eye, 3, "--eye")
+        if up is not None:
+            options.up = parse_vector(up, 3, "--up")
     else:
-        cameras, inputs, kind = _import(source, drop_distortion)
-        settings.update(mode="import", source=kind, drop_distortion=drop_distortion)
-    if names is not None:
-        try:
-            cameras = CAM.select(cameras, names)
-        except KeyError as exc:
-            listed = ", ".join(c.name or "''" for c in cameras[:6])
-            raise UsageProblem(f"--select: no camera named {exc.args[0]!r} (cameras: {listed}"
-                               f"{', ...' if len(cameras) > 6 else ''})", source) from None
-        settings["select"] = names
-    record = provenance(FORMAT, VERSION, inputs, settings)
-    write_cameras(output, cameras, record)
-    if output != "-":
-        log(f"wrote {output} ({len(cameras)} camera{'s' if len(cameras) != 1 else ''}, "
-            f"{cameras[0].width}x{cameras[0].height})", quiet)
+        options.n, options.radius = (orbit if orbit is not None else dome), radius
+        options.elevations = _elevations(elevation, dome is not None)
+        options.azimuth = 0.0 if azimuth is None else azimuth
+    return options
 
 
 def _elevations(text, dome: bool) -> list[float]:

@@ -122,9 +122,8 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     """
     import time
 
-    from relight_cli.cli.tools import parse_vector
     from relight_cli.errors import UsageProblem
-    from relight_cli.jobs.dgsm_build import DgsmOptions, build
+    from relight_cli.jobs.dgsm_build import build
 
     start = time.perf_counter()
     check_output(output, no_clobber, kind="exr")
@@ -132,23 +131,16 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     check_output(occluders_out, no_clobber, kind="ply", what="--occluders-out")
     check_output(receivers_out, no_clobber, kind="ply", what="--receivers-out")
     check_output(preview, no_clobber, kind="png", what="--preview")
-    if preview_camera is not None and preview is None:
-        raise UsageProblem("--preview-camera needs --preview PNG")
-    offset = None if translate is None else parse_vector(translate, 3, "--translate")
-    w, h = parse_size(size, "--size", minimum=2, maximum=4096)
-    if receivers is None and t_max is None:
-        raise UsageProblem("give --receivers SCENE.ply (or --t-max for a receiver-free build)")
+    options, offset = _options(preview, preview_camera, translate, receivers, size, bins, atlas,
+                               mapping, kappa, t_max, roi, roi_radius, cull, cull_tolerance,
+                               footprint, samples, seed, allow_light_inside, estimator)
     auto_k = _parse_auto(lights_spec)
     if auto_k is not None and receivers is None:
         raise UsageProblem("--lights auto:K estimates lights from the scene: give --receivers")
 
     parsed, objects, scene, view, lights = _load(occluders, receivers, offset, lights_spec,
                                                  auto_k, preview_camera)
-    options = DgsmOptions(size=(h, w), bins=bins, atlas=atlas, mapping=mapping, kappa=kappa,
-                          t_max=t_max, roi=roi, roi_radius=roi_radius, cull=cull,
-                          cull_tolerance=cull_tolerance, footprint=footprint, samples=samples,
-                          seed=seed, allow_light_inside=allow_light_inside, estimator=estimator,
-                          preview=preview is not None, camera=view)
+    options.camera = view
     result = build(objects, lights if auto_k is None else auto_k, options, scene,
                    names=occluders, receivers_name=receivers, lights_name=lights_spec,
                    log=lambda message: log(message, quiet), quiet=quiet)
@@ -164,6 +156,29 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                 "occluders": list(occluders)}
     _write(result, scene, inputs, settings, output, half, occluders_out, receivers_out,
            lights_out, preview, quiet, start)
+
+
+def _options(preview, preview_camera, translate, receivers, size, bins, atlas, mapping, kappa,
+             t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples, seed,
+             allow_light_inside, estimator):
+    """The build options' usage errors (exit 2), before any work: (the job's DgsmOptions,
+    camera None until read; the --translate offset or None)."""
+    from relight_cli.cli.tools import parse_vector
+    from relight_cli.errors import UsageProblem
+    from relight_cli.jobs.dgsm_build import DgsmOptions
+
+    if preview_camera is not None and preview is None:
+        raise UsageProblem("--preview-camera needs --preview PNG")
+    offset = None if translate is None else parse_vector(translate, 3, "--translate")
+    w, h = parse_size(size, "--size", minimum=2, maximum=4096)
+    if receivers is None and t_max is None:
+        raise UsageProblem("give --receivers SCENE.ply (or --t-max for a receiver-free build)")
+    options = DgsmOptions(size=(h, w), bins=bins, atlas=atlas, mapping=mapping, kappa=kappa,
+                          t_max=t_max, roi=roi, roi_radius=roi_radius, cull=cull,
+                          cull_tolerance=cull_tolerance, footprint=footprint, samples=samples,
+                          seed=seed, allow_light_inside=allow_light_inside, estimator=estimator,
+                          preview=preview is not None)
+    return options, offset
 
 
 def _load(occluders, receivers, offset, lights_spec, auto_k, preview_camera):

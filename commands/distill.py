@@ -75,12 +75,60 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     """
     import os
 
+    from . import _learned as L
+
+    # ---- options (usage errors, before any work)
+    specs, n_eval, names, env_res = _check_usage(teacher, capture, env_specs, eval_specs, output,
+                                                 iters, config_file, vgg_weights, resume,
+                                                 metrics_out, cache_dir, env_res, no_clobber)
+
+    import torch  # noqa: F401
+
+    from relight_cli.cli.inputs import load_envmap
+    from relight_cli.formats.checkpoint import write_checkpoint
+    from relight_cli.jobs import distill as job
+    from relight_cli.neural.checkpoints import read_checkpoint
+    from relight_cli.provenance import file_sha256, provenance
+
+    # ---- inputs (data errors), the job, the outputs (rank 0 writes)
+    config, ckpt, torch_device = _configure(preset, config_file, resume, device, student, iters,
+                                            seed, env_res, no_specular, no_visibility)
+    tck = job.load_teacher(read_checkpoint(teacher, kind="teacher"), torch_device,
+                           file_sha256(teacher), teacher)
+    data = L.read_captures([capture], tck.config)[0]
+    envs = {name: load_envmap(spec) for name, spec in zip(names, specs)}
+    rank = int(os.environ.get("RANK", "0"))
+    quiet = quiet or rank != 0
+    options = job.Options(config, preset, torch_device, L.read_vgg(vgg_weights, torch_device),
+                          ckpt, resume, progress=not quiet, n_eval=n_eval, cache_dir=cache_dir)
+    inputs = {"teacher": teacher, "capture": data.index_path,
+              **{f"env{k}": spec for k, spec in enumerate(specs)},
+              **L.file_inputs(vgg_weights, resume, config_file)}
+    trained = job.run(tck, data, envs, options,
+                      provenance=lambda s: provenance("relight/checkpoint", 1, inputs, s),
+                      save=L.saver(output) if rank == 0 else None, log=lambda m: log(m, quiet),
+                      names={"capture": capture, "teacher": teacher, "envs": ", ".join(env_specs)})
+    if rank != 0:
+        return
+    write_checkpoint(output, trained.result.checkpoint)
+    L.write_validation(metrics_out, trained.result, {"teacher": teacher, "capture":
+                       data.index_path}, trained.config, trained.record)
+    log(f"wrote {output}: " + job.summary(trained), quiet)
+
+
+def _check_usage(teacher, capture, env_specs, eval_specs, output, iters, config_file, vgg_weights,
+                 resume, metrics_out, cache_dir, env_res, no_clobber):
+    """The options' usage errors (exit 2), before any work: (every env map, training ones
+    first; how many are for evaluation only; their names; --env-res as the config's
+    (H, W) or None)."""
+    import os
+
+    from relight_cli.cli.inputs import env_grid
     from relight_cli.cli.tools import check_input
     from relight_cli.errors import UsageProblem
 
     from . import _learned as L
 
-    # ---- usage checks before any work
     if iters is not None and iters < 0:
         raise UsageProblem(f"--iters must be ≥ 0 (0: only with head_init lsq), got {iters}")
     L.check_capture(capture, index_ok=False)
@@ -96,45 +144,24 @@ def command(teacher, capture, env_specs, eval_specs, output, student, preset, co
     names = [_env_name(s) for s in specs]
     if len(set(names)) != len(names):
         raise UsageProblem("two --envs maps have the same name")
-
-    import torch  # noqa: F401
-
-    from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
-    from relight_cli.cli.inputs import env_grid, load_envmap
-    from relight_cli.jobs import distill as job
-    from relight_cli.neural.train import resolve_device
-    from relight_cli.provenance import file_sha256, provenance
-
     env_res = None if env_res is None else tuple(env_grid(env_res))   # the config's (H, W)
+    return specs, len(held_specs), names, env_res
+
+
+def _configure(preset, config_file, resume, device, student, iters, seed, env_res, no_specular,
+               no_visibility):
+    """(the StudentConfig, the read --resume checkpoint or None, the torch device), from
+    the inputs (data errors)."""
+    from relight_cli.jobs import distill as job
+    from relight_cli.neural.checkpoints import read_checkpoint
+    from relight_cli.neural.train import resolve_device
+
     ckpt = read_checkpoint(resume, kind="student") if resume is not None else None
     config = job.configure(preset, config_file, {
         "student": student, "iters": iters, "seed": seed, "env_res": env_res,
         "specular": False if no_specular else None,
         "visibility": False if no_visibility else None}, ckpt, resume)
-    torch_device = resolve_device(device)
-    # ---- inputs (data errors)
-    tck = job.load_teacher(read_checkpoint(teacher, kind="teacher"), torch_device,
-                           file_sha256(teacher), teacher)
-    data = L.read_captures([capture], tck.config)[0]
-    envs = {name: load_envmap(spec) for name, spec in zip(names, specs)}
-    vgg = L.read_vgg(vgg_weights, torch_device)
-    rank = int(os.environ.get("RANK", "0"))
-    quiet = quiet or rank != 0
-    inputs = {"teacher": teacher, "capture": data.index_path,
-              **{f"env{k}": spec for k, spec in enumerate(specs)},
-              **L.file_inputs(vgg_weights, resume, config_file)}
-    options = job.Options(config, preset, torch_device, vgg, ckpt, resume, progress=not quiet,
-                          n_eval=len(held_specs), cache_dir=cache_dir)
-    trained = job.run(tck, data, envs, options,
-                      provenance=lambda s: provenance("relight/checkpoint", 1, inputs, s),
-                      save=L.saver(output) if rank == 0 else None, log=lambda m: log(m, quiet),
-                      names={"capture": capture, "teacher": teacher, "envs": ", ".join(env_specs)})
-    if rank != 0:
-        return
-    write_checkpoint(output, trained.result.checkpoint)
-    L.write_validation(metrics_out, trained.result, {"teacher": teacher, "capture":
-                       data.index_path}, trained.config, trained.record)
-    log(f"wrote {output}: " + job.summary(trained), quiet)
+    return config, ckpt, resolve_device(device)
 
 
 def _env_name(spec: str) -> str:

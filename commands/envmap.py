@@ -46,14 +46,25 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
       relight envmap stage.exr --info
       relight envmap stage.exr --info -o - | jq .power
     """
-    import math
-
-    from relight_cli import envmap as E
-    from relight_cli.errors import UsageProblem
-    from relight_cli.formats.envmap import FORMAT, VERSION, write_envmap
-    from relight_cli.provenance import provenance
-
     from relight_cli.cli.inputs import load_envmap
+    from relight_cli.jobs import envmap as job
+
+    # ---- options (usage errors, before any work)
+    options, exr_out, info_out = _options(output, layout, size, rotate_y, preview, show_info,
+                                          no_clobber)
+
+    # ---- input (data errors), the job, the outputs
+    env = load_envmap(input, nonfinite=nonfinite)
+    log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
+    done = job.convert(env, options, log=lambda message: log(message, quiet))
+    _write(done, input, exr_out, preview, info_out, nonfinite, half, quiet)
+
+
+def _options(output, layout, size, rotate_y, preview, show_info, no_clobber):
+    """The options' usage errors (exit 2), before any work, every output checked: (the
+    job's EnvmapOptions, the EXR output or None, the --info JSON's path, '-' or None)."""
+    from relight_cli.errors import UsageProblem
+    from relight_cli.jobs.envmap import EnvmapOptions
 
     if output is None and preview is None and not show_info:
         raise UsageProblem("nothing to do: give -o OUT, --preview PNG or --info")
@@ -83,38 +94,21 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
             if w < 2 or h < 2:
                 raise UsageProblem("lat-long maps need at least 2x2 texels")
             requested = (w, h)
+    info_out = None if not show_info else output if info_to_file else "-"
+    return EnvmapOptions(layout, requested, rotate_y), exr_out, info_out
 
-    env = load_envmap(input, nonfinite=nonfinite)
-    log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
-    target = layout or env.layout
-    if requested is not None and layout is None and target == "cube":
-        # The input is a cube and stays one: --size is its face size.
-        if "x" in size.lower():
-            raise UsageProblem("--size for a cube map is one face size N, e.g. --size 64")
-        requested = (parse_size(size)[0], 6 * parse_size(size)[0])
-    if requested is not None:
-        w, h = requested
-    elif target == env.layout:
-        w, h = env.width, env.height
-    elif target == "latlong":
-        w, h = 4 * env.width, 2 * env.width
-    else:
-        w = max(1, env.height // 2)
-        h = 6 * w
-    changed = (target != env.layout or (w, h) != (env.width, env.height)
-               or math.fmod(rotate_y, 360.0) != 0.0)
-    result = env
-    if changed:
-        result = E.resample(env, target, h, w, rotation=E.rotation_y(rotate_y))
-        log(f"resampled to {target} {w}x{h}" + (f", rotated {rotate_y}° about +Y" if rotate_y else ""),
-            quiet)
-    stats = E.info(result)
+
+def _write(done, input, exr_out, preview, info_out, nonfinite, half, quiet):
+    """The converted map's outputs: the EXR, the preview, the --info JSON."""
+    from relight_cli.formats.envmap import FORMAT, VERSION, write_envmap
+    from relight_cli.provenance import provenance
+
+    result = done.env
     if exr_out is not None:
         prov = provenance(FORMAT, VERSION, {"input": input},
-                          {"layout": target, "width": w, "height": h, "rotate_y": rotate_y,
-                           "nonfinite": nonfinite, "half": half})
+                          {**done.settings, "nonfinite": nonfinite, "half": half})
         write_envmap(exr_out, result, provenance=prov, half=half,
-                     attributes={"relight.power": stats["power"]})
+                     attributes={"relight.power": done.stats["power"]})
         log(f"wrote {exr_out}", quiet)
     if preview is not None:
         if result.layout == "cube":   # six faces unfolded, named, continuous across edges
@@ -129,8 +123,8 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
                           note="+Y up, +Z in the middle",
                           title=f"envmap {input}" + (f" -> {exr_out}" if exr_out else ""))
         log(f"wrote {preview}", quiet)
-    if show_info:
+    if info_out is not None:
         from relight_cli.fileio import write_text_atomic
-        payload = dict(stats)
+        payload = dict(done.stats)
         payload["source"] = input
-        write_text_atomic(output if info_to_file else "-", dumps_json(payload))
+        write_text_atomic(info_out, dumps_json(payload))

@@ -346,7 +346,7 @@ def _hand_learned(a, spec) -> None:
 def _load_model(a, spec, paths, data, device):
     """The job of ``spec`` built from the read checkpoints (DataError naming the file at
     fault, the checkpoint or the hand; UsageProblem for a request it cannot serve)."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     checkpoints = [read_checkpoint(path, kind=spec.kind) for path in paths]
     job = spec.load_attr("render")
     return _model_call(a, job, spec, checkpoints, list(paths), data, device,

@@ -159,7 +159,7 @@ def _load_hand_models(paths, kind: str, device) -> list:
     """One HandModel per checkpoint path (of ``kind``: teacher or linear); DataError
     naming the file for one that does not load or build."""
     from relight_cli.errors import DataError, UsageProblem
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural.evaluate import load_hand_model
     models = []
     for path in paths:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import click
 
 from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_output, log,
-                                   no_clobber_option, parse_vector, preview_option, quiet_option)
+                                   no_clobber_option, parse_vector, preview_option, progress,
+                                   quiet_option)
 
 
 @click.command("sh-probe", short_help="Fit an SH light probe to an env map or a Gaussian scene.")
@@ -60,10 +61,37 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
     """
     import time
 
-    from relight_cli.errors import UsageProblem
     from relight_cli.formats.sh_probe_json import FORMAT, VERSION, ShProbe, write_probe
-    from relight_cli.gaussians import probe as PR
+    from relight_cli.jobs import sh_probe as job
     from relight_cli.provenance import provenance
+
+    # ---- options (usage errors, before any work)
+    options = _options(input, output, degree, ridge, tolerance, max_negativity, max_degree, at,
+                       face_size, near, preview, no_clobber)
+
+    # ---- input (data errors), the job, the outputs
+    start = time.perf_counter()
+    source = _read(input, options.at is not None, nonfinite, quiet)
+    probe = job.fit(source, options, log=lambda message: log(message, quiet),
+                    progress=lambda it: progress(it, total=6, desc="cube faces", quiet=quiet))
+    settings = {"degree": degree, "ridge": ridge,
+                **({} if options.at is not None else {"nonfinite": nonfinite}), **probe.settings}
+    write_probe(output, ShProbe(probe.coefficients, probe.degree, ridge, input, options.at,
+                                probe.extra, provenance(FORMAT, VERSION, {"input": input},
+                                                        settings)))
+    if output != "-":
+        log(f"wrote {output} (degree {probe.degree}, {len(probe.coefficients)} coefficients, "
+            f"{time.perf_counter() - start:.2f} s)", quiet)
+    if preview is not None:
+        _write_preview(preview, probe, input, source, options.at)
+        log(f"wrote {preview}", quiet)
+
+
+def _options(input, output, degree, ridge, tolerance, max_negativity, max_degree, at, face_size,
+             near, preview, no_clobber):
+    """The options' usage errors (exit 2), before any work: the job's ProbeOptions."""
+    from relight_cli.errors import UsageProblem
+    from relight_cli.jobs.sh_probe import ProbeOptions
 
     check_output(output, no_clobber, kind="json")
     check_output(preview, no_clobber, kind="png", what="--preview")
@@ -81,53 +109,30 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
         raise UsageProblem("a Gaussian scene needs the probe position: --at X,Y,Z")
     if at is not None and not is_scene:
         raise UsageProblem("--at is only for Gaussian scenes (.ply); IN looks like an env map")
+    position = parse_vector(at, 3, "--at") if is_scene else None
+    return ProbeOptions(fixed, ridge, tolerance, max_negativity, max_degree, position,
+                        face_size, near)
 
-    start = time.perf_counter()
-    settings = {"degree": degree, "ridge": ridge}
-    position = None
-    env = None
+
+def _read(input, is_scene: bool, nonfinite, quiet):
+    """IN: the Gaussian scene (a .ply) or the env map, logged."""
     if is_scene:
-        from relight_cli.cli.tools import progress
         from relight_cli.formats.gaussians_ply import read_gaussians
-        position = parse_vector(at, 3, "--at")
         scene = read_gaussians(check_input(input))
         log(f"read {input}: {len(scene)} Gaussians, SH degree {scene.sh_degree}", quiet)
-        samples = PR.scene_samples(scene, position, face_size, near,
-                                   progress=lambda it: progress(it, total=6, desc="cube faces",
-                                                                quiet=quiet))
-        settings.update(at=list(position), face_size=face_size, near=near)
-    else:
-        from relight_cli.cli.inputs import load_envmap
-        env = load_envmap(input, nonfinite=nonfinite)
-        log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
-        samples = PR.env_samples(env)
-        settings["nonfinite"] = nonfinite
+        return scene
+    from relight_cli.cli.inputs import load_envmap
+    env = load_envmap(input, nonfinite=nonfinite)
+    log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
+    return env
 
-    extra = {}
-    if fixed is None:
-        choice = PR.choose_degree(samples, tolerance, ridge, max_degree, max_negativity)
-        chosen = choice.degree
-        coefficients = choice.coefficients
-        extra["degree_search"] = PR.degree_search_record(choice)
-        settings.update(tolerance=tolerance, max_negativity=max_negativity, max_degree=max_degree)
-        for line in PR.degree_search_log(choice):
-            log(line, quiet)
-    else:
-        chosen = fixed
-        coefficients = PR.fit_probe(samples, chosen, ridge)
-    if is_scene:
-        extra["face_size"] = face_size
-    prov = provenance(FORMAT, VERSION, {"input": input}, settings)
-    write_probe(output, ShProbe(coefficients, chosen, ridge, input,
-                                None if position is None else position, extra, prov))
-    if output != "-":
-        log(f"wrote {output} (degree {chosen}, {len(coefficients)} coefficients, "
-            f"{time.perf_counter() - start:.2f} s)", quiet)
-    if preview is not None:
-        from relight_cli.formats.image import write_png
-        from relight_cli.preview import probe_sheet
-        if is_scene:   # what the probe was fitted to: the splatted cube faces
-            from relight_cli.preview import samples_latlong
-            env = samples_latlong(samples.directions, samples.radiance)
-        write_png(preview, probe_sheet(coefficients, chosen, input, env, position))
-        log(f"wrote {preview}", quiet)
+
+def _write_preview(path, probe, input, source, position):
+    """The probe's radiance as a labelled lat-long PNG beside what it was fitted to."""
+    from relight_cli.formats.image import write_png
+    from relight_cli.preview import probe_sheet
+    env = source
+    if position is not None:   # what the probe was fitted to: the splatted cube faces
+        from relight_cli.preview import samples_latlong
+        env = samples_latlong(probe.samples.directions, probe.samples.radiance)
+    write_png(path, probe_sheet(probe.coefficients, probe.degree, input, env, position))

@@ -93,11 +93,53 @@ def command(captures, output, preset, config_file, model, iters, batch, lr, tex_
     """
     import os
 
+    from . import _learned as L
+
+    # ---- options (usage errors, before any work)
+    folders = _check_usage(captures, output, model, iters, config_file, vgg_weights, resume,
+                           metrics_out, no_clobber)
+
+    import torch  # noqa: F401  (after usage checks: --help and usage errors stay fast)
+
+    from relight_cli.formats.checkpoint import write_checkpoint
+    from relight_cli.jobs import train_teacher as job
+    from relight_cli.provenance import provenance
+
+    # ---- inputs (data errors), the job, the outputs (rank 0 writes)
+    rank = int(os.environ.get("RANK", "0"))
+    quiet = quiet or rank != 0
+    options = _job_options(model, preset, config_file, resume, device, vgg_weights, len(folders),
+                           not quiet, {
+        "iters": iters, "batch": batch, "lr": lr, "tex_res": tex_res, "seed": seed,
+        "visibility": False if no_visibility else None}, {
+        "light_path": light_path, "linearity_loss": linearity_loss, "features": light_features,
+        "specular": False if no_specular else None, "refiner": False if no_refiner else None})
+    subjects = L.read_captures(folders, options.config)
+    captures_in = {"capture": subjects[0].index_path,
+                   **{f"capture.{s}": d.index_path for s, d in enumerate(subjects[1:], 1)}}
+    inputs = {**captures_in, **L.file_inputs(vgg_weights, resume, config_file)}
+    trained = job.run(subjects, options,
+                      provenance=lambda settings: provenance("relight/checkpoint", 1, inputs,
+                                                             settings),
+                      save=L.saver(output) if rank == 0 else None,
+                      log=lambda m: log(m, quiet), names=folders)
+    if rank != 0:
+        return
+    write_checkpoint(output, trained.result.checkpoint)
+    L.write_validation(metrics_out, trained.result, captures_in, trained.config, trained.record,
+                       trained.sampling)
+    log(f"wrote {output}: {job.summary(trained.result)}", quiet)
+
+
+def _check_usage(captures, output, model, iters, config_file, vgg_weights, resume, metrics_out,
+                 no_clobber) -> list:
+    """The options' usage errors (exit 2), before any work: the CAPTURE folders."""
+    import os
+
     from relight_cli.errors import UsageProblem
 
     from . import _learned as L
 
-    # ---- usage checks before any work
     if iters is not None and iters < 1:
         raise UsageProblem(f"--iters must be ≥ 1, got {iters}")
     default = architectures(trainer="train-teacher")[0]
@@ -115,38 +157,22 @@ def command(captures, output, preset, config_file, model, iters, batch, lr, tex_
         folders.append(capture)
     L.check_inputs(config_file, vgg_weights, resume)
     L.check_outputs(output, metrics_out, no_clobber)
+    return folders
 
-    import torch  # noqa: F401  (after usage checks: --help and usage errors stay fast)
 
-    from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
+def _job_options(model, preset, config_file, resume, device, vgg_weights, n_subjects: int,
+                 progress: bool, overrides: dict, only: dict):
+    """The job's Options, from the inputs (data errors): the --resume checkpoint, the
+    configuration (preset, --config, the flags' ``overrides`` and the model's ``only``
+    flags), the device and the VGG loss."""
     from relight_cli.jobs import train_teacher as job
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural.train import resolve_device
-    from relight_cli.provenance import provenance
+
+    from . import _learned as L
 
     ckpt = read_checkpoint(resume) if resume is not None else None
-    config = job.configure(model, preset, config_file, {
-        "iters": iters, "batch": batch, "lr": lr, "tex_res": tex_res, "seed": seed,
-        "visibility": False if no_visibility else None}, {
-        "light_path": light_path, "linearity_loss": linearity_loss, "features": light_features,
-        "specular": False if no_specular else None, "refiner": False if no_refiner else None},
-        ckpt, resume, len(folders))
+    config = job.configure(model, preset, config_file, overrides, only, ckpt, resume, n_subjects)
     torch_device = resolve_device(device)
-    vgg = L.read_vgg(vgg_weights, torch_device)
-    subjects = L.read_captures(folders, config)     # ---- data (data errors)
-    rank = int(os.environ.get("RANK", "0"))
-    quiet = quiet or rank != 0
-    captures_in = {"capture": subjects[0].index_path,
-                   **{f"capture.{s}": d.index_path for s, d in enumerate(subjects[1:], 1)}}
-    inputs = {**captures_in, **L.file_inputs(vgg_weights, resume, config_file)}
-    trained = job.run(subjects, job.Options(config, preset, torch_device, vgg, ckpt, resume,
-                                            progress=not quiet),
-                      provenance=lambda settings: provenance("relight/checkpoint", 1, inputs,
-                                                             settings),
-                      save=L.saver(output) if rank == 0 else None,
-                      log=lambda m: log(m, quiet), names=folders)
-    if rank != 0:
-        return
-    write_checkpoint(output, trained.result.checkpoint)
-    L.write_validation(metrics_out, trained.result, captures_in, trained.config, trained.record,
-                       trained.sampling)
-    log(f"wrote {output}: {job.summary(trained.result)}", quiet)
+    return job.Options(config, preset, torch_device, L.read_vgg(vgg_weights, torch_device), ckpt,
+                       resume, progress=progress)

@@ -65,13 +65,8 @@ _DTYPES = ("float32", "float64", "float16", "bfloat16", "uint8", "int8", "int16"
            "int64", "bool")
 
 
-def config_class(kind: str):
-    """The configuration dataclass of a checkpoint kind."""
-    from .model_config import LinearConfig, StudentConfig, TeacherConfig
-    return {"teacher": TeacherConfig, "student": StudentConfig, "linear": LinearConfig}[kind]
-
-
-def read_checkpoint(path: str, kind: str | None = None, model: str | None = None) -> dict:
+def read_checkpoint(path: str, kind: str | None = None, model: str | None = None, *,
+                    config_class) -> dict:
     """Read and check a checkpoint: the one validator of the format, used by every command
     that reads one.  Returns its dict with ``config`` and ``provenance`` decoded from JSON
     and ``path`` (the file read, so later checks against a model can name it).
@@ -82,7 +77,11 @@ def read_checkpoint(path: str, kind: str | None = None, model: str | None = None
     larger than the file; the fields' types; the configuration (that of its kind,
     validated); the model named by kind and configuration; ``step`` and ``pose_dim`` in
     range; the optimizer's structure; each RNG state loadable; ``extra``'s fields; every
-    float tensor finite.  What needs the model itself (each weight's and optimizer
+    float tensor finite.  ``config_class``: kind → the class whose ``from_dict`` validates
+    that kind's configuration (its fields' JSON types and ranges, raising UsageProblem);
+    the schemas are the engine's, next to their presets, so the format is read through
+    :func:`relight_cli.neural.checkpoints.read_checkpoint`, which passes the model
+    registry's.  What needs the model itself (each weight's and optimizer
     moment's shape against the module the configuration builds) is checked by
     :func:`relight_cli.neural.train.load_weights` and ``restore_state`` before use.
     Raises DataError naming the file.
@@ -142,7 +141,7 @@ def read_checkpoint(path: str, kind: str | None = None, model: str | None = None
         raise DataError(f"checkpoint holds model {obj['model']!r}, expected {model!r}", path)
     obj["config"] = _json_field(obj["config"], "config", dict, path)
     obj["provenance"] = _json_field(obj["provenance"], "provenance", dict, path)
-    config = _config(obj, path)
+    config = _config(obj, path, config_class(obj["kind"]))
     if getattr(config, field) != obj["model"]:
         raise DataError(f"checkpoint model {obj['model']!r} differs from its configuration's "
                         f"{field} {getattr(config, field)!r}", path)
@@ -244,13 +243,10 @@ def _json_field(text: str, name: str, kind: type, path: str):
     return value
 
 
-def _config(obj: dict, path: str):
-    """The checkpoint's configuration, validated by its kind's class (DataError)."""
+def _config(obj: dict, path: str, cls):
+    """The checkpoint's configuration, validated by its kind's class ``cls`` (DataError)."""
     from relight_cli.errors import UsageProblem
-    from .model_config import check_field_types
-    cls = config_class(obj["kind"])
     try:
-        check_field_types(cls, obj["config"], "checkpoint config")
         return cls.from_dict(obj["config"], "checkpoint config")
     except UsageProblem as exc:
         raise DataError(exc.message, path) from None

@@ -18,7 +18,8 @@ VERSION = 1
 
 @dataclass
 class Lights:
-    """L point lights.
+    """L point lights: the one light record (files, the renderers, the light stage, the
+    scene light estimator).
 
     Attributes:
         positions: [L, 3] float64, metres, world (+Y up).
@@ -49,6 +50,31 @@ class Lights:
 
     def __len__(self) -> int:
         return len(self.positions)
+
+    @classmethod
+    def from_radiant_intensity(cls, positions, intensity, names=None) -> "Lights":
+        """Lights of RGB radiant intensity ``intensity``: [L, 3] (colors = intensity,
+        intensities = 1), or a scalar or [L] (white: colors = 1, intensities = it).
+        Either way :meth:`radiant_intensity` gives it back exactly (x·1.0 = x)."""
+        positions = np.asarray(positions, np.float64).reshape(-1, 3)
+        n = len(positions)
+        inten = np.asarray(intensity, np.float64)
+        if inten.ndim <= 1 and inten.size in (1, n):
+            return cls(positions, None, np.broadcast_to(inten.reshape(-1), (n,)).copy(),
+                       list(names or []))
+        return cls(positions, inten.reshape(n, 3).copy(), None, list(names or []))
+
+    def radiant_intensity(self) -> np.ndarray:
+        """[L, 3] float64 linear RGB radiant intensity, colors × intensities: irradiance
+        I/r² at distance r, facing the light (what the renderers shade with)."""
+        return self.colors * self.intensities[:, None]
+
+    def subset(self, indices) -> "Lights":
+        """The lights ``indices`` (a grouped-light frame turns on a subset); ``extra`` is
+        kept, the provenance (of the whole record) is not."""
+        idx = np.asarray(indices, np.int64).reshape(-1)
+        return Lights(self.positions[idx], self.colors[idx], self.intensities[idx],
+                      [self.names[i] for i in idx], dict(self.extra))
 
 
 def lights_to_json(lights: Lights) -> dict:

@@ -310,13 +310,12 @@ def load_capture(folder: str, config, cache_poses: int | None = None):
 
 
 def load_point_lights(path):
-    """--lights as the physical renderer's PointLights (radiance colour × intensity)."""
+    """--lights as read (a ``formats.lights_json.Lights``, which the renderers shade with
+    as is: radiant intensity colour × intensity), or None without --lights."""
     if path is None:
         return None
     from relight_cli.formats.lights_json import read_lights
-    from relight_cli.render.shading import PointLights
-    raw = read_lights(path)
-    return PointLights(raw.positions, raw.colors * raw.intensities[:, None])
+    return read_lights(path)
 
 
 def load_albedo(path):

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relight_cli.formats.gaussians_ply import Gaussians
+from relight_cli.formats.lights_json import Lights
 from relight_cli.sh import sh_basis
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -49,29 +50,21 @@ VARIANTS = ("paper", "v1")
 
 
 @dataclass
-class EstimatedLights:
-    """K estimated point lights.
+class LightEstimate:
+    """K estimated point lights and the estimator's diagnostics.
 
     Attributes:
-        positions: [K, 3] metres, world.
-        colors: [K, 3] linear RGB with unit luminance.
-        intensities: [K] ``paper``: the base score b of the emitting Gaussian;
-            ``v1``: its mean luminance (scene units).
+        lights: the lights, a ``formats.lights_json.Lights``: positions [K, 3] (metres,
+            world), colors [K, 3] (linear RGB with unit luminance), intensities [K]
+            (``paper``: the base score b of the emitting Gaussian; ``v1``: its mean
+            luminance, scene units); no names, no extra fields.
         scores: [K] final scores (base · peakness factor), descending.
         indices: [K] indices of the chosen Gaussians in the input.
     """
 
-    positions: np.ndarray
-    colors: np.ndarray
-    intensities: np.ndarray
+    lights: Lights
     scores: np.ndarray
     indices: np.ndarray
-
-    def to_lights(self, extra: dict | None = None):
-        """As a ``formats.lights_json.Lights`` (format "relight/lights")."""
-        from relight_cli.formats.lights_json import Lights
-        return Lights(self.positions, self.colors, self.intensities,
-                      [f"auto{i}" for i in range(len(self.positions))], dict(extra or {}))
 
 
 CLIP_FACTOR = 10.0   # the soft-clip fence, in multiples of the 99th percentile
@@ -148,7 +141,7 @@ def colour_toward(g: Gaussians, index, viewpoint) -> np.ndarray:
 def estimate_lights(g: Gaussians, count: int, roi_center=None, roi_radius: float | None = None,
                     n_views: int = 16, neighbours: int = 32, candidates: int = 2048,
                     nms_radius: float | None = None, character: Gaussians | None = None,
-                    variant: str = "paper") -> EstimatedLights:
+                    variant: str = "paper") -> LightEstimate:
     """Estimate ``count`` point lights from scene Gaussians (see the module docstring).
 
     Args:
@@ -166,7 +159,8 @@ def estimate_lights(g: Gaussians, count: int, roi_center=None, roi_radius: float
         variant: ``paper`` or ``v1`` (module doc).
 
     Returns:
-        :class:`EstimatedLights` with at most ``count`` lights (fewer if the ROI is smaller).
+        :class:`LightEstimate`: at most ``count`` lights (fewer if the ROI is smaller) and
+        their scores and Gaussian indices.
 
     Raises:
         ValueError: no Gaussians in the ROI, count < 1, or an unknown variant.
@@ -231,9 +225,8 @@ def estimate_lights(g: Gaussians, count: int, roi_center=None, roi_radius: float
         col = cues["mean_color"][sel]
         intensity = cues["mean_luminance"][sel].copy()
     lum = np.maximum(col @ LUMA, 1e-12)
-    return EstimatedLights(positions=sub.means[sel].copy(), colors=col / lum[:, None],
-                           intensities=intensity,
-                           scores=score[np.array(chosen, dtype=np.int64)], indices=idx[sel])
+    return LightEstimate(Lights(sub.means[sel].copy(), col / lum[:, None], intensity),
+                         scores=score[np.array(chosen, dtype=np.int64)], indices=idx[sel])
 
 
 def parse_auto(spec: str) -> int | None:

@@ -201,16 +201,15 @@ def estimate_lights(scene, k: int, spec: str = "auto", character=None, variant: 
     """K point lights estimated from ``scene`` by relight_cli.gaussians.lights' estimator,
     as a relight/lights record; ``spec`` names the request in errors."""
     from relight_cli.errors import DataError
-    from relight_cli.formats.lights_json import Lights
     from relight_cli.gaussians.lights import estimate_lights as estimate
     try:
-        result = estimate(scene, k, character=character, variant=variant)   # deterministic
+        lights = estimate(scene, k, character=character, variant=variant).lights   # deterministic
     except ValueError as exc:
         raise DataError(f"light estimation failed: {exc}", spec) from None
-    return Lights(result.positions, result.colors, result.intensities,
-                  extra={"estimator": "relight_cli.gaussians.lights.estimate_lights",
-                         "variant": variant, "count": int(k),
-                         "character": "the occluders (alpha-weighted centroid)"})
+    lights.extra = {"estimator": "relight_cli.gaussians.lights.estimate_lights",
+                    "variant": variant, "count": int(k),
+                    "character": "the occluders (alpha-weighted centroid)"}
+    return lights
 
 
 def lights_inside(mix, positions, threshold: float = 1.0):

@@ -79,7 +79,7 @@ class Distilled:
 def load_teacher(checkpoint: dict, device="cpu", identity: str = "",
                  name: str | None = None) -> Teacher:
     """The :class:`Teacher` of a read teacher checkpoint
-    (:func:`relight_cli.formats.checkpoint.read_checkpoint` with ``kind="teacher"``) on
+    (:func:`relight_cli.neural.checkpoints.read_checkpoint` with ``kind="teacher"``) on
     ``device``; DataError naming ``name`` for weights its configuration does not build."""
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.neural.checkpoints import teacher_model

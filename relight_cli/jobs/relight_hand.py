@@ -106,7 +106,7 @@ def physical(data, frames, view_of, materials, settings, lights=None, envmap=Non
         data: HandData.  frames: frame indices.  view_of: (frame, posed meshes) → Camera.
         materials: :func:`relight_cli.render.appearance.hand_materials` (pose independent).
         settings: :class:`relight_cli.render.shading.RenderSettings`.
-        lights: PointLights or None.  envmap: EnvMap or None.
+        lights: a ``formats.lights_json.Lights`` or None.  envmap: EnvMap or None.
         background: RGB behind the hand.  mesh: ``fine`` or ``coarse``.
         aovs: any of ``normal``, ``uv``, ``depth``.  source: the hand's name in errors.
     """
@@ -163,7 +163,7 @@ def learned(data, frames, view_of, per_hand, samples_axis: int, lights=None, den
 
     intensity = None
     if lights is not None:
-        intensity = np.asarray(lights.colors * lights.intensities[:, None], np.float64)
+        intensity = lights.radiant_intensity()                                 # [L, 3]
     rasters = {}      # (mesh k, tex_res) → UV rasterization: pose independent, made once
     for frame in frames:
         timing = T.Timing()

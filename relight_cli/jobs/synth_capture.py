@@ -212,7 +212,7 @@ def _index(stage, env_names, eval_cameras, record):
                                    "image": f"eval/{p:03d}/{n}/{c.name}.exr"}
                                   for p in range(stage.eval_poses) for n in env_names
                                   for c in plan.cameras[:eval_cameras]]}
-    return C.Capture(plan.cameras, plan.lights.positions, plan.lights.intensity,
+    return C.Capture(plan.cameras, plan.lights.positions, plan.lights.radiant_intensity(),
                      plan.light_names, plan.frames, "hand.npz", stage.settings.fps, evaluation,
                      plan.key, False, stage.record, record)
 

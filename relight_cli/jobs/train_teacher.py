@@ -33,7 +33,7 @@ class Options:
         device: a torch.device or its name (``auto``, ``cpu``, ``cuda``).
         vgg: the VGG loss (:func:`relight_cli.neural.losses.load_vgg`, on ``device``);
             None: λ_VGG = 0 on a fresh run (a resumed one keeps its own).
-        resume: a read checkpoint (:func:`relight_cli.formats.checkpoint.read_checkpoint`)
+        resume: a read checkpoint (:func:`relight_cli.neural.checkpoints.read_checkpoint`)
             to continue exactly (weights, Adam, step, RNG).
         resume_name: what errors call that checkpoint (its path).
         progress: a progress bar on stderr.

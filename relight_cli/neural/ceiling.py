@@ -44,15 +44,16 @@ class Ceiling:
     """
 
     def __init__(self, data):
+        from relight_cli.formats.lights_json import Lights
         from relight_cli.render.capture import StageShader, stage_settings
-        from relight_cli.render.shading import PointLights
 
         self.data = data
         settings = stage_settings(data.capture.settings)
         self.shader = None
         if settings is not None:
-            lights = PointLights(np.asarray(data.capture.light_positions, np.float64),
-                                 np.asarray(data.capture.light_intensity, np.float64))
+            lights = Lights.from_radiant_intensity(
+                np.asarray(data.capture.light_positions, np.float64),
+                np.asarray(data.capture.light_intensity, np.float64))
             self.shader = StageShader(data.hand, settings, lights)
         self._lighting = LRU(2)
         self._scores = {}

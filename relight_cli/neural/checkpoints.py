@@ -14,8 +14,7 @@ Each builds the module its configuration describes on the meta device first and
 compares the checkpoint's weights with it (:func:`~relight_cli.neural.weights.
 build_checked`), so a file cannot make us allocate a model it does not hold; each raises
 ValueError (the caller names the file) on a checkpoint that does not build.  The
-checkpoint dict itself is validated before by :func:`relight_cli.formats.checkpoint.
-read_checkpoint`.
+checkpoint dict itself is validated before by :func:`read_checkpoint`.
 """
 
 from __future__ import annotations
@@ -29,6 +28,17 @@ from .linear import LinearConfig, URHandModel
 from .models import build_model
 from .student import build_student
 from .weights import build_checked
+
+
+def read_checkpoint(path: str, kind: str | None = None, model: str | None = None) -> dict:
+    """Read and check a relight/checkpoint (:func:`relight_cli.formats.checkpoint.
+    read_checkpoint`, the format's one validator) with each kind's configuration class
+    from the model registry: everything the file declares is checked before any network
+    is built.  DataError naming the file."""
+    from relight_cli.formats.checkpoint import read_checkpoint as read
+
+    from .registry import for_kind
+    return read(path, kind, model, config_class=lambda k: for_kind(k).load_attr("config"))
 
 
 def load(checkpoint: dict, device="cpu"):
@@ -70,7 +80,7 @@ def _mean_texture(checkpoint: dict, config, required: bool):
 
 def teacher_model(checkpoint: dict, device="cpu"):
     """(model in eval mode, config, mean texture or None) from a read checkpoint dict
-    (:func:`relight_cli.formats.checkpoint.read_checkpoint`).  The weights are compared
+    (:func:`relight_cli.neural.checkpoints.read_checkpoint`).  The weights are compared
     with the module the configuration builds before it is allocated; ValueError (the
     caller names the file) on missing, extra or mis-shaped tensors or a missing or
     mis-shaped mean texture."""
@@ -84,7 +94,7 @@ def teacher_model(checkpoint: dict, device="cpu"):
 
 def linear_model(checkpoint: dict, device="cpu"):
     """(model in eval mode, config, mean texture [1, 3, N, N]) from a read checkpoint
-    (:func:`relight_cli.formats.checkpoint.read_checkpoint`).  The weights are compared
+    (:func:`relight_cli.neural.checkpoints.read_checkpoint`).  The weights are compared
     with the module the configuration builds before it is allocated
     (:func:`~relight_cli.neural.weights.build_checked`).  Raises ValueError for
     missing/mismatched tensors or mean texture (the caller names the file)."""
@@ -101,7 +111,7 @@ def subjects_from_checkpoint(checkpoint: dict, device="cpu") -> list:
     ``extra.subjects`` / ``extra.mean_textures`` (several subjects), else the one subject
     of ``capture_key`` with ``extra.mean_texture`` (a checkpoint of one capture, which
     records no list).  Raises ValueError for a damaged list (the caller names the file;
-    :func:`relight_cli.formats.checkpoint.read_checkpoint` checks the same first)."""
+    :func:`relight_cli.neural.checkpoints.read_checkpoint` checks the same first)."""
     extra = checkpoint.get("extra", {})
     mean = extra.get("mean_texture")
     if "subjects" not in extra and "mean_textures" not in extra:

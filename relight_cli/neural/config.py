@@ -3,9 +3,8 @@
 A configuration is a flat dataclass of JSON values: it is resolved once (preset, then
 ``--config FILE.json``, then command-line flags), stored verbatim in the checkpoint and
 read back from it, so a checkpoint says exactly how it was trained and ``--resume``
-continues the same run.  The dataclasses are the checkpoint format's
-(``relight_cli.formats.model_config``), re-exported here; the presets, their
-resolution and ``--resume``'s rules are the engine's, here.
+continues the same run.  The dataclasses are in ``relight_cli.neural.model_config``,
+re-exported here; the presets, their resolution and ``--resume``'s rules are here.
 
 Presets:
     paper   RelightableHands' numbers (Sec. 4.3, App. A.1): Adam, lr 1e-3, batch 2,
@@ -24,7 +23,7 @@ from __future__ import annotations
 import math
 
 from relight_cli.errors import DataError, UsageProblem
-from relight_cli.formats.model_config import (MAX_LIST, MAX_TEXT, StudentConfig,  # noqa: F401
+from relight_cli.neural.model_config import (MAX_LIST, MAX_TEXT, StudentConfig,  # noqa: F401
                                               TeacherConfig, TrainingConfig, check_field_types)
 
 #: λ_s and λ_b of Eq. 10 are in the paper's 8-bit pixel units (255 = white).  Our

@@ -91,7 +91,7 @@ class HandModel:
 
 
 def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel:
-    """A :class:`HandModel` from a read checkpoint (``formats.checkpoint.read_checkpoint``)
+    """A :class:`HandModel` from a read checkpoint (``neural.checkpoints.read_checkpoint``)
     of kind ``teacher`` or ``linear``.  Raises ValueError for a checkpoint that does not
     build (the caller names the file)."""
     from . import registry

@@ -73,7 +73,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from relight_cli.formats.model_config import LinearConfig   # re-exported: the config's home
+from relight_cli.neural.model_config import LinearConfig   # re-exported: the config's home
 
 from .config import PAPER_UNIT
 from .models import UNet, pose_vector

@@ -308,7 +308,7 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         config: a configuration with ``iters``, ``batch``, ``lr``, ``seed``, ``val_every``,
             ``save_every`` and ``to_dict()``.
         device: torch device (``resolve_device``).
-        resume: a checkpoint dict (``formats.checkpoint.read_checkpoint``) to continue;
+        resume: a checkpoint dict (``neural.checkpoints.read_checkpoint``) to continue;
             its weights are compared with the module the task builds (on the meta device,
             before allocating it) and its whole state with this run's model and
             optimizer (:func:`restore_state`) before any of it is used.

@@ -111,17 +111,19 @@ def dome_cameras(n: int, centre, radius: float, res: int, fov_y_deg: float) -> l
 
 
 def dome_lights(n: int, centre, radius: float):
-    """``n`` white LEDs on a sphere around ``centre`` (:class:`PointLights`), names led000….
+    """``n`` white LEDs on a sphere around ``centre`` (a ``formats.lights_json.Lights`` of RGB
+    radiant intensity I, :meth:`~relight_cli.formats.lights_json.Lights.from_radiant_intensity`),
+    names led000….
 
     Each LED's intensity I = 4πr²/n makes the fully lit stage give a surface facing
     any way an irradiance of ≈ π (the lights' cosine-weighted average over the
     sphere is n·I/(4r²)), so fully lit skin has radiance ≈ its albedo.
     """
-    from .shading import PointLights
+    from relight_cli.formats.lights_json import Lights
 
     positions = np.asarray(centre, np.float64) + radius * fibonacci_sphere(n)
     intensity = np.full((n, 3), 4 * math.pi * radius ** 2 / n)
-    return PointLights(positions, intensity), [f"led{k:03d}" for k in range(n)]
+    return Lights.from_radiant_intensity(positions, intensity), [f"led{k:03d}" for k in range(n)]
 
 
 def light_group(positions: np.ndarray, size: int, rng) -> list:
@@ -326,7 +328,7 @@ class Plan:
 
     Attributes:
         motion: HandData with one frame per capture frame.
-        cameras: list of Camera.  lights: PointLights.  light_names: list.
+        cameras: list of Camera.  lights: ``formats.lights_json.Lights``.  light_names: list.
         frames: list of ``formats.capture.CaptureFrame`` (images empty).
         centre: [3] the motion's centre.  key: :func:`capture_key`.
     """
@@ -482,7 +484,7 @@ class StageShader:
     Args:
         hand: the capture's HandData (its hand.npz: model and motion).
         settings: the capture's :class:`StageSettings` (:func:`stage_settings`).
-        lights: the stage's :class:`~relight_cli.render.shading.PointLights`.
+        lights: the stage's LEDs, a :class:`~relight_cli.formats.lights_json.Lights`.
     """
 
     def __init__(self, hand, settings: StageSettings, lights):

@@ -44,6 +44,7 @@ from .appearance import bilinear
 from relight_cli import features as FE
 from relight_cli.brdf import ggx_cosine
 from relight_cli.envmap import DEFAULT_GRID, DiscreteEnv, discretize_env
+from relight_cli.formats.lights_json import Lights
 from relight_cli.geometry import Receivers, vertex_normals, view_directions
 from relight_cli.visibility import VisibilityCache
 
@@ -62,36 +63,6 @@ SKIN_PROFILE = (
 _MIN_SIGMA_TEXELS = 0.25
 # Lights per block in per-sample specular ([samples, lights, 3] float64 arrays).
 _LIGHT_BLOCK = 16
-
-
-@dataclass
-class PointLights:
-    """Isotropic point lights (LEDs of a light stage).
-
-    Attributes:
-        positions: [L, 3] float64 metres, world.
-        intensity: [L, 3] float64 linear RGB radiant intensity (irradiance I/r² at
-            distance r, facing the light).
-    """
-
-    positions: np.ndarray
-    intensity: np.ndarray
-
-    def __post_init__(self):
-        self.positions = np.asarray(self.positions, np.float64).reshape(-1, 3)
-        inten = np.asarray(self.intensity, np.float64)
-        if inten.ndim <= 1 and inten.size in (1, len(self.positions)):
-            inten = np.repeat(inten.reshape(-1, 1), 3, axis=1)
-            inten = np.broadcast_to(inten, (len(self.positions), 3))
-        self.intensity = np.array(inten, np.float64).reshape(len(self.positions), 3)
-
-    def __len__(self) -> int:
-        return len(self.positions)
-
-    def subset(self, indices) -> "PointLights":
-        """The lights ``indices`` (a grouped-light frame turns on a subset)."""
-        idx = np.asarray(indices, np.int64)
-        return PointLights(self.positions[idx], self.intensity[idx])
 
 
 @dataclass
@@ -269,7 +240,7 @@ class Lighting:
         point_maps: per hand [N, N, 3] point-light direct irradiance before SSS/bounce
             (filled), or None; ``direct="pixel"`` rendering swaps it for exact per-sample
             irradiance and keeps only the SSS/bounce difference from texture space.
-        lights: the point lights (or None).
+        lights: the point lights (``formats.lights_json.Lights``) or None.
         env: the discretized env map (``envmap.DiscreteEnv``) or None.
         stats: seconds per stage and rays traced.
     """
@@ -277,7 +248,7 @@ class Lighting:
     irradiance: list
     direct: list
     visibility: list | None
-    lights: PointLights | None
+    lights: Lights | None
     env: object | None
     stats: dict = field(default_factory=dict)
     point_maps: list | None = None
@@ -422,8 +393,9 @@ class HandRenderer:
             out[jj[blocked], ii[blocked]] = False
         return out
 
-    def _point_irradiance(self, k: int, lights: PointLights):
+    def _point_irradiance(self, k: int, lights: Lights):
         """Irradiance [K, 3] and visibility [K, L] of hand k's texels from point lights."""
+        intensity = lights.radiant_intensity()                                  # [L, 3]
         surf = self.surfaces[k]
         x, n = surf.points, surf.normals
         irr = np.zeros((len(x), 3))
@@ -432,7 +404,7 @@ class HandRenderer:
         for j in range(len(lights)):
             l, cos, r2, h = self._light_ray(x, n, origins, lights.positions[j], k)
             vis[:, j] = h
-            irr += (h * np.clip(cos, 0, None) / np.maximum(r2, 1e-300))[:, None] * lights.intensity[j]
+            irr += (h * np.clip(cos, 0, None) / np.maximum(r2, 1e-300))[:, None] * intensity[j]
         return irr, vis
 
     def _env_visibility(self, k: int, env, fs):
@@ -494,11 +466,12 @@ class HandRenderer:
             return env
         return discretize_env(env, *self.settings.env_res)
 
-    def light(self, lights: PointLights | None = None, env=None) -> Lighting:
+    def light(self, lights: Lights | None = None, env=None) -> Lighting:
         """Camera-independent lighting: irradiance maps (SSS applied) and visibility.
 
         Args:
-            lights: point lights, or None.
+            lights: point lights (``formats.lights_json.Lights``: positions and
+                :meth:`~Lights.radiant_intensity`), or None.
             env: an ``EnvMap`` (discretized to ``env_res``) or a ``envmap.DiscreteEnv``, or None.
         """
         stats = {}
@@ -629,20 +602,21 @@ class HandRenderer:
         image = gb.resolve(radiance, background).astype(np.float32)
         return RenderResult(image, gb.mask, gb, radiance, stats)
 
-    def _point_samples(self, gb, sel, lights: PointLights, k: int, rough=None, f0=0.04):
+    def _point_samples(self, gb, sel, lights: Lights, k: int, rough=None, f0=0.04):
         """Exact point-light irradiance [S, 3] at G-buffer samples ``sel`` of hand k (one
         shadow ray per sample and light facing it) and, given ``rough`` [S], the GGX
         radiance [S, 3] with the same rays (else None)."""
         x, n, v = gb.position[sel], gb.normal[sel], gb.view[sel]
+        intensity = lights.radiant_intensity()                                  # [L, 3]
         irr = np.zeros((len(sel), 3))
         spec = None if rough is None else np.zeros((len(sel), 3))
         origins = x + self.offsets[k] * n
         for j in range(len(lights)):
             l, cos, r2, h = self._light_ray(x, n, origins, lights.positions[j], k)
             falloff = h / np.maximum(r2, 1e-300)                            # [S] h / r²
-            irr += (falloff * np.clip(cos, 0, None))[:, None] * lights.intensity[j]
+            irr += (falloff * np.clip(cos, 0, None))[:, None] * intensity[j]
             if spec is not None:
-                spec += (ggx_cosine(n, v, l, rough, f0) * falloff)[:, None] * lights.intensity[j]
+                spec += (ggx_cosine(n, v, l, rough, f0) * falloff)[:, None] * intensity[j]
         return irr, spec
 
     def _env_specular(self, gb, sel, rough, f0, env, k):
@@ -672,6 +646,7 @@ class HandRenderer:
         """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k,
         visibility looked up in the texel maps (``direct="texel"``)."""
         lights = lighting.lights
+        intensity = lights.radiant_intensity()                                  # [L, 3]
         x, n, v = gb.position[sel], gb.normal[sel], gb.view[sel]
         vis = bilinear(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
                        gb.uv[sel]).reshape(len(sel), len(lights))           # [S, L]
@@ -683,7 +658,7 @@ class HandRenderer:
             l = d / np.sqrt(np.maximum(r2, 1e-300))[..., None]
             w = ggx_cosine(n[:, None], v[:, None], l, rough[:, None], f0)   # [S, B]
             w = w * vis[:, start:stop] / np.maximum(r2, 1e-300)
-            out += w @ lights.intensity[start:stop]
+            out += w @ intensity[start:stop]
         return out
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from relight_cli.formats.gaussians_ply import Gaussians, rgb_to_sh_dc
+from relight_cli.formats.lights_json import Lights
 
 
 # ------------------------------------------------------------------ light estimation (Sec. 3.1)
@@ -47,23 +48,31 @@ def test_estimate_lights_finds_compact_emitters():
     from relight_cli.gaussians.lights import LUMA, estimate_lights
     scene, lamp_a, lamp_b = room_with_lamps()
     est = estimate_lights(scene, 2)
-    found = sorted(est.positions.tolist(), key=lambda p: p[0])
+    # one light record (formats.lights_json.Lights), the diagnostics beside it: the
+    # positions are the chosen Gaussians' centres, unnamed, with no extra fields
+    assert isinstance(est.lights, Lights) and len(est.lights) == 2
+    assert est.lights.names == ["", ""] and est.lights.extra == {}
+    np.testing.assert_array_equal(est.lights.positions, scene.means[est.indices])
+    found = sorted(est.lights.positions.tolist(), key=lambda p: p[0])
     # Positions are Gaussian centres of the lamp clusters (σ = 1 cm jitter): within 4 cm.
     np.testing.assert_allclose(found[0], lamp_b, atol=0.04)
     np.testing.assert_allclose(found[1], lamp_a, atol=0.04)
-    np.testing.assert_allclose(est.colors @ LUMA, 1.0, atol=1e-12)
-    a = int(np.argmin(np.linalg.norm(est.positions - lamp_a, axis=1)))
-    np.testing.assert_allclose(est.colors[a] / est.colors[a].max(), [1.0, 0.75, 0.5], atol=1e-6)
+    np.testing.assert_allclose(est.lights.colors @ LUMA, 1.0, atol=1e-12)
+    a = int(np.argmin(np.linalg.norm(est.lights.positions - lamp_a, axis=1)))
+    np.testing.assert_allclose(est.lights.colors[a] / est.lights.colors[a].max(),
+                               [1.0, 0.75, 0.5], atol=1e-6)
     # paper: intensity = the base score b = opacity·(Ȳ + Ŷ)/2·(½ + ½s)·(½ + ½δ); a lamp looks
     # the same from everywhere (s = 1) and has no view-dependent SH energy (δ = 1)
-    assert est.intensities[a] == pytest.approx(0.9 * np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
+    assert est.lights.intensities[a] == pytest.approx(0.9 * np.array([4.0, 3.0, 2.0]) @ LUMA,
+                                                      rel=1e-6)
     v1 = estimate_lights(scene, 2, variant="v1")            # the earlier variant: mean luminance
-    np.testing.assert_allclose(sorted(v1.positions.tolist()), sorted(est.positions.tolist()))
-    a1 = int(np.argmin(np.linalg.norm(v1.positions - lamp_a, axis=1)))
-    assert v1.intensities[a1] == pytest.approx(np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
+    np.testing.assert_allclose(sorted(v1.lights.positions.tolist()),
+                               sorted(est.lights.positions.tolist()))
+    a1 = int(np.argmin(np.linalg.norm(v1.lights.positions - lamp_a, axis=1)))
+    assert v1.lights.intensities[a1] == pytest.approx(np.array([4.0, 3.0, 2.0]) @ LUMA, rel=1e-6)
     # K = 3: the window (bright but extended) comes after both lamps; the glint never wins.
     est3 = estimate_lights(scene, 3)
-    assert -0.6 < est3.positions[2, 0] < 0.6 and est3.positions[2, 2] < -1.9
+    assert -0.6 < est3.lights.positions[2, 0] < 0.6 and est3.lights.positions[2, 2] < -1.9
     assert est3.scores[0] >= est3.scores[1] >= est3.scores[2]
 
 
@@ -71,7 +80,7 @@ def test_estimate_lights_roi_and_errors():
     from relight_cli.gaussians.lights import estimate_lights, parse_auto
     scene, lamp_a, _ = room_with_lamps()
     est = estimate_lights(scene, 1, roi_center=lamp_a, roi_radius=0.5)
-    np.testing.assert_allclose(est.positions[0], lamp_a, atol=0.04)
+    np.testing.assert_allclose(est.lights.positions[0], lamp_a, atol=0.04)
     with pytest.raises(ValueError, match="no scene Gaussians"):
         estimate_lights(scene, 1, roi_center=[50.0, 0, 0], roi_radius=1.0)
     assert parse_auto("auto:3") == 3 and parse_auto("lights.json") is None
@@ -90,7 +99,7 @@ def test_estimate_lights_paper_details():
                      np.full((50, 3), 0.02), np.tile([1.0, 0, 0, 0], (50, 1)), np.full(50, 0.9),
                      np.zeros((50, 1, 3)), 0)
     est = estimate_lights(scene, 1, roi_radius=0.8, character=char)
-    np.testing.assert_allclose(est.positions[0], lamp_b, atol=0.04)
+    np.testing.assert_allclose(est.lights.positions[0], lamp_b, atol=0.04)
     # soft clipping: below the fence untouched, order kept, bounded above
     v = np.r_[np.linspace(0, 1, 200), 5.0, 50.0, 1e6]
     c = soft_clip(v)
@@ -107,7 +116,8 @@ def test_estimate_lights_paper_details():
     with_floater = concatenate([scene, floater])
     paper = estimate_lights(with_floater, 2)
     v1 = estimate_lights(with_floater, 2, variant="v1")
-    assert v1.positions[0][2] == pytest.approx(1.5) and paper.positions[0][2] == pytest.approx(1.5)
+    assert v1.lights.positions[0][2] == pytest.approx(1.5)
+    assert paper.lights.positions[0][2] == pytest.approx(1.5)
     assert v1.scores[0] > 1000 * v1.scores[1]                 # unclipped (measured 3500×)
     assert paper.scores[0] < 50 * paper.scores[1]             # soft-clipped (measured 20×)
     # colour toward the character: the SH evaluated from the character's centroid

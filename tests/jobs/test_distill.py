@@ -78,7 +78,7 @@ def test_distill_job_equals_cli(root, teacher, student):
     """The distill job's student (or DRAM) is the CLI's for the same teacher, capture, env
     maps and seed: weights bit for bit, the same validation history and split."""
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.jobs import distill as J
     from relight_cli.provenance import file_sha256
     out = root / f"{student}_cli.pt"

@@ -87,7 +87,7 @@ def _history(metrics_json) -> list:
 def test_train_job_equals_cli(root, model, fields):
     """The job's checkpoint and validation history are the CLI's for the same inputs and
     seed (weights bit for bit)."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     out = root / f"{model}_cli.pt"
     _cli("train-teacher", root / "cap", "--model", model, "--config", root / f"{fields}.json",
          "--iters", 3, "-q", "-o", out, "--metrics-out", root / f"{model}_cli.json")

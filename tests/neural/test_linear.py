@@ -151,7 +151,7 @@ def _features_pair(shape, seed=3):
 def test_light_path_is_exactly_linear(light_path, linear_ckpt):
     """f(aF₁ + bF₂) = a f(F₁) + b f(F₂) to 1e-5 relative on random features, for the trained
     model (Eq. 4); the LeakyReLU ablation is not linear."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     if light_path == "linear":
         model, cfg, mean = linear_model(read_checkpoint(str(linear_ckpt)))
     else:

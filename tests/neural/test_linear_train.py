@@ -74,7 +74,7 @@ def _key(folder):
 def test_two_subjects_train_one_model(made):
     """The checkpoint lists both subjects (key, skin seed, row) with each one's own T̄;
     its one-subject fields stay those of the first; validation covers both."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural.linear_train import albedo_texture
     ck = read_checkpoint(str(made / "ab.pt"), kind="linear")
     extra = ck["extra"]
@@ -96,7 +96,7 @@ def test_two_subjects_train_one_model(made):
 def test_unseen_subject_uses_its_own_mean_texture(made, tmp_path):
     """An unseen capture is scored with its own T̄ (albedo_texture of that capture, not
     a stored one) and says so; a trained subject's capture takes its stored row."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural.evaluate import CaptureEvaluator, load_hand_model
     from relight_cli.neural.linear_train import albedo_texture
     ck = read_checkpoint(str(made / "ab.pt"))
@@ -237,7 +237,7 @@ def test_one_capture_writes_no_subject_fields(made, tmp_path):
     assert r.exit_code == 0, r.output
     ck = torch.load(tmp_path / "a.pt", weights_only=True)
     assert list(ck["extra"]) == ["uv_layout", "hands", "mean_texture"]
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural.checkpoints import subjects_from_checkpoint
     subjects = subjects_from_checkpoint(read_checkpoint(str(tmp_path / "a.pt")))
     assert [(k, s) for k, s, _ in subjects] == [(_key(made / "a"), None)]

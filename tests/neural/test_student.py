@@ -186,7 +186,7 @@ def test_mixed_env_maps(monkeypatch):
 def test_pseudo_ground_truth_equals_teacher_render(setup, tmp_path):
     """Target = Σ_m b_m C_m equals the teacher's own env render (engine and CLI)."""
     from relight_cli.formats.camera import write_cameras
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.formats.exr import read_exr
     from relight_cli.neural.data import CaptureData
     from relight_cli.neural.distill import TeacherTargets
@@ -225,7 +225,7 @@ def test_pseudo_ground_truth_equals_teacher_render(setup, tmp_path):
 
 
 def test_distillation_lowers_the_loss(setup):
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural import distill as D
     from relight_cli.neural.config import StudentConfig
     from relight_cli.neural.data import CaptureData
@@ -291,7 +291,7 @@ def test_mixed_env_training_resumes_exactly(setup, tmp_path, student):
     """``env_augment: mix`` draws each sample's map from the run's seeded RNG stream, so
     2 + 2 resumed iterations are 4 uninterrupted ones, bit for bit; and the run is not
     the plain one (the maps it trained on differ)."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     (tmp_path / "mix.json").write_text(json.dumps({**STUDENT, "env_augment": "mix",
                                                    "student": student}))
     (tmp_path / "plain.json").write_text(json.dumps({**STUDENT, "student": student}))
@@ -342,7 +342,7 @@ def test_dram_traces_no_texel_features(setup, tmp_path, monkeypatch):
     it (bake's PoseFeatures made to raise), and its texture is what the network gives with
     any features of the right size (it reads only their size)."""
     import relight_cli.bake as bake
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural import distill as DI
 
     def traced(*args, **kwargs):
@@ -373,7 +373,7 @@ def test_dram_traces_no_texel_features(setup, tmp_path, monkeypatch):
 def test_student_is_scale_equivariant(setup, tmp_path):
     """Normalizing by the env's mean radiance: a 10× brighter env gives a 10× brighter image."""
     from relight_cli.envmap import DiscreteEnv
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural import distill as D
     from relight_cli.neural.teacher import composite
     from relight_cli.render.gbuffer import render_gbuffer
@@ -405,7 +405,7 @@ def test_student_renders_on_its_render_grid(setup, tmp_path):
     rendered on its own grid (the held-out ground truth records it and differs); ``relight
     --env-res`` takes any grid for the texel-aligned student, DRAM's must be its own."""
     from relight_cli.builtin_envs import builtin_envmap
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.formats.exr import read_exr
     runs = {}
     for name, extra in (("train", {}), ("fine", {"render_env_res": [16, 32]})):
@@ -1008,7 +1008,7 @@ def test_linear_head_is_linear_in_the_env_map(setup, tmp_path):
     log1p of the map) is not.  (The eq11 student, near-linear this early in training,
     misses by only ~1e-4: no control.)"""
     from relight_cli.envmap import DiscreteEnv
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural import distill as D
     from relight_cli.neural.config import StudentConfig
     from relight_cli.neural.data import CaptureData
@@ -1052,7 +1052,7 @@ def test_linear_head_is_linear_in_the_env_map(setup, tmp_path):
 def test_closed_form_student_from_the_command_line(setup, tmp_path):
     """``--iters 0`` with ``head_init: lsq``: the least-squares fit is the student — a
     checkpoint at step 0 that validates, resumes into SGD, and renders."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     (tmp_path / "lsq.json").write_text(json.dumps({**STUDENT, "head": "linear",
                                                    "head_init": "lsq"}))
     out = tmp_path / "lsq.pt"

@@ -557,7 +557,7 @@ def test_resume_is_exact(capture_dir, small_config, tmp_path, run_cli, variant):
     assert full.read_bytes() == first
     # a channels_last run's checkpoint is loaded in that layout for inference, with the
     # numbers of the same weights in NCHW up to float rounding
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural.checkpoints import teacher_model
     from relight_cli.neural.models import N_INPUT, build_model
     net, cfg, _ = teacher_model(read_checkpoint(str(full), kind="teacher"))
@@ -667,7 +667,8 @@ def _small_teacher(small_teacher, tmp_path, name="t.pt"):
 
 def test_checkpoint_round_trip_and_refusals(capture_dir, small_config, tmp_path, run_cli,
         small_teacher):
-    from relight_cli.formats.checkpoint import read_checkpoint, write_checkpoint
+    from relight_cli.formats.checkpoint import write_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural.checkpoints import teacher_model as model_from_checkpoint
 
     path = _small_teacher(small_teacher, tmp_path)
@@ -838,7 +839,7 @@ def _hand_model(sides, seed, pose_dim, model="olat", mean=None):
 def test_left_teacher_records_its_hand(left_capture, hand_teachers):
     """train-teacher on a left-hand capture: the checkpoint says it learned a left hand,
     and it scores its own capture on the held-out grouped frames."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     from relight_cli.neural.evaluate import evaluate_capture, load_hand_model
     right, left = (read_checkpoint(str(p), kind="teacher") for p in hand_teachers)
     assert [h["side"] for h in left["extra"]["hands"]] == ["left"]

@@ -40,7 +40,7 @@ def test_fully_lit_stage_irradiance():
     n = rng.normal(size=(50, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     l = lights.positions / np.linalg.norm(lights.positions, axis=1, keepdims=True)
-    e = (np.clip(n @ l.T, 0, None) / 1.2 ** 2) @ lights.intensity[:, 0]
+    e = (np.clip(n @ l.T, 0, None) / 1.2 ** 2) @ lights.radiant_intensity()[:, 0]
     # 400 lights sample the cosine lobe: quadrature error ~1%.
     np.testing.assert_allclose(e, math.pi, rtol=0.03)
 
@@ -251,8 +251,9 @@ def test_stage_env_render_is_the_sum_of_far_leds():
     from relight_cli.envmap import DiscreteEnv, latlong_directions, latlong_solid_angles
     from relight_cli.hand.scene import posed_meshes
     from relight_cli.cli.inputs import load_hand
+    from relight_cli.formats.lights_json import Lights
     from relight_cli.render.appearance import hand_materials
-    from relight_cli.render.shading import HandRenderer, PointLights, RenderSettings
+    from relight_cli.render.shading import HandRenderer, RenderSettings
 
     hand = load_hand("builtin:right")
     meshes = posed_meshes(hand, 0, "fine")
@@ -270,7 +271,7 @@ def test_stage_env_render_is_the_sum_of_far_leds():
         rad = np.zeros((len(dirs), 3))
         rad[cells] = weights / dw[cells, None]                  # L Δω = weight
         env = r.render(camera, r.light(env=DiscreteEnv(dirs, dw, rad, 8, 16))).image
-        leds = PointLights(centre + far * dirs[cells], far * far * weights)
+        leds = Lights.from_radiant_intensity(centre + far * dirs[cells], far * far * weights)
         led = r.render(camera, r.light(leds)).image
         assert led.sum() > 0
         return float(np.sum((env - led) ** 2) / np.sum(led ** 2))

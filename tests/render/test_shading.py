@@ -13,7 +13,8 @@ from relight_cli.formats.camera import Camera
 from relight_cli.render import appearance as A
 from relight_cli.brdf import ggx_cosine, ggx_cosine_torch
 from relight_cli.render.gbuffer import render_gbuffer
-from relight_cli.render.shading import (SKIN_PROFILE, HandRenderer, PointLights, RenderSettings,
+from relight_cli.formats.lights_json import Lights
+from relight_cli.render.shading import (SKIN_PROFILE, HandRenderer, RenderSettings,
                                         diffuse_image_torch, lookup_torch, sss_diffuse)
 from render_scenes import uv_quad, uv_sphere
 
@@ -209,16 +210,20 @@ def test_linear_in_point_lights(hand_scene):
     meshes, material, cam, c = hand_scene
     settings = RenderSettings(tex_res=64, aa=1)               # shadows, specular, SSS all on
     renderer = HandRenderer(meshes, material, settings)
-    a = PointLights(c + [[0.3, 0.2, 0.4], [-0.2, 0.3, 0.3]], [[1.0, 0.5, 0.2], [0.3, 0.3, 1.0]])
-    b = PointLights(c + [[0.0, 0.4, 0.15], [0.1, -0.3, 0.4], [0.4, 0.0, -0.1]], 0.7)
-    both = PointLights(np.concatenate([a.positions, b.positions]),
-                       np.concatenate([a.intensity, b.intensity]))
+    a = Lights.from_radiant_intensity(c + [[0.3, 0.2, 0.4], [-0.2, 0.3, 0.3]],
+                                      [[1.0, 0.5, 0.2], [0.3, 0.3, 1.0]])
+    b = Lights.from_radiant_intensity(c + [[0.0, 0.4, 0.15], [0.1, -0.3, 0.4], [0.4, 0.0, -0.1]],
+                                      0.7)
+    both = Lights.from_radiant_intensity(np.concatenate([a.positions, b.positions]),
+                                         np.concatenate([a.radiant_intensity(),
+                                                         b.radiant_intensity()]))
     ra = renderer.render(cam, renderer.light(a)).samples
     rb = renderer.render(cam, renderer.light(b)).samples
     rab = renderer.render(cam, renderer.light(both)).samples
     # Float64 light transport: sums differ only by rounding.
     np.testing.assert_allclose(rab, ra + rb, rtol=1e-10, atol=1e-13 * np.abs(rab).max())
-    r2 = renderer.render(cam, renderer.light(PointLights(a.positions, 2.5 * a.intensity))).samples
+    r2 = renderer.render(cam, renderer.light(
+        Lights.from_radiant_intensity(a.positions, 2.5 * a.radiant_intensity()))).samples
     np.testing.assert_allclose(r2, 2.5 * ra, rtol=1e-10, atol=1e-13 * np.abs(r2).max())
 
 
@@ -256,14 +261,14 @@ def test_inverse_square_falloff():
     cam = Camera.look_at([0, 0, 0.5], [0, 0, 0], fov_y_deg=10, width=9, height=9)
     settings = RenderSettings(tex_res=64, aa=1, specular=False, sss=False)
     renderer = HandRenderer([quad], [WHITE], settings)
-    near = renderer.render(cam, renderer.light(PointLights([[0, 0, 0.1]], 1.0)))
-    far = renderer.render(cam, renderer.light(PointLights([[0, 0, 0.2]], 1.0)))
+    near = renderer.render(cam, renderer.light(Lights.from_radiant_intensity([[0, 0, 0.1]], 1.0)))
+    far = renderer.render(cam, renderer.light(Lights.from_radiant_intensity([[0, 0, 0.2]], 1.0)))
     centre = near.image[4, 4, 0] / far.image[4, 4, 0]
     # Texels are 3 mm: cos/r² varies by < 1e-3 across the texels around the centre.
     assert centre == pytest.approx(4.0, rel=2e-3)
     # Texel irradiance against the closed form E = I·cos θ/r² = I·d/r³ (exact up to rounding).
     surf = renderer.surfaces[0]
-    lit = renderer.light(PointLights([[0.01, -0.02, 0.1]], 2.0))
+    lit = renderer.light(Lights.from_radiant_intensity([[0.01, -0.02, 0.1]], 2.0))
     r = np.linalg.norm(surf.points - [0.01, -0.02, 0.1], axis=1)
     np.testing.assert_allclose(lit.direct[0][:, 0], 2.0 * 0.1 / r ** 3, rtol=1e-10)
 
@@ -276,7 +281,7 @@ def test_finger_shadow_matches_ray_traced_region(hand_scene):
     from relight_cli.raytrace import occluded_reference
 
     meshes, material, cam, c = hand_scene
-    light = PointLights([c + [0.0, 0.4, 0.15]], 1.0)
+    light = Lights.from_radiant_intensity([c + [0.0, 0.4, 0.15]], 1.0)
     plain = A.constant_material(albedo=(0.5, 0.5, 0.5))
     shadowed = HandRenderer(meshes, [plain], RenderSettings(tex_res=256, aa=1, specular=False,
                                                             sss=False))
@@ -313,7 +318,7 @@ def test_texel_visibility_matches_slow_twin(hand_scene):
     meshes, material, cam, c = hand_scene
     renderer = HandRenderer(meshes, material, RenderSettings(tex_res=48))
     pos = c + [0.0, 0.4, 0.15]
-    lit = renderer.light(PointLights([pos], 1.0))
+    lit = renderer.light(Lights.from_radiant_intensity([pos], 1.0))
     surf = renderer.surfaces[0]
     vis = lit.visibility[0][..., 0][surf.inside]
     d = pos - surf.points
@@ -366,21 +371,21 @@ def test_sss_preserves_uniform_irradiance_and_spreads_red_widest():
 def test_bounce_adds_light_only_in_concavities(hand_scene):
     sphere = uv_sphere(n_lat=16, n_lon=32)
     cam = sphere_camera(sphere)
-    light = PointLights([[0.2, 0.3, 0.3]], 1.0)
+    light = Lights.from_radiant_intensity([[0.2, 0.3, 0.3]], 1.0)
     on = HandRenderer([sphere], [WHITE], RenderSettings(tex_res=32, aa=1, bounce=True))
     off = HandRenderer([sphere], [WHITE], RenderSettings(tex_res=32, aa=1))
     # A convex shape never sees itself: exactly no bounce light.
     np.testing.assert_array_equal(on.render(cam, on.light(light)).samples,
                                   off.render(cam, off.light(light)).samples)
     meshes, material, cam, c = hand_scene
-    light = PointLights([c + [0.0, 0.3, 0.3]], 1.0)
+    light = Lights.from_radiant_intensity([c + [0.0, 0.3, 0.3]], 1.0)
     on = HandRenderer(meshes, material, RenderSettings(tex_res=48, aa=1, bounce=True))
     off = HandRenderer(meshes, material, RenderSettings(tex_res=48, aa=1))
     a, b = on.light(light), off.light(light)
     extra = a.irradiance[0] - b.irradiance[0]
     assert extra.min() >= -1e-12 and extra.max() > 0
     # Linear: twice the light, twice the bounce.
-    a2 = on.light(PointLights(light.positions, 2.0))
+    a2 = on.light(Lights.from_radiant_intensity(light.positions, 2.0))
     np.testing.assert_allclose(a2.irradiance[0], 2 * a.irradiance[0], rtol=1e-10, atol=1e-14)
 
 
@@ -408,7 +413,7 @@ def test_torch_path_matches_numpy_and_has_gradients(hand_scene):
     meshes, material, cam, c = hand_scene
     renderer = HandRenderer(meshes, material, RenderSettings(tex_res=64, aa=2, specular=False,
                                                              direct="texel"))
-    lighting = renderer.light(PointLights([c + [0.2, 0.3, 0.4]], 1.0))
+    lighting = renderer.light(Lights.from_radiant_intensity([c + [0.2, 0.3, 0.4]], 1.0))
     result = renderer.render(cam, lighting)
     albedo = torch.tensor(material[0].albedo, dtype=torch.float64, requires_grad=True)
     irr = torch.tensor(lighting.irradiance[0], dtype=torch.float64)

@@ -17,10 +17,11 @@ def test_matches_mitsuba_direct_diffuse(tmp_path):
     from scipy.ndimage import binary_erosion, maximum_filter, minimum_filter
 
     from relight_cli.formats.camera import Camera
+    from relight_cli.formats.lights_json import Lights
     from relight_cli.hand.model import builtin_hand
     from relight_cli.hand.scene import posed_meshes
     from relight_cli.render import appearance as A
-    from relight_cli.render.shading import HandRenderer, PointLights, RenderSettings
+    from relight_cli.render.shading import HandRenderer, RenderSettings
 
     mi.set_variant("scalar_rgb")
     meshes = posed_meshes(builtin_hand(pose="point"), 0, "coarse")
@@ -31,7 +32,7 @@ def test_matches_mitsuba_direct_diffuse(tmp_path):
     cam = Camera.look_at(eye, c, fov_y_deg=18, width=size, height=size)
     renderer = HandRenderer(meshes, [A.constant_material((0.5, 0.5, 0.5))],
                             RenderSettings(tex_res=256, aa=8, specular=False, sss=False))
-    ours = renderer.render(cam, renderer.light(PointLights([light], 1.0)))
+    ours = renderer.render(cam, renderer.light(Lights.from_radiant_intensity([light], 1.0)))
 
     vert = np.array([tuple(p) + tuple(n) for p, n in zip(mesh.vertices, mesh.normals)],
                     dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")])

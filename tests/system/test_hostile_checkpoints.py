@@ -292,7 +292,7 @@ def test_hostile_checkpoint_is_one_line(made, tmp_path, case, base, damage, entr
 
 def test_real_checkpoints_still_load_and_resume(made, tmp_path):
     """The validators accept what relight writes (every kind, resumed one step further)."""
-    from relight_cli.formats.checkpoint import read_checkpoint
+    from relight_cli.neural.checkpoints import read_checkpoint
     for name in ("teacher", "ggx", "linear", "student"):
         ck = read_checkpoint(str(made / f"{name}.pt"))
         assert ck["path"] == str(made / f"{name}.pt")

@@ -5,11 +5,18 @@ One flat dataclass of JSON values per model (:class:`TeacherConfig` for
 :class:`LinearConfig` for URHand's linear model), its JSON types
 (:func:`check_field_types`) and its ranges (``validate``).  A configuration is
 resolved once (preset, then ``--config FILE.json``, then command-line flags: the
-presets are the engine's, ``relight_cli.neural.config``), stored verbatim in the
-checkpoint (``formats/checkpoint.md``) and read back from it, so a checkpoint says
-exactly how it was trained and ``--resume`` continues the same run.  The fields'
-meaning in the paper's terms is in each class's docstring; ``relight_cli.neural.config``
-and ``relight_cli.neural.linear`` re-export the classes.
+presets are beside it, ``relight_cli.neural.config``), stored verbatim in the
+checkpoint's ``config`` field and read back from it, so a checkpoint says exactly how
+it was trained and ``--resume`` continues the same run.  The fields' meaning in the
+paper's terms is in each class's docstring; ``relight_cli.neural.config`` and
+``relight_cli.neural.linear`` re-export the classes.
+
+These are the models' research knobs, so they live with the models, not with the file
+formats: the checkpoint format (``formats/checkpoint.md``, version 1) holds the envelope
+and checks the configuration through the class the model registry names for its kind
+(:func:`relight_cli.neural.checkpoints.read_checkpoint`), before any network is built.
+A new knob is a change here, not a new format version; a checkpoint from before a knob
+existed reads with its default.
 """
 
 from __future__ import annotations
