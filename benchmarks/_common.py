@@ -4,6 +4,11 @@
   ``--quick`` (a smoke run: ``make benchmarks QUICK=1`` runs them all in a few minutes);
   :func:`start` checks for matplotlib first, so a runner without it stops at once with
   one line instead of after minutes of work.
+* Paths are checked before any work, nothing created until all pass (DESIGN.md "How
+  every command behaves"): :func:`check_out_dir` (an output folder that is a file or
+  cannot be made: one line, exit 2), :func:`check_out_file`, :func:`read_report` (a
+  damaged JSON record: one line, exit 1), and :func:`run_main`, every script's entry
+  point, turns a RelightError or OSError into one line ``<script>: error: … (<path>)``.
 * :func:`machine_limits` measures, in the same run, the ceilings the benchmark's numbers
   are read against: float32 GEMM GFLOP/s (torch, else numpy), main-memory copy
   bandwidth, and on request raw embree occlusion rays/s, erf throughput and the dense
@@ -61,12 +66,127 @@ def parser(doc: str, quick: str = "a smoke run: fewer, smaller configurations"):
     return ap
 
 
-def start(args, name: str) -> Path:
-    """Check that matplotlib is there (one line and exit 1 if not), make ``--out``."""
+def start(args, name: str, folders: dict | None = None) -> Path:
+    """Check every folder the run writes (``--out`` and ``folders``: option → path; one
+    line and exit 2 if one cannot be), that matplotlib is there (one line and exit 1 if
+    not), then make ``--out``: nothing is created before every check has passed."""
+    check_out_dir(name, args.out, "--out")
+    for option, path in (folders or {}).items():
+        check_out_dir(name, path, option)
     require_matplotlib(name)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+# ------------------------------------------------------------------ paths and errors
+#
+# Benchmarks are not product commands, but users run them: like the CLI (DESIGN.md "How
+# every command behaves") a bad path is one line ``<script>: error: <what> (<path>)``,
+# exit 2 (usage) or 1 (data), no traceback, nothing created, and it is found before any
+# work.
+
+
+def fail(name: str, message: str, path=None, code: int = 1):
+    """Print ``<name>: error: <message> (<path>)`` on stderr and exit ``code``."""
+    line = f"{name}: error: {message}" + ("" if path is None else f" ({path})")
+    try:
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        pass
+    print(line, file=sys.stderr, flush=True)
+    raise SystemExit(code)
+
+
+def _folder_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be (made into) a folder the run writes into, or None."""
+    p = Path(os.path.abspath(path))
+    if p.exists():
+        if not p.is_dir():
+            return "is not a folder"
+        if not os.access(p, os.W_OK | os.X_OK):
+            return "folder is not writable"
+        return None
+    parent = p.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"cannot create the folder: {parent} is not a folder"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"cannot create the folder: {parent} is not writable"
+    return None
+
+
+def check_out_dir(name: str, path, option: str = "--out") -> Path:
+    """``path`` is a writable folder, or can be made one; else one line, exit 2.
+    Creates nothing."""
+    if path is None or str(path) == "":
+        fail(name, f"{option} needs a folder", None, 2)
+    problem = _folder_problem(Path(path))
+    if problem:
+        fail(name, f"{option}: {problem}", path, 2)
+    return Path(path)
+
+
+def check_out_file(name: str, path, option: str) -> Path:
+    """``path`` is a file the run can write: not a folder, its folder there and writable
+    (never made for it); else one line, exit 2.  Creates nothing."""
+    p = Path(path)
+    if p.is_dir():
+        fail(name, f"{option}: is a folder, expected a file", path, 2)
+    parent = Path(os.path.abspath(p)).parent
+    if not parent.exists():
+        fail(name, f"{option}: no such folder: {parent}", path, 2)
+    if not parent.is_dir():
+        fail(name, f"{option}: {parent} is not a folder", path, 2)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        fail(name, f"{option}: folder is not writable: {parent}", path, 2)
+    if p.exists() and not os.access(p, os.W_OK):
+        fail(name, f"{option}: file is not writable", path, 2)
+    return p
+
+
+def read_report(name: str, path) -> dict:
+    """A benchmark's JSON record (a table, a report): a dict, or one line and exit 1
+    (missing, unreadable, damaged JSON, not an object)."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        fail(name, "no such file", path, 1)
+    except IsADirectoryError:
+        fail(name, "is a folder, expected a JSON file", path, 1)
+    except UnicodeDecodeError:
+        fail(name, "damaged JSON: not UTF-8 text", path, 1)
+    except OSError as exc:
+        fail(name, f"cannot read: {(exc.strerror or str(exc)).lower()}", path, 1)
+    try:
+        record = json.loads(text)
+    except json.JSONDecodeError as exc:
+        fail(name, f"damaged JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", path, 1)
+    except RecursionError:
+        fail(name, "damaged JSON: nested too deeply", path, 1)
+    if not isinstance(record, dict):
+        fail(name, "damaged JSON: expected an object", path, 1)
+    return record
+
+
+def run_main(name: str, main, *args, **kwargs):
+    """Run a script's ``main``: a RelightError or an OSError (a file that vanished, a full
+    disk) becomes one line and exit 1 (2 for usage), never a traceback."""
+    try:
+        return main(*args, **kwargs)
+    except OSError as exc:
+        where = exc.filename if exc.filename is not None else None
+        reason = (exc.strerror or str(exc) or type(exc).__name__).lower()
+        fail(name, reason, where, 1)
+    except Exception as exc:            # noqa: BLE001 — only RelightError is reworded
+        try:
+            from relight_cli.errors import RelightError
+        except ImportError:             # pragma: no cover
+            raise exc from None
+        if isinstance(exc, RelightError):
+            fail(name, str(exc), None, getattr(exc, "exit_code", 1))
+        raise
 
 
 def require_matplotlib(name: str) -> None:

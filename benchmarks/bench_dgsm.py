@@ -465,4 +465,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_dgsm.py", main)

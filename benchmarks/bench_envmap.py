@@ -147,4 +147,4 @@ def write_plot(path: Path, rows: list, machine: dict) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_envmap.py", main)

@@ -320,4 +320,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_features.py", main)

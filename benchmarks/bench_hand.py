@@ -149,4 +149,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_hand.py", main)

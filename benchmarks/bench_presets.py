@@ -148,7 +148,7 @@ def main(argv=None) -> None:
     if unknown or not models:
         ap.error(f"unknown model(s) {', '.join(unknown) or '(none named)'}; "
                  f"use {', '.join(MODELS)}")
-    out = B.start(args, "bench_presets.py")
+    out = B.start(args, "bench_presets.py", {"--work": args.work})
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
 
@@ -269,4 +269,4 @@ def _plot(record: dict, path: Path) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_presets.py", main)

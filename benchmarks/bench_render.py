@@ -150,4 +150,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_render.py", main)

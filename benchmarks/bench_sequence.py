@@ -939,9 +939,11 @@ def main():
         ap.error(f"unknown model(s): {', '.join(bad)}")
     if args.quick:
         args.frames, args.size, args.k, args.budget = 5, 96, 2, 0.0
+    if args.report:        # the record is read (and refused if damaged) before anything
+        B.check_out_dir("bench_sequence.py", args.out, "--out")
+        report = B.read_report("bench_sequence.py", Path(args.out) / "sequence.json")
     out = B.start(args, "bench_sequence.py")
     if args.report:
-        report = json.loads((out / "sequence.json").read_text())
         if "physical" in report.get("models", {}):
             report["models"]["physical"]["describe"] = physical_describe(report["quick"])
         write_outputs(out, report)
@@ -1055,4 +1057,4 @@ def write_outputs(out: Path, report: dict) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_sequence.py", main)

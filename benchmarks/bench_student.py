@@ -394,4 +394,4 @@ def write_plot(path: Path, report: dict) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_student.py", main)

@@ -307,4 +307,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_teacher.py", main)

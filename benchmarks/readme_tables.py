@@ -17,14 +17,16 @@ there until the README is rewritten::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # the checkout's library
 from relight_cli.neural.judging import within_goal  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
+NAME = "readme_tables.py"
 ROOT = HERE.parent
 RESULTS = HERE / "results"
 TABLES = {"rh_t13": "RelightableHands Tables 1, 3", "rh_t2": "RelightableHands Table 2",
@@ -58,8 +60,8 @@ def _cell(hands: dict) -> str:
 
 def verdicts(results: Path = RESULTS) -> str:
     """The claims table: small scale against converged, claim by claim."""
-    small = {t: json.loads((results / f"study_{t}.json").read_text()) for t in TABLES}
-    big = {t: json.loads((results / "converged" / f"study_{t}.json").read_text())
+    small = {t: _common.read_report(NAME, results / f"study_{t}.json") for t in TABLES}
+    big = {t: _common.read_report(NAME, results / "converged" / f"study_{t}.json")
            for t in TABLES}
     n_small = {len(r["seeds"]) for r in small.values()}
     n_big = {len(r["seeds"]) for r in big.values()}
@@ -77,7 +79,7 @@ def verdicts(results: Path = RESULTS) -> str:
 
 def presets(path: Path = PRESETS) -> str:
     """The presets table: each model's wall time, what it is judged on, PSNR, ceiling, gap."""
-    record = json.loads(path.read_text())
+    record = _common.read_report(NAME, path)
     lines = ["| model | iterations | wall (min) | judged on | PSNR (dB) | ceiling | gap | "
              "within 1 dB | held-out env maps: gap |", "|---|---|---|---|---|---|---|---|---|"]
     olat = next((r for r in record["rows"] if r["model"] == "olat"), None)
@@ -115,6 +117,7 @@ def main(argv=None) -> None:
         print("\n\n".join(tables.values()))
         return
     readme = ROOT / "README.md"
+    _common.check_out_file(NAME, readme, "--write")
     text = readme.read_text(encoding="utf-8")
     for name, table in tables.items():
         text = put(text, name, table)
@@ -122,4 +125,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    _common.run_main("readme_tables.py", main)

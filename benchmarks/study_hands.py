@@ -55,7 +55,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 # the captures and their cache keys are shared with bench_presets.py (_common); the
 # judging rules (converged, verdict, gate) are the library's, DESIGN.md's
 from _common import (CAPTURE_VERSION, HANDS, SCALES, digest,  # noqa: E402,F401
-                     env_specs, synth_capture, write_json)
+                     check_out_dir, check_out_file, env_specs, read_report, synth_capture,
+                     write_json)
+import _common  # noqa: E402
 from relight_cli.neural import judging as J  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -1185,19 +1187,33 @@ def main(argv=None):
         ap.error(f"unknown table(s) {', '.join(unknown) or '(none)'}; use {', '.join(TABLES)}")
     if args.seeds < 1:
         ap.error("--seeds must be ≥ 1")
-    require_matplotlib()
-    import torch
-    torch.set_num_threads(max(1, args.threads))
+    me = "study_hands.py"
+    # every path is checked (and every record read) before any work, nothing made before
     results = Path(args.results or args.out or ".")
     if args.report:
+        records = {}
         for name in names:
             source = results / f"study_{name}.json"
             if not source.is_file():
                 ap.error(f"--report needs {source} (run the table first)")
-            write_table(TABLES[name], json.loads(source.read_text()), results)
+            records[name] = read_report(me, source)
+        check_out_dir(me, results, "--results")
+    else:
+        if not args.out:
+            ap.error("--out DIR is required (the captures and trained rows go there)")
+        check_out_dir(me, args.out, "--out")
+        if args.gate_spread:
+            check_out_file(me, args.gate_spread, "--gate-spread")
+            check_out_file(me, Path(args.gate_spread).with_suffix(".md"), "--gate-spread")
+        elif not args.worker:
+            check_out_dir(me, results, "--results")
+    require_matplotlib()
+    import torch
+    torch.set_num_threads(max(1, args.threads))
+    if args.report:
+        for name in names:
+            write_table(TABLES[name], records[name], results)
         return
-    if not args.out:
-        ap.error("--out DIR is required (the captures and trained rows go there)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     command = portable("python benchmarks/study_hands.py " + " ".join(
@@ -1229,7 +1245,7 @@ def main(argv=None):
         # file keeps the run that trained them, not this run's 0-minute wall time)
         before = results / f"study_{name}.json"
         if before.is_file():
-            old = json.loads(before.read_text())
+            old = read_report(me, before)
             if all(old.get(k) == json.loads(json.dumps(record.get(k)))
                    for k in ("rows", "curves", "row_seconds", "claims")):
                 print(f"{name}: unchanged; {before} kept", file=sys.stderr, flush=True)
@@ -1247,4 +1263,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    _common.run_main("study_hands.py", main)

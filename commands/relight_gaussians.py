@@ -169,10 +169,11 @@ def command(**options):
       relight relight 'builtin:hand:translate=0,0.25,0' --object 'donut.ply:fit=0.15;on-floor' \\
           --probe probe.json --dgsm shadows.exr --receivers room.ply --camera cam.json -o view.exr
     """
-    _gaussians(Run(**options))
+    from relight_cli.cli.tools import given_options
+    _gaussians(Run(**options), set(given_options(click.get_current_context())))
 
 
-def _gaussians(a) -> None:
+def _gaussians(a, given: set = frozenset()) -> None:
     """Gaussian mode: IN (+ --object) relit by --probe, shadowed by --dgsm with
     --receivers, → a PLY or with --camera an EXR view (relight_cli.jobs.relight_gaussians)."""
     import time
@@ -183,7 +184,7 @@ def _gaussians(a) -> None:
     from relight_cli.cli.inputs import load_placed, parse_occluder
     from relight_cli.jobs import relight_gaussians as G
 
-    bg = _gaussian_usage(a)
+    bg = _gaussian_usage(a, given)
     specs = [a.input] + list(a.objects)
     parsed = [parse_occluder(spec, "IN/--object") for spec in specs]
     for path in [source for source, _ in parsed] + [a.dgsm, a.receivers]:
@@ -230,13 +231,26 @@ def _gaussians(a) -> None:
         log(f"wrote {a.preview}", a.quiet)
 
 
-def _gaussian_usage(a) -> tuple:
-    """The Gaussian mode's usage checks (before any work): the background."""
+def _gaussian_usage(a, given: set = frozenset()) -> tuple:
+    """The Gaussian mode's usage checks (before any work): the background.  ``given``: the
+    parameter names given on the command line -- an option that cannot apply is refused
+    even when it is given as its default (--shadow-strength auto)."""
     from relight_cli.errors import UsageProblem
     if a.probe is None and a.shadow_matte is None:
         raise UsageProblem("Gaussian relighting needs --probe PROBE.json (make one with relight "
                            "sh-probe)")
     for wrong, message in (
+            (a.dgsm is None and "shadow_strength" in given,
+             "--shadow-strength only applies with --dgsm SHADOWS.exr (the direct light it "
+             "shadows)"),
+            (a.dgsm is None and "light_weights" in given,
+             "--light-weights only applies with --dgsm SHADOWS.exr (its lights)"),
+            (a.shadow_matte is not None and a.direct_light,
+             "--direct-light does not apply to --shadow-matte (the matte draws the receivers' "
+             "shadow only)"),
+            (a.shadow_matte is not None and "shadow_strength" in given,
+             "--shadow-strength does not apply to --shadow-matte (the matte is the full "
+             "shadow strength 1 − Σw_l V_l/Σw_l)"),
             (a.dgsm is not None and a.receivers is None,
              "--dgsm shadows receivers: give --receivers SCENE.ply"),
             (a.direct_light and a.dgsm is None,

@@ -30,6 +30,17 @@ def check_format_version(found_format, found_version, format_name: str, max_vers
 # (or the parser itself) can overflow the stack.
 MAX_JSON_DEPTH = 64
 
+# The largest magnitude a light colour, intensity, their product (radiant intensity)
+# or an SH probe coefficient may have, and the largest |coordinate| of a light or probe
+# position (metres).  Outputs are float32 (max ≈ 3.4e38): radiance sums of up to
+# MAX_LIGHTS lights at 1e15, SH sums of up to 441 coefficients and squared distances of
+# 1e6 m all stay far inside it, so a finite input cannot make a non-finite output
+# (formats/README.md, "Limits").
+MAX_VALUE = 1e15
+MAX_POSITION = 1e6
+# The most lights a lights file, a capture.json or a DGSM header may declare.
+MAX_LIGHTS = 10_000
+
 
 def read_json(path: str):
     """Parse a JSON file (``-``: stdin); a missing file, a folder, non-UTF-8 bytes,
@@ -82,8 +93,19 @@ def parse_json(text: str, path: str, non_finite: str = "error"):
             return constant(literal)
         return value
 
+    def unique(pairs):  # duplicate keys: which one was meant is unknowable (no "last wins")
+        obj = dict(pairs)
+        if len(obj) != len(pairs):
+            seen = set()
+            for key, _ in pairs:
+                if key in seen:
+                    raise ValueError(f"duplicate key {key!r}"[:120])
+                seen.add(key)
+        return obj
+
     try:
-        obj = json.loads(text, parse_constant=constant, parse_float=number)
+        obj = json.loads(text, parse_constant=constant, parse_float=number,
+                         object_pairs_hook=unique)
     except json.JSONDecodeError as exc:
         raise DataError(f"invalid JSON: {exc.msg} at line {exc.lineno}", path) from None
     except RecursionError:
@@ -127,6 +149,19 @@ def number_array(value, what: str, path: str):
         return np.asarray(value, np.float64)
     except (TypeError, ValueError):
         raise DataError(f"{what} must be a regular array of numbers", path) from None
+
+
+def bounded(array, what: str, path: str, limit: float = MAX_VALUE):
+    """``array`` (numbers, any shape) finite and within ±``limit``; else a DataError
+    naming ``what`` and the file (a finite but huge value would overflow an output)."""
+    import numpy as np
+    a = np.asarray(array, np.float64)
+    if not np.isfinite(a).all():
+        raise DataError(f"{what} holds NaN/Inf", path)
+    if a.size and float(np.abs(a).max()) > limit:
+        raise DataError(f"{what} must lie within ±{limit:g}, got {float(np.abs(a).max()):g}",
+                        path)
+    return a
 
 
 def save_npz(file, arrays: dict) -> None:

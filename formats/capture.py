@@ -146,6 +146,32 @@ def _string(value, what, path, empty=False):
     return value
 
 
+#: The sizes and counts a ``settings`` object may record (inclusive bounds; the limits
+#: of ``synth-capture``'s options): a stage rebuilt from them (the learned models'
+#: ceiling) allocates by them, so a value beyond is refused before any work
+#: (formats/capture.md).  ``eval_env_res`` is [H, W].
+SETTINGS_LIMITS = {"res": (1, 4096), "tex_res": (1, 4096), "aa": (1, 8),
+                   "cameras": (1, 1000), "lights": (1, 10_000), "group": (1, 10_000),
+                   "frames": (1, 100_000)}
+EVAL_ENV_RES_LIMITS = ((1, 4096), (1, 8192))
+
+
+def _settings(settings, path):
+    """Check the sizes and counts ``settings`` records (:data:`SETTINGS_LIMITS`); any
+    other field is free form."""
+    for key, (lo, hi) in SETTINGS_LIMITS.items():
+        if key in settings:
+            _int(settings[key], f"settings.{key}", path, lo, hi + 1)
+    if "eval_env_res" in settings:
+        value = settings["eval_env_res"]
+        if (not isinstance(value, list) or len(value) != 2
+                or not all(isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
+                           for v, (lo, hi) in zip(value, EVAL_ENV_RES_LIMITS))):
+            (hlo, hhi), (wlo, whi) = EVAL_ENV_RES_LIMITS
+            raise DataError(f"settings.eval_env_res must be [H, W], integers with H in "
+                            f"[{hlo}, {hhi}] and W in [{wlo}, {whi}], got {value!r}"[:200], path)
+
+
 def _evaluation(ev, camera_names, path):
     """The checked ``evaluation`` object: ``hand`` (a path), ``envs`` (name → path) and
     ``renders`` (each a pose ≥ 0, one of the envs, one of the cameras and an image path)."""
@@ -209,6 +235,7 @@ def capture_from_json(obj, path: str = "") -> Capture:
     settings = obj.get("settings", {})
     if not isinstance(settings, dict):
         raise DataError("'settings' must be an object", path)
+    _settings(settings, path)
     provenance = obj.get("provenance")
     if provenance is not None and not isinstance(provenance, dict):
         raise DataError("'provenance' must be an object", path)
@@ -216,6 +243,9 @@ def capture_from_json(obj, path: str = "") -> Capture:
         raise DataError("'cameras' is empty", path)
     cameras = [camera_from_json(c, path, i) for i, c in enumerate(obj["cameras"])]
     lights = obj["lights"]
+    from .lights_json import MAX_LIGHTS
+    if len(lights) > MAX_LIGHTS:
+        raise DataError(f"{len(lights):,} lights; a capture holds at most {MAX_LIGHTS:,}", path)
     positions, intensity, names = [], [], []
     for i, item in enumerate(lights):
         if not isinstance(item, dict) or "position" not in item:
@@ -225,6 +255,9 @@ def capture_from_json(obj, path: str = "") -> Capture:
                              f"lights[{i}].intensity", path)
         if min(inten) < 0:
             raise DataError(f"lights[{i}].intensity must be non-negative", path)
+        from ._common import MAX_POSITION, MAX_VALUE, bounded
+        bounded(positions[-1], f"lights[{i}].position", path, MAX_POSITION)
+        bounded(inten, f"lights[{i}].intensity", path, MAX_VALUE)
         intensity.append(inten)
         names.append(_string(item.get("name", f"light{i:03d}"), f"lights[{i}].name", path))
     n_lights = len(lights)

@@ -41,13 +41,48 @@ def make_checkpoint(kind: str, model_name: str, config: dict, step: int, weights
 
 
 def write_checkpoint(path: str, checkpoint: dict) -> None:
-    """Write atomically (temp file in the same folder, then rename)."""
+    """Write atomically (temp file in the same folder, then rename).
+
+    A write that fails inside ``torch.save`` (a full disk, an I/O error) reaches here as
+    the RuntimeError of torch's zip writer (``[enforce fail at inline_container.cc…]``),
+    the file's OSError at most its context; it is raised as that OSError (ENOSPC when
+    the writer gave none and the disk is full, else EIO), which the atomic write reports
+    as every output's write error, ``cannot write: REASON (PATH)``, leaving nothing."""
     import torch
 
     from relight_cli.fileio import atomic_path
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            torch.save(checkpoint, f)
+            try:
+                torch.save(checkpoint, f)
+            except RuntimeError as exc:
+                error = _write_error(exc, tmp)
+                if error is None:
+                    raise
+                raise error from None
+
+
+def _write_error(exc: RuntimeError, tmp: str) -> OSError | None:
+    """The OSError behind a RuntimeError of torch's zip writer, or None when ``exc`` is
+    not a write failure (a bug: raised as it is)."""
+    import errno
+    seen, cause = set(), exc
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        if isinstance(cause, OSError):
+            return cause
+        cause = cause.__cause__ or cause.__context__
+    text = str(exc)
+    if "inline_container" not in text and "PytorchStreamWriter" not in text:
+        return None
+    try:
+        vfs = os.statvfs(os.path.dirname(tmp) or ".")
+        full = vfs.f_blocks and (vfs.f_bfree if os.geteuid() == 0 else vfs.f_bavail) == 0
+    except OSError:
+        full = False
+    if full:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    return OSError(errno.EIO, os.strerror(errno.EIO))
 
 
 #: The variants of each kind, and the configuration field that names the variant.

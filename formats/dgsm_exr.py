@@ -175,26 +175,81 @@ def _json_attr(image, key, path):
         raise DataError(f"damaged header attribute {PREFIX + key}", path) from None
 
 
+def _number_attr(image, key, shape, path, limit):
+    """A JSON header attribute holding numbers of ``shape``, finite and within ±limit
+    (anything else, e.g. a string, is a one-line DataError naming the attribute)."""
+    from ._common import number_array
+    what = f"header attribute {PREFIX + key}"
+    try:
+        array = number_array(_json_attr(image, key, path), what, path)
+    except DataError as exc:
+        if "numbers only" in exc.message:
+            raise
+        array = None                    # ragged: reported with the shape below
+    if array is None or array.shape != shape:
+        raise DataError(f"header attribute {PREFIX + key} must be {len(shape)}-D of shape "
+                        f"{shape} (the light count)", path)
+    if not np.isfinite(array).all() or (array.size and np.abs(array).max() > limit):
+        raise DataError(f"header attribute {PREFIX + key} must be finite and within "
+                        f"±{limit:g}", path)
+    return array
+
+
+def _count(attrs, key, path):
+    from ._common import is_int
+    value = attrs.get(PREFIX + key)
+    if not is_int(value) or value < 1:
+        raise DataError(f"missing or invalid {PREFIX + key} in the header (an integer ≥ 1, "
+                        f"got {value!r})"[:200], path)
+    return value
+
+
+def _missing(wanted, names, what, path):
+    """Raise naming the first channels of ``wanted`` ((light, bin, group) triples, made
+    lazily) absent from ``names``: at most len(names) + 4 names are ever made, so a header
+    declaring 10⁹ channels costs what the file holds, not what it claims."""
+    from itertools import islice
+    absent = list(islice((c for c in (channel_name(i, k, j) for i, k, j in wanted)
+                          if c not in names), 4))
+    if absent:
+        raise DataError(f"missing {what}channel(s) {', '.join(absent[:3])}"
+                        f"{' …' if len(absent) > 3 else ''}", path)
+
+
+#: The most bins a DGSM may declare (dgsm-build --bins is at most 999).
+MAX_BINS = 999
+
+
 def read_dgsm(path: str):
-    """Read and validate a DGSM EXR → :class:`DGSM`."""
+    """Read and validate a DGSM EXR → :class:`DGSM`.
+
+    The header is not trusted: the light and bin counts are bounded by MAX_LIGHTS,
+    MAX_BINS and by the channels the file holds before any channel name is made,
+    and every attribute is type-checked (formats/dgsm_exr.md)."""
     from relight_cli.formats.exr import check_format, read_exr
+
+    from ._common import MAX_LIGHTS, MAX_POSITION, MAX_VALUE
 
     image = read_exr(path)
     version = check_format(image, FORMAT, VERSION)
     attrs = image.attributes
     layout = attrs.get(PREFIX + "layout")
-    if layout not in LAYOUTS:
-        raise DataError(f"unknown atlas layout {layout!r}", path)
-    n_lights, K = attrs.get(PREFIX + "lights"), attrs.get(PREFIX + "bins")
-    if not isinstance(n_lights, int) or n_lights < 1 or not isinstance(K, int) or K < 1:
-        raise DataError("missing or invalid light/bin counts in the header", path)
-    lights = np.asarray(_json_attr(image, "light_positions", path), np.float64)
-    t_max = np.asarray(_json_attr(image, "t_max", path), np.float64)
-    if lights.shape != (n_lights, 3) or t_max.shape != (n_lights,):
-        raise DataError("light positions / t_max do not match the light count", path)
-    if not (np.isfinite(lights).all() and np.isfinite(t_max).all() and (t_max > 0).all()):
+    if not isinstance(layout, str) or layout not in LAYOUTS:
+        raise DataError(f"unknown atlas layout {layout!r}"[:200], path)
+    n_lights, K = _count(attrs, "lights", path), _count(attrs, "bins", path)
+    if n_lights > MAX_LIGHTS or K > MAX_BINS:
+        raise DataError(f"{n_lights} light(s) × {K} bin(s) in the header; a DGSM holds at most "
+                        f"{MAX_LIGHTS:,} lights and {MAX_BINS} bins", path)
+    names = set(image.channels)
+    if n_lights * K > len(names):   # say which are missing, naming at most len(names) + 4
+        _missing(((i, k, None) for i in range(n_lights) for k in range(K)), names, "", path)
+    lights = _number_attr(image, "light_positions", (n_lights, 3), path, MAX_POSITION)
+    t_max = _number_attr(image, "t_max", (n_lights,), path, MAX_POSITION)
+    if not (t_max > 0).all():
         raise DataError("light positions / t_max must be finite (t_max > 0)", path)
     mapping = attrs.get(PREFIX + "mapping")
+    if not isinstance(mapping, str):
+        raise DataError(f"unknown opacity mapping {mapping!r}"[:200], path)
     if version == 1:
         if mapping not in V1_MAPPINGS:
             raise DataError(f"unknown opacity mapping {mapping!r}", path)
@@ -203,23 +258,22 @@ def read_dgsm(path: str):
     else:
         if mapping not in MAPPINGS:
             raise DataError(f"unknown opacity mapping {mapping!r}", path)
-        intensities = np.asarray(_json_attr(image, "light_intensities", path), np.float64)
-        colors = np.asarray(_json_attr(image, "light_colors", path), np.float64)
-        if intensities.shape != (n_lights,) or colors.shape != (n_lights, 3):
-            raise DataError("light intensities / colours do not match the light count", path)
-        if not (np.isfinite(intensities).all() and np.isfinite(colors).all()
-                and (intensities >= 0).all() and (colors >= 0).all()):
+        intensities = _number_attr(image, "light_intensities", (n_lights,), path, MAX_VALUE)
+        colors = _number_attr(image, "light_colors", (n_lights, 3), path, MAX_VALUE)
+        if not ((intensities >= 0).all() and (colors >= 0).all()):
             raise DataError("light intensities / colours must be finite and ≥ 0", path)
+        if (colors * intensities[:, None]).max(initial=0.0) > MAX_VALUE:
+            raise DataError(f"header attributes {PREFIX}light_colors × light_intensities "
+                            f"(radiant intensity) must lie within {MAX_VALUE:g}", path)
     kappa = attrs.get(PREFIX + "kappa")
-    if not isinstance(kappa, (int, float)) or not kappa > 0:
-        raise DataError("missing or invalid kappa", path)
+    if (not isinstance(kappa, (int, float)) or isinstance(kappa, bool)
+            or not 0 < kappa <= MAX_VALUE):
+        raise DataError(f"missing or invalid {PREFIX}kappa (a number > 0, got {kappa!r})"[:200],
+                        path)
     roi = _json_attr(image, "roi", path)
-    names = set(image.channels)
-    expected = {channel_name(i, k) for i in range(n_lights) for k in range(K)}
-    missing = sorted(expected - names)
-    if missing:
-        raise DataError(f"missing channel(s) {', '.join(missing[:3])}"
-                        f"{' …' if len(missing) > 3 else ''}", path)
+    if not isinstance(roi, list) or not all(isinstance(r, dict) for r in roi):
+        raise DataError(f"header attribute {PREFIX}roi must be a list of objects", path)
+    _missing(((i, k, None) for i in range(n_lights) for k in range(K)), names, "", path)
     h, w = image.height, image.width
     if layout == "cube" and h != 6 * w:
         raise DataError(f"a cube atlas must be N wide and 6N high, got {w}x{h}", path)
@@ -237,12 +291,8 @@ def read_dgsm(path: str):
         if not (isinstance(group_names, list) and group_names
                 and all(isinstance(n, str) for n in group_names)):
             raise DataError(f"header attribute {PREFIX}groups must be a list of names", path)
-        wanted = [channel_name(i, k, j) for j in range(len(group_names))
-                  for i in range(n_lights) for k in range(K)]
-        absent = [c for c in wanted if c not in names]
-        if absent:
-            raise DataError(f"missing group channel(s) {', '.join(absent[:3])}"
-                            f"{' …' if len(absent) > 3 else ''}", path)
+        _missing(((i, k, j) for j in range(len(group_names))
+                  for i in range(n_lights) for k in range(K)), names, "group ", path)
         groups = np.empty((len(group_names), n_lights, K, h, w), np.float32)
         for j in range(len(group_names)):
             for i in range(n_lights):

@@ -202,7 +202,14 @@ def write_exr(path: str, channels: dict[str, np.ndarray], attributes: dict | Non
         if half:
             # Values beyond half's range would become Inf; clamp to the largest half.
             array = np.clip(array, -65504.0, 65504.0)
-        pixels[name] = np.ascontiguousarray(array, dtype=dtype)
+        with np.errstate(over="ignore", invalid="ignore"):
+            pixels[name] = np.ascontiguousarray(array, dtype=dtype)
+        if not half and not np.isfinite(pixels[name]).all() and np.isfinite(
+                array[~np.isfinite(pixels[name])]).any():
+            # the last line: finite values that overflow float32 (inputs too large) are
+            # never written as Inf (NaN/Inf given as such are the caller's to check)
+            raise DataError(f"channel {name} would hold NaN/Inf in float32 (inputs too "
+                            f"large); nothing written", path)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     if envmap is not None:
         header["envmap"] = (OpenEXR.Envmap.ENVMAP_CUBE if envmap == "cube"

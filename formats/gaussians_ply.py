@@ -307,6 +307,7 @@ def validate(g: Gaussians, what: str = "Gaussians") -> None:
         raise DataError("opacities must lie in [0, 1]", what)
 
 
+@np.errstate(over="ignore", invalid="ignore")   # float32 overflow is checked below
 def write_gaussians(path: str, g: Gaussians, provenance: dict | None = None) -> None:
     """Write Gaussians as a binary little-endian INRIA 3DGS PLY, atomically.
 
@@ -343,6 +344,10 @@ def write_gaussians(path: str, g: Gaussians, provenance: dict | None = None) -> 
         data[f"scale_{i}"] = log_scales[:, i]
     for i in range(4):
         data[f"rot_{i}"] = quats[:, i]
+    bad = [p for p in props if not np.isfinite(data[p]).all()]
+    if bad:   # the last line: finite float64 values that overflow float32
+        raise DataError(f"property {bad[0]} would hold NaN/Inf in float32 (inputs too large); "
+                        f"nothing written", str(path))
     obj_info = [f"{_FORMAT_TAG} {FORMAT} {VERSION}"]
     if provenance is not None:
         obj_info.append(f"{_PROVENANCE_TAG} " + json.dumps(provenance, sort_keys=True,

@@ -104,7 +104,8 @@ def select_hand(frames: list, choice, path: str) -> tuple[list[dict | None], str
     """The tracked hand of each frame (None where absent), its type and its Leap ids.
 
     ``choice``: None picks the hand type present in most frames (ties: the one
-    seen first); ``"left"``/``"right"`` that type; an int that Leap hand id.  In
+    seen first in the file -- frame order, then the order of the frame's ``hands``
+    list -- never set or hash order, so the pick is the same from run to run); ``"left"``/``"right"`` that type; an int that Leap hand id.  In
     a frame with several hands of the chosen type, the one whose id is seen in
     most frames wins.
     """
@@ -112,8 +113,10 @@ def select_hand(frames: list, choice, path: str) -> tuple[list[dict | None], str
     type_frames: Counter = Counter()
     id_frames: Counter = Counter()
     for hands in per_frame:
-        type_frames.update({h["type"] for h in hands})
-        id_frames.update({h["id"] for h in hands})
+        # dict.fromkeys, not a set: keys keep the file's order, and Counter.most_common
+        # breaks ties by that insertion order (a set's order changes with PYTHONHASHSEED)
+        type_frames.update(dict.fromkeys(h["type"] for h in hands).keys())
+        id_frames.update(dict.fromkeys(h["id"] for h in hands).keys())
     if not type_frames:
         raise DataError(f"no hands in any of the recording's {len(frames)} frames", path)
     seen = ", ".join(f"{t} in {n} frame(s)" for t, n in type_frames.items())

@@ -10,7 +10,7 @@ import numpy as np
 
 from relight_cli.errors import DataError
 
-from ._common import check_format_version
+from ._common import MAX_LIGHTS, MAX_POSITION, MAX_VALUE, check_format_version
 
 FORMAT = "relight/lights"
 VERSION = 1
@@ -102,14 +102,16 @@ def write_lights(path: str, lights: Lights, provenance: dict | None = None) -> N
     write_text_atomic(path, json.dumps(lights_to_json(lights), indent=2, allow_nan=False) + "\n")
 
 
-def _vector(value, n, what, path, nonneg=False):
+def _vector(value, n, what, path, nonneg=False, limit=MAX_VALUE):
     if (not isinstance(value, list) or len(value) != n
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
-        raise DataError(f"{what} must be a list of {n} numbers, got {value!r}", path)
+        raise DataError(f"{what} must be a list of {n} numbers, got {value!r}"[:200], path)
     if not all(math.isfinite(v) for v in value):
         raise DataError(f"{what} holds NaN/Inf", path)
     if nonneg and any(v < 0 for v in value):
-        raise DataError(f"{what} must be non-negative, got {value!r}", path)
+        raise DataError(f"{what} must be non-negative, got {value!r}"[:200], path)
+    if any(abs(v) > limit for v in value):   # finite but huge: would overflow the outputs
+        raise DataError(f"{what} must lie within ±{limit:g}, got {value!r}"[:200], path)
     return [float(v) for v in value]
 
 
@@ -120,13 +122,17 @@ def lights_from_json(obj, path: str = "") -> Lights:
     items = obj.get("lights")
     if not isinstance(items, list) or not items:
         raise DataError("'lights' must be a non-empty list", path)
+    if len(items) > MAX_LIGHTS:
+        raise DataError(f"{len(items):,} lights; a lights file holds at most {MAX_LIGHTS:,}",
+                        path)
     pos, col, inten, names = [], [], [], []
     for i, item in enumerate(items):
         if not isinstance(item, dict):
             raise DataError(f"lights[{i}] must be an object", path)
         if "position" not in item:
             raise DataError(f"lights[{i}] has no 'position'", path)
-        pos.append(_vector(item["position"], 3, f"lights[{i}].position", path))
+        pos.append(_vector(item["position"], 3, f"lights[{i}].position", path,
+                           limit=MAX_POSITION))
         col.append(_vector(item.get("color", [1.0, 1.0, 1.0]), 3, f"lights[{i}].color", path, True))
         value = item.get("intensity", 1.0)
         inten.append(_vector([value] if not isinstance(value, list) else value, 1,
@@ -135,6 +141,9 @@ def lights_from_json(obj, path: str = "") -> Lights:
         if not isinstance(name, str):
             raise DataError(f"lights[{i}].name must be a string", path)
         names.append(name)
+        if max(col[-1]) * inten[-1] > MAX_VALUE:
+            raise DataError(f"lights[{i}] radiant intensity (color × intensity) must lie within "
+                            f"{MAX_VALUE:g}, got {max(col[-1]) * inten[-1]:g}", path)
     extra = {k: v for k, v in obj.items() if k not in ("format", "version", "lights", "provenance")}
     return Lights(np.array(pos), np.array(col), np.array(inten), names, extra, obj.get("provenance"))
 
@@ -155,3 +164,13 @@ def validate(lights: Lights, path: str = "") -> None:
             raise DataError(f"light {name} hold NaN/Inf", path)
     if (lights.colors < 0).any() or (lights.intensities < 0).any():
         raise DataError("light colours and intensities must be non-negative", path)
+    if len(lights) > MAX_LIGHTS:
+        raise DataError(f"{len(lights):,} lights; a lights file holds at most {MAX_LIGHTS:,}",
+                        path)
+    for name, arr, limit in (("positions", lights.positions, MAX_POSITION),
+                             ("colors", lights.colors, MAX_VALUE),
+                             ("intensities", lights.intensities, MAX_VALUE),
+                             ("radiant intensities (color × intensity)",
+                              lights.radiant_intensity(), MAX_VALUE)):
+        if np.abs(arr).max() > limit:
+            raise DataError(f"light {name} must lie within ±{limit:g}", path)

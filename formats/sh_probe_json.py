@@ -10,7 +10,7 @@ import numpy as np
 
 from relight_cli.errors import DataError
 
-from ._common import check_format_version
+from ._common import MAX_POSITION, bounded, check_format_version
 
 FORMAT = "relight/sh-probe"
 VERSION = 1
@@ -57,6 +57,7 @@ def write_probe(path: str, probe: ShProbe) -> None:
     from relight_cli.fileio import write_text_atomic
     if not np.isfinite(probe.coefficients).all():
         raise DataError("probe coefficients hold NaN/Inf", path)
+    bounded(probe.coefficients, "probe coefficients", path)
     write_text_atomic(path, json.dumps(probe_to_json(probe), indent=2, allow_nan=False) + "\n")
 
 
@@ -73,8 +74,7 @@ def probe_from_json(obj, path: str = "") -> ShProbe:
     if coeffs.shape != (k, 3):
         raise DataError(f"'coefficients' must be {k} rows of 3 for degree {degree}, got shape "
                         f"{coeffs.shape}", path)
-    if not np.isfinite(coeffs).all():
-        raise DataError("'coefficients' hold NaN/Inf", path)
+    bounded(coeffs, "'coefficients'", path)      # NaN/Inf, and |c| ≤ MAX_VALUE
     ridge = obj.get("ridge", 0.0)
     if not isinstance(ridge, (int, float)) or isinstance(ridge, bool) or not math.isfinite(ridge) \
             or ridge < 0:
@@ -84,8 +84,7 @@ def probe_from_json(obj, path: str = "") -> ShProbe:
         position = number_array(position, "'position'", path)
         if position.shape != (3,):
             raise DataError("'position' must be [x, y, z]", path)
-        if not np.isfinite(position).all():
-            raise DataError("'position' holds NaN/Inf", path)
+        bounded(position, "'position'", path, MAX_POSITION)
     known = {"format", "version", "degree", "basis", "coefficients", "ridge", "source", "position",
              "provenance"}
     extra = {k_: v for k_, v in obj.items() if k_ not in known}

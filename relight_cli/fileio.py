@@ -52,6 +52,7 @@ class _Run:
         self.stdin_role: str | None = None     # the one input given as '-'
         self.stdin: bytes | None = None        # its bytes, read once
         self.streams: dict[str, bytes] = {}    # JSON inputs that are FIFOs/devices, read once
+        self.digests: dict[str, str] = {}      # resolved path -> SHA-256 when first declared
 
 
 # Outputs staged by the running command: all are committed together when it
@@ -183,7 +184,13 @@ def kept_stream(path: str) -> bytes | None:
 
 
 def declare_input(path: str) -> None:
-    """Register an input file of the running command; refuse one that is also an output."""
+    """Register an input file of the running command; refuse one that is also an output.
+
+    A regular file's bytes are hashed the first time it is declared (before it is read:
+    commands declare their inputs when they check them), and that hash is what this
+    run's provenance records for it (:func:`input_digest`): a file replaced while the
+    run goes on (an env map rewritten during ``relight --frames``, which read it once)
+    does not change what later outputs say they were made from."""
     from .errors import UsageProblem
     if _RUN is None or not path or path == "-" or path.startswith("builtin:"):
         return
@@ -194,6 +201,39 @@ def declare_input(path: str) -> None:
         if _same(ident, _now(out, other)):
             raise UsageProblem(_INPUT_IS_OUTPUT, path)
     _RUN.inputs.append((path, ident))
+    key = os.path.realpath(path)
+    if key not in _RUN.digests:
+        digest = _sha256_of_file(path)
+        if digest is not None:
+            _RUN.digests[key] = digest
+
+
+def input_digest(path: str) -> str | None:
+    """The SHA-256 of input ``path`` as the running command first declared it (one hash
+    per file per run, whatever name it is given by), or None: no command is running, the
+    file was not declared, or it is no regular file (a FIFO's bytes: kept_stream)."""
+    if _RUN is None or not path or path == "-":
+        return None
+    return _RUN.digests.get(os.path.realpath(path))
+
+
+def _sha256_of_file(path: str, chunk: int = 1 << 20) -> str | None:
+    """Hex SHA-256 of a regular file's bytes, or None (not a regular file, unreadable:
+    its reader says why)."""
+    import hashlib
+    try:
+        with open(path, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                return None
+            h = hashlib.sha256()
+            while True:
+                block = f.read(chunk)
+                if not block:
+                    break
+                h.update(block)
+    except OSError:
+        return None
+    return h.hexdigest()
 
 
 def declare_output(path: str) -> None:
@@ -375,10 +415,7 @@ def output_transaction() -> Iterator[None]:
         yield
         staged, _PENDING = _PENDING, None
         documents, _STDOUT = _STDOUT, None
-        for data in documents:     # stdout first: if it fails, no file is committed
-            _emit_stdout(data)
-        for tmp, final, mode in staged:
-            _commit(tmp, final, mode)
+        _commit_all(staged, documents)
     except BaseException:
         # Whatever was not committed (a committed file's temporary name is gone), also
         # when a signal came between taking the list and committing it.
@@ -406,7 +443,120 @@ def outside_transaction() -> Iterator[None]:
         _PENDING, _STDOUT = saved, saved_stdout
 
 
+def _commit_all(staged: list[tuple[str, str, str]], documents: list[bytes]) -> None:
+    """Commit a transaction's outputs, all or none (two phases).
+
+    Every output is already staged: written in full to its temporary file, flushed and
+    checked (atomic_path).  Phase 1 checks that every target can still take its file:
+    a regular output's folder is writable and its name no folder; a device or FIFO is
+    opened for writing (a FIFO with no reader fails here, before anything is
+    committed).  Then stdout's documents go out.  Phase 2 renames the regular outputs
+    into place, each replaced file kept as a hard-linked backup
+    (``.NAME.relight-tmp-PID-*.bak``) until the transaction ends, and only then writes
+    the devices and FIFOs (what they took cannot be taken back, so they come last).
+    A failure anywhere in phase 2 (a rename, /dev/full, a signal) puts every committed
+    output back as it was: a replaced file from its backup, a new name removed.
+    """
+    from .errors import OutputError
+    regular = [(tmp, final) for tmp, final, mode in staged if mode == "replace"]
+    special = [(tmp, final) for tmp, final, mode in staged if mode != "replace"]
+    fds: dict[str, int] = {}
+    done: list[tuple[str, str | None]] = []     # (committed target, its backup or None)
+    try:
+        for tmp, final in regular:               # phase 1: every target checked
+            _check_target(final)
+        for tmp, final in special:
+            fds[final] = _open_in_place(final)
+        for data in documents:                   # stdout: if it fails, no file is committed
+            _emit_stdout(data)
+        try:
+            for tmp, final in regular:           # phase 2: renames, undoable
+                with _stop_signals_held():       # renamed and recorded, or neither
+                    backup = _backup(final)
+                    try:
+                        os.replace(tmp, final)
+                    except OSError as exc:
+                        if backup is not None:
+                            with contextlib.suppress(OSError):
+                                os.unlink(backup)
+                        raise OutputError(f"cannot write: {_reason(exc)}", final) from None
+                    _LIVE_TEMPS.discard(tmp)
+                    done.append((final, backup))
+            for tmp, final in special:           # then what cannot be taken back
+                try:
+                    _write_in_place(fds[final], tmp)
+                except OSError as exc:
+                    raise OutputError(f"cannot write: {_reason(exc)}", final) from None
+        except BaseException:
+            with _stop_signals_held():
+                _restore(done)
+            raise
+        for _, backup in done:                   # committed: the backups go
+            if backup is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(backup)
+    finally:
+        for fd in fds.values():
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        for tmp, _ in special:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            _LIVE_TEMPS.discard(tmp)
+
+
+def _check_target(final: str) -> None:
+    """A regular output can still be renamed into place: its name is no folder and its
+    folder takes new names (another process may have changed either during the run)."""
+    from .errors import OutputError
+    folder = os.path.dirname(final) or "."
+    if os.path.isdir(final) and not os.path.islink(final):
+        raise OutputError("cannot write: is a directory", final)
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write: permission denied in {folder!r}", final)
+
+
+def _backup(final: str) -> str | None:
+    """A hard link (else a copy) of the file at ``final`` beside it, under a temporary
+    name of this process, or None when there is no file there now."""
+    import shutil
+    if not os.path.lexists(final):
+        return None
+    folder, name = os.path.split(final)
+    folder = folder or "."
+    fd, backup = tempfile.mkstemp(prefix=_temp_prefix(name, folder), suffix=".bak",
+                                  dir=folder)
+    os.close(fd)
+    try:
+        os.unlink(backup)
+        try:
+            os.link(final, backup)
+        except OSError as exc:
+            if exc.errno == errno.EEXIST:
+                raise
+            shutil.copy2(final, backup)   # a file system without hard links
+    except OSError as exc:
+        from .errors import OutputError
+        with contextlib.suppress(OSError):
+            os.unlink(backup)
+        raise OutputError(f"cannot write: cannot keep a backup: {_reason(exc)}",
+                          final) from None
+    return backup
+
+
+def _restore(done: list[tuple[str, str | None]]) -> None:
+    """Undo committed renames, last first: a replaced file back from its backup, a new
+    name removed.  A backup that cannot be put back stays (nothing is lost)."""
+    for final, backup in reversed(done):
+        with contextlib.suppress(OSError):
+            if backup is None:
+                os.unlink(final)
+            else:
+                os.replace(backup, final)
+
+
 def _commit(tmp: str, final: str, mode: str) -> None:
+    """Commit one output at once (outside a transaction)."""
     from .errors import OutputError
     try:
         if mode == "replace":
@@ -423,8 +573,9 @@ def _commit(tmp: str, final: str, mode: str) -> None:
             _LIVE_TEMPS.discard(tmp)
 
 
-def _copy_in_place(tmp: str, target: str) -> None:
-    """Stream a finished temporary file into a character device or FIFO."""
+def _open_in_place(target: str) -> int:
+    """A descriptor to write a character device or FIFO (blocking once open); a FIFO
+    with no reader is a one-line OutputError."""
     from .errors import OutputError
     flags = os.O_WRONLY | getattr(os, "O_NONBLOCK", 0)
     try:
@@ -432,20 +583,31 @@ def _copy_in_place(tmp: str, target: str) -> None:
     except OSError as exc:
         if exc.errno == errno.ENXIO:
             raise OutputError("FIFO has no reader", target) from None
-        raise
+        raise OutputError(f"cannot write: {_reason(exc)}", target) from None
+    if hasattr(os, "set_blocking"):
+        os.set_blocking(fd, True)
+    return fd
+
+
+def _copy_in_place(tmp: str, target: str) -> None:
+    """Stream a finished temporary file into a character device or FIFO."""
+    fd = _open_in_place(target)
     try:
-        if hasattr(os, "set_blocking"):
-            os.set_blocking(fd, True)
-        with open(tmp, "rb") as src:
-            while True:
-                block = src.read(1 << 20)
-                if not block:
-                    break
-                view = memoryview(block)
-                while view:
-                    view = view[os.write(fd, view):]
+        _write_in_place(fd, tmp)
     finally:
         os.close(fd)
+
+
+def _write_in_place(fd: int, tmp: str) -> None:
+    """Write the whole temporary file ``tmp`` to the open device or FIFO ``fd``."""
+    with open(tmp, "rb") as src:
+        while True:
+            block = src.read(1 << 20)
+            if not block:
+                break
+            view = memoryview(block)
+            while view:
+                view = view[os.write(fd, view):]
 
 
 def _check_written(tmp: str, target: str, verify) -> None:

@@ -40,7 +40,11 @@ def command_line() -> str:
 
 
 def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    """Hex SHA-256 of a file's bytes (builtin inputs like ``builtin:sky`` hash their name)."""
+    """Hex SHA-256 of a file's bytes (builtin inputs like ``builtin:sky`` hash their name).
+
+    Inside a command, an input it declared has the hash of the bytes it had when first
+    declared (:func:`relight_cli.fileio.input_digest`), for the whole run: what the
+    command read, even if the file is replaced while it runs."""
     p = str(path)
     if p.startswith("builtin:"):
         return "builtin:" + hashlib.sha256(p.encode()).hexdigest()[:16]
@@ -49,6 +53,9 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     kept = fileio.kept_stream(p)
     if kept is not None:   # a FIFO already read: the same bytes
         return hashlib.sha256(kept).hexdigest()
+    first = fileio.input_digest(p)
+    if first is not None:  # hashed when the run declared it: what it read
+        return first
     if os.path.exists(p) and not os.path.isfile(p):   # a device or FIFO: bounded, once
         return hashlib.sha256(fileio.read_input_bytes(p)).hexdigest()
     h = hashlib.sha256()

@@ -83,22 +83,40 @@ def resolve_config(preset: str = "tiny", config_file: str | None = None,
     presets = PRESETS if presets is None else presets
     if preset not in presets:
         raise UsageProblem(f"unknown preset {preset!r}; use one of {', '.join(presets)}")
-    values, given = dict(presets[preset]), {}
+    from_file = {}
     if config_file is not None:
         from relight_cli.formats._common import read_json
         obj = read_json(config_file)
         if not isinstance(obj, dict):
             raise DataError("a config file holds one JSON object of fields", config_file)
-        given.update(obj.get("config", obj) if "format" in obj else obj)
-    given.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    if presets is PRESETS:
-        model = given.get("model", values.get("model", TeacherConfig.model))
-        values.update(PRESET_MODEL.get((preset, model), {}))
-    elif presets is STUDENT_PRESETS:
-        kind = given.get("student", values.get("student", "student"))
-        values.update(STUDENT_PRESET_MODEL.get((preset, kind), {}))
-    values.update(given)
-    return config_class.from_dict(values)
+        from_file = obj.get("config", obj) if "format" in obj else obj
+    flags = {k: v for k, v in (overrides or {}).items() if v is not None}
+
+    def build(given: dict):
+        values = dict(presets[preset])
+        if presets is PRESETS:
+            model = given.get("model", values.get("model", TeacherConfig.model))
+            values.update(PRESET_MODEL.get((preset, model), {}))
+        elif presets is STUDENT_PRESETS:
+            kind = given.get("student", values.get("student", "student"))
+            values.update(STUDENT_PRESET_MODEL.get((preset, kind), {}))
+        values.update(given)
+        return config_class.from_dict(values)
+
+    try:
+        return build({**from_file, **flags})
+    except UsageProblem as exc:
+        if config_file is None or exc.path is not None:
+            raise
+        # The line names the config file when the file is what is wrong: the preset and
+        # the file alone (with the flags that pick the model) are already refused; a
+        # problem only the other flags bring stays the flags' (no file named).
+        kind = {k: flags[k] for k in ("model", "student") if k in flags}
+        try:
+            build({**from_file, **kind})
+        except UsageProblem:
+            raise UsageProblem(exc.message, config_file, exc.hint) from None
+        raise
 
 
 def resolve_student_config(preset: str = "tiny", config_file: str | None = None,

@@ -182,6 +182,7 @@ class CaptureData:
                                     f"{self.eval_hand.n_frames} pose(s)", path)
                 _require_file(os.path.join(self.folder, r["image"]),
                               "capture.json's evaluation names a render that")
+        self._check_handedness()
         self.tex_res = tex_res
         captured = capture_aa(self.capture)
         self.aa = int(aa) if aa else captured
@@ -221,6 +222,31 @@ class CaptureData:
             if self.heldout_frames else None
         self.train_fully_lit_frames = [f for f in self.fully_lit_frames
                                        if cut is None or (f.time, f.index) < cut]
+
+    def _check_handedness(self) -> None:
+        """Refuse a hand.npz of the other hand(s) than the capture was made of (DataError
+        naming it).  The capture records its handedness twice: the built-in hand
+        ``synth-capture`` rendered (capture.json's ``provenance.inputs.hand.path``,
+        ``builtin:right``, ``builtin:left`` or ``builtin:two``) and its held-out poses'
+        eval/hand.npz, rendered with the same hands; hand.npz's sides (its ``side`` and
+        ``hand_mirror``, per hand) must match both where they are there."""
+        from relight_cli.hand.scene import handedness
+        ours = handedness(self.hand)
+        recorded = []
+        source = ((self.capture.provenance or {}).get("inputs") or {}).get("hand")
+        path = source.get("path") if isinstance(source, dict) else None
+        builtin = {"builtin:right": ["right"], "builtin:left": ["left"],
+                   "builtin:two": ["right", "left"]}
+        if isinstance(path, str) and path in builtin:
+            recorded.append((builtin[path], f"capture.json's provenance: {path}"))
+        if self.eval_hand is not None:
+            recorded.append((handedness(self.eval_hand),
+                             f"its held-out {self.capture.evaluation['hand']}"))
+        for sides, where in recorded:
+            if sides != ours:
+                raise DataError(f"the capture's hand.npz is the {' and '.join(ours)} "
+                                f"hand but the capture is of the {' and '.join(sides)} hand "
+                                f"({where}; a hand.npz of another capture?)", self.hand_path)
 
     # ---------------------------------------------------------------- identity
 

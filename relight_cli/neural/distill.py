@@ -554,13 +554,10 @@ class StudentTask:
         """``loss_space: texture``: (the masked MSE between the student's and the
         teacher's textures, both ÷ s, over the chart texels of every hand; the student's
         textures, raw head output and s as :meth:`textures` gives them)."""
-        import torch.nn.functional as F
         textures, raw, s = self.textures(net, pose, camera, denv, device, False, clip)
         pred = torch.stack(textures)
-        target = torch.stack(self.targets.texture(pose, camera, denv)).to(device)
-        if target.shape[-2:] != pred.shape[-2:]:
-            target = F.interpolate(target, size=pred.shape[-2:], mode="bilinear",
-                                   align_corners=False, antialias=True)
+        target = at_student_res(torch.stack(self.targets.texture(pose, camera, denv))
+                                .to(device), pred.shape[-1])
         mask = self.chart_mask(device).expand(pred.shape[0], 3, -1, -1)
         mse = ((pred - target) / s)[mask].pow(2).mean()
         return mse, textures, raw, s
@@ -624,6 +621,21 @@ class StudentTask:
                                     "eval": [self.env_names[i] for i in self.eval_idx]})}
 
 
+def at_student_res(textures: torch.Tensor, n: int) -> torch.Tensor:
+    """Teacher textures [..., 3, M, M] at the student's N×N: unchanged when M = N, else
+    resampled (bilinear, antialiased) — the one resampling of the teacher's textures to
+    the student's texels, shared by the texture loss and the least-squares start, so a
+    teacher of another ``tex_res`` is compared the same way in both."""
+    if tuple(textures.shape[-2:]) == (n, n):
+        return textures
+    import torch.nn.functional as F
+    lead = textures.shape[:-3]
+    flat = textures.reshape(-1, *textures.shape[-3:])
+    out = F.interpolate(flat, size=(n, n), mode="bilinear", align_corners=False,
+                        antialias=True)
+    return out.reshape(*lead, *out.shape[-3:])
+
+
 #: ``head_init: lsq``: passes over the training (pose, camera) pairs, each under its own
 #: drawn training env map, and the ridge weight (× the mean diagonal of a texel's normal
 #: matrix) that pulls texels with little or no data towards the grey start
@@ -644,7 +656,8 @@ def fit_linear_head(task: StudentTask, net) -> int:
     Samples: ``LSQ_PASSES`` passes over the training (pose, camera) pairs, each under an
     env map drawn as training draws them (seeded by the run's seed and the pass), features
     and target both divided by the map's mean radiance as the loss divides them; the
-    texture is the teacher's (every texel, seen from the pair's camera).  The ReLU of the
+    texture is the teacher's (every texel, seen from the pair's camera), at the student's
+    N as the texture loss takes it (:func:`at_student_res`).  The ReLU of the
     head is not part of the fit (the features and the fitted weights are mostly ≥ 0).
     Returns the number of (sample, hand) textures fitted."""
     cfg = task.config
@@ -663,7 +676,7 @@ def fit_linear_head(task: StudentTask, net) -> int:
             feats = task.features.maps(pf, denv, task.data._cameras[camera].center)
             for hand_feats, target in zip(feats, task.targets.texture(pose, camera, denv)):
                 f = (hand_feats.astype(np.float64) / s).reshape(k, 3 * n * n).T
-                t = target.double().numpy().reshape(-1) / s
+                t = at_student_res(target, n).double().numpy().reshape(-1) / s
                 gram += f[:, :, None] * f[:, None, :]
                 rhs += f * t[:, None]
                 samples += 1

@@ -61,6 +61,31 @@ class _Config:
 MAX_LIST = 64
 MAX_TEXT = 64
 
+#: Size limits of a configuration, checked before any model is built (a checkpoint's
+#: config asking for more is refused naming the file instead of running out of memory):
+#: ``tex_res² × the widest layer`` — the elements of one feature tensor of one sample — at
+#: most MAX_FEATURE_ELEMENTS (2^28: 1 GiB of float32; the paper presets need at most
+#: 2^28, the linear model's 1024² maps × its 256-wide light decoder), and the 3×3
+#: convolutions between consecutive widths of each list at most MAX_PARAMETERS weights
+#: (2^28: 1 GiB of float32; the paper presets hold under 2^20).
+MAX_FEATURE_ELEMENTS = 2 ** 28
+MAX_PARAMETERS = 2 ** 28
+
+
+def check_sizes(where: str, tex_res: int, *widths) -> None:
+    """UsageProblem when ``tex_res`` and the width lists exceed :data:`MAX_FEATURE_ELEMENTS`
+    or :data:`MAX_PARAMETERS` (call after the fields themselves are checked)."""
+    widest = max((max(w) for w in widths if w), default=1)
+    if tex_res * tex_res * widest > MAX_FEATURE_ELEMENTS:
+        raise UsageProblem(f"{where}: tex_res² × the widest layer must be at most "
+                           f"{MAX_FEATURE_ELEMENTS} elements per feature tensor (1 GiB of "
+                           f"float32), got {tex_res}² × {widest}")
+    weights = sum(9 * a * b for w in widths for a, b in zip(w, w[1:]))
+    if weights > MAX_PARAMETERS:
+        raise UsageProblem(f"{where}: the layer widths make about {weights} convolution "
+                           f"parameters, more than the limit of {MAX_PARAMETERS} (1 GiB of "
+                           f"float32)")
+
 
 def check_field_types(cls, values, where: str = "config") -> None:
     """UsageProblem unless ``values`` is a JSON object whose known fields each have their
@@ -238,6 +263,7 @@ class TeacherConfig(TrainingConfig):
         if self.tex_res % (2 ** (len(self.encoder) - 1)):
             check.bad("tex_res", f"must be divisible by 2^{len(self.encoder) - 1} (the U-Net "
                       f"levels)")
+        check_sizes(where, self.tex_res, self.encoder, self.decoder, self.pose_channels)
         check.training()
         check.number("lambda_s", 0.0, 1e6, open_lo=True)
         check.number("lambda_b", 0.0, 1e6)
@@ -410,6 +436,7 @@ class StudentConfig(TrainingConfig):
         check.widths("pose_channels")
         if len(self.pose_channels) != 2:
             check.bad("pose_channels", "must hold two widths (App. A.1: 16, 64)")
+        check_sizes(where, self.tex_res, self.decoder, self.pose_channels)
         if not self.shininess or not all(isinstance(a, (int, float)) and not isinstance(a, bool)
                                          and 0 < a <= 1e4 for a in self.shininess):
             check.bad("shininess", "must be a list of Phong exponents in (0, 10000]")
@@ -599,6 +626,8 @@ class LinearConfig:
         if self.tex_res % step:
             raise UsageProblem(f"{where}: tex_res must be divisible by {step} (the U-Net and "
                                f"light-path levels), got {self.tex_res}")
+        check_sizes(where, self.tex_res, self.encoder, self.decoder, self.pose_channels,
+                    self.light_decoder)
         if self.linearity_loss > 0 and self.light_path == "linear":
             raise UsageProblem(f"{where}: linearity_loss (Eq. 17) constrains the non-linear "
                                f"light path; the linear one is linear by construction")

@@ -121,7 +121,29 @@ def test_distill_bad_input(setup, tmp_path, case):
     assert r.exit_code == code, r.output
     lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in r.output, r.output
+    if case in ("bad-env-augment", "bad-loss-space", "linear-head-on-dram",
+                "lsq-start-without-linear-head", "render-grid-on-dram",
+                "render-grid-bad-shape"):      # issue 52 cause 12: the line names the file
+        assert lines[0].endswith(f"({tmp_path / 'c.json'})"), lines[0]
     if before is None:
         assert list(out.parent.iterdir()) == []
     else:
         assert out.read_bytes() == before and "also an input" in lines[0]
+
+
+def test_lsq_start_with_a_teacher_of_another_texture_size(setup, tmp_path):
+    """Issue 52 cause 7: the least-squares start of a student whose tex_res (32) is not the
+    teacher's (16) fits the teacher's textures resampled to the student's N, as the
+    texture loss compares them (no shape error)."""
+    from relight_cli.neural.checkpoints import read_checkpoint
+    (tmp_path / "lsq.json").write_text(json.dumps({**STUDENT, "tex_res": 32, "head": "linear",
+                                                   "head_init": "lsq"}))
+    out = tmp_path / "lsq.pt"
+    r = _invoke("distill", setup / "teacher.pt", setup / "cap", *ENVS, "--config",
+                tmp_path / "lsq.json", "--iters", "0", "-q", "-o", out)
+    assert r.exit_code == 0, r.output
+    w = read_checkpoint(str(out))["weights"]["weight_bias"]
+    assert w.shape[-2:] == (32, 32) and torch.isfinite(w).all()
+    grey = torch.zeros_like(w)
+    grey[:, :3] = 0.5
+    assert not torch.equal(w, grey)

@@ -157,6 +157,19 @@ def test_cli_subprocess(files):
                                                                  "--shading-clip"),
     (["avatar.ply", "--probe", "probe.json", "--preview", "view.exr", "--camera", "cam.json"],
      2, "name it .png"),
+    # issue 52 cause 10: options that cannot apply are refused, even when given as their default
+    (["avatar.ply", "--probe", "probe.json", "--shadow-strength", "0.5"], 2,
+     "--shadow-strength only applies with --dgsm"),
+    (["avatar.ply", "--probe", "probe.json", "--shadow-strength", "auto"], 2,
+     "--shadow-strength only applies with --dgsm"),
+    (["avatar.ply", "--probe", "probe.json", "--light-weights", "equal"], 2,
+     "--light-weights only applies with --dgsm"),
+    (["avatar.ply", "--receivers", "scene.ply", "--dgsm", "x.exr", "--camera", "cam.json",
+      "--shadow-matte", "dgsm", "--direct-light"], 2, "--direct-light does not apply to "
+                                                     "--shadow-matte"),
+    (["avatar.ply", "--receivers", "scene.ply", "--dgsm", "x.exr", "--camera", "cam.json",
+      "--shadow-matte", "mesh", "--shadow-strength", "1"], 2, "--shadow-strength does not "
+                                                              "apply to --shadow-matte"),
 ])
 def test_cli_bad_input(run_cli, files, monkeypatch, args, code, message):
     monkeypatch.chdir(files)

@@ -120,6 +120,8 @@ def test_subprocess(files):
      "--direct-light, --shading-clip only apply to Gaussians"),     # once ignored silently
     (["builtin:right", "builtin:sky", "--light-weights", "equal", "-o", "o.exr"], 2,
      "--light-weights only apply to Gaussians"),
+    (["builtin:right", "builtin:sky", "--shadow-strength", "0.5", "-o", "o.exr"], 2,
+     "--shadow-strength only apply to Gaussians"),                   # issue 52 cause 10
     (["builtin:right", "builtin:sky", "--roughness", "0", "-o", "o.exr"], 2, "--roughness"),
     (["builtin:right", "builtin:sky", "--tex-res", "2", "-o", "o.exr"], 2, "--tex-res"),
     (["builtin:right", "builtin:sky", "--env-res", "1x4", "-o", "o.exr"], 2, "--env-res"),

@@ -115,10 +115,12 @@ BAD_CONFIGS = {"bad-config": {"tex_res": 33}, "bad-head": {"head": "inside", "un
                "bad-inputs": {"inputs": "halfway"},
                "shading-inputs-on-ggx": {"model": "ggx", "inputs": "shading"},
                "bad-pose": {"pose": "hands"}, "bad-view": {"view": "eye"},
-               "view-none-on-ggx": {"model": "ggx", "view": "none"}}
+               "view-none-on-ggx": {"model": "ggx", "view": "none"},
+               "negative-lr": {"lr": -1}}
 
 
 @pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
+                                  "other-hand", "other-hand-file",
                                   "iters-0", "unknown-preset", "not-pt", "not-a-folder",
                                   *BAD_CONFIGS, "resume-other-config"])
 def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli, small_teacher):
@@ -148,6 +150,16 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
         for inst in hand.hands:
             inst.translations = inst.translations + [0.5, 0.0, 0.0]
         write_hand(str(cap / "hand.npz"), hand)
+    elif case in ("other-hand", "other-hand-file"):
+        # issue 52 cause 11: hand.npz is the other hand than the capture was made of (its
+        # builtin:right source in capture.json's provenance, its held-out eval/hand.npz)
+        from relight_cli.formats.hand_npz import read_hand, write_hand
+        hand = read_hand(str(cap / "hand.npz"))
+        hand.side = "left"
+        write_hand(str(cap / "hand.npz"), hand)
+        if case == "other-hand-file":        # a capture made from a file: no builtin source
+            _edit_index(cap, lambda o: o["provenance"]["inputs"]["hand"].update(
+                path="my_hand.npz"))
     elif case == "iters-0":
         args[-1] = "0"
         code = 2
@@ -174,5 +186,9 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
     assert r.exit_code == code, r.output
     lines = [ln for ln in r.output.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in r.output, r.output
+    if case in ("other-hand", "other-hand-file"):
+        assert lines[0].endswith(f"({cap / 'hand.npz'})") and "left" in lines[0], lines[0]
+    if case in BAD_CONFIGS:        # issue 52 cause 12: the line names the config file
+        assert lines[0].endswith(f"({tmp_path / 'bad.json'})"), lines[0]
     assert list(out.parent.iterdir()) == []
     assert {p: p.stat().st_mtime_ns for p in cap.rglob("*")} == before

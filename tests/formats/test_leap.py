@@ -402,3 +402,22 @@ def test_real_pinch_fit(run_cli, tmp_path):
     k = rep["output_frames"].index(160)
     j = posed_joints(h.poses[k], h.translations[k], h.rest_joints, h.parents)
     assert np.linalg.norm(j[4] - j[9]) < 0.035
+
+
+def test_type_tie_is_broken_by_order_of_appearance_not_hash_seed():
+    """Issue 52 cause 8: as many left as right frames -> the type seen first in the file
+    (frame order, then the frame's `hands` order), whatever PYTHONHASHSEED is."""
+    import subprocess
+    import sys
+    code = (
+        "from relight_cli.formats.leap import select_hand\n"
+        "frames = [{'hands': [{'id': 1, 'type': %r}, {'id': 2, 'type': %r}]}]\n"
+        "print(select_hand(frames, None, 'x.json')[1])\n")
+    for first, second in (("left", "right"), ("right", "left")):
+        outs = set()
+        for seed in ("0", "1", "2", "3", "5", "8"):
+            env = {**__import__("os").environ, "PYTHONHASHSEED": seed}
+            r = subprocess.run([sys.executable, "-c", code % (first, second)], env=env,
+                               capture_output=True, text=True, check=True)
+            outs.add(r.stdout.strip())
+        assert outs == {first}, (first, outs)
