@@ -404,11 +404,11 @@ def output_transaction() -> Iterator[None]:
     only when the whole block succeeds (a command with an EXR and a PNG output
     never leaves one without the other).  The block is also the scope of the
     input/output registry (declare_input, declare_output)."""
-    global _PENDING, _RUN, _STDOUT, _LAST_RUN
+    global _PENDING, _RUN, _STDOUT, _LAST_RUN, _AFTER_COMMIT
     if _PENDING is not None:  # nested: the outer transaction decides
         yield
         return
-    _PENDING, _RUN, _STDOUT = [], _Run(), []
+    _PENDING, _RUN, _STDOUT, _AFTER_COMMIT = [], _Run(), [], []
     _LAST_RUN = _RUN
     staged = None
     try:
@@ -416,7 +416,11 @@ def output_transaction() -> Iterator[None]:
         staged, _PENDING = _PENDING, None
         documents, _STDOUT = _STDOUT, None
         _commit_all(staged, documents)
+        said, _AFTER_COMMIT = _AFTER_COMMIT, None
+        for callback in said:          # what is true only once the outputs are in place
+            callback()
     except BaseException:
+        _AFTER_COMMIT = None
         # Whatever was not committed (a committed file's temporary name is gone), also
         # when a signal came between taking the list and committing it.
         leftovers = {tmp for tmp, _, _ in (staged if staged is not None else _PENDING or [])}
@@ -428,6 +432,20 @@ def output_transaction() -> Iterator[None]:
         raise
     finally:
         _RUN = None
+
+
+#: Callbacks of the open transaction run once its outputs are committed (None: none open).
+_AFTER_COMMIT: list | None = None
+
+
+def after_commit(callback) -> bool:
+    """Run ``callback`` once the open output transaction has committed every output, and
+    never if it fails (a "wrote FILE" line is said only when FILE is in place); False,
+    and nothing kept, when no transaction is open (the caller acts now)."""
+    if _PENDING is None or _AFTER_COMMIT is None:
+        return False
+    _AFTER_COMMIT.append(callback)
+    return True
 
 
 @contextlib.contextmanager

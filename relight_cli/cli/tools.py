@@ -263,9 +263,16 @@ def _special_kind(path: str) -> str | None:
 
 
 def log(message: str, quiet: bool = False) -> None:
-    """A log line on stderr (never stdout, which may carry data)."""
-    if not quiet:
-        click.echo(message, err=True)
+    """A log line on stderr (never stdout, which may carry data).  A ``wrote …`` line is
+    said once the command's outputs are committed (relight_cli.fileio.after_commit), so
+    a run that fails after staging an output says only its one error line."""
+    if quiet:
+        return
+    if message.startswith("wrote "):
+        from relight_cli.fileio import after_commit
+        if after_commit(lambda: click.echo(message, err=True)):
+            return
+    click.echo(message, err=True)
 
 
 def progress(iterable=None, total=None, desc: str = "", quiet: bool = False, **kwargs):

@@ -50,6 +50,24 @@ def test_a_device_output_that_fails_leaves_the_other_outputs_as_they_were(tmp_pa
     _no_temps(tmp_path)
 
 
+def test_a_failed_run_says_no_wrote_line_and_a_good_one_says_each(tmp_path):
+    """Without -q: "wrote FILE" is said once FILE is committed, so the run whose preview
+    fails on /dev/full claims no output written; a good run says every one."""
+    from conftest import run_relight
+    target = tmp_path / "x.exr"
+    target.write_text("old\n")
+    bad = run_relight("envmap", "builtin:studio", "--to", "latlong", "--size", "16x8",
+                      "-o", target, "--preview", "/dev/full")
+    assert bad.returncode == 1, bad.stderr
+    assert "wrote" not in bad.stderr, bad.stderr
+    assert bad.stderr.strip().splitlines()[-1].startswith("relight envmap: error: cannot write")
+    good = run_relight("envmap", "builtin:studio", "--to", "latlong", "--size", "16x8",
+                       "-o", tmp_path / "y.exr", "--preview", tmp_path / "y.png")
+    assert good.returncode == 0, good.stderr
+    said = [line for line in good.stderr.splitlines() if line.startswith("wrote ")]
+    assert said == [f"wrote {tmp_path / 'y.exr'}", f"wrote {tmp_path / 'y.png'}"], good.stderr
+
+
 def test_a_new_output_is_removed_when_a_device_output_fails(tmp_path):
     target = tmp_path / "new.exr"
     r = _invoke("envmap", "builtin:studio", "--to", "latlong", "--size", "16x8",
