@@ -93,6 +93,13 @@ def parse_json(text: str, path: str, non_finite: str = "error"):
             return constant(literal)
         return value
 
+    def integer(literal: str) -> int:  # 1 and 400 zeros: no float64 holds it (finite reading)
+        value = int(literal)
+        if value.bit_length() > 1024 and non_finite != "allow":
+            raise ValueError(f"an integer of {len(literal.lstrip('-'))} digits is beyond any "
+                             f"finite number")
+        return value
+
     def unique(pairs):  # duplicate keys: which one was meant is unknowable (no "last wins")
         obj = dict(pairs)
         if len(obj) != len(pairs):
@@ -105,7 +112,7 @@ def parse_json(text: str, path: str, non_finite: str = "error"):
 
     try:
         obj = json.loads(text, parse_constant=constant, parse_float=number,
-                         object_pairs_hook=unique)
+                         parse_int=integer, object_pairs_hook=unique)
     except json.JSONDecodeError as exc:
         raise DataError(f"invalid JSON: {exc.msg} at line {exc.lineno}", path) from None
     except RecursionError:

@@ -197,3 +197,16 @@ def test_too_many_capture_lights_is_refused(tmp_path):
     path.write_text(json.dumps(dict(_minimal(), lights=[{"position": [0, 1, 0]}]
                                     * (MAX_LIGHTS + 1))))
     _raises(str(path), f"at most {MAX_LIGHTS:,}", read_capture, str(path))
+
+
+def test_an_integer_beyond_float64_is_one_line(tmp_path):
+    """A lights file with intensity 1 followed by 400 zeros (an exact JSON integer no
+    float64 can hold) is a DataError naming the file, not an internal OverflowError."""
+    from relight_cli.errors import DataError
+    from relight_cli.formats.lights_json import read_lights
+    path = tmp_path / "LL.json"
+    path.write_text('{"format": "relight/lights", "version": 1, "lights": [{"position": '
+                    '[0, 1, 0], "intensity": 1' + "0" * 400 + '}]}')
+    with pytest.raises(DataError, match="beyond any finite number") as exc:
+        read_lights(str(path))
+    assert exc.value.path == str(path)
