@@ -114,9 +114,11 @@ def test_bad_input(run_cli, tmp_path, monkeypatch, args, code, message):
     assert not (tmp_path / "cap").exists()
 
 
-@pytest.mark.parametrize("old, value, hint", [("--lights", "6", "--leds"), ("--res", "8", "--size")])
+@pytest.mark.parametrize("old, value, hint", [("--lights", "6", "--leds"), ("--res", "8", "--size"),
+                                              ("--frames", "3", "--n-frames")])
 def test_renamed_options_are_refused_with_their_new_name(run_cli, tmp_path, old, value, hint):
-    """--lights (a count here, a JSON file elsewhere) is --leds; --res R is --size N."""
+    """--lights (a count here, a JSON file elsewhere) is --leds; --res R is --size N;
+    --frames N (a count here, a selection everywhere else) is --n-frames N."""
     r = run_cli("synth-capture", "-o", tmp_path / "cap", old, value)
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
     assert f"{old} was renamed {hint}" in r.output
