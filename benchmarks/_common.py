@@ -4,6 +4,10 @@
   ``--quick`` (a smoke run: ``make benchmarks QUICK=1`` runs them all in a few minutes);
   :func:`start` checks for matplotlib first, so a runner without it stops at once with
   one line instead of after minutes of work.
+* Options are checked as they are parsed: :class:`ArgumentParser` (what :func:`parser`
+  makes) reports an unknown option or a bad value as one line ``<script>: error: …``,
+  exit 2, with no usage block (``--help`` is unchanged); :func:`integer`, :func:`number`
+  and :func:`integers` are the ``type=`` of counts, sizes and lists.
 * Paths are checked before any work, nothing created until all pass (DESIGN.md "How
   every command behaves"): :func:`check_out_dir` (an output folder that is a file or
   cannot be made: one line, exit 2), :func:`check_out_file`, :func:`read_report` (a
@@ -56,9 +60,70 @@ SCALES = HERE / "studies" / "scales.json"
 HDRI_DIR = (ROOT / ".." / "shared" / "data" / "envmaps" / "polyhaven").resolve()
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse whose errors (an unknown option, a value of the wrong type or out of range,
+    a script's own ``ap.error``) are one line ``<script>: error: <what>``, exit 2, without
+    argparse's usage block (DESIGN.md "How every command behaves"); ``--help`` is argparse's
+    own."""
+
+    def error(self, message):
+        fail(self.prog, " ".join(str(message).split()), None, 2)
+
+
+def integer(minimum: int):
+    """argparse ``type``: an integer ≥ ``minimum`` (else the one-line usage error)."""
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer ≥ {minimum}, got {text!r}")
+        return value
+    parse.__name__ = f"integer ≥ {minimum}"
+    return parse
+
+
+def number(minimum: float):
+    """argparse ``type``: a finite number ≥ ``minimum``."""
+    def parse(text):
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value >= minimum):
+            raise argparse.ArgumentTypeError(f"expected a finite number ≥ {minimum:g}, "
+                                             f"got {text!r}")
+        return value
+    parse.__name__ = f"number ≥ {minimum:g}"
+    return parse
+
+
+def integers(minimum: int, sep: str = ",", count: int | None = None):
+    """argparse ``type``: integers ≥ ``minimum`` joined by ``sep`` (``25,100,200``;
+    ``128x256`` with ``sep="x", count=2``), checked and given back as the text."""
+    one = integer(minimum)
+
+    def parse(text):
+        parts = text.split(sep)
+        try:
+            if count is not None and len(parts) != count:
+                raise argparse.ArgumentTypeError
+            for part in parts:
+                one(part)
+        except argparse.ArgumentTypeError:
+            how_many = "integers" if count is None else f"{count} integers"
+            raise argparse.ArgumentTypeError(f"expected {how_many} ≥ {minimum} joined by "
+                                             f"{sep!r}, got {text!r}") from None
+        return text
+    parse.__name__ = f"integers ≥ {minimum}"
+    return parse
+
+
 def parser(doc: str, quick: str = "a smoke run: fewer, smaller configurations"):
-    """argparse with the options every benchmark has."""
-    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    """argparse with the options every benchmark has; errors are one line
+    (:class:`ArgumentParser`)."""
+    ap = ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=str(OUT), metavar="DIR",
                     help="folder for the table (.md), data (.json/.csv) and plot (.png) "
                          "[default: benchmarks/out/]")

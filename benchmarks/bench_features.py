@@ -37,12 +37,14 @@ from relight_cli import features as F
 from relight_cli.envmap import DiscreteEnv, discretize_env
 from relight_cli.geometry import Receivers, reflect, scene_diagonal, view_directions
 from relight_cli.hand.model import builtin_hand
+from relight_cli.hand.poses import POSE_NAMES
 from relight_cli.hand.scene import posed_meshes, preview_camera
 from relight_cli.raytrace import RayScene
 from relight_cli.visibility import VisibilityCache, trace_threads
 from relight_cli.uvraster import rasterize_uv
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DEFAULT_ENV = str(DATA / "envmaps" / "StageEnvLatLong.exr")
 NAMES = ["diffuse", "phong16", "phong32", "phong64", "visibility"]
 
 
@@ -231,14 +233,15 @@ def print_speed(sp: dict, env):
 
 def main():
     ap = B.parser(__doc__, "fewer configurations, 64 reference texels at 128x256, 3 rounds")
-    ap.add_argument("--env", default=str(DATA / "envmaps" / "StageEnvLatLong.exr"),
+    ap.add_argument("--env", default=DEFAULT_ENV,
                     help="env map (default: the shared StageEnvLatLong.exr, else builtin:sky)")
-    ap.add_argument("--pose", default="relaxed")
-    ap.add_argument("--texels", type=int, default=None,
+    ap.add_argument("--pose", default="relaxed", choices=POSE_NAMES)
+    ap.add_argument("--texels", type=B.integer(1), default=None,
                     help="reference texels (random subset) [default: 256; quick 64]")
-    ap.add_argument("--res", type=int, default=128)
-    ap.add_argument("--ref-env-res", default=None, help="[default: 256x512; quick 128x256]")
-    ap.add_argument("--rounds", type=int, default=None,
+    ap.add_argument("--res", type=B.integer(1), default=128)
+    ap.add_argument("--ref-env-res", type=B.integers(1, "x", 2), default=None,
+                    help="[default: 256x512; quick 128x256]")
+    ap.add_argument("--rounds", type=B.integer(1), default=None,
                     help="interleaved rounds of the speed study (medians are reported) "
                          "[default: 9; quick 3]")
     ap.add_argument("--speed-only", action="store_true",
@@ -247,10 +250,14 @@ def main():
     args.texels = args.texels or (64 if args.quick else 256)
     args.ref_env_res = args.ref_env_res or ("128x256" if args.quick else "256x512")
     args.rounds = args.rounds or (3 if args.quick else 9)
-    out = B.start(args, "bench_features.py")
-    machine = B.machine_limits(embree=True)
+    # the shared env map when this checkout sits beside it, else builtin:sky; an --env
+    # that was given must be there (one line, exit 1, before any work)
     env_spec = args.env if Path(args.env).exists() or args.env.startswith("builtin:") \
         else "builtin:sky"
+    if args.env != DEFAULT_ENV and env_spec != args.env:
+        B.fail("bench_features.py", "--env: no such file", args.env, 1)
+    out = B.start(args, "bench_features.py")
+    machine = B.machine_limits(embree=True)
     env = load_env(env_spec)
     hand = builtin_hand("right", args.pose)
     coarse = posed_meshes(hand, 0, "coarse")

@@ -120,8 +120,8 @@ def bench_fit(frame_counts):
 
 def main():
     ap = B.parser(__doc__, "5 and 10 frames, fewer LBS repeats")
-    ap.add_argument("--frames", default=None, help="fitting frame counts [default: 25,100,200; "
-                                                   "quick: 5,10]")
+    ap.add_argument("--frames", type=B.integers(1), default=None,
+                    help="fitting frame counts [default: 25,100,200; quick: 5,10]")
     args = ap.parse_args()
     out = B.start(args, "bench_hand.py")
     machine = B.machine_limits()

@@ -135,7 +135,8 @@ def render_cost(folder: Path, preset: str, tex: int) -> list:
 
 def main():
     ap = B.parser(__doc__, "small capture, 8 iterations, tiny widths, 2 variants")
-    ap.add_argument("--iters", type=int, default=None, help="training iterations per variant")
+    ap.add_argument("--iters", type=B.integer(1), default=None,
+                    help="training iterations per variant")
     ap.add_argument("--variants", default=None, metavar="A,B",
                     help="only the quality variants whose names contain one of these words")
     args = ap.parse_args()

@@ -136,13 +136,12 @@ def main(argv=None) -> None:
     ap.add_argument("--work", default=str(B.OUT / "presets"), metavar="DIR",
                     help="cache: the capture, checkpoints, metrics [default: benchmarks/out/presets]")
     ap.add_argument("--models", default=",".join(MODELS))
-    ap.add_argument("--threads", type=int, default=2, help="torch threads per model's process")
-    ap.add_argument("--workers", type=int, default=1,
+    ap.add_argument("--threads", type=B.integer(1), default=2,
+                    help="torch threads per model's process")
+    ap.add_argument("--workers", type=B.integer(1), default=1,
                     help="models trained at once, each its own process (the students start "
                          "once the olat teacher is trained) [default: 1]")
     args = ap.parse_args(argv)
-    if args.workers < 1 or args.threads < 1:
-        ap.error("--workers and --threads must be at least 1")
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     unknown = [m for m in models if m not in MODELS]
     if unknown or not models:

@@ -911,23 +911,23 @@ def main():
     ap = B.parser(__doc__, "5 frames, tiny widths and textures, a 96×96 view, K = 2")
     ap.add_argument("--recording", default="pinch", choices=RECORDINGS,
                     help="the recording the tables render [default: pinch, 307 frames]")
-    ap.add_argument("--frames", type=int, default=300,
+    ap.add_argument("--frames", type=B.integer(1), default=300,
                     help="frames per sequence (capped at the recording's) [default: 300]")
-    ap.add_argument("--budget", type=float, default=90.0,
+    ap.add_argument("--budget", type=B.number(0), default=90.0,
                     help="seconds one job may spend before it stops early (≥ 2 frames; "
                          "0: no limit) [default: 90]")
-    ap.add_argument("--k", type=int, default=10,
+    ap.add_argument("--k", type=B.integer(0), default=10,
                     help="frames of the CLI comparison (one process against K calls) [default: 10]")
     ap.add_argument("--models", default=",".join(MODELS),
                     help=f"comma-separated subset of {', '.join(MODELS)}")
-    ap.add_argument("--size", type=int, default=256, help="view size N×N [default: 256]")
-    ap.add_argument("--linear-tex", type=int, default=256,
+    ap.add_argument("--size", type=B.integer(1), default=256, help="view size N×N [default: 256]")
+    ap.add_argument("--linear-tex", type=B.integer(1), default=256,
                     help="the linear model's texture (paper 1024) [default: 256]")
-    ap.add_argument("--teacher-tex", type=int, default=128,
+    ap.add_argument("--teacher-tex", type=B.integer(1), default=128,
                     help="the OLAT teacher's texture (paper 1024) [default: 128]")
     ap.add_argument("--report", action="store_true",
                     help="only rewrite sequence.md and sequence.png from --out's sequence.json")
-    ap.add_argument("--threads", type=int, default=1,
+    ap.add_argument("--threads", type=B.integer(0), default=1,
                     help="torch threads of this run and of its CLI subprocesses (0: torch's "
                          "default) [default: 1: on the shared 2-core machine torch's 2 "
                          "threads ran the linear model's small element-wise ops up to 90× "

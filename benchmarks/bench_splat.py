@@ -47,8 +47,10 @@ def scene(n: int, seed: int = 0, degree: int = 1) -> Gaussians:
 
 def main():
     ap = B.parser(__doc__, "20k Gaussians at 256x256")
-    ap.add_argument("--n", type=int, default=None, help="Gaussians [default: 100000; quick 20000]")
-    ap.add_argument("--size", type=int, default=None, help="image size [default: 512; quick 256]")
+    ap.add_argument("--n", type=B.integer(1), default=None,
+                    help="Gaussians [default: 100000; quick 20000]")
+    ap.add_argument("--size", type=B.integer(1), default=None,
+                    help="image size [default: 512; quick 256]")
     args = ap.parse_args()
     out_dir = B.start(args, "bench_splat.py")
     machine = B.machine_limits()

@@ -324,8 +324,8 @@ def main():
     ap = B.parser(__doc__, "tiny widths (one and two hands) and the paper widths on one hand, "
                            "no torch.compile")
     ap.add_argument("--quality", action="store_true", help="also distill and score 4 models")
-    ap.add_argument("--iters", type=int, default=150)
-    ap.add_argument("--threads", type=int, default=None,
+    ap.add_argument("--iters", type=B.integer(0), default=150)
+    ap.add_argument("--threads", type=B.integer(1), default=None,
                     help="torch threads for the whole run, peak included [default: torch's, "
                          "which follows OMP_NUM_THREADS]")
     args = ap.parse_args()

@@ -221,8 +221,9 @@ def markdown(report: dict, quick: bool) -> list[str]:
 def main():
     ap = B.parser(__doc__, "one small capture (single hand), 8 iterations, tiny widths, "
                            "paper widths' throughput at 128² only")
-    ap.add_argument("--iters", type=int, default=None, help="training iterations per variant")
-    ap.add_argument("--threads", type=int, default=None,
+    ap.add_argument("--iters", type=B.integer(1), default=None,
+                    help="training iterations per variant")
+    ap.add_argument("--threads", type=B.integer(1), default=None,
                     help="torch threads for the whole run, peak included [default: torch's, "
                          "which follows OMP_NUM_THREADS]")
     args = ap.parse_args()

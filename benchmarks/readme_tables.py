@@ -16,7 +16,6 @@ there until the README is rewritten::
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -109,7 +108,7 @@ def put(text: str, name: str, table: str) -> str:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = _common.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--write", action="store_true", help="put the tables into README.md")
     args = ap.parse_args(argv)
     tables = {"presets": presets(), "verdicts": verdicts()}

@@ -1157,9 +1157,10 @@ def _without_option(argv: list, option: str) -> list:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = _common.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scale", choices=("tiny", "medium", "converged", "paper"), default="tiny")
-    ap.add_argument("--seeds", type=int, default=3, help="seeds 0 … N−1 per row (default 3)")
+    ap.add_argument("--seeds", type=_common.integer(1), default=3,
+                    help="seeds 0 … N−1 per row (default 3)")
     ap.add_argument("--out", help="work folder: captures, trained rows (cache); required "
                                   "unless --report")
     ap.add_argument("--results", default=None,
@@ -1169,10 +1170,10 @@ def main(argv=None):
                     help=f"comma-separated subset of {', '.join(TABLES)}")
     ap.add_argument("--report", action="store_true",
                     help="rewrite the Markdown and plots from the tables' JSON; no training")
-    ap.add_argument("--threads", type=int, default=1,
+    ap.add_argument("--threads", type=_common.integer(1), default=1,
                     help="torch threads (default 1: on a shared machine 2 threads ran a "
                          "teacher 10× slower than 1, OpenMP workers spinning for cores)")
-    ap.add_argument("--workers", type=int, default=1,
+    ap.add_argument("--workers", type=_common.integer(1), default=1,
                     help="runner processes sharing --out (default 1): each trains the rows no "
                          "other runner holds, so 2 use both cores of a 2-core machine; this "
                          "process writes the tables")
@@ -1185,8 +1186,6 @@ def main(argv=None):
     unknown = [n for n in names if n not in TABLES]
     if unknown or not names:
         ap.error(f"unknown table(s) {', '.join(unknown) or '(none)'}; use {', '.join(TABLES)}")
-    if args.seeds < 1:
-        ap.error("--seeds must be ≥ 1")
     me = "study_hands.py"
     # every path is checked (and every record read) before any work, nothing made before
     results = Path(args.results or args.out or ".")
@@ -1194,8 +1193,9 @@ def main(argv=None):
         records = {}
         for name in names:
             source = results / f"study_{name}.json"
-            if not source.is_file():
-                ap.error(f"--report needs {source} (run the table first)")
+            if not source.exists():     # data, not usage: exit 1, as read_report's
+                _common.fail(me, "--report: no such table record (run the table first)",
+                             source, 1)
             records[name] = read_report(me, source)
         check_out_dir(me, results, "--results")
     else:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -219,6 +220,128 @@ def _missing(wanted, names, what, path):
 #: The most bins a DGSM may declare (dgsm-build --bins is at most 999).
 MAX_BINS = 999
 
+_TABLE_CHANNEL = re.compile(r"(?:group(\d+)\.)?light(\d+)\.t(\d+)")
+
+
+def _uncovered(names, n_lights, bins, n_groups, path):
+    """Refuse table channels (``light{i}.t{k}``, ``group{j}.light{i}.t{k}``) that the
+    header's counts do not cover: a ``bins`` or ``lights`` one too small would otherwise
+    drop a bin or a light silently.  Other channel names are left alone (additive
+    versions may add them)."""
+    extra = []
+    for name in names:
+        m = _TABLE_CHANNEL.fullmatch(name)
+        if m is None:
+            continue
+        group, light, k = m.group(1), int(m.group(2)), int(m.group(3))
+        group = None if group is None else int(group)
+        if name != channel_name(light, k, group):
+            continue                    # not a name this format makes (light00.t1 ...)
+        if light >= n_lights or k >= bins or (group is not None and group >= n_groups):
+            extra.append(name)
+    if extra:
+        extra.sort()
+        raise DataError(f"channel(s) {', '.join(extra[:3])}{' …' if len(extra) > 3 else ''} "
+                        f"beyond the header ({PREFIX}lights = {n_lights}, {PREFIX}bins = "
+                        f"{bins}, {n_groups} group(s)): the header and the channels disagree",
+                        path)
+
+
+def _roi_number(value, what, path, lo=-math.inf, infinite=False):
+    """A finite number ≥ lo (or ±inf, also written "inf"/"-inf", when ``infinite``)."""
+    if infinite and value in ("inf", "-inf"):
+        value = float(value)
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    try:
+        number = number and not math.isnan(float(value))
+    except OverflowError:               # an integer of 400 digits
+        number = False
+    if (not number or (not infinite and not math.isfinite(value))
+            or not (lo <= value or (infinite and math.isinf(value)))):
+        raise DataError(f"header attribute {PREFIX}roi: {what} must be "
+                        f"{'a number or ±inf' if infinite else 'a finite number'}"
+                        f"{f' ≥ {lo:g}' if lo > -math.inf else ''}, got {value!r}"[:200], path)
+    return value
+
+
+def _roi_box(value, sizes, what, path):
+    """An inclusive index box [lo..., hi...] within ``sizes``, or the empty box
+    ([0, 0, -1, -1] / [0, -1]); returns whether it is empty."""
+    n = len(sizes)
+    empty = [0] * n + [-1] * n
+    from ._common import is_int
+    if not (isinstance(value, list) and len(value) == 2 * n and all(is_int(v) for v in value)):
+        raise DataError(f"header attribute {PREFIX}roi: {what} must be {2 * n} integers, "
+                        f"got {value!r}"[:200], path)
+    if value == empty:
+        return True
+    if not all(0 <= value[a] <= value[a + n] < size for a, size in enumerate(sizes)):
+        raise DataError(f"header attribute {PREFIX}roi: {what} {value!r} is not a box inside "
+                        f"the table (min ≤ max, within {' × '.join(map(str, sizes))}; "
+                        f"{empty} when empty)"[:200], path)
+    return False
+
+
+def _check_roi(roi, n_lights, bins, h, w, n_groups, path):
+    """The per-light ROI records (formats/dgsm_exr.md): one per light (or none recorded);
+    each field present has its type, boxes lie inside the table with min ≤ max (or are the
+    empty box), pixels, bins and texels are empty together, and numbers are finite."""
+    if roi and len(roi) != n_lights:
+        raise DataError(f"header attribute {PREFIX}roi holds {len(roi)} record(s) for "
+                        f"{n_lights} light(s)", path)
+    for i, rec in enumerate(roi):
+        _check_roi_record(rec, f"roi[{i}]", bins, h, w, n_groups, path)
+
+
+def _check_roi_record(rec, at, bins, h, w, n_groups, path):
+    from ._common import is_int
+    if not isinstance(rec, dict):
+        raise DataError(f"header attribute {PREFIX}roi: {at} must be an object", path)
+    empty = []
+    if "pixels" in rec:
+        empty.append(_roi_box(rec["pixels"], (w, h), f"{at}.pixels", path))
+    if "bins" in rec:
+        empty.append(_roi_box(rec["bins"], (bins,), f"{at}.bins", path))
+    for key in ("texels", "receivers"):
+        if key in rec and not (is_int(rec[key]) and rec[key] >= 0):
+            raise DataError(f"header attribute {PREFIX}roi: {at}.{key} must be an integer "
+                            f"≥ 0, got {rec[key]!r}"[:200], path)
+    if "texels" in rec:
+        if rec["texels"] > h * w * max(1, n_groups or 0):
+            raise DataError(f"header attribute {PREFIX}roi: {at}.texels = {rec['texels']} "
+                            f"exceeds the {w}x{h} atlas", path)
+        empty.append(rec["texels"] == 0)
+    if len(set(empty)) > 1:
+        raise DataError(f"header attribute {PREFIX}roi: {at}'s pixels, bins and texels "
+                        f"disagree (one is empty, another not)", path)
+    if "centroid" in rec:
+        c = rec["centroid"]
+        if not (isinstance(c, list) and len(c) == 3):
+            raise DataError(f"header attribute {PREFIX}roi: {at}.centroid must be 3 "
+                            f"numbers, got {c!r}"[:200], path)
+        for v in c:
+            _roi_number(v, f"{at}.centroid", path)
+    if rec.get("radius") is not None:
+        _roi_number(rec["radius"], f"{at}.radius", path, 0)
+    if "bounding_radius" in rec:
+        _roi_number(rec["bounding_radius"], f"{at}.bounding_radius", path, 0)
+    if "height" in rec:
+        hgt = rec["height"]
+        if not (isinstance(hgt, list) and len(hgt) == 2):
+            raise DataError(f"header attribute {PREFIX}roi: {at}.height must be [lo, hi], "
+                            f"got {hgt!r}"[:200], path)
+        lo, hi = (_roi_number(v, f"{at}.height", path, infinite=True) for v in hgt)
+        if lo > hi and rec.get("receivers", 0) != 0:
+            raise DataError(f"header attribute {PREFIX}roi: {at}.height {hgt!r} has lo > "
+                            f"hi but receivers in it"[:200], path)
+    if "groups" in rec:
+        sub = rec["groups"]
+        if n_groups is None or not isinstance(sub, list) or len(sub) != n_groups:
+            raise DataError(f"header attribute {PREFIX}roi: {at}.groups must list one "
+                            f"record per occluder group ({n_groups or 0})", path)
+        for j, g in enumerate(sub):
+            _check_roi_record(g, f"{at}.groups[{j}]", bins, h, w, None, path)
+
 
 def read_dgsm(path: str):
     """Read and validate a DGSM EXR → :class:`DGSM`.
@@ -301,6 +424,8 @@ def read_dgsm(path: str):
         if not np.isfinite(groups).all() or groups.min() < -1e-3 or groups.max() > 1 + 1e-3:
             raise DataError("group transmittance must be finite and in [0, 1]", path)
         groups = np.clip(groups, 0, 1)
+    _uncovered(names, n_lights, K, len(group_names), path)
+    _check_roi(roi, n_lights, K, h, w, len(group_names) if groups is not None else None, path)
     seconds = attrs.get(PREFIX + "build_seconds", 0.0)
     return DGSM(np.clip(table, 0, 1), lights, t_max, layout, mapping, float(kappa), roi,
                 float(seconds) if isinstance(seconds, (int, float)) else 0.0, {},

@@ -143,25 +143,16 @@ def _check_version(image, path: str) -> None:
 
 
 def read_image_oiio(path: str) -> np.ndarray:
-    """Read level 0 of any OpenImageIO-readable image as [H, W, 3] float32 (RGB)."""
-    import OpenImageIO as oiio
+    """Level 0 of any OpenImageIO-readable image as [H, W, 3] float32 (RGB), through
+    :func:`relight_cli.formats.image.read_image` (so a PNG cut short is refused and
+    libpng's own stderr lines are silenced, as for every image relight reads)."""
+    from .image import read_image
 
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise DataError("unreadable image: " + (oiio.geterror().splitlines() or ["unknown format"])[0]
-                        .replace(path, "").strip(' :"'), path)
-    try:
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        if pixels is None:
-            raise DataError("damaged image: " + (inp.geterror().splitlines() or ["read failed"])[0], path)
-    finally:
-        inp.close()
-    pixels = np.asarray(pixels, dtype=np.float32)
-    if pixels.ndim == 2:
-        pixels = pixels[..., None]
+    pixels, _names = read_image(path)
     if pixels.shape[2] == 1:
         pixels = np.repeat(pixels, 3, axis=2)
+    elif pixels.shape[2] == 2:       # grey + alpha
+        pixels = np.repeat(pixels[..., :1], 3, axis=2)
     return pixels[..., :3]
 
 

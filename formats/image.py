@@ -4,10 +4,11 @@ PNG is only ever a preview (tone mapping and captions: relight_cli.preview); dat
 stays in EXR (see exr.py).  Reading of arbitrary image formats (masks, ground
 truth) goes through OpenImageIO.
 
-Errors are ours only: a damaged or cut-short PNG is one DataError/OutputError naming the
-file; libpng's own ``libpng error: …`` lines are kept off stderr (:func:`_library_quiet`),
-and a written PNG is read back before it is committed (a short write that libpng did not
-report never leaves a cut-short preview).
+Errors are ours only: a damaged or cut-short PNG (even one missing only the bytes of its
+final IEND chunk, which libpng never reads: :func:`check_png`) is one DataError/OutputError
+naming the file; libpng's own ``libpng error: …`` lines are kept off stderr
+(:func:`_library_quiet`), and a written PNG is read back before it is committed (a short
+write that libpng did not report never leaves a cut-short preview).
 """
 
 from __future__ import annotations
@@ -123,8 +124,58 @@ def read_image(path: str) -> tuple[np.ndarray, list[str]]:
     return pixels, names
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def check_png(path: str) -> None:
+    """Refuse a PNG whose chunk structure is cut short or damaged (DataError naming the
+    file); anything that is no PNG, or no regular file, is left to the decoder.
+
+    libpng (under OpenImageIO) and Pillow both stop at the last image row and never read
+    the final IEND chunk, so a PNG missing its last bytes decodes as if whole.  This walks
+    the chunks up to IEND: each must fit in the file, and the critical ones (IHDR, PLTE,
+    IDAT, IEND: libpng's own rule) must match their CRC."""
+    import struct
+    import zlib
+
+    if not os.path.isfile(path):
+        return
+    with open(path, "rb") as f:
+        if f.read(8) != PNG_SIGNATURE:
+            return
+        while True:
+            head = f.read(8)
+            if len(head) < 8:
+                raise DataError("damaged PNG: cut short (no complete IEND chunk at the end)",
+                                path)
+            length, kind = struct.unpack(">I4s", head)
+            if length > 0x7FFFFFFF or not kind.isalpha():
+                raise DataError(f"damaged PNG: invalid chunk header {kind!r}"[:120], path)
+            critical = not kind[0] & 0x20
+            crc, left = zlib.crc32(kind), length
+            if critical:
+                while left:
+                    block = f.read(min(left, 1 << 20))
+                    if not block:
+                        break
+                    crc, left = zlib.crc32(block, crc), left - len(block)
+            else:
+                here = f.tell()
+                left = max(0, here + length - f.seek(0, os.SEEK_END))
+                f.seek(here + length - left)
+            stored = f.read(4)
+            if left or len(stored) < 4:
+                raise DataError(f"damaged PNG: cut short in its {kind.decode()} chunk", path)
+            if critical and struct.unpack(">I", stored)[0] != crc:
+                raise DataError(f"damaged PNG: CRC error in its {kind.decode()} chunk", path)
+            if kind == b"IEND":
+                return
+
+
 def _read(oiio, path: str):
-    """OpenImageIO's read of ``path`` (level 0, float), DataError on failure."""
+    """OpenImageIO's read of ``path`` (level 0, float), DataError on failure (also for a
+    PNG cut short that the decoder would take as whole: :func:`check_png`)."""
+    check_png(path)
     inp = oiio.ImageInput.open(path)
     if inp is None:
         raise DataError("unreadable image: " + _first_line(oiio.geterror(), path, "unknown format"),

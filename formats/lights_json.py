@@ -115,6 +115,15 @@ def _vector(value, n, what, path, nonneg=False, limit=MAX_VALUE):
     return [float(v) for v in value]
 
 
+def _scalar(value, what, path, limit=MAX_VALUE):
+    """One non-negative number (not a list: a light's colour goes in 'color', and a
+    one-element list is not a number the format allows)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        raise DataError(f"{what} must be a number ≥ 0 (per-channel values go in 'color'), "
+                        f"got {value!r}"[:200], path)
+    return _vector([value], 1, what, path, True, limit)[0]
+
+
 def lights_from_json(obj, path: str = "") -> Lights:
     if not isinstance(obj, dict):
         raise DataError("expected a JSON object", path)
@@ -134,9 +143,7 @@ def lights_from_json(obj, path: str = "") -> Lights:
         pos.append(_vector(item["position"], 3, f"lights[{i}].position", path,
                            limit=MAX_POSITION))
         col.append(_vector(item.get("color", [1.0, 1.0, 1.0]), 3, f"lights[{i}].color", path, True))
-        value = item.get("intensity", 1.0)
-        inten.append(_vector([value] if not isinstance(value, list) else value, 1,
-                             f"lights[{i}].intensity", path, True)[0])
+        inten.append(_scalar(item.get("intensity", 1.0), f"lights[{i}].intensity", path))
         name = item.get("name", "")
         if not isinstance(name, str):
             raise DataError(f"lights[{i}].name must be a string", path)

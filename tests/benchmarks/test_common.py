@@ -209,3 +209,28 @@ def test_every_script_answers_help(script):
                        text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith(f"usage: {script}"), r.stdout[:200]
+
+
+def test_parser_errors_are_one_line_and_types_bound_values(capsys):
+    """_common.ArgumentParser: argparse's errors as ``<prog>: error: …``, exit 2, no usage
+    block; integer / number / integers refuse what is not a count, size or list."""
+    ap = B.ArgumentParser(prog="bench_x.py")
+    ap.add_argument("--n", type=B.integer(1))
+    ap.add_argument("--t", type=B.number(0))
+    ap.add_argument("--res", type=B.integers(1, "x", 2))
+    assert vars(ap.parse_args(["--n", "3", "--t", "0.5", "--res", "8x16"])) == \
+        {"n": 3, "t": 0.5, "res": "8x16"}
+    for argv, word in ((["--n", "0"], "--n"), (["--n", "1.5"], "--n"), (["--t", "inf"], "--t"),
+                       (["--t", "-1"], "--t"), (["--res", "8x"], "--res"),
+                       (["--res", "8x16x2"], "--res"), (["--what"], "--what"), (["--n"], "--n")):
+        with pytest.raises(SystemExit) as e:
+            ap.parse_args(argv)
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("bench_x.py: error: "), err
+        assert word in err and "usage" not in err
+    with pytest.raises(SystemExit) as e:
+        ap.error("a message\nover two lines")
+    assert e.value.code == 2
+    assert capsys.readouterr().err == "bench_x.py: error: a message over two lines\n"
+    assert isinstance(B.parser("doc"), B.ArgumentParser)

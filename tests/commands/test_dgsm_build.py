@@ -181,6 +181,23 @@ def test_bad_lights_json(scene):
     assert not os.path.exists(out)
 
 
+def test_lights_intensity_list_is_one_line(scene):
+    """``"intensity": [1]`` is not a number (formats/lights_json.md): one line naming the
+    file and the field, exit 1, nothing written."""
+    out = str(scene["dir"] / "x.exr")
+    bad = scene["dir"] / "listed.json"
+    obj = json.loads(Path(scene["lights"]).read_text())
+    obj["lights"][1]["intensity"] = [1]
+    bad.write_text(json.dumps(obj))
+    r = CliRunner().invoke(cli, ["dgsm-build", scene["occ"], "--receivers", scene["floor"],
+                                 "--lights", str(bad), "-o", out])
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert r.exit_code == 1 and len(lines) == 1, r.output
+    assert lines[0].startswith("relight dgsm-build: error:"), r.output
+    assert "lights[1].intensity" in lines[0] and "listed.json" in lines[0], r.output
+    assert not os.path.exists(out)
+
+
 def test_zero_receivers_in_roi_writes_all_ones_with_warning(scene):
     far = _gaussians(np.array([[40.0, 0, 0], [41.0, 0, 0]]), 0.05)
     path = str(scene["dir"] / "far.ply")

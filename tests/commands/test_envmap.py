@@ -140,6 +140,19 @@ def test_truncated_file_written_by_us(run_cli, tmp_path):
                               bad.name)
 
 
+def test_png_missing_its_last_byte_through_console_script(tmp_path):
+    """A --preview PNG of ours with its last IEND byte cut off, read back as an env map:
+    one line naming the file, exit 1, no libpng line, nothing written."""
+    r = run_relight("envmap", "builtin:sky", "--to", "latlong", "--size", "16x8",
+                    "--preview", tmp_path / "x.png", "-o", tmp_path / "x.exr", "-q")
+    assert r.returncode == 0, r.stderr
+    data = (tmp_path / "x.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[:-1])
+    r = run_relight("envmap", tmp_path / "cut.png", "-o", tmp_path / "out.exr")
+    assert "libpng" not in r.stderr
+    _assert_clean_failure(r, 1, tmp_path, "cut.png", "cut short")
+
+
 def test_nan_inf_image_is_refused_with_count(run_cli, tmp_path):
     src = shared_path("images", "BrightRingsNanInf.exr")
     r = run_cli("envmap", src, "-o", tmp_path / "out.exr")

@@ -117,8 +117,9 @@ def test_duplicate_json_keys_are_refused(tmp_path):
 # ------------------------------------------------------------ cause 4: header values
 
 
-def _dgsm(tmp_path, **changes):
-    """A valid one-light, two-bin DGSM rewritten with header ``changes``."""
+def _dgsm(tmp_path, extra_channels=(), **changes):
+    """A valid one-light, two-bin 4×4 DGSM rewritten with header ``changes`` (and, if
+    given, ``extra_channels`` added, each all ones)."""
     from relight_cli.formats import dgsm_exr as DX
     from relight_cli.formats.exr import read_exr, write_exr
     good = tmp_path / "good.exr"
@@ -130,8 +131,10 @@ def _dgsm(tmp_path, **changes):
     attrs.update({DX.PREFIX + k: v for k, v in changes.items()})
     attrs = {k: v for k, v in attrs.items()
              if k.startswith("relight.") and v is not None}
+    channels = dict(image.channels)
+    channels.update({name: np.ones((4, 4), np.float32) for name in extra_channels})
     bad = tmp_path / "bad.exr"
-    write_exr(str(bad), image.channels, attributes=attrs)
+    write_exr(str(bad), channels, attributes=attrs)
     return str(bad)
 
 
@@ -160,6 +163,70 @@ def test_dgsm_header_values_are_not_trusted(tmp_path, changes, words):
     from relight_cli.formats.dgsm_exr import read_dgsm
     path = _dgsm(tmp_path, **changes)
     _raises(path, words, read_dgsm, path)
+
+
+@pytest.mark.parametrize("extra, changes, words", [
+    ((), {"bins": 1}, "light0.t001 beyond the header"),          # one bin fewer than held
+    (("light1.t000", "light1.t001"), {}, "light1.t000"),         # one light fewer
+    (("light0.t002",), {}, "light0.t002"),                       # a bin beyond bins
+    (("group0.light0.t000",), {}, "group0.light0.t000"),         # groups, no groups header
+])
+def test_dgsm_channels_beyond_the_header_are_refused(tmp_path, extra, changes, words):
+    """The header's lights × bins (× groups) must cover every table channel the file
+    holds: a ``bins`` one fewer than the channels present silently dropped the last bin."""
+    from relight_cli.formats.dgsm_exr import read_dgsm
+    path = _dgsm(tmp_path, extra_channels=extra, **changes)
+    _raises(path, words, read_dgsm, path)
+
+
+def test_dgsm_foreign_channels_are_left_alone(tmp_path):
+    """Channels that are no table channel name (an additive extension) are ignored."""
+    from relight_cli.formats.dgsm_exr import read_dgsm
+    path = _dgsm(tmp_path, extra_channels=("note.R", "light00.t1"))
+    assert read_dgsm(path).transmittance.shape == (1, 2, 4, 4)
+
+
+_ROI = {"pixels": [1, 0, 3, 2], "bins": [0, 1], "texels": 9, "receivers": 5,
+        "centroid": [0.0, 1.0, 0.0], "radius": None, "height": ["-inf", "inf"],
+        "bounding_radius": 0.5}
+
+
+@pytest.mark.parametrize("roi, words", [
+    ([{**_ROI, "pixels": [3, 0, 1, 2]}], "roi[0].pixels"),           # min > max
+    ([{**_ROI, "pixels": [0, 0, 4, 2]}], "roi[0].pixels"),           # beyond the 4×4 atlas
+    ([{**_ROI, "pixels": [0, 0, 1e300, 2]}], "roi[0].pixels"),
+    ([{**_ROI, "pixels": [0, 0, -5, 2]}], "roi[0].pixels"),
+    ([{**_ROI, "bins": [0, 2]}], "roi[0].bins"),                     # K = 2
+    ([{**_ROI, "bins": [1, 0]}], "roi[0].bins"),
+    ([{**_ROI, "texels": 17}], "roi[0].texels"),
+    ([{**_ROI, "texels": -1}], "roi[0].texels"),
+    ([{**_ROI, "pixels": [0, 0, -1, -1]}], "disagree"),              # empty box, texels
+    ([{**_ROI, "centroid": [float("inf"), 0, 0]}], "roi[0].centroid"),
+    ([{**_ROI, "centroid": "here"}], "roi[0].centroid"),
+    ([{**_ROI, "radius": -1.0}], "roi[0].radius"),
+    ([{**_ROI, "bounding_radius": "big"}], "roi[0].bounding_radius"),
+    ([{**_ROI, "height": [2.0, 1.0]}], "roi[0].height"),
+    ([{**_ROI, "height": ["nan", 1.0]}], "roi[0].height"),
+    ([{**_ROI, "groups": [_ROI]}], "roi[0].groups"),                 # no groups in the file
+    ([_ROI, _ROI], "2 record(s) for 1 light"),
+])
+def test_dgsm_roi_must_be_a_valid_box(tmp_path, roi, words):
+    """``roi`` (formats/dgsm_exr.md) holds per light inclusive texel and bin boxes inside
+    the table (or the empty box) and finite numbers: anything else is one line naming
+    the file."""
+    from relight_cli.formats.dgsm_exr import read_dgsm
+    path = _dgsm(tmp_path, roi=json.dumps(roi))
+    _raises(path, words, read_dgsm, path)
+
+
+@pytest.mark.parametrize("roi", [
+    [], [_ROI],
+    [{"pixels": [0, 0, -1, -1], "bins": [0, -1], "texels": 0, "receivers": 0,
+      "centroid": [0.0, 1.0, 0.0], "radius": 2.0, "height": [0.5, "-inf"]}],
+])
+def test_dgsm_roi_as_written_reads(tmp_path, roi):
+    from relight_cli.formats.dgsm_exr import read_dgsm
+    assert read_dgsm(_dgsm(tmp_path, roi=json.dumps(roi))).roi == roi
 
 
 def _capture(tmp_path, **settings):

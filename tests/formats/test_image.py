@@ -93,3 +93,51 @@ def test_write_png_cut_short_in_process(tmp_path, capfd):
     assert os.WEXITSTATUS(status) == 1
     assert not (tmp_path / "x.png").exists()
     assert "libpng" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("cut", [1, 4, 8, 12, 13])
+def test_png_missing_its_last_bytes_is_refused(pngs, capfd, cut):
+    """A PNG cut short in (or just before) its final IEND chunk decodes in libpng and
+    Pillow as if whole (neither reads past the last row); the reader walks the chunks
+    (formats.image.check_png): one DataError naming the file, no library output."""
+    data = (pngs / "good.png").read_bytes()
+    bad = pngs / f"short{cut}.png"
+    bad.write_bytes(data[:-cut])
+    with pytest.raises(DataError) as info:
+        read_image(str(bad))
+    text = str(info.value)
+    assert "cut short" in text and bad.name in text and "\n" not in text
+    out, err = capfd.readouterr()
+    assert err == "" and out == ""
+
+
+def test_png_crc_error_in_a_critical_chunk_is_refused(pngs):
+    data = bytearray((pngs / "good.png").read_bytes())
+    data[-1] ^= 0xFF                                  # the last byte of IEND's CRC
+    bad = pngs / "crc.png"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(DataError, match="CRC error in its IEND chunk") as info:
+        read_image(str(bad))
+    assert "crc.png" in str(info.value)
+
+
+def test_png_whole_or_with_bytes_after_iend_reads(pngs):
+    data = (pngs / "good.png").read_bytes()
+    (pngs / "tail.png").write_bytes(data + b"\0" * 7)
+    assert read_image(str(pngs / "good.png"))[0].shape == (48, 64, 3)
+    assert read_image(str(pngs / "tail.png"))[0].shape == (48, 64, 3)
+
+
+def test_png_env_map_cut_short_is_refused(pngs, capfd):
+    """formats/envmap.py reads PNG (and other non-EXR) env maps through read_image: the
+    same check and the same silenced libpng."""
+    from relight_cli.formats.envmap import read_envmap
+    assert read_envmap(str(pngs / "good.png")).radiance.shape == (48, 64, 3)
+    data = (pngs / "good.png").read_bytes()
+    for cut, name in ((1, "iend.png"), (len(data) // 2, "half.png")):
+        (pngs / name).write_bytes(data[:len(data) - cut])
+        with pytest.raises(DataError) as info:
+            read_envmap(str(pngs / name))
+        assert name in str(info.value) and "\n" not in str(info.value)
+    out, err = capfd.readouterr()
+    assert err == "" and out == ""

@@ -3,7 +3,12 @@ intensity), subsets, the RGB/scalar constructor, and a file round trip."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
+import pytest
+
+from relight_cli.errors import DataError
 
 from relight_cli.formats.lights_json import Lights, read_lights, write_lights
 
@@ -53,3 +58,18 @@ def test_round_trip(tmp_path):
     back = read_lights(path)
     np.testing.assert_array_equal(back.radiant_intensity(), lights.radiant_intensity())
     assert back.names == ["key"] and back.extra == {"estimator": "e"}
+
+
+@pytest.mark.parametrize("value", [[1], [1.0, 1.0, 1.0], [], "1", True, {"v": 1}])
+def test_intensity_must_be_one_number(tmp_path, value):
+    """``intensity`` is a number ≥ 0 (formats/lights_json.md); a one-element list, an RGB
+    triple (that is ``color``'s job), a string or a bool is one line naming the file and
+    the field, not silently unwrapped."""
+    path = tmp_path / "lights.json"
+    path.write_text(json.dumps({"format": "relight/lights", "version": 1, "lights": [
+        {"position": [0, 1, 0]}, {"position": [0, 2, 0], "intensity": value}]}))
+    with pytest.raises(DataError) as info:
+        read_lights(str(path))
+    text = str(info.value)
+    assert "lights[1].intensity" in text and str(path) in text and "\n" not in text
+
