@@ -5,6 +5,12 @@
    aa 4), over texture resolution and sub-pixel samples.
 2. A synthetic capture (20 cameras at 128×128, 64 LEDs, groups of 5, every 3rd frame
    fully lit): measured on a few frames, extrapolated to 100 frames.
+3. An env map (issue 50): one 256×256 view of the fist under ``builtin:sky`` (and Poly
+   Haven's empty_warehouse when ../shared/data has it), env transport per texel (the
+   default) and per vertex: seconds per stage, the rays traced, and raw embree on exactly
+   those rays (the env transport's, the G-buffer's and the buried-texel test's) in the
+   same run, on one thread and on the renderer's thread pool; the ratio of the render's
+   wall time to raw embree's on the pool is what the renderer costs beyond its rays.
 
 Writes render_time_vs_error.{csv,md,png} under --out (default benchmarks/out/); the
 plot: seconds against the relative RMS error, one curve per sub-pixel sample count.
@@ -106,12 +112,93 @@ def bench_capture(quick: bool):
     return out
 
 
+def _raw_embree(scene, origins, directions, t_far=None, threads: int = 1) -> float:
+    """Seconds raw embree takes for these occlusion rays: one call, or ``threads`` equal
+    chunks on the renderer's own thread pool (best of 3)."""
+    from relight_cli.visibility import thread_pool
+    chunks = np.array_split(np.arange(len(origins)), threads)
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.perf_counter()
+        if threads == 1:
+            scene.occluded(origins, directions, t_far)
+        else:
+            list(thread_pool(threads).map(lambda c: scene.occluded(
+                origins[c], directions[c], None if t_far is None else t_far[c]), chunks))
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def bench_env(quick: bool):
+    """Section 3: per-texel and per-vertex env transport against raw embree."""
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.cli.inputs import load_envmap
+    from relight_cli.formats.camera import Camera
+    from relight_cli.hand.model import builtin_hand
+    from relight_cli.hand.scene import posed_meshes
+    from relight_cli.render.appearance import hand_materials
+    from relight_cli.render.gbuffer import camera_rays
+    from relight_cli.render.shading import HandRenderer, RenderSettings
+    from relight_cli.visibility import trace_threads
+
+    hand = builtin_hand(pose="fist")
+    meshes = posed_meshes(hand, 0, "fine")
+    materials = hand_materials(hand, "fine", 512, seed=0)
+    lo, hi = meshes[0].vertices.min(0), meshes[0].vertices.max(0)
+    c = 0.5 * (lo + hi)
+    camera = Camera.look_at(c + [0.05, 0.1, 0.35], c, fov_y_deg=30, width=256, height=256)
+    envs = {"builtin:sky": builtin_envmap("builtin:sky")}
+    warehouse = str(B.HDRI_DIR / "empty_warehouse_01_1k.hdr")
+    if os.path.exists(warehouse) and not quick:
+        envs["empty_warehouse_01"] = load_envmap(warehouse)
+    threads = trace_threads()
+    rows = []
+    for name, env in envs.items():
+        for space in ("texels", "vertices"):
+            best = None
+            for _ in range(1 if quick else 3):
+                t0 = time.perf_counter()
+                renderer = HandRenderer(meshes, materials, RenderSettings(env_space=space))
+                t1 = time.perf_counter()
+                lighting = renderer.light(env=env)
+                t2 = time.perf_counter()
+                renderer.render(camera, lighting)
+                t3 = time.perf_counter()
+                t = {"setup": t1 - t0, "light": t2 - t1, "render": t3 - t2, "total": t3 - t0}
+                best = t if best is None or t["total"] < best["total"] else best
+            # the same rays: every (receiver, direction) pair the env transport traced, the
+            # G-buffer's camera rays (traced to the first hit: embree's occlusion query on
+            # them costs at most as much) and the buried-texel test's rays along the normals
+            baker = next(iter(renderer._bakers.values()))
+            cache = baker.cache
+            ii, mm = np.nonzero(cache.traced)
+            origins = [cache.ray_origins()[ii].astype(np.float64)]
+            dirs = [cache.directions[mm]]
+            eye, cam_dirs = camera_rays(camera, renderer.settings.aa, False, 0)
+            origins.append(np.asarray(eye))
+            dirs.append(cam_dirs)
+            for k, surf in enumerate(renderer.surfaces):
+                origins.append(surf.points + renderer.offsets[k] * surf.normals)
+                dirs.append(surf.normals)
+            o, d = np.concatenate(origins), np.concatenate(dirs)
+            one = _raw_embree(renderer.scene, o, d, threads=1)
+            pool = _raw_embree(renderer.scene, o, d, threads=threads)
+            rows.append({"env": name, "env_space": space, **{k: round(v, 3) for k, v in best.items()},
+                         "rays": int(len(o)), "env_rays": int(len(ii)),
+                         "raw_embree_1_thread_s": round(one, 3),
+                         f"raw_embree_{threads}_threads_s": round(pool, 3),
+                         "ratio_to_raw": round(best["total"] / pool, 2)})
+            print(rows[-1], flush=True)
+    return rows, threads
+
+
 def main():
     args = B.parser(__doc__, "fewer configurations and frames").parse_args()
     OUT = str(B.start(args, "bench_render.py"))
     limits = B.machine_limits(embree=True)
     rows, ref_t = bench_view(args.quick)
     cap = bench_capture(args.quick)
+    env_rows, threads = bench_env(args.quick)
     with open(os.path.join(OUT, "render_time_vs_error.csv"), "w") as f:
         f.write(",".join(rows[0]) + "\n")
         for r in rows:
@@ -135,6 +222,21 @@ def main():
               f"{cap['setup_s']} s. Extrapolated to 100 frames ({cap['full_frames']} full + "
               f"{cap['group_frames']} grouped): **{cap['extrapolated_100_frames_s']} s** "
               "(rendering only; EXR writing adds ≈ 5 ms per image)."]
+    lines += ["", "## An env map: per-texel transport against raw embree on the same rays", "",
+              "The fist, one 256×256 view, skin materials, shadows, GGX, SSS; env grid 32×16 "
+              "with bright sources kept apart (the defaults). Seconds: best of 3. *rays*: "
+              "the env transport's (receiver, direction) pairs + the G-buffer's camera rays + "
+              "the buried-texel test's, traced again by raw embree (`RayScene.occluded`) "
+              f"in one call and in {threads} chunks on the renderer's thread pool; *ratio*: "
+              "the render's total over raw embree on the pool.", "",
+              "| env map | transport at | setup s | light s | render s | total s | rays "
+              f"| raw embree, 1 thread s | raw embree, {threads} threads s | ratio |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in env_rows:
+        lines.append(f"| {r['env']} | {r['env_space']} | {r['setup']:.3f} | {r['light']:.3f} | "
+                     f"{r['render']:.3f} | {r['total']:.3f} | {r['rays']:,} | "
+                     f"{r['raw_embree_1_thread_s']:.3f} | "
+                     f"{r[f'raw_embree_{threads}_threads_s']:.3f} | {r['ratio_to_raw']:.2f} |")
     lines += ["", "Plot: render_time_vs_error.png."]
     with open(os.path.join(OUT, "render_time_vs_error.md"), "w") as f:
         f.write("\n".join(lines) + "\n")

@@ -34,6 +34,15 @@ from relight_cli.sequence import FRAME_HELP, FRAMES_HELP
               show_default=True, help="Specular features: RelightableHands' Phong, URHand's GGX.")
 @click.option("--roughness", default="0.5", show_default=True,
               help="GGX roughness: a number in (0, 1], or a UV-space EXR map (channel Y or R).")
+@click.option("--ggx-shadowing", type=click.Choice(["smith", "schlick"]), default="smith",
+              show_default=True,
+              help="The GGX layer's shadowing term: the exact Smith G (as Mitsuba 3 and pbrt) "
+                   "or URHand Eq. 15's Schlick remap k = (rho+1)^2/8.")
+@click.option("--env-sources", default="auto", show_default=True, metavar="auto|none|N",
+              help="Take up to N small bright sources (a sun, a lamp) out of each env map "
+                   "before it is put on the --env-res grid, each kept as a distant light at "
+                   "its own direction and power (auto: up to 8), as relight --model physical "
+                   "does.")
 @click.option("--eye", default=None, help="Viewer position x,y,z (metres, world).")
 @click.option("--camera", type=str, default=None,
               help="Viewer from an OpenCV camera JSON (its centre). Default: a camera framing "
@@ -46,7 +55,8 @@ from relight_cli.sequence import FRAME_HELP, FRAMES_HELP
 @no_clobber_option
 @quiet_option
 def command(hand, envs, output, frame, frames, mesh, env_res, texture_res, shininess, specular,
-            roughness, eye, camera, no_visibility, per_vertex, preview, no_clobber, quiet):
+            roughness, ggx_shadowing, env_sources, eye, camera, no_visibility, per_vertex,
+            preview, no_clobber, quiet):
     """Bake shading features of the posed hand(s) in HAND (a hand.npz, or
     builtin:right|left|two[:POSE]) under each ENV (EXR/HDR env map or
     builtin:sky|studio|uniform|point) into texel-aligned EXR maps.
@@ -69,7 +79,7 @@ def command(hand, envs, output, frame, frames, mesh, env_res, texture_res, shini
     # ---- options (usage errors, before any work)
     options, rough_value, env_names, patterns = _options(
         envs, env_res, texture_res, shininess, specular, roughness, eye, camera, frame,
-        frames, mesh, no_visibility, (output, per_vertex, preview))
+        frames, mesh, no_visibility, (output, per_vertex, preview), ggx_shadowing, env_sources)
 
     # ---- inputs (data errors)
     data = I.load_hand(hand)
@@ -89,7 +99,8 @@ def command(hand, envs, output, frame, frames, mesh, env_res, texture_res, shini
             size = (f"{env.width}x{env.height}" if env.layout == "latlong"
                     else f"cube {env.width}x{env.width}x6")
             log(f"note: {spec} ({size}) is reduced to the --env-res grid {env_w}x{env_h} "
-                f"(area-weighted, power kept); a larger --env-res keeps more detail", quiet)
+                f"(area-weighted, power kept; small bright sources kept apart per "
+                f"--env-sources); a larger --env-res keeps more detail", quiet)
 
     # ---- the job, each frame written as it comes
     inputs = {"hand": hand} if camera is None else {"hand": hand, "camera": camera}
@@ -103,7 +114,7 @@ def command(hand, envs, output, frame, frames, mesh, env_res, texture_res, shini
 
 
 def _options(envs, env_res, texture_res, shininess, specular, roughness, eye, camera, frame,
-             frames, mesh, no_visibility, patterns):
+             frames, mesh, no_visibility, patterns, ggx_shadowing="smith", env_sources="auto"):
     """The options' usage errors (exit 2), before any work: (BakeOptions, the scalar
     roughness or None for a map, the env maps' names, the outputs' OutputPatterns)."""
     import numpy as np
@@ -121,7 +132,7 @@ def _options(envs, env_res, texture_res, shininess, specular, roughness, eye, ca
     try:
         alphas = tuple(float(a) for a in shininess.split(",") if a.strip()) if shininess else ()
         settings = FE.FeatureSettings(shininess=alphas, specular=specular,
-                                      visibility=not no_visibility)
+                                      visibility=not no_visibility, shadowing=ggx_shadowing)
     except ValueError as exc:
         raise UsageProblem(f"--shininess: {exc}") from None
     if settings.specular in ("phong", "both") and not settings.phong:
@@ -145,8 +156,13 @@ def _options(envs, env_res, texture_res, shininess, specular, roughness, eye, ca
             raise UsageProblem(f"several env maps need {{env}} in every output name: {pattern}")
         if frames is not None and not parsed[what].holds("frame"):
             raise UsageProblem(f"--frames needs {{frame}} in every output name: {pattern}")
+    from relight_cli.jobs.relight_hand import PhysicalOptions
+    try:
+        sources = PhysicalOptions(env_sources=env_sources).sources()
+    except ValueError as exc:
+        raise UsageProblem(str(exc)) from None
     options = BakeOptions(settings, (env_h, env_w), (tex_h, tex_w), mesh, eye_pos,
-                          roughness_label=roughness)
+                          roughness_label=roughness, env_sources=sources)
     return options, rough_value, env_names, parsed
 
 

@@ -134,6 +134,20 @@ def _model_help() -> str:
 @click.option("--aov", default=None, metavar="LIST",
               help="--model physical: extra EXR layers, comma-separated from normal, uv, "
                    "depth.")
+@click.option("--env-space", type=click.Choice(["texels", "vertices"]), default=None,
+              help="--model physical: where env-map light transport is integrated: at the "
+                   "texel centres (shadows and highlights as sharp as the --tex-res map) or "
+                   "at mesh vertices, interpolated (faster; contact shadows come out jagged "
+                   "and highlights smeared) [default: texels].")
+@click.option("--env-sources", default=None, metavar="auto|none|N",
+              help="--model physical: take up to N small bright sources (a sun, a lamp) out "
+                   "of the env map before it is put on the --env-res grid, each kept as a "
+                   "distant light at its own direction and power (auto: up to 8) "
+                   "[default: auto].")
+@click.option("--ggx-shadowing", type=click.Choice(["smith", "schlick"]), default=None,
+              help="--model physical: the GGX lobe's shadowing term, the exact Smith G "
+                   "(as Mitsuba 3 and pbrt) or URHand Eq. 15's Schlick remap "
+                   "k = (rho+1)^2/8 [default: smith].")
 @click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
               help="Background radiance of the image.")
 @click.option("--preview", default=None, metavar="PNG",

@@ -57,6 +57,11 @@ from relight_cli.cli.tools import (SquareSize, check_output, log, no_clobber_opt
                    "texel centres where the LEDs are shaded (an env render is then the sum of "
                    "the stage's own transport over the map's directions, as on a real stage) "
                    "or at mesh vertices, interpolated (captures made before this option).")
+@click.option("--ggx-shadowing", type=click.Choice(["smith", "schlick"]), default="smith",
+              show_default=True,
+              help="The skin's GGX shadowing term: the exact Smith G a standard renderer "
+                   "(Mitsuba 3) uses, or URHand Eq. 15's Schlick remap k = (rho+1)^2/8 "
+                   "(captures made before this option).")
 @click.option("--skin-seed", type=int, default=0, show_default=True,
               help="Seed of the procedural skin: the subject (keep it across the right, left "
                    "and two-hand captures of one study; --seed changes their motion).")
@@ -67,7 +72,8 @@ from relight_cli.cli.tools import (SquareSize, check_output, log, no_clobber_opt
 @quiet_option
 def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
             keyframe_every, tex_res, aa, no_sss, bounce, eval_poses, eval_envs, eval_cameras,
-            eval_env_res, eval_env_space, skin_seed, preview, seed, no_clobber, quiet):
+            eval_env_res, eval_env_space, ggx_shadowing, skin_seed, preview, seed, no_clobber,
+            quiet):
     """Render a light-stage capture of HAND (a hand.npz, or
     builtin:right|left|two[:POSE]; default builtin:right) into FOLDER in the
     relight/capture format (formats/capture.md): capture.json, the ground-truth
@@ -111,7 +117,7 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
                              full_every=full_every, res=res, keyframe_every=keyframe_every,
                              seed=seed, tex_res=tex_res, aa=aa, sss=not no_sss, bounce=bounce,
                              skin_seed=skin_seed, eval_env_res=tuple(env_res),
-                             eval_env_space=eval_env_space)
+                             eval_env_space=eval_env_space, ggx_shadowing=ggx_shadowing)
     stage = light_stage(data, [load_envmap(spec) for spec in env_specs], settings, motion,
                         eval_poses)
     plan, settings = stage.plan, stage.settings

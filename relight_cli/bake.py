@@ -50,11 +50,13 @@ class PoseFeatures:
         rasters: a dict shared across poses caching UV rasterizations (pose independent).
         source: the hand's path, named in errors.
         posed: already posed meshes (skips step 1).
+        grid: the DiscreteEnv whose directions the env maps share (with their bright
+            sources, :func:`relight_cli.envmap.share_directions`), instead of ``env_res``.
     """
 
     def __init__(self, hand, frame: int, settings: FE.FeatureSettings, env_res=DEFAULT_GRID,
                  tex_res=(128, 128), mesh: str = "coarse", rasters: dict | None = None,
-                 source: str = "", posed=None):
+                 source: str = "", posed=None, grid=None):
         t0 = time.perf_counter()
         if posed is None:
             posed = pose_scene(hand, frame, mesh, source)
@@ -64,7 +66,7 @@ class PoseFeatures:
         self.rasters = {} if rasters is None else rasters
         self.seconds = {"pose": time.perf_counter() - t0}
         meshes = [FE.PoseMesh(pm.vertices, pm.faces, pm.normals, pm.name) for pm in posed]
-        self.baker = FE.FeatureBaker(meshes, settings, env_res=env_res)
+        self.baker = FE.FeatureBaker(meshes, settings, env_res=env_res, grid=grid)
 
     @property
     def names(self) -> list[str]:

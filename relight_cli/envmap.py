@@ -535,11 +535,14 @@ class DiscreteEnv:
     """An environment map as M directions with exact solid angles.
 
     Attributes:
-        directions: [M, 3] float64 unit world directions (pixel centres).
-        solid_angle: [M] float64 steradians, Σ = 4π.
+        directions: [M, 3] float64 unit world directions: the H×W lat-long grid's pixel
+            centres, then ``sources`` bright sources (:func:`bright_sources`).
+        solid_angle: [M] float64 steradians, Σ = 4π (a source's own texels' solid angle
+            is taken out of the grid cell its direction falls in).
         radiance: [M, 3] float64 linear RGB.
-        height, width: the lat-long grid the directions came from.
+        height, width: the lat-long grid the first H·W directions came from.
         name: source label.
+        sources: how many directions at the end are extracted bright sources.
     """
 
     directions: np.ndarray
@@ -548,6 +551,7 @@ class DiscreteEnv:
     height: int
     width: int
     name: str = ""
+    sources: int = 0
 
     @property
     def lit(self) -> np.ndarray:
@@ -555,16 +559,162 @@ class DiscreteEnv:
         return np.any(self.radiance != 0, axis=1)
 
 
-def discretize_env(env: EnvMap, height: int = 16, width: int = 32) -> DiscreteEnv:
+#: ``sources="auto"``: a connected region of texels brighter than SOURCE_CONTRAST × the
+#: map's mean radiance is a source when it is smaller than half a grid cell (radius
+#: about its centre) and carries at least SOURCE_FRACTION of the map's power; at most
+#: MAX_SOURCES of them, the strongest first.
+SOURCE_CONTRAST = 20.0
+SOURCE_FRACTION = 0.01
+MAX_SOURCES = 8
+
+
+@dataclass
+class BrightSource:
+    """A small bright region of an env map, as one distant light.
+
+    Attributes:
+        direction: [3] unit, the luminance-weighted mean direction of its texels.
+        power: [3] ∫ L dω over its texels (W m⁻² per unit of the map's radiance).
+        solid_angle: Σ Δω of its texels.
+        radius_deg: the largest angle between a texel of it and ``direction``.
+        texels: [T] flat texel indices (row·W + col) in the map.
+    """
+
+    direction: np.ndarray
+    power: np.ndarray
+    solid_angle: float
+    radius_deg: float
+    texels: np.ndarray
+
+
+def bright_sources(env: EnvMap, max_radius_deg: float, limit: int = MAX_SOURCES,
+                   contrast: float = SOURCE_CONTRAST,
+                   fraction: float = SOURCE_FRACTION) -> list[BrightSource]:
+    """The suns and lamps of ``env`` that a coarse grid would misplace.
+
+    A lat-long grid of cells ~11° wide puts a 0.5° sun at its cell's centre, up to
+    half a cell away (6.5° for ``builtin:sky`` at 32×16), and blurs its shadow over the
+    cell.  Here the map's own texels decide: 8-connected regions of texels whose
+    luminance exceeds ``contrast`` × the map's mean radiance (power / 4π), each kept
+    when its radius ≤ ``max_radius_deg`` and its power ≥ ``fraction`` of the map's (a
+    region larger than that is resolved by the grid itself; a weaker one moves too
+    little light to matter).  Strongest first, at most ``limit``."""
+    from scipy import ndimage
+
+    rgb = np.asarray(env.radiance, np.float64)[..., :3]
+    omega = solid_angles(env)
+    lum = luminance(rgb)
+    total = float((lum * omega).sum())
+    if limit <= 0 or not np.isfinite(total) or total <= 0:
+        return []
+    bright = lum > contrast * total / (4 * math.pi)
+    if not bright.any():
+        return []
+    labels, count = ndimage.label(bright, structure=np.ones((3, 3), bool))
+    flat = labels.ravel()
+    dirs = directions(env).reshape(-1, 3)
+    weights = (lum * omega).ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(1, count + 2))
+    found = []
+    for j in range(count):
+        texels = order[bounds[j]:bounds[j + 1]]
+        wsum = float(weights[texels].sum())
+        if wsum < fraction * total:
+            continue
+        mean = weights[texels] @ dirs[texels]
+        norm = float(np.linalg.norm(mean))
+        if norm <= 0:
+            continue
+        direction = mean / norm
+        radius = math.degrees(math.acos(float(np.clip((dirs[texels] @ direction).min(), -1, 1))))
+        if radius > max_radius_deg:
+            continue
+        power = (rgb.reshape(-1, 3)[texels] * omega.reshape(-1)[texels, None]).sum(0)
+        found.append((wsum, BrightSource(direction, power, float(omega.reshape(-1)[texels].sum()),
+                                         radius, np.sort(texels))))
+    found.sort(key=lambda item: -item[0])
+    return [src for _, src in found[:limit]]
+
+
+def discretize_env(env: EnvMap, height: int = 16, width: int = 32,
+                   sources="none") -> DiscreteEnv:
     """Resample ``env`` to an H×W lat-long grid, area-weighted (power preserved).
 
     Every texel's radiance is the mean over its cell, so Σ L Δω equals the
-    source's ∫ L dω and a tiny bright source is kept, not missed.
+    source's ∫ L dω and a tiny bright source is kept, not missed, but placed at its
+    cell's centre.  ``sources`` (``"auto"``, or a maximum count; ``"none"``/0 = off) first
+    takes the map's bright sources out (:func:`bright_sources`, radius ≤ half a cell) and
+    appends each as one direction at its own mean direction carrying its exact power;
+    their texels' solid angle leaves the cell their direction falls in, so the cell keeps
+    the mean radiance of the rest of it and Σ Δω stays 4π.  A map already on the grid is
+    used as it is (a source then is its own cell).
     """
+    limit = {"auto": MAX_SOURCES, "none": 0}.get(sources, sources)
+    if not isinstance(limit, (int, np.integer)) or isinstance(limit, bool) or limit < 0:
+        raise ValueError(f"sources must be 'auto', 'none' or a count >= 0, got {sources!r}")
+    grid_dirs = latlong_directions(height, width).reshape(-1, 3)
+    omega = np.asarray(latlong_solid_angles(height, width)).reshape(-1).copy()
     if env.layout == "latlong" and (env.height, env.width) == (height, width):
-        rad = env.radiance
-    else:
-        rad = resample(env, "latlong", height, width).radiance
-    return DiscreteEnv(latlong_directions(height, width).reshape(-1, 3),
-                       np.asarray(latlong_solid_angles(height, width)).reshape(-1).copy(),
-                       np.asarray(rad, np.float64).reshape(-1, 3), height, width, env.name)
+        return DiscreteEnv(grid_dirs, omega, np.asarray(env.radiance, np.float64).reshape(-1, 3),
+                           height, width, env.name)
+    found = bright_sources(env, 90.0 / height, int(limit)) if limit else []
+    source = env
+    if found:
+        residual = np.asarray(env.radiance, np.float64)[..., :3].reshape(-1, 3).copy()
+        for src in found:
+            residual[src.texels] = 0.0
+        source = EnvMap(residual.reshape(env.radiance.shape[:2] + (3,)).astype(env.radiance.dtype),
+                        env.layout, env.name)
+    rad = np.asarray(resample(source, "latlong", height, width).radiance,
+                     np.float64).reshape(-1, 3)
+    if not found:
+        return DiscreteEnv(grid_dirs, omega, rad, height, width, env.name)
+    # the cell a source lies in loses its texels' solid angle; its radiance, the mean over
+    # the whole cell of the residual, becomes the mean over the rest (power unchanged)
+    cells = pixel_index(np.stack([s.direction for s in found]), "latlong", height, width)
+    kept = omega.copy()
+    np.subtract.at(kept, cells, [s.solid_angle for s in found])
+    kept = np.maximum(kept, 1e-3 * omega)
+    rad *= (omega / kept)[:, None]
+    src_omega = np.array([s.solid_angle for s in found])
+    src_rad = np.stack([s.power for s in found]) / src_omega[:, None]
+    return DiscreteEnv(np.concatenate([grid_dirs, np.stack([s.direction for s in found])]),
+                       np.concatenate([kept, src_omega]), np.concatenate([rad, src_rad]),
+                       height, width, env.name, len(found))
+
+
+def share_directions(envs: list[DiscreteEnv]) -> list[DiscreteEnv]:
+    """DiscreteEnvs of one lat-long grid (each with its own bright sources) on one direction
+    set: the grid, then every map's sources, so a visibility cache and transport weights
+    serve them all.  Every cell gives up the solid angle of every source in it (Σ Δω stays
+    4π, the sphere partitioned more finely), and each map's cell radiance is rescaled by
+    its old over its new solid angle, so its power Σ L Δω is unchanged; a map is dark in
+    the other maps' source directions."""
+    if not envs:
+        return []
+    first = envs[0]
+    n_grid = first.height * first.width
+    for e in envs:
+        if (e.height, e.width) != (first.height, first.width):
+            raise ValueError("env maps to share directions must be on one grid")
+    if not any(e.sources for e in envs):
+        return list(envs)
+    grid_omega = np.asarray(latlong_solid_angles(first.height, first.width)).reshape(-1)
+    src_dirs = np.concatenate([e.directions[n_grid:] for e in envs])
+    src_omega = np.concatenate([e.solid_angle[n_grid:] for e in envs])
+    cells = pixel_index(src_dirs, "latlong", first.height, first.width)
+    kept = grid_omega.copy()
+    np.subtract.at(kept, cells, src_omega)
+    kept = np.maximum(kept, 1e-3 * grid_omega)
+    directions = np.concatenate([first.directions[:n_grid], src_dirs])
+    omega = np.concatenate([kept, src_omega])
+    out, start = [], 0
+    for e in envs:
+        rad = np.zeros((len(directions), 3))
+        rad[:n_grid] = e.radiance[:n_grid] * (e.solid_angle[:n_grid] / kept)[:, None]
+        rad[n_grid + start:n_grid + start + e.sources] = e.radiance[n_grid:]
+        start += e.sources
+        out.append(DiscreteEnv(directions, omega, rad, e.height, e.width, e.name,
+                               len(src_dirs)))
+    return out

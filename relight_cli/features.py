@@ -52,7 +52,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from relight_cli.brdf import MIN_ROUGHNESS, ggx_cosine, ggx_cosine_torch
+from relight_cli.brdf import (MIN_ROUGHNESS, check_shadowing, ggx_cosine_torch,
+                               shadowing_denominator)
 from relight_cli.envmap import DEFAULT_GRID, DiscreteEnv, discretize_env
 from relight_cli.formats.envmap import EnvMap
 from relight_cli.geometry import (GEMM_SINGLE, Receivers, matvec, dot3, reflect, scene_diagonal,
@@ -91,6 +92,8 @@ class FeatureSettings:
         specular: "phong", "ggx", "both" or "none".
         roughness: GGX perceptual roughness ρ ∈ (0, 1]: a scalar or [N] per receiver.
         f0: GGX Fresnel reflectance at normal incidence (0.04: dielectric skin).
+        shadowing: the GGX lobe's G, ``"smith"`` (exact) or ``"schlick"`` (URHand Eq. 15's
+            remap), :mod:`relight_cli.brdf`.
         visibility: False = the no-shadow ablation (h ≡ 1, nothing traced).
         ray_offset: metres to lift ray origins along the normal; None = 1e-4 × the
             bounding-box diagonal of the receiver's own mesh (0.02 mm for a hand), so
@@ -103,8 +106,10 @@ class FeatureSettings:
     f0: float = 0.04
     visibility: bool = True
     ray_offset: float | None = None
+    shadowing: str = "smith"
 
     def __post_init__(self):
+        check_shadowing(self.shadowing)
         if self.specular not in SPECULAR_MODELS:
             raise ValueError(f"specular must be one of {SPECULAR_MODELS}, got {self.specular!r}")
         self.shininess = tuple(float(a) for a in self.shininess)
@@ -183,22 +188,65 @@ def _needed_pairs(receivers, reflected, directions, lit, settings, cosines=None)
 
 
 def ggx_weights(normals: np.ndarray, view: np.ndarray, directions: np.ndarray,
-                roughness: np.ndarray, f0: float = 0.04) -> np.ndarray:
-    """[N, M] GGX specular weight f_s(ω_m, v_i) · max(n_i·ω_m, 0) (Disney/UE4 form).
+                roughness: np.ndarray, f0: float = 0.04, shadowing: str = "smith",
+                cosines: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """[N, M] GGX specular weight f_s(ω_m, v_i) · max(n_i·ω_m, 0): :mod:`relight_cli.brdf`'s lobe.
 
-    f_s = D·F·G / (4 (n·l)(n·v)) with, for perceptual roughness ρ and α = ρ²:
-      D = α² / (π ((n·h)²(α² − 1) + 1)²)                (Trowbridge–Reitz/GGX)
-      F = F0 + (1 − F0)(1 − v·h)⁵                       (Schlick)
-      G = G1(l)·G1(v),  G1(x) = n·x / ((n·x)(1 − k) + k),  k = (ρ + 1)²/8  (Smith–Schlick)
-    The (n·l)(n·v) in the denominator cancels the numerators of G, which keeps
-    grazing normals finite: f_s·(n·l) = D F (n·l) / (4 ((n·l)(1−k)+k)((n·v)(1−k)+k)).
-    Zero where n·l ≤ 0 or n·v ≤ 0.
+    f_s = D·F·G / (4 (n·l)(n·v)), perceptual roughness ρ, α = ρ², ``shadowing`` G
+    (exact separable Smith or the Schlick–Smith remap of URHand Eq. 15; see
+    :mod:`relight_cli.brdf`).  Zero where n·l ≤ 0 or n·v ≤ 0.
+
+    Every pair's half vector enters only through dot products, so the [N, M] work is
+    two matrix products (n·ω, v·ω) and a few in-place element operations, with
+      |v + ω|² = 2 (1 + v·ω),  n·h = (n·v + n·ω) / |v + ω|,  v·h = √((1 + v·ω)/2),
+    and D's denominator (n·h)²(α² − 1) + 1 = (1 − (n·h)²) + (n·h)² α², whose first term is
+    (|v + ω|² − (n·v + n·ω)²)/|v + ω|² ≥ 0 (no cancellation to 0 at small α).
+    Equals :func:`relight_cli.brdf.ggx_cosine` to rounding (tests).
 
     Args:
-        normals, view: [N, 3] unit.  directions: [M, 3] unit.  roughness: [N].
+        normals, view: [N, 3] unit.  directions: [M, 3] unit.  roughness: [N] or scalar.
+        cosines: optional n·ω [N, M] already computed.  out: optional [N, M] float64 result.
     """
-    rho = np.asarray(roughness, np.float64).reshape(-1, 1)                   # [N, 1]
-    return ggx_cosine(normals[:, None, :], view[:, None, :], directions[None, :, :], rho, f0)
+    check_shadowing(shadowing)
+    n_rows = len(normals)
+    rho = np.clip(np.broadcast_to(np.asarray(roughness, np.float64).reshape(-1), (n_rows,)),
+                  MIN_ROUGHNESS, 1.0)[:, None]                                 # [N, 1]
+    a2 = rho ** 4
+    nv = np.einsum("ij,ij->i", normals, view)[:, None]                         # [N, 1]
+    nw = dot3(normals, directions) if cosines is None else cosines             # [N, M]
+    w = dot3(view, directions, out=out)                                        # v·ω → ...
+    one_vw = np.add(w, 1.0, out=w)                                             # 1 + v·ω
+    valid = (nw > 0) & (nv > 0) & (one_vw > 1e-12)
+    hl2 = np.multiply(one_vw, 2.0)                                             # |v + ω|²
+    nh = np.add(nw, nv)                                                        # n·(v + ω)
+    np.multiply(nh, nh, out=nh)
+    np.divide(nh, hl2, out=nh, where=valid)                                    # (n·h)²
+    # D denominator (1 − nh²) + nh² α², computed from |v+ω|² − (n·(v+ω))² to stay ≥ 0
+    den = np.subtract(1.0, nh)
+    np.maximum(den, 0.0, out=den)
+    den += nh * a2
+    np.multiply(den, den, out=den)
+    # F = F0 + (1 − F0)(1 − v·h)⁵, v·h = √((1 + v·ω)/2)
+    vh = np.multiply(one_vw, 0.5, out=one_vw)
+    np.sqrt(vh, out=vh)
+    np.subtract(1.0, vh, out=vh)
+    np.clip(vh, 0.0, 1.0, out=vh)
+    fres = vh * vh
+    fres *= fres
+    fres *= vh
+    fres *= 1 - f0
+    fres += f0
+    nl = np.maximum(nw, 0.0)
+    lam = shadowing_denominator(nl, rho, shadowing)
+    lam *= shadowing_denominator(np.maximum(nv, 0.0), rho, shadowing)
+    lam *= den
+    lam *= math.pi
+    # D F (n·l) / (Λ(l) Λ(v)) = α² F (n·l) / (π den² Λ(l) Λ(v))
+    np.multiply(fres, nl, out=fres)
+    fres *= a2
+    np.divide(fres, lam, out=fres, where=valid)
+    np.multiply(fres, valid, out=w)           # w's buffer held v·ω, then 1 − v·h: now f_s·cos
+    return w
 
 
 def transport_blocks(receivers: Receivers, view: np.ndarray, directions: np.ndarray,
@@ -273,8 +321,8 @@ def _transport_stacked(receivers, view, directions, solid_angle, visible, settin
                     np.multiply(h, (alpha + 2) / (2 * math.pi), out=w[phong_at[alpha]])
         if settings.ggx:
             g = w[names.index("ggx")]
-            g[...] = ggx_weights(receivers.normals[sl], view[sl], directions, roughness[sl],
-                                 settings.f0)
+            ggx_weights(receivers.normals[sl], view[sl], directions, roughness[sl],
+                        settings.f0, settings.shadowing, out=g)
             np.multiply(g, h, out=g)
         undefined = ~receivers.defined[sl]
         if undefined.any():
@@ -435,11 +483,17 @@ class FeatureBaker:
             passed to :meth:`bake` must then be DiscreteEnvs with these directions.
         threads: ray-tracing worker threads (None = every CPU available, see
             :func:`trace_threads`); results do not depend on it.
+        receivers: optional per mesh :class:`~relight_cli.geometry.Receivers` that receive
+            light instead of the mesh's vertices (e.g. the renderer's texel centres); the
+            meshes still occlude, and a receiver's ray offset is still its own mesh's.
+        scene: optional :class:`~relight_cli.raytrace.RayScene` of ``meshes`` already built
+            (the renderer's), used instead of building another.
     """
 
     def __init__(self, meshes: list[PoseMesh], settings: FeatureSettings | None = None,
                  env_res: tuple[int, int] = DEFAULT_GRID, grid: DiscreteEnv | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, receivers: list[Receivers] | None = None,
+                 scene=None):
         from relight_cli import envmap as E
 
         self.meshes = meshes
@@ -450,9 +504,16 @@ class FeatureBaker:
         points, normals, defined = [], [], []
         self.slices = []
         start = 0
-        for mesh in meshes:
-            v = np.asarray(mesh.vertices, np.float64).reshape(-1, 3)
-            nrm, ok = vertex_normals(v, mesh.faces, mesh.normals)
+        if receivers is not None and len(receivers) != len(meshes):
+            raise ValueError("give one set of receivers per mesh")
+        for k, mesh in enumerate(meshes):
+            if receivers is None:
+                v = np.asarray(mesh.vertices, np.float64).reshape(-1, 3)
+                nrm, ok = vertex_normals(v, mesh.faces, mesh.normals)
+            else:
+                v = np.asarray(receivers[k].points, np.float64).reshape(-1, 3)
+                nrm = np.asarray(receivers[k].normals, np.float64).reshape(-1, 3)
+                ok = np.asarray(receivers[k].defined, bool) & np.isfinite(nrm).all(1)
             ok &= np.isfinite(v).all(1)
             points.append(np.where(np.isfinite(v), v, 0.0))
             normals.append(nrm)
@@ -465,10 +526,11 @@ class FeatureBaker:
                     for m in meshes]
         offset = self.settings.ray_offset
         if offset is None:
-            offset = np.concatenate([np.full(len(g[0]), 1e-4 * scene_diagonal([g]))
-                                     for g in geometry])
-        scene = None
-        if self.settings.visibility:
+            offset = np.concatenate([np.full(sl.stop - sl.start, 1e-4 * scene_diagonal([g]))
+                                     for g, sl in zip(geometry, self.slices)])
+        if not self.settings.visibility:
+            scene = None
+        elif scene is None:
             from relight_cli.raytrace import RayScene
             scene = RayScene(geometry)
             # embree builds its BVH on the first query: do it here so the "scene" stage
@@ -692,7 +754,7 @@ def vertex_features_reference(meshes: list[PoseMesh], env: DiscreteEnv, eye,
                                                   * rc ** alpha * omega[j])
                 if settings.ggx:
                     out["ggx"][i] += rad[j] * _ggx_brdf_scalar(nrm, v, dirs[j], rough[i],
-                                                               settings.f0) * cos * omega[j]
+                                                               settings.f0, settings.shadowing) * cos * omega[j]
             out["visibility"][i] = num / den if den > 0 else 0.0
         results.append(out)
     return results
@@ -719,8 +781,10 @@ def _occluded_brute_force(triangles: np.ndarray, origin: np.ndarray, dirs: np.nd
     return hit.any(axis=1)
 
 
-def _ggx_brdf_scalar(n, v, l, roughness, f0):
-    """f_s(l, v) of the Disney/UE4 GGX lobe, uncancelled form, one direction (slow twin)."""
+def _ggx_brdf_scalar(n, v, l, roughness, f0, shadowing="smith"):
+    """f_s(l, v) of the GGX lobe, uncancelled form D F G / (4 n·l n·v), one direction (slow
+    twin); G1 exact Smith, 2 / (1 + √(1 + α² tan²θ)) (Walter et al. 2007 Eq. 34), or the
+    Schlick–Smith remap."""
     nl, nv = float(np.dot(n, l)), float(np.dot(n, v))
     if nl <= 0 or nv <= 0:
         return 0.0
@@ -731,7 +795,12 @@ def _ggx_brdf_scalar(n, v, l, roughness, f0):
     nh, vh = float(np.dot(n, hv)), float(np.dot(v, hv))
     d = alpha ** 2 / (math.pi * (nh ** 2 * (alpha ** 2 - 1) + 1) ** 2)
     f = f0 + (1 - f0) * (1 - vh) ** 5
-    g = (nl / (nl * (1 - k) + k)) * (nv / (nv * (1 - k) + k))
+    if shadowing == "smith":
+        def g1(c):
+            return 2 / (1 + math.sqrt(1 + alpha ** 2 * (1 - c * c) / (c * c)))
+        g = g1(nl) * g1(nv)
+    else:
+        g = (nl / (nl * (1 - k) + k)) * (nv / (nv * (1 - k) + k))
     return d * f * g / (4 * nl * nv)
 
 
@@ -739,7 +808,7 @@ def _ggx_brdf_scalar(n, v, l, roughness, f0):
 
 
 def ggx_specular_torch(normals, view, directions, weighted_radiance, visibility, roughness,
-                       f0: float = 0.04):
+                       f0: float = 0.04, shadowing: str = "smith"):
     """Differentiable GGX specular feature g_i (torch), visibility fixed.
 
     Same lobe as :func:`ggx_weights`; gradients flow to ``normals`` (normalized
@@ -761,7 +830,8 @@ def ggx_specular_torch(normals, view, directions, weighted_radiance, visibility,
 
     rho = torch.as_tensor(roughness, dtype=normals.dtype, device=normals.device)
     rho = rho.reshape(-1, 1) if rho.ndim else rho
-    w = ggx_cosine_torch(normals[:, None, :], view[:, None, :], directions[None, :, :], rho, f0)
+    w = ggx_cosine_torch(normals[:, None, :], view[:, None, :], directions[None, :, :], rho, f0,
+                         shadowing)
     return (visibility.detach() * w) @ weighted_radiance
 
 

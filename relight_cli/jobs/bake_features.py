@@ -34,6 +34,9 @@ class BakeOptions:
         overriding ``settings.roughness``; or None.
     roughness_label: what the provenance records as ``roughness`` (the command's option
         text); None records the scalar (or ``map``).
+    env_sources: bright sources taken out of each env map before the grid
+        (:func:`relight_cli.envmap.discretize_env`): ``"auto"``, ``"none"`` or a count; the
+        physical renderer's rule, so its env transport and these features agree.
     """
 
     settings: object
@@ -43,6 +46,7 @@ class BakeOptions:
     viewer: object = None
     roughness_map: object = None
     roughness_label: object = None
+    env_sources: object = "auto"
 
 
 @dataclass
@@ -80,13 +84,15 @@ def bake(data, frames, envs, options: BakeOptions, names=None, source: str = "",
     baked as it is consumed (a frame bar on stderr unless ``quiet`` or a single frame).
     ``source``: the hand's name in errors.
     """
-    from relight_cli.envmap import discretize_env
+    from relight_cli.envmap import discretize_env, share_directions
     from relight_cli.errors import DataError
 
     names = list(names) if names is not None else [e.name for e in envs]
     h, w = options.env_res
     t0 = time.perf_counter()
-    discrete = [discretize_env(e, h, w) for e in envs]
+    # every map's bright sources join one direction set: visibility is traced once for all
+    discrete = share_directions([discretize_env(e, h, w, sources=options.env_sources)
+                                 for e in envs])
     env_seconds = time.perf_counter() - t0
     for d, spec in zip(discrete, names):
         # Every layer is at most ~1e3 × the map's power Σ L Δω (the sharpest Phong/GGX
@@ -107,7 +113,8 @@ def _frames(data, frames, discrete, options, names, source, seconds, quiet):
     rasters = {}     # UV rasterizations: pose independent, made once
     for fr in progress(frames, desc="frames", quiet=quiet or len(frames) == 1):
         pose = PoseFeatures(data, fr, options.settings, options.env_res, options.tex_res,
-                            options.mesh, rasters, source=source)
+                            options.mesh, rasters, source=source,
+                            grid=discrete[0] if discrete[0].sources else None)
         posed = pose.posed
         viewer = pose.default_viewer() if options.viewer is None else options.viewer
         rough = None
@@ -134,6 +141,7 @@ def _settings(frame, options: BakeOptions, viewer) -> dict:
             "env_res": [options.env_res[0], options.env_res[1]],
             "res": [options.tex_res[1], options.tex_res[0]], "shininess": list(s.phong),
             "specular": s.specular, "roughness": label, "visibility": s.visibility,
+            "ggx_shadowing": s.shadowing, "env_sources": options.env_sources,
             "view": [float(x) for x in viewer]}
 
 

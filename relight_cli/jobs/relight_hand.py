@@ -58,6 +58,23 @@ class PhysicalOptions:
     albedo_map: str | None = None
     roughness_map: str | None = None
     aov: str | None = None
+    env_space: str | None = None
+    env_sources: str | None = None
+    ggx_shadowing: str | None = None
+
+    def sources(self):
+        """``RenderSettings.env_sources`` from ``--env-sources`` (auto, none or a count);
+        ValueError naming the option."""
+        text = "auto" if self.env_sources is None else str(self.env_sources).strip()
+        if text in ("auto", "none"):
+            return text
+        try:
+            count = int(text)
+        except ValueError:
+            count = -1
+        if not 0 <= count <= 64:
+            raise ValueError(f"--env-sources takes auto, none or a count in [0, 64], got {text!r}")
+        return count
 
     def check(self, aa: int | None) -> tuple:
         """(tex_res, samples per axis, AOV names, the roughness number or None for a map);
@@ -83,6 +100,7 @@ class PhysicalOptions:
             else:
                 if not 0 < rough_value <= 1:
                     raise ValueError(f"--roughness must be in (0, 1], got {self.roughness_map}")
+        self.sources()
         return tex, samples_axis, aovs, rough_value
 
     def render_settings(self, tex_res: int, samples_axis: int, env_res):
@@ -91,7 +109,10 @@ class PhysicalOptions:
         return RenderSettings(tex_res=tex_res, aa=samples_axis, shadows=not self.no_shadows,
                               specular=not self.no_specular, sss=not self.no_sss,
                               sss_scale=1.0 if self.sss_scale is None else self.sss_scale,
-                              env_res=tuple(env_res), bounce=self.bounce)
+                              env_res=tuple(env_res), bounce=self.bounce,
+                              env_space=self.env_space or "texels",
+                              env_sources=self.sources(),
+                              shadowing=self.ggx_shadowing or "smith")
 
 
 #: The physical renderer's extra EXR layers.
@@ -117,7 +138,8 @@ def physical(data, frames, view_of, materials, settings, lights=None, envmap=Non
 
     # pose independent, so made once: the env map on the renderer's direction grid and
     # each mesh's UV rasterization (the same arrays a single-frame call makes)
-    denv = None if envmap is None else discretize_env(envmap, *settings.env_res)
+    denv = None if envmap is None else discretize_env(envmap, *settings.env_res,
+                                                      sources=settings.env_sources)
     rasters = None
     for frame in frames:
         meshes = pose_scene(data, frame, mesh, source)

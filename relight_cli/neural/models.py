@@ -336,7 +336,7 @@ class GGXTeacher(nn.Module):
                 mean_texture=None, return_raw: bool = False):
         """Per-light textures C_i [B, 3, N, N] (Eq. 12); ``return_raw`` adds None (no
         pre-activation can go negative here: L_neg does not apply)."""
-        from relight_cli.brdf import ggx_cosine_torch
+        from relight_cli.brdf import URHAND_SHADOWING, ggx_cosine_torch
 
         pose = seen_pose(pose, getattr(self.config, "pose", "joints"))
         light, view, vis = inputs[:, 0:3], inputs[:, 3:6], inputs[:, 6:7]
@@ -345,7 +345,8 @@ class GGXTeacher(nn.Module):
         albedo, rough, normal = albedo[hand_of], rough[hand_of], normal[hand_of]
         cos = torch.clamp((normal * light).sum(1, keepdim=True), min=0)
         spec = ggx_cosine_torch(normal.permute(0, 2, 3, 1), view.permute(0, 2, 3, 1),
-                                light.permute(0, 2, 3, 1), rough[:, 0])[:, None]
+                                light.permute(0, 2, 3, 1), rough[:, 0],
+                                shadowing=URHAND_SHADOWING)[:, None]
         colour = torch.sigmoid(shadow) * (albedo / math.pi * cos + spec)
         return (colour, None) if return_raw else colour
 

@@ -15,7 +15,8 @@ coarse geometry, as bake-features does), channel c of the features is
     C^s_c = Σ_i I_ic f_i V_i D F G max(ω_i·n̂, 0)                   (Eq. 11–15)
 
 with D F G (ω·n̂) the GGX lobe of :func:`relight_cli.brdf.ggx_cosine_torch` (perceptual
-roughness β, α = β², K = (β+1)²/8, F0 = 0.04).  Irradiance is in the capture's units
+roughness β, α = β², F0 = 0.04) with the paper's Schlick–Smith G, K = (β+1)²/8
+(``brdf.URHAND_SHADOWING``; the renderer and the stage use the exact Smith G).  Irradiance is in the capture's units
 (a synthetic stage's fully lit frame gives ≈ π, formats/capture.md).
 
 Departure: Eq. 13's Fresnel is UE4's spherical-Gaussian fit 2^((−5.55473 v·h − 6.98316)
@@ -89,12 +90,13 @@ def refined_normals(displacement: torch.Tensor, uv_derivatives: np.ndarray,
 
 def _fresnel_sg_ggx(normal, view, light, roughness, f0):
     """The GGX lobe with Eq. 13's spherical-Gaussian Fresnel (``fresnel="sg"``)."""
-    from relight_cli.brdf import ggx_cosine_torch
+    from relight_cli.brdf import URHAND_SHADOWING, ggx_cosine_torch
     half = torch.nn.functional.normalize(view + light, dim=-1)
     vh = torch.clamp((view * half).sum(-1), 0, 1)
     schlick = f0 + (1 - f0) * (1 - vh) ** 5
     sg = f0 + (1 - f0) * torch.pow(2.0, (F_SG[0] * vh + F_SG[1]) * vh)
-    return ggx_cosine_torch(normal, view, light, roughness, f0) * sg / schlick
+    return (ggx_cosine_torch(normal, view, light, roughness, f0, URHAND_SHADOWING)
+            * sg / schlick)
 
 
 def light_terms(normal: torch.Tensor, view: torch.Tensor, local_light: torch.Tensor,
@@ -105,7 +107,7 @@ def light_terms(normal: torch.Tensor, view: torch.Tensor, local_light: torch.Ten
     normal [K, 3] unit (texel frame), view [K, 3] unit, local_light [L, K, 3] unit,
     roughness [K] (β).  ``features="phong"``: the coarse normal +z and the Phong lobe.
     """
-    from relight_cli.brdf import ggx_cosine_torch
+    from relight_cli.brdf import URHAND_SHADOWING, ggx_cosine_torch
 
     if features == "phong":
         normal = torch.zeros_like(normal)
@@ -118,8 +120,10 @@ def light_terms(normal: torch.Tensor, view: torch.Tensor, local_light: torch.Ten
     else:
         rho = torch.clamp(roughness, MIN_ROUGHNESS, 1.0)[None]
         n_, v_ = normal[None].expand_as(local_light), view[None].expand_as(local_light)
-        lobe = _fresnel_sg_ggx if fresnel == "sg" else ggx_cosine_torch
-        spec = lobe(n_, v_, local_light, rho, f0)
+        if fresnel == "sg":
+            spec = _fresnel_sg_ggx(n_, v_, local_light, rho, f0)
+        else:   # URHand's code's lobe (relight_cli.brdf: the Schlick-Smith remap)
+            spec = ggx_cosine_torch(n_, v_, local_light, rho, f0, URHAND_SHADOWING)
     return torch.stack([cos, spec], 1)
 
 

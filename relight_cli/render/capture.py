@@ -53,6 +53,11 @@ class StageSettings:
             0.61 %) away from a far LED in the same direction on a converged capture's
             held-out pose, against at most 0.01 % with ``texels``
             (benchmarks/results/converged/env_truth/).
+        ggx_shadowing: the GGX lobe's G (``RenderSettings.shadowing``): ``smith``, the exact
+            Smith term a standard renderer (Mitsuba 3) uses, or ``schlick``, URHand Eq. 15's
+            remap, which every capture made before this setting used (their records have
+            no ``ggx_shadowing``).  The lobe is then evaluated in texture space for the
+            LEDs as for env maps (texel visibility and lobe, so superposition is exact).
     """
 
     cameras: int = 20
@@ -73,12 +78,13 @@ class StageSettings:
     skin_seed: int = 0
     eval_env_res: tuple = (32, 64)
     eval_env_space: str = "texels"
+    ggx_shadowing: str = "smith"
 
 
 #: settings added after the first captures, and the value a capture.json without them
 #: was made with (:func:`stage_settings`; :func:`capture_key` leaves them out at that
 #: value, so an older capture keeps its key)
-LEGACY_SETTINGS = {"eval_env_space": "vertices"}
+LEGACY_SETTINGS = {"eval_env_space": "vertices", "ggx_shadowing": "schlick"}
 
 
 def fibonacci_sphere(n: int, min_y: float = -1.0) -> np.ndarray:
@@ -430,7 +436,8 @@ class FrameRenderer:
                             RenderSettings(tex_res=s.tex_res, aa=s.aa, sss=s.sss,
                                            bounce=s.bounce, direct="texel",
                                            env_res=tuple(s.eval_env_res),
-                                           env_space=s.eval_env_space),
+                                           env_space=s.eval_env_space,
+                                           shadowing=s.ggx_shadowing),
                             rasters=self.rasters)
 
     def frame(self, frame, cameras=None):
@@ -463,6 +470,8 @@ def stage_settings(settings: dict) -> StageSettings | None:
         return None
     values = {n: settings[n] for n in names}
     if values["eval_env_space"] not in ("texels", "vertices"):
+        return None
+    if values["ggx_shadowing"] not in ("smith", "schlick"):
         return None
     values["eval_env_res"] = tuple(values["eval_env_res"])
     try:
@@ -505,7 +514,8 @@ class StageShader:
         return HandRenderer(meshes, self.materials,
                             RenderSettings(tex_res=s.tex_res, aa=s.aa, sss=s.sss, bounce=s.bounce,
                                            direct="texel", env_res=tuple(s.eval_env_res),
-                                           env_space=s.eval_env_space),
+                                           env_space=s.eval_env_space,
+                                           shadowing=s.ggx_shadowing),
                             rasters=self.rasters)
 
     def texel_radiance(self, renderer, lighting, surfaces, eye) -> list:

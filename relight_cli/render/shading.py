@@ -8,13 +8,16 @@ up to the global scale of the light units):
 * E(x) = Σ_lights I·max(n·l, 0)·h/r² + Σ_m L(ω_m)·h(ω_m)·max(n·ω_m, 0)·Δω_m (+ one bounce)
   is the diffuse irradiance.  Point lights have radiant intensity I [3] and fall off
   with the inverse square of the distance r (near field).  The env map term is
-  *exactly* bake-features' diffuse feature: the env map is discretized to the same
-  lat-long grid (``env_res``) with exact texel solid angles by
-  :func:`relight_cli.envmap.discretize_env`, and the transport weights come from
-  :func:`relight_cli.features.transport_blocks`, so a render is exactly linear in
-  the env map and consistent with the features a neural model is given.
+  bake-features' diffuse feature at the env receivers: the env map is discretized to
+  the lat-long grid ``env_res`` with exact texel solid angles, its small bright sources
+  (a sun, a lamp) kept apart as distant lights at their own direction and power
+  (``env_sources``, :func:`relight_cli.envmap.discretize_env`), and the transport is
+  bake-features' :class:`~relight_cli.features.FeatureBaker` on those directions, so a
+  render is exactly linear in the discretized env map.
 * h is binary visibility from embree shadow rays against every hand of the scene.
-* f_s is the GGX lobe of URHand (:mod:`relight_cli.brdf`, F0 = 0.04).
+* f_s is the GGX lobe of :mod:`relight_cli.brdf` (F0 = 0.04) with the exact Smith G
+  (``shadowing="smith"``, what Mitsuba 3 renders: tests/render/test_shading_mitsuba.py)
+  or URHand Eq. 15's Schlick remap (``"schlick"``, the learned models' lobe).
 * E_sss is E diffused in texture space (d'Eon & Luebke's texture-space diffusion)
   with the sum-of-Gaussians skin profile :data:`SKIN_PROFILE` whose RGB weights sum
   to 1, so uniform irradiance is unchanged (energy conserving) and it is linear.
@@ -26,10 +29,17 @@ also traced per G-buffer sample (a ray per sample and light) for the specular lo
 and, when neither SSS nor bounce is on, for the diffuse term, which is then exact
 per sample; ``direct="texel"`` looks everything up from the texel maps,
 which are camera independent, so a light-stage frame traces its lights once and
-renders every camera from them.  Point-light GGX is evaluated per sample (sharp
-highlights); env-map transport per mesh vertex (bake-features' receivers) or per
-texel, for the camera's eye.  Texels outside the charts, or buried inside another
-part, copy their nearest exposed texel, so bilinear lookups never pull in zeros.
+renders every camera from them.  An env map's transport is integrated per texel
+(``env_space="texels"``, default: visibility and the lobe at the texel centres, the lobe
+towards the camera's eye only at the texels the view reads) or per mesh vertex and
+interpolated (``"vertices"``: cheaper, shadows jagged and highlights smeared between
+vertices).  Texels outside the charts, or buried inside another part, copy their
+nearest exposed texel, so bilinear lookups never pull in zeros.
+
+Departures from a path tracer such as Mitsuba 3 (``direct`` integrator), which the
+cross-check measures (benchmarks/results/mitsuba.md): the env map's smooth part is
+integrated on the ``env_res`` grid (cell centres), SSS and the bounce are
+texture-space approximations, and shading is looked up bilinearly from texels.
 """
 
 from __future__ import annotations
@@ -42,11 +52,10 @@ import numpy as np
 
 from .appearance import bilinear
 from relight_cli import features as FE
-from relight_cli.brdf import ggx_cosine
+from relight_cli.brdf import MIN_ROUGHNESS, ggx_cosine
 from relight_cli.envmap import DEFAULT_GRID, DiscreteEnv, discretize_env
 from relight_cli.formats.lights_json import Lights
-from relight_cli.geometry import Receivers, vertex_normals, view_directions
-from relight_cli.visibility import VisibilityCache
+from relight_cli.geometry import Receivers, view_directions
 
 # d'Eon & Luebke (GPU Gems 3, ch. 14) six-Gaussian fit of a three-layer skin
 # profile: (variance in mm², RGB weights).  Each colour's weights sum to 1.
@@ -63,6 +72,10 @@ SKIN_PROFILE = (
 _MIN_SIGMA_TEXELS = 0.25
 # Lights per block in per-sample specular ([samples, lights, 3] float64 arrays).
 _LIGHT_BLOCK = 16
+# A pixel's samples share one shading point for texture-space lobes when their normals lie
+# within SHARE_SPREAD × the lobe's width α = ρ² of their mean (HandRenderer._shading_points):
+# the box-filtered lobe then moves by ~(SHARE_SPREAD)²/2 of its peak at most.
+SHARE_SPREAD = 0.1
 
 
 @dataclass
@@ -86,11 +99,17 @@ class RenderSettings:
             when neither SSS nor bounce needs texture space) or "texel" (looked up from
             the texture-space maps: camera independent, so a light-stage frame traces
             its lights once).
-        env_space: where env-map transport is integrated: "vertices" of the rendered mesh
-            (bake-features' receivers; interpolated to texels) or "texels" (diffuse
-            transport and visibility at the texel centres, the GGX lobe per G-buffer sample
-            with that visibility looked up: every direction shaded as a far point light
-            is with ``direct="texel"``, so the render is their sum).
+        env_space: where env-map transport is integrated: "texels" (default: diffuse
+            transport, visibility and the GGX lobe towards the eye at the texel centres,
+            looked up bilinearly; every direction is shaded as a far point light is with
+            ``direct="texel"``, so the render is their sum) or "vertices" of the rendered
+            mesh (bake-features' receivers, interpolated to texels: faster, but shadows and
+            highlights come out jagged and smeared between vertices).
+        env_sources: bright sources (a sun, a lamp) taken out of an env map before it is
+            put on the ``env_res`` grid and kept as distant lights at their own direction
+            and power (:func:`relight_cli.envmap.discretize_env`): ``"auto"`` or 0 (off).
+        shadowing: the GGX lobe's G, ``"smith"`` (exact) or ``"schlick"`` (URHand Eq. 15's
+            remap), :mod:`relight_cli.brdf`.
         ray_offset: metres to lift shadow-ray origins; None = 1e-4 × the mesh's diagonal.
     """
 
@@ -105,7 +124,9 @@ class RenderSettings:
     env_res: tuple = DEFAULT_GRID
     bounce: bool = False
     bounce_res: tuple = (8, 16)
-    env_space: str = "vertices"
+    env_space: str = "texels"
+    env_sources: object = "auto"
+    shadowing: str = "smith"
     direct: str = "pixel"
     ray_offset: float | None = None
 
@@ -321,7 +342,7 @@ class HandRenderer:
         offset = self.settings.ray_offset
         self.offsets = [offset if offset is not None
                         else 1e-4 * scene_diagonal([(m.vertices, m.faces)]) for m in meshes]
-        self._env_cache = {}
+        self._bakers = {}
         t0 = time.perf_counter()
         self._mark_buried()
         self.stats["buried"] = time.perf_counter() - t0
@@ -407,64 +428,86 @@ class HandRenderer:
             irr += (h * np.clip(cos, 0, None) / np.maximum(r2, 1e-300))[:, None] * intensity[j]
         return irr, vis
 
-    def _env_visibility(self, k: int, env, fs):
-        """(receivers, VisibilityCache) of hand k's env transport (``env_space``'s
-        receivers), every pair ``fs`` needs of ``env``'s lit directions traced (once per
-        renderer: later calls find them traced)."""
-        if k not in self._env_cache:
+    def _env_baker(self, env):
+        """Bake-features' :class:`~relight_cli.features.FeatureBaker` (diffuse only) on
+        ``env_space``'s receivers (mesh vertices or texel centres) for ``env``'s directions,
+        made once per renderer and direction set: its visibility cache then holds every
+        (receiver, lit direction) pair facing each other, which the GGX lobe reuses."""
+        key = env.directions.tobytes()
+        if key not in self._bakers:
+            receivers = None
+            if self.settings.env_space == "texels":
+                receivers = [Receivers(s.points, s.normals, np.ones(len(s.points), bool))
+                             for s in self.surfaces]
+            fs = FE.FeatureSettings(shininess=(), specular="none",
+                                    visibility=self.settings.shadows,
+                                    ray_offset=self.settings.ray_offset)
+            self._bakers[key] = FE.FeatureBaker(
+                [FE.PoseMesh(m.vertices, m.faces, m.normals) for m in self.meshes], fs,
+                grid=env, receivers=receivers, scene=self.scene)
+        return self._bakers[key]
+
+    def _env_diffuse(self, env) -> list:
+        """Per hand [K, 3] env irradiance Σ_m L h max(n·ω, 0) Δω at the inside texels
+        (bake-features' diffuse feature at the receivers, interpolated from vertices)."""
+        baker = self._env_baker(env)
+        per_mesh = baker.bake([env], np.zeros(3))[0]
+        out = []
+        for k, surf in enumerate(self.surfaces):
+            value = per_mesh[k]["diffuse"]
             if self.settings.env_space == "vertices":
-                mesh = self.meshes[k]
-                normals, defined = vertex_normals(mesh.vertices, mesh.faces, mesh.normals)
-                receivers = Receivers(np.asarray(mesh.vertices, np.float64), normals, defined)
-            else:
-                surf = self.surfaces[k]
-                receivers = Receivers(surf.points, surf.normals, np.ones(len(surf.points), bool))
-            scene = self.scene if self.settings.shadows else None
-            cache = VisibilityCache(scene, receivers, env.directions, self.offsets[k])
-            self._env_cache[k] = (receivers, cache)
-        receivers, cache = self._env_cache[k]
-        if not np.array_equal(cache.directions, env.directions):
-            raise ValueError("env maps of one renderer must share the direction grid")
-        cache.require(FE.needed_pairs(receivers, None, env.directions, env.lit, fs))
-        return receivers, cache
+                value = surf.raster.interpolate(value, self.meshes[k].faces, fill=None)[surf.inside]
+            out.append(value)
+        return out
 
-    def _env_transport(self, k: int, env, eye, specular: bool):
-        """Bake-features' env transport for hand k, at its texels: {'diffuse', 'ggx'?} [K, 3].
+    def _env_specular(self, k: int, env, points, normals, roughness, visibility) -> np.ndarray:
+        """[P, 3] GGX radiance Σ_m L h f_s max(n·ω, 0) Δω of ``env`` at hand k's shading
+        points: ``points`` = (positions [P, 3], unit views towards the eye [P, 3]),
+        ``normals`` [P, 3], ``roughness`` [P]; ``visibility(r)`` gives the points ``r`` (a
+        slice)'s [b, M'] visibility towards ``env``'s lit directions (0 where a pair was
+        never traced: facing away or unlit).  The lobe is
+        :func:`relight_cli.features.ggx_weights` on blocks of points × lit directions,
+        spread over the tracing thread pool."""
+        from relight_cli.visibility import thread_pool, trace_threads
 
-        Receivers are the mesh's vertices (``env_space="vertices"``, bake-features'
-        own receivers, results interpolated to texels barycentrically) or the texel
-        centres themselves (``"texels"``: per-texel visibility, ~3× more rays).
-        """
+        positions, view = points
+        lit = np.nonzero(env.lit)[0]
+        out = np.zeros((len(positions), 3))
+        if not len(positions) or not len(lit):
+            return out
+        dirs = env.directions[lit]
+        weighted = env.radiance[lit] * env.solid_angle[lit, None]                # [M', 3]
+        rough = np.broadcast_to(np.asarray(roughness, np.float64), (len(positions),))
+        f0, shadowing = self.materials[k].f0, self.settings.shadowing
+        # blocks of ~2 MiB of float64 weights, each product summed without BLAS (its
+        # threads would compete with the pool's: see geometry.dot3)
+        step = max(1, (1 << 18) // len(lit))
 
-        surf = self.surfaces[k]
-        mesh = self.meshes[k]
-        by_vertex = self.settings.env_space == "vertices"
-        fs = FE.FeatureSettings(shininess=(), specular="ggx" if specular else "none",
-                                f0=self.materials[k].f0, visibility=self.settings.shadows)
-        receivers, cache = self._env_visibility(k, env, fs)
-        view = view_directions(receivers.points, eye)
-        rough = None
-        if specular:
-            if by_vertex:
-                uv_of_vertex = np.zeros((len(receivers.points), 2))
-                uv_of_vertex[np.asarray(mesh.faces).ravel()] = np.asarray(mesh.uv)[
-                    np.asarray(mesh.faces_uv).ravel()]
-                rough = self.materials[k].roughness_at(uv_of_vertex)
-            else:
-                rough = self.materials[k].roughness_at(surf.uv)
-        blocks = FE.transport_blocks(receivers, view, env.directions, env.solid_angle,
-                                     cache.visible, fs, rough)
-        result = FE.apply_transport(blocks, len(receivers), [env])[0]
-        if by_vertex:
-            result = {name: surf.raster.interpolate(value, mesh.faces, fill=None)[surf.inside]
-                      for name, value in result.items() if name != "visibility"}
-        return result
+        def block(start):
+            r = slice(start, min(len(positions), start + step))
+            vis = visibility(r)
+            # only the directions some point of the block sees (points come in screen
+            # tiles, so a block's normals are alike and it faces about half the sphere)
+            cols = np.flatnonzero(vis.any(0))
+            w = FE.ggx_weights(normals[r], view[r], dirs[cols], rough[r], f0, shadowing)
+            w *= vis[:, cols]
+            out[r] = np.einsum("pm,mc->pc", w, weighted[cols])
+
+        starts = range(0, len(positions), step)
+        workers = trace_threads()
+        if workers > 1 and len(starts) > 1:
+            list(thread_pool(workers).map(block, starts))
+        else:
+            for start in starts:
+                block(start)
+        return out
 
     def discretize(self, env):
-        """An EnvMap (or DiscreteEnv) on bake-features' ``env_res`` grid."""
+        """An EnvMap (or DiscreteEnv) on bake-features' ``env_res`` grid, bright sources
+        kept apart per ``env_sources``."""
         if isinstance(env, DiscreteEnv):
             return env
-        return discretize_env(env, *self.settings.env_res)
+        return discretize_env(env, *self.settings.env_res, sources=self.settings.env_sources)
 
     def light(self, lights: Lights | None = None, env=None) -> Lighting:
         """Camera-independent lighting: irradiance maps (SSS applied) and visibility.
@@ -481,6 +524,7 @@ class HandRenderer:
         direct = []
         vis_maps = [] if has_lights else None
         point_maps = [] if has_lights else None
+        env_diffuse = None if denv is None else self._env_diffuse(denv)
         for k, surf in enumerate(self.surfaces):
             irr = np.zeros((len(surf.points), 3))
             if has_lights:
@@ -489,7 +533,7 @@ class HandRenderer:
                 vis_maps.append(surf.to_map(vis))
                 point_maps.append(surf.to_map(e))
             if denv is not None:
-                irr += self._env_transport(k, denv, np.zeros(3), specular=False)["diffuse"]
+                irr += env_diffuse[k]
             direct.append(irr)
         stats["direct"] = time.perf_counter() - t0
         total = [d.copy() for d in direct]
@@ -590,13 +634,7 @@ class HandRenderer:
                     irradiance += exact - bilinear(lighting.point_maps[k], uv)
             radiance[sel] = mat.albedo_at(uv) / math.pi * irradiance
             if specular:
-                if has_lights and s.direct != "pixel":
-                    spec += self._point_specular(gb, sel, rough, mat.f0, lighting, k)
-                if lighting.env is not None and s.env_space == "texels":
-                    spec += self._env_specular(gb, sel, rough, mat.f0, lighting.env, k)
-                elif lighting.env is not None:
-                    env_spec = self._env_transport(k, lighting.env, gb.eye, specular=True)["ggx"]
-                    spec += bilinear(self.surfaces[k].to_map(env_spec), uv)
+                spec += self._texture_specular(k, lighting, gb, sel)
                 radiance[sel] += mat.specular * spec
         stats["shade"] = time.perf_counter() - t0
         image = gb.resolve(radiance, background).astype(np.float32)
@@ -616,50 +654,160 @@ class HandRenderer:
             falloff = h / np.maximum(r2, 1e-300)                            # [S] h / r²
             irr += (falloff * np.clip(cos, 0, None))[:, None] * intensity[j]
             if spec is not None:
-                spec += (ggx_cosine(n, v, l, rough, f0) * falloff)[:, None] * intensity[j]
+                spec += (ggx_cosine(n, v, l, rough, f0, self.settings.shadowing)
+                         * falloff)[:, None] * intensity[j]
         return irr, spec
 
-    def _env_specular(self, gb, sel, rough, f0, env, k):
-        """[len(sel), 3] GGX radiance of an env map at the samples ``sel`` of hand k, each
-        lit direction ω_m a distant light of RGB weight L_m Δω_m shaded exactly as
-        :meth:`_point_specular` shades an LED: the lobe per sample, the visibility h_m
-        looked up bilinearly in the texel maps (``env_space="texels"``; traced once by
-        :meth:`_env_visibility`, not the diffuse transport again).  So an env render is the sum over its directions of
-        what the stage renders for one far LED each (tests/render/test_capture.py)."""
-        _, cache = self._env_visibility(k, env, FE.FeatureSettings(
-            shininess=(), specular="none", f0=f0, visibility=self.settings.shadows))
+    def _texture_specular(self, k: int, lighting: Lighting, gb, sel) -> np.ndarray:
+        """[len(sel), 3] GGX radiance towards the eye at hand k's G-buffer samples ``sel`` of
+        the lighting whose visibility lives in texture space: env maps, and point lights
+        with ``direct="texel"``.
+
+        ``env_space="texels"``: the lobe is evaluated at the shading points of
+        :meth:`_shading_points` (a pixel's samples share one where they see one smooth
+        patch, else each sample has its own), with the texel visibility towards each
+        direction looked up bilinearly, as a ``direct="texel"`` LED is shaded, so a far LED
+        renders as the env map's direction it stands for (tests/render/test_capture.py).
+        (Evaluating the lobe per texel and interpolating it instead loses sharp highlights:
+        22 % RMS on the fist's specular at ρ = 0.45, tex 256, against per sample; so only
+        visibility is interpolated.)  ``env_space="vertices"``: the env lobe at every
+        vertex, interpolated to texels (the fast, documented approximation)."""
         surf = self.surfaces[k]
-        n, v, uv = gb.normal[sel], gb.view[sel], gb.uv[sel]
-        lit = np.nonzero(env.lit)[0]
-        weight = env.radiance[lit] * env.solid_angle[lit, None]                    # [M', 3]
+        mat = self.materials[k]
+        has_lights = lighting.lights is not None and len(lighting.lights) > 0
+        texel_leds = has_lights and self.settings.direct != "pixel"
+        env = lighting.env
+        texel_env = env is not None and self.settings.env_space == "texels"
         out = np.zeros((len(sel), 3))
-        block = 8 * _LIGHT_BLOCK
-        for start in range(0, len(lit), block):
-            m = lit[start:start + block]
-            vis = bilinear(surf.to_map(cache.visible[:, m].astype(np.float32)), uv)
-            vis = vis.reshape(len(sel), len(m))                                   # [S, B]
-            w = ggx_cosine(n[:, None], v[:, None], env.directions[m][None], rough[:, None], f0)
-            out += (w * vis) @ weight[start:start + block]
+        if texel_leds or texel_env:
+            index, position, normal, puv = self._shading_points(gb, sel, k, mat)
+            view = view_directions(position, gb.eye)
+            rough = mat.roughness_at(puv)
+            spec = np.zeros((len(position), 3))
+            if texel_env:
+                baker = self._env_baker(env)
+                lookup = _TexelLookup(surf, puv)
+                visible = lookup.rows_of(baker.cache.visible[baker.slices[k]],
+                                         np.nonzero(env.lit)[0])
+                spec += self._env_specular(k, env, (position, view), normal, rough,
+                                           lambda r: lookup.matrix[r] @ visible)
+            if texel_leds:
+                spec += self._led_specular(k, lighting, position, normal, view, puv, rough)
+            out += spec[index]
+        if env is not None and not texel_env:
+            mesh = self.meshes[k]
+            uv_of_vertex = np.zeros((len(mesh.vertices), 2))
+            uv_of_vertex[np.asarray(mesh.faces).ravel()] = np.asarray(mesh.uv)[
+                np.asarray(mesh.faces_uv).ravel()]
+            baker = self._env_baker(env)
+            sl = baker.slices[k]
+            points = baker.receivers.points[sl]
+            visible = baker.cache.visible[sl][:, np.nonzero(env.lit)[0]]
+            spec = self._env_specular(k, env, (points, view_directions(points, gb.eye)),
+                                      baker.receivers.normals[sl],
+                                      mat.roughness_at(uv_of_vertex), lambda r: visible[r])
+            spec = surf.raster.interpolate(spec, mesh.faces, fill=None)[surf.inside]
+            out += bilinear(surf.to_map(spec), gb.uv[sel])
         return out
 
-    def _point_specular(self, gb, sel, rough, f0, lighting, k):
-        """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k,
-        visibility looked up in the texel maps (``direct="texel"``)."""
+    def _shading_points(self, gb, sel, k: int, mat):
+        """Where hand k's texture-space lobes are evaluated for the samples ``sel``:
+        (index [len(sel)] → point, positions [P, 3], unit normals [P, 3], uv [P, 2]).
+
+        A pixel whose samples all hit hand k on one smooth patch (shading normals within a
+        fraction :data:`SHARE_SPREAD` of the lobe's width α = ρ²
+        of their mean, uv within half a texel of the
+        lighting maps) is shaded once, at its samples' mean, as multisampling does: the
+        lobe's change across the pixel is then second order, and the work per pixel drops
+        aa²-fold (4× at the default aa 2).  Other samples are shaded each on its own."""
+        spp = gb.spp
+        pixel = sel // spp
+        count = np.bincount(pixel, minlength=gb.width * gb.height)
+        whole = np.nonzero(count[pixel] == spp)[0].reshape(-1, spp)     # positions in sel
+        groups = sel[whole]                                               # [G, spp]
+        shared = np.zeros(len(groups), bool)
+        mean_n = np.zeros((len(groups), 3))
+        if len(groups) and spp > 1:
+            n = gb.normal[groups]                                         # [G, spp, 3]
+            mean_n = n.sum(1)
+            mean_n /= np.maximum(np.linalg.norm(mean_n, axis=1, keepdims=True), 1e-300)
+            uvs = gb.uv[groups]
+            mean_uv = uvs.mean(1)
+            rho = np.clip(mat.roughness_at(mean_uv), MIN_ROUGHNESS, 1.0)
+            spread = np.einsum("gsk,gk->gs", n, mean_n).min(1)
+            shared = ((spread > np.cos(SHARE_SPREAD * rho * rho))
+                      & (np.abs(uvs - mean_uv[:, None]).max((1, 2))
+                         < 0.5 / self.settings.tex_res))
+        own = np.ones(len(sel), bool)
+        own[whole[shared].ravel()] = False
+        own_at = np.nonzero(own)[0]
+        n_shared = int(shared.sum())
+        index = np.empty(len(sel), np.int64)
+        index[own_at] = n_shared + np.arange(len(own_at))
+        index[whole[shared]] = np.arange(n_shared)[:, None]
+        g = groups[shared]
+        position = np.concatenate([gb.position[g].mean(1), gb.position[sel[own_at]]])
+        normal = np.concatenate([mean_n[shared], gb.normal[sel[own_at]]])
+        uv = np.concatenate([gb.uv[g].mean(1), gb.uv[sel[own_at]]])
+        # points in 8×8-pixel screen tiles: neighbours in the arrays see alike
+        pix = np.concatenate([g[:, 0], sel[own_at]]) // spp
+        tile = (pix // gb.width // 8) * (gb.width // 8 + 1) + (pix % gb.width) // 8
+        order = np.argsort(tile, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        return rank[index], position[order], normal[order], uv[order]
+
+    def _led_specular(self, k: int, lighting: Lighting, x, n, v, uv, rough) -> np.ndarray:
+        """[P, 3] GGX radiance of point lights at shading points (positions ``x``, normals
+        ``n``, views ``v``, ``uv``) of hand k, visibility looked up in the texel maps
+        (``direct="texel"``)."""
         lights = lighting.lights
         intensity = lights.radiant_intensity()                                  # [L, 3]
-        x, n, v = gb.position[sel], gb.normal[sel], gb.view[sel]
-        vis = bilinear(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
-                       gb.uv[sel]).reshape(len(sel), len(lights))           # [S, L]
-        out = np.zeros((len(sel), 3))
+        vis_map = lighting.visibility[k]
+        vis = bilinear(vis_map.reshape(*vis_map.shape[:2], -1), uv).reshape(len(x), len(lights))
+        f0 = self.materials[k].f0
+        out = np.zeros((len(x), 3))
         for start in range(0, len(lights), _LIGHT_BLOCK):
             stop = min(len(lights), start + _LIGHT_BLOCK)
-            d = lights.positions[None, start:stop] - x[:, None]             # [S, B, 3]
+            d = lights.positions[None, start:stop] - x[:, None]             # [P, B, 3]
             r2 = np.einsum("sbk,sbk->sb", d, d)
             l = d / np.sqrt(np.maximum(r2, 1e-300))[..., None]
-            w = ggx_cosine(n[:, None], v[:, None], l, rough[:, None], f0)   # [S, B]
+            w = ggx_cosine(n[:, None], v[:, None], l, rough[:, None], f0, self.settings.shadowing)
             w = w * vis[:, start:stop] / np.maximum(r2, 1e-300)
             out += w @ intensity[start:stop]
         return out
+
+
+class _TexelLookup:
+    """:func:`~relight_cli.render.appearance.bilinear` of a texel map at ``uv`` as a sparse
+    matrix over one hand's inside texels (through the map's fill of outside and buried
+    texels), so per-texel rows [K, M] are looked up for M directions by one product."""
+
+    def __init__(self, surf: "TexelSurface", uv):
+        from scipy import sparse
+        h, w = surf.inside.shape
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        x = np.clip(uv[:, 0] * w - 0.5, 0, w - 1)
+        y = np.clip((1 - uv[:, 1]) * h - 0.5, 0, h - 1)
+        x0 = np.floor(x).astype(np.int64)
+        y0 = np.floor(y).astype(np.int64)
+        x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+        fx, fy = x - x0, y - y0
+        iy, ix = surf.fill_index
+        row_of = np.cumsum(surf.inside.ravel()) - 1                  # inside texel → row
+        cols, weights = [], []
+        for yy, xx, wt in ((y0, x0, (1 - fx) * (1 - fy)), (y0, x1, fx * (1 - fy)),
+                           (y1, x0, (1 - fx) * fy), (y1, x1, fx * fy)):
+            cols.append(row_of[iy[yy, xx] * w + ix[yy, xx]])
+            weights.append(wt)
+        self.rows, local = np.unique(np.concatenate(cols), return_inverse=True)  # texels read
+        points = np.tile(np.arange(len(uv)), 4)
+        self.matrix = sparse.csr_matrix((np.concatenate(weights).astype(np.float32),
+                                         (points, local)), shape=(len(uv), len(self.rows)))
+
+    def rows_of(self, per_texel: np.ndarray, columns) -> np.ndarray:
+        """float32 [R, len(columns)]: the texels read, of a per-texel [K, M] array."""
+        return per_texel[self.rows][:, columns].astype(np.float32)
 
 
 # ---------------------------------------------------------------- torch path

@@ -69,10 +69,14 @@ def test_bake_reads_back_and_matches_engine(tmp_path, hand_file):
     from relight_cli.features import FeatureBaker, FeatureSettings, PoseMesh
     from relight_cli.formats.hand_npz import read_hand
     from relight_cli.hand.scene import posed_meshes
+    from relight_cli.envmap import discretize_env
     pm = posed_meshes(read_hand(str(hand_file)), 0)[0]
+    # the command's default --env-sources auto: the sky's sun is a direction of its own
+    sky = discretize_env(builtin_envmap("builtin:sky"), 8, 16, sources="auto")
+    assert sky.sources == 1
     baker = FeatureBaker([PoseMesh(pm.vertices, pm.faces, pm.normals)],
-                         FeatureSettings(specular="both"), env_res=(8, 16))
-    direct = baker.bake([builtin_envmap("builtin:sky")], [0, 0.2, 0.5])[0][0]
+                         FeatureSettings(specular="both"), grid=sky)
+    direct = baker.bake([sky], [0, 0.2, 0.5])[0][0]
     verts = read_vertex_features(str(npz))
     np.testing.assert_allclose(verts["vertices"], pm.vertices)
     for name in ("diffuse", "phong32", "ggx", "visibility"):
