@@ -60,8 +60,9 @@ def _model(seed=0, pose_dim=72, **overrides):
 
 
 def test_ggx_feature_equals_brdf():
-    """The branch's GGX term is relight_cli.brdf's lobe (same float64 formula)."""
-    from relight_cli.brdf import ggx_cosine
+    """The branch's GGX term is relight_cli.brdf's lobe with URHand Eq. 15's Schlick–Smith
+    shadowing (same float64 formula)."""
+    from relight_cli.brdf import URHAND_SHADOWING, ggx_cosine
 
     rng = np.random.default_rng(1)
 
@@ -74,7 +75,8 @@ def test_ggx_feature_equals_brdf():
     rough = rng.uniform(0.05, 1.0, K)
     terms = SF.light_terms(torch.from_numpy(n), torch.from_numpy(v), torch.from_numpy(l),
                            torch.from_numpy(rough)).numpy()
-    expect = ggx_cosine(n[None], v[None], l, rough[None])
+    expect = ggx_cosine(n[None], v[None], l, rough[None], shadowing=URHAND_SHADOWING)
+    assert URHAND_SHADOWING == "schlick"
     # float64 both ways, identical operations up to association: 1e-9 absolute on terms ≤ ~10
     np.testing.assert_allclose(terms[:, 1], expect, rtol=0, atol=1e-9)
     np.testing.assert_allclose(terms[:, 0], np.clip(np.sum(n[None] * l, -1), 0, None), atol=1e-12)
@@ -115,7 +117,8 @@ def test_distant_point_light_equals_one_texel_env(capture_dir):
     world_v = torch.einsum("kij,ki->kj", frames, torch.from_numpy(view).double())
     spec = ggx_specular_torch(world_n, world_v, torch.from_numpy(omega),
                               torch.from_numpy(radiance * solid),
-                              torch.from_numpy(far.visibility.T).double(), rough)
+                              torch.from_numpy(far.visibility.T).double(), rough,
+                              shadowing="schlick")      # the learned models' lobe (URHand Eq. 15)
     np.testing.assert_allclose(b[:, 1].T.numpy(), spec.numpy(), rtol=0,
                                atol=1e-5 * float(spec.abs().max()))
 
