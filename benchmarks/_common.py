@@ -685,9 +685,11 @@ def synth_capture(folder: Path, hand: str, seed: int, capture: dict, eval_envs: 
     from relight_cli.jobs.synth_capture import make_capture
     # every setting the scale (or a study's stage) names reaches the stage: an unknown one
     # is an error, not a default (a stage's keyframe_every was once dropped here); a
-    # scale that does not name eval_env_space keeps the renders its cached captures have
+    # scale that does not name eval_env_space or ggx_shadowing keeps the renders its cached
+    # captures (and the committed tables made from them) have: the studies' stage is
+    # URHand's Schlick-Smith lobe until a scale says otherwise
     make_capture(str(folder), hand, seed=seed, eval_envs=eval_envs,
-                 **{"eval_env_space": "vertices", **capture})
+                 **{"eval_env_space": "vertices", "ggx_shadowing": "schlick", **capture})
 
 
 def study_capture(work: Path, log, scale: str = "converged", stage: dict | None = None):

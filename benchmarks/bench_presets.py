@@ -141,6 +141,10 @@ def main(argv=None) -> None:
     ap.add_argument("--workers", type=B.integer(1), default=1,
                     help="models trained at once, each its own process (the students start "
                          "once the olat teacher is trained) [default: 1]")
+    ap.add_argument("--ggx-shadowing", choices=("smith", "schlick"), default="smith",
+                    help="the capture's GGX lobe (synth-capture --ggx-shadowing): smith, "
+                         "synth-capture's default, or schlick, the stage of the captures made "
+                         "before issue 50 (results/converged/presets/) [default: smith]")
     args = ap.parse_args(argv)
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     unknown = [m for m in models if m not in MODELS]
@@ -164,7 +168,8 @@ def main(argv=None) -> None:
         work.mkdir(parents=True, exist_ok=True)
     # env renders shaded as the stage shades its LEDs: synth-capture's default
     capture, envs = B.study_capture(work, log, "tiny" if args.quick else "converged",
-                                    stage={"eval_env_space": "texels"})
+                                    stage={"eval_env_space": "texels",
+                                           "ggx_shadowing": args.ggx_shadowing})
     cmds = _commands(models, work, capture, envs, preset)
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(args.workers) as pool:

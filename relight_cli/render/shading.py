@@ -30,10 +30,11 @@ and, when neither SSS nor bounce is on, for the diffuse term, which is then exac
 per sample; ``direct="texel"`` looks everything up from the texel maps,
 which are camera independent, so a light-stage frame traces its lights once and
 renders every camera from them.  An env map's transport is integrated per texel
-(``env_space="texels"``, default: visibility and the lobe at the texel centres, the lobe
-towards the camera's eye only at the texels the view reads) or per mesh vertex and
-interpolated (``"vertices"``: cheaper, shadows jagged and highlights smeared between
-vertices).  Texels outside the charts, or buried inside another part, copy their
+(``env_space="texels"``, default: visibility and diffuse transport at the texel centres,
+the GGX lobe per sample with that visibility looked up, a pixel's samples sharing one
+shading point where their normals agree within :data:`SHARE_SPREAD` of the lobe's width)
+or per mesh vertex and interpolated (``"vertices"``: cheaper, shadows jagged and
+highlights smeared between vertices).  Texels outside the charts, or buried inside another part, copy their
 nearest exposed texel, so bilinear lookups never pull in zeros.
 
 Departures from a path tracer such as Mitsuba 3 (``direct`` integrator), which the
@@ -634,7 +635,10 @@ class HandRenderer:
                     irradiance += exact - bilinear(lighting.point_maps[k], uv)
             radiance[sel] = mat.albedo_at(uv) / math.pi * irradiance
             if specular:
-                spec += self._texture_specular(k, lighting, gb, sel)
+                if has_lights and s.direct != "pixel":
+                    spec += self._point_specular(gb, sel, rough, mat.f0, lighting, k)
+                if lighting.env is not None:
+                    spec += self._env_texture_specular(k, lighting.env, gb, sel)
                 radiance[sel] += mat.specular * spec
         stats["shade"] = time.perf_counter() - t0
         image = gb.resolve(radiance, background).astype(np.float32)
@@ -658,57 +662,43 @@ class HandRenderer:
                          * falloff)[:, None] * intensity[j]
         return irr, spec
 
-    def _texture_specular(self, k: int, lighting: Lighting, gb, sel) -> np.ndarray:
-        """[len(sel), 3] GGX radiance towards the eye at hand k's G-buffer samples ``sel`` of
-        the lighting whose visibility lives in texture space: env maps, and point lights
-        with ``direct="texel"``.
+    def _env_texture_specular(self, k: int, env, gb, sel) -> np.ndarray:
+        """[len(sel), 3] GGX radiance of an env map towards the eye at hand k's G-buffer
+        samples ``sel``, with the visibility traced in texture space.
 
         ``env_space="texels"``: the lobe is evaluated at the shading points of
         :meth:`_shading_points` (a pixel's samples share one where they see one smooth
-        patch, else each sample has its own), with the texel visibility towards each
-        direction looked up bilinearly, as a ``direct="texel"`` LED is shaded, so a far LED
-        renders as the env map's direction it stands for (tests/render/test_capture.py).
+        patch, else each sample has its own), with each direction's texel visibility looked
+        up bilinearly, as a ``direct="texel"`` LED is shaded per sample, so a far LED renders
+        as the env map's direction it stands for (tests/render/test_capture.py).
         (Evaluating the lobe per texel and interpolating it instead loses sharp highlights:
         22 % RMS on the fist's specular at ρ = 0.45, tex 256, against per sample; so only
-        visibility is interpolated.)  ``env_space="vertices"``: the env lobe at every
-        vertex, interpolated to texels (the fast, documented approximation)."""
+        visibility is interpolated.)  ``env_space="vertices"``: the lobe at every vertex,
+        interpolated to texels (the fast, documented approximation)."""
         surf = self.surfaces[k]
         mat = self.materials[k]
-        has_lights = lighting.lights is not None and len(lighting.lights) > 0
-        texel_leds = has_lights and self.settings.direct != "pixel"
-        env = lighting.env
-        texel_env = env is not None and self.settings.env_space == "texels"
-        out = np.zeros((len(sel), 3))
-        if texel_leds or texel_env:
+        baker = self._env_baker(env)
+        lit = np.nonzero(env.lit)[0]
+        if self.settings.env_space == "texels":
             index, position, normal, puv = self._shading_points(gb, sel, k, mat)
-            view = view_directions(position, gb.eye)
-            rough = mat.roughness_at(puv)
-            spec = np.zeros((len(position), 3))
-            if texel_env:
-                baker = self._env_baker(env)
-                lookup = _TexelLookup(surf, puv)
-                visible = lookup.rows_of(baker.cache.visible[baker.slices[k]],
-                                         np.nonzero(env.lit)[0])
-                spec += self._env_specular(k, env, (position, view), normal, rough,
-                                           lambda r: lookup.matrix[r] @ visible)
-            if texel_leds:
-                spec += self._led_specular(k, lighting, position, normal, view, puv, rough)
-            out += spec[index]
-        if env is not None and not texel_env:
-            mesh = self.meshes[k]
-            uv_of_vertex = np.zeros((len(mesh.vertices), 2))
-            uv_of_vertex[np.asarray(mesh.faces).ravel()] = np.asarray(mesh.uv)[
-                np.asarray(mesh.faces_uv).ravel()]
-            baker = self._env_baker(env)
-            sl = baker.slices[k]
-            points = baker.receivers.points[sl]
-            visible = baker.cache.visible[sl][:, np.nonzero(env.lit)[0]]
-            spec = self._env_specular(k, env, (points, view_directions(points, gb.eye)),
-                                      baker.receivers.normals[sl],
-                                      mat.roughness_at(uv_of_vertex), lambda r: visible[r])
-            spec = surf.raster.interpolate(spec, mesh.faces, fill=None)[surf.inside]
-            out += bilinear(surf.to_map(spec), gb.uv[sel])
-        return out
+            lookup = _TexelLookup(surf, puv)
+            visible = lookup.rows_of(baker.cache.visible[baker.slices[k]], lit)
+            spec = self._env_specular(k, env, (position, view_directions(position, gb.eye)),
+                                      normal, mat.roughness_at(puv),
+                                      lambda r: lookup.matrix[r] @ visible)
+            return spec[index]
+        mesh = self.meshes[k]
+        uv_of_vertex = np.zeros((len(mesh.vertices), 2))
+        uv_of_vertex[np.asarray(mesh.faces).ravel()] = np.asarray(mesh.uv)[
+            np.asarray(mesh.faces_uv).ravel()]
+        sl = baker.slices[k]
+        points = baker.receivers.points[sl]
+        visible = baker.cache.visible[sl][:, lit]
+        spec = self._env_specular(k, env, (points, view_directions(points, gb.eye)),
+                                  baker.receivers.normals[sl], mat.roughness_at(uv_of_vertex),
+                                  lambda r: visible[r])
+        spec = surf.raster.interpolate(spec, mesh.faces, fill=None)[surf.inside]
+        return bilinear(surf.to_map(spec), gb.uv[sel])
 
     def _shading_points(self, gb, sel, k: int, mat):
         """Where hand k's texture-space lobes are evaluated for the samples ``sel``:
@@ -757,19 +747,18 @@ class HandRenderer:
         rank[order] = np.arange(len(order))
         return rank[index], position[order], normal[order], uv[order]
 
-    def _led_specular(self, k: int, lighting: Lighting, x, n, v, uv, rough) -> np.ndarray:
-        """[P, 3] GGX radiance of point lights at shading points (positions ``x``, normals
-        ``n``, views ``v``, ``uv``) of hand k, visibility looked up in the texel maps
-        (``direct="texel"``)."""
+    def _point_specular(self, gb, sel, rough, f0, lighting, k):
+        """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k,
+        visibility looked up in the texel maps (``direct="texel"``)."""
         lights = lighting.lights
         intensity = lights.radiant_intensity()                                  # [L, 3]
-        vis_map = lighting.visibility[k]
-        vis = bilinear(vis_map.reshape(*vis_map.shape[:2], -1), uv).reshape(len(x), len(lights))
-        f0 = self.materials[k].f0
-        out = np.zeros((len(x), 3))
+        x, n, v = gb.position[sel], gb.normal[sel], gb.view[sel]
+        vis = bilinear(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
+                       gb.uv[sel]).reshape(len(sel), len(lights))           # [S, L]
+        out = np.zeros((len(sel), 3))
         for start in range(0, len(lights), _LIGHT_BLOCK):
             stop = min(len(lights), start + _LIGHT_BLOCK)
-            d = lights.positions[None, start:stop] - x[:, None]             # [P, B, 3]
+            d = lights.positions[None, start:stop] - x[:, None]             # [S, B, 3]
             r2 = np.einsum("sbk,sbk->sb", d, d)
             l = d / np.sqrt(np.maximum(r2, 1e-300))[..., None]
             w = ggx_cosine(n[:, None], v[:, None], l, rough[:, None], f0, self.settings.shadowing)

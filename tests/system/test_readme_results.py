@@ -708,3 +708,30 @@ def test_the_tables_go_only_where_the_readme_marks_them():
         with pytest.raises(SystemExit) as e:
             R.put(broken, "x", "new")
         assert str(e.value).startswith("readme_tables.py: error: no <!-- x:start -->")
+
+
+def test_readme_mitsuba_table_is_the_committed_run():
+    """README "The physical renderer, checked against Mitsuba 3": each cell (relative RMS /
+    mean ratio) is benchmarks/results/mitsuba.json's row, old defaults and new."""
+    record = json.loads((ROOT / "benchmarks" / "results" / "mitsuba.json").read_text())
+    rows = {(r["case"], r["env"], r["row"]): r for r in record["rows"]}
+    text = (ROOT / "README.md").read_text(encoding="utf-8").split(
+        "### The physical renderer, checked against Mitsuba 3", 1)[1].split("### Cameras", 1)[0]
+    envs = {"`builtin:sky`": "builtin:sky", "empty_warehouse": "empty_warehouse_01_1k.hdr"}
+    seen = 0
+    for line in text.splitlines():
+        m = re.match(r"\| (diffuse|GGX only \(ρ 0\.45\)), (\S+) \| ([\d.]+) / ([\d.]+) \| "
+                     r"([\d.]+) / ([\d.]+) \|", line)
+        if not m:
+            continue
+        case = "diffuse" if m.group(1) == "diffuse" else "specular"
+        env = envs[m.group(2)]
+        now = ("texels 32x16, sources (= defaults)" if case == "diffuse"
+               else "texels 32x16, Smith, sources (= defaults)")
+        for label, rel, ratio in (("vertices 32x16 (old CLI default)", m.group(3), m.group(4)),
+                                  (now, m.group(5), m.group(6))):
+            r = rows[(case, env, label)]
+            assert float(rel) == pytest.approx(r["rel_rms"], abs=6e-4), (case, env, label)
+            assert float(ratio) == pytest.approx(r["mean_ratio"], abs=6e-3), (case, env, label)
+        seen += 1
+    assert seen == 4
