@@ -318,7 +318,8 @@ def physical_settings(settings, mesh: str, roughness, seed: int, background) -> 
             "tex_res": settings.tex_res, "aa": settings.aa, "shadows": settings.shadows,
             "specular": settings.specular, "sss": settings.sss, "sss_scale": settings.sss_scale,
             "bounce": settings.bounce, "roughness": roughness, "seed": seed,
-            "background": list(background)}
+            "env_space": settings.env_space, "env_sources": settings.env_sources,
+            "ggx_shadowing": settings.shadowing, "background": list(background)}
 
 
 def learned_settings(model: str, per_hand, env_res, samples_axis: int, background) -> dict:

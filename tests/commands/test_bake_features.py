@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import json
 import math
 import subprocess
 
@@ -210,6 +211,30 @@ def test_usage_errors(tmp_path, hand_file):
                                                            "--all-frames", code=2)
     assert "name it .png" in _bad(tmp_path, hand_file, "builtin:sky", "--preview",
                                   tmp_path / "sheet.jpg", code=2)
+    assert "--env-sources" in _bad(tmp_path, hand_file, "builtin:sky", "--env-sources", "9x",
+                                   code=2)
+    assert "--ggx-shadowing" in _bad(tmp_path, hand_file, "builtin:sky", "--ggx-shadowing",
+                                     "ue4", code=2)
+
+
+def test_sources_and_lobe_options(tmp_path, hand_file):
+    """--env-sources none integrates the sky's sun on the grid (another direction: other
+    features); --ggx-shadowing schlick gives a darker ggx layer than the default Smith; both
+    recorded in the provenance."""
+    from relight_cli.formats.features_exr import read_features
+    maps = {}
+    for name, extra in (("auto", []), ("none", ["--env-sources", "none"]),
+                        ("schlick", ["--ggx-shadowing", "schlick"])):
+        out = tmp_path / f"{name}.exr"
+        r = CliRunner().invoke(cli, ["bake-features", str(hand_file), "builtin:sky", "-o",
+                                     str(out), "--specular", "ggx", "-q", *SMALL, *extra])
+        assert r.exit_code == 0, r.output
+        maps[name] = read_features(str(out))
+    mask = maps["auto"].layers["mask"] > 0
+    assert np.abs(maps["none"].layers["diffuse"] - maps["auto"].layers["diffuse"])[mask].max() > 1e-3
+    assert maps["schlick"].layers["ggx"][mask].sum() < maps["auto"].layers["ggx"][mask].sum()
+    settings = json.loads(maps["schlick"].attributes["relight.provenance"])["settings"]
+    assert settings["ggx_shadowing"] == "schlick" and settings["env_sources"] == "auto"
 
 
 def test_no_clobber(tmp_path):

@@ -91,6 +91,32 @@ def test_lights_render_and_ablations_differ(run_cli, files):
     assert (img["nospec"] <= img["full"] + 1e-6).all() and (img["nospec"] < img["full"]).any()
 
 
+def test_env_transport_options(run_cli, files):
+    """Issue 50's options change what they say: under builtin:sky (a sun), per-vertex
+    transport, no bright sources and the Schlick lobe each render differently from the
+    defaults; the Schlick lobe is the darker (its G shadows more); the provenance records
+    them."""
+    base = ["relight", "builtin:right:fist", "builtin:sky", "--camera", files / "cam.json",
+            "--tex-res", "64", "--aa", "1", "--no-sss", "-q"]
+    outs = {}
+    for name, extra in (("default", []), ("vertices", ["--env-space", "vertices"]),
+                        ("nosources", ["--env-sources", "none"]),
+                        ("schlick", ["--ggx-shadowing", "schlick"]),
+                        ("diffuse", ["--no-specular"])):
+        outs[name] = files / f"{name}.exr"
+        r = run_cli(*base, "-o", outs[name], *extra)
+        assert r.exit_code == 0, r.output
+    img = {k: read_exr(str(v)).layer("") for k, v in outs.items()}
+    mask = read_exr(str(outs["default"])).channels["A"] > 0.99
+    assert mask.sum() > 20
+    for name in ("vertices", "nosources", "schlick"):
+        assert np.abs(img[name] - img["default"])[mask].max() > 1e-3, name
+    spec = {k: img[k] - img["diffuse"] for k in ("default", "schlick")}
+    assert spec["schlick"][mask].sum() < spec["default"][mask].sum()
+    settings = read_exr(str(outs["schlick"])).provenance()["settings"]
+    assert settings.get("shadowing", settings.get("ggx_shadowing")) == "schlick", settings
+
+
 def test_default_camera_and_size(run_cli, files):
     out = files / "d.exr"
     r = run_cli("relight", "builtin:left", "builtin:uniform", "--size", "16x12", "-o", out,
@@ -123,6 +149,13 @@ def test_subprocess(files):
     (["builtin:right", "builtin:sky", "--shadow-strength", "0.5", "-o", "o.exr"], 2,
      "--shadow-strength only apply to Gaussians"),                   # issue 52 cause 10
     (["builtin:right", "builtin:sky", "--roughness", "0", "-o", "o.exr"], 2, "--roughness"),
+    (["builtin:right", "builtin:sky", "--env-sources", "x", "-o", "o.exr"], 2, "--env-sources"),
+    (["builtin:right", "builtin:sky", "--env-sources", "-1", "-o", "o.exr"], 2, "--env-sources"),
+    (["builtin:right", "builtin:sky", "--env-space", "pixels", "-o", "o.exr"], 2, "--env-space"),
+    (["builtin:right", "builtin:sky", "--ggx-shadowing", "beckmann", "-o", "o.exr"], 2,
+     "--ggx-shadowing"),
+    (["builtin:right", "builtin:sky", "--model", "teacher", "--checkpoint", "t.pt",
+      "--ggx-shadowing", "smith", "-o", "o.exr"], 2, "--ggx-shadowing only apply to --model"),
     (["builtin:right", "builtin:sky", "--tex-res", "2", "-o", "o.exr"], 2, "--tex-res"),
     (["builtin:right", "builtin:sky", "--env-res", "1x4", "-o", "o.exr"], 2, "--env-res"),
     (["builtin:right", "builtin:sky", "--env-res", "16x32", "-o", "o.exr"], 2,

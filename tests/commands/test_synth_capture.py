@@ -282,6 +282,35 @@ def test_older_captures_keep_their_key_and_env_space(run_cli, tmp_path):
     assert r.exit_code == 2 and not (tmp_path / "bad").exists()
 
 
+def test_older_captures_keep_their_lobe_and_key(run_cli, tmp_path):
+    """A capture.json without ``ggx_shadowing`` was made with URHand's Schlick–Smith lobe:
+    its stage rebuilds so and its key is what it was; a new capture records ``smith`` (the
+    default) or ``--ggx-shadowing schlick``, with different keys and images."""
+    from dataclasses import asdict
+    import hashlib
+    old = asdict(S.StageSettings(eval_env_space="vertices", ggx_shadowing="schlick"))
+    del old["eval_env_space"], old["ggx_shadowing"]
+    assert S.stage_settings(old).ggx_shadowing == "schlick"
+    text = json.dumps({"settings": old, "hand": "abc"}, sort_keys=True)
+    assert S.capture_key(S.StageSettings(eval_env_space="vertices", ggx_shadowing="schlick"),
+                         "abc") == hashlib.sha256(text.encode()).hexdigest()[:16]
+    assert S.stage_settings({**old, "ggx_shadowing": "beckmann"}) is None
+    caps = {}
+    for lobe in ("smith", "schlick"):
+        out = tmp_path / f"cap-{lobe}"
+        r = run_cli("synth-capture", "-o", out, *TINY, *(["--ggx-shadowing", lobe]
+                                                          if lobe == "schlick" else []))
+        assert r.exit_code == 0, r.output
+        caps[lobe] = C.read_capture(str(out))
+        assert caps[lobe].settings["ggx_shadowing"] == lobe
+    assert caps["smith"].key != caps["schlick"].key
+    a = C.read_image(str(tmp_path / "cap-smith" / C.image_path(0, "cam000")))[0]
+    b = C.read_image(str(tmp_path / "cap-schlick" / C.image_path(0, "cam000")))[0]
+    assert np.abs(a - b).max() > 1e-4          # the lobe changed the highlights
+    r = run_cli("synth-capture", "-o", tmp_path / "bad", *TINY, "--ggx-shadowing", "ue4")
+    assert r.exit_code == 2 and not (tmp_path / "bad").exists()
+
+
 def test_polyhaven_eval_env(run_cli, tmp_path, shared):
     """A real 1k Poly Haven HDR as a held-out env map: stored in eval/envs/ at the working
     grid with its power, and the evaluation renders lit by it."""
