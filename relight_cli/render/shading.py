@@ -490,11 +490,9 @@ class HandRenderer:
             # only the directions some point of the block sees (points come in screen
             # tiles, so a block's normals are alike and it faces about half the sphere)
             cols = np.flatnonzero(vis.any(0))
-            # float32 where the lobe is wide enough for it (α² ≥ 1e-4: the peak's
-            # 1 − (n·h)² is then far above float32's rounding), else float64
-            dtype = np.float32 if rough[r].min() >= 0.1 else np.float64
-            w = FE.ggx_weights(normals[r], view[r], dirs[cols], rough[r], f0, shadowing,
-                               dtype=dtype)
+            # float64: in float32 the peak's 1 − (n·h)² loses 1.4 % of the lobe at ρ 0.1
+            # (0.04 % at 0.45), measured
+            w = FE.ggx_weights(normals[r], view[r], dirs[cols], rough[r], f0, shadowing)
             w *= vis[:, cols]
             out[r] = np.einsum("pm,mc->pc", w, weighted[cols])
 
