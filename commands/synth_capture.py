@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.cli.tools import (SquareSize, check_output, log, no_clobber_option, preview_option,
-                                   quiet_option, renamed_option, seed_option)
+from relight_cli.cli.tools import (SEED_MAX, SquareSize, check_output, log, no_clobber_option,
+                                   preview_option, quiet_option, renamed_option, seed_option)
 
 
 @click.command("synth-capture",
@@ -62,7 +62,7 @@ from relight_cli.cli.tools import (SquareSize, check_output, log, no_clobber_opt
               help="The skin's GGX shadowing term: the exact Smith G a standard renderer "
                    "(Mitsuba 3) uses, or URHand Eq. 15's Schlick remap k = (rho+1)^2/8 "
                    "(captures made before this option).")
-@click.option("--skin-seed", type=int, default=0, show_default=True,
+@click.option("--skin-seed", type=click.IntRange(0, SEED_MAX), default=0, show_default=True,
               help="Seed of the procedural skin: the subject (keep it across the right, left "
                    "and two-hand captures of one study; --seed changes their motion).")
 @preview_option("Also write a labelled PNG contact sheet: a few cameras (rows) × fully lit, "

@@ -152,16 +152,42 @@ def _string(value, what, path, empty=False):
 #: (formats/capture.md).  ``eval_env_res`` is [H, W].
 SETTINGS_LIMITS = {"res": (1, 4096), "tex_res": (1, 4096), "aa": (1, 8),
                    "cameras": (1, 1000), "lights": (1, 10_000), "group": (1, 10_000),
-                   "frames": (1, 100_000)}
+                   "frames": (1, 100_000), "full_every": (1, 100_000),
+                   "keyframe_every": (1, 100_000),
+                   # seeds as synth-capture's --seed and --skin-seed take them (numpy's)
+                   "seed": (0, 2**32 - 1), "skin_seed": (0, 2**32 - 1)}
 EVAL_ENV_RES_LIMITS = ((1, 4096), (1, 8192))
+#: The other settings the stage is rebuilt from, each in synth-capture's domain: on/off
+#: switches, the dome's radii (metres) and clock, and the choices of its options.
+SETTINGS_FLAGS = ("sss", "bounce")
+SETTINGS_POSITIVE = ("camera_radius", "light_radius", "fps")
+SETTINGS_CHOICES = {"eval_env_space": ("texels", "vertices"),
+                    "ggx_shadowing": ("smith", "schlick")}
 
 
 def _settings(settings, path):
-    """Check the sizes and counts ``settings`` records (:data:`SETTINGS_LIMITS`); any
-    other field is free form."""
+    """Check what ``settings`` records that the stage is rebuilt from: the sizes and counts
+    (:data:`SETTINGS_LIMITS`), the switches, radii and choices (a string where a number
+    belongs is one line naming the file, not an internal error of the stage); any other
+    field is free form."""
+    from ._common import MAX_POSITION
     for key, (lo, hi) in SETTINGS_LIMITS.items():
         if key in settings:
             _int(settings[key], f"settings.{key}", path, lo, hi + 1)
+    for key in SETTINGS_FLAGS:
+        if key in settings and not isinstance(settings[key], bool):
+            raise DataError(f"settings.{key} must be true or false, got "
+                            f"{settings[key]!r}"[:200], path)
+    for key in SETTINGS_POSITIVE:
+        value = settings.get(key, 1.0)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                math.isfinite(value) and 0 < value <= MAX_POSITION):
+            raise DataError(f"settings.{key} must be a number in (0, {MAX_POSITION:g}], got "
+                            f"{value!r}"[:200], path)
+    for key, choices in SETTINGS_CHOICES.items():
+        if key in settings and settings[key] not in choices:
+            raise DataError(f"settings.{key} must be {' or '.join(choices)}, got "
+                            f"{settings[key]!r}"[:200], path)
     if "eval_env_res" in settings:
         value = settings["eval_env_res"]
         if (not isinstance(value, list) or len(value) != 2
@@ -308,6 +334,9 @@ def validate(capture: Capture, path: str = "") -> None:
         unknown = [n for n in f.images if n not in names]
         if unknown:
             raise DataError(f"frame {f.index} lists images of unknown camera {unknown[0]!r}", path)
+        if len(set(f.images)) != len(f.images):   # one image, trained on and scored twice
+            twice = next(n for i, n in enumerate(f.images) if n in f.images[:i])
+            raise DataError(f"frame {f.index} lists camera {twice!r} twice in images", path)
     n_lights = len(capture.light_positions)
     for f in capture.frames:
         # every frame is lit: a frame with no light on has nothing to learn from (and no

@@ -219,9 +219,13 @@ def input_digest(path: str) -> str | None:
 
 def _sha256_of_file(path: str, chunk: int = 1 << 20) -> str | None:
     """Hex SHA-256 of a regular file's bytes, or None (not a regular file, unreadable:
-    its reader says why)."""
+    its reader says why).  A FIFO is never opened here: an open blocks until a writer
+    comes, and closing it unread drops what that writer sent, so the reader that follows
+    would wait for ever (its bytes are hashed as read: kept_stream)."""
     import hashlib
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None
         with open(path, "rb") as f:
             if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
                 return None

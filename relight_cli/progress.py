@@ -25,6 +25,23 @@ def set_command(name: str) -> None:
     _COMMAND[0] = name
 
 
+# Called once, before the first progress bar or line is shown (then forgotten): the CLI
+# holds a command's log lines until its work shows progress, and says them here, so that
+# they keep their place before it (relight_cli.cli.tools.held_log_lines).  None: nothing.
+_BEFORE_SHOWN = [None]
+
+
+def before_shown(callback) -> None:
+    """Run ``callback`` (or nothing: None) before the next progress is first shown."""
+    _BEFORE_SHOWN[0] = callback
+
+
+def _shown() -> None:
+    callback, _BEFORE_SHOWN[0] = _BEFORE_SHOWN[0], None
+    if callback is not None:
+        callback()
+
+
 def progress(iterable=None, total=None, desc: str = "", quiet: bool = False, initial: int = 0,
              unit: str = "", stream=None, clock=time.monotonic, interval: float | None = None):
     """An iterable/updatable progress object on ``stream`` (stderr).
@@ -38,6 +55,7 @@ def progress(iterable=None, total=None, desc: str = "", quiet: bool = False, ini
     if quiet:
         return PlainProgress(iterable, total, desc, initial, unit, None, clock, interval)
     if _is_terminal(stream):
+        _shown()
         from tqdm import tqdm
         return tqdm(iterable, total=total, desc=desc, initial=initial, file=stream, leave=False,
                     dynamic_ncols=True, **({"unit": unit} if unit else {}))
@@ -123,5 +141,6 @@ class PlainProgress:
     def _write(self) -> None:
         if self.stream is None:
             return
+        _shown()
         self.stream.write(self.line() + "\n")
         self.stream.flush()

@@ -49,12 +49,15 @@ class RelightGroup(click.Group):
 
     def invoke(self, ctx):
         from ..fileio import output_transaction
+        from .tools import held_log_lines
         try:
             # Library warnings (numpy, torch, pygltflib...) would come before the one error
             # line or mix with progress: the subcommand's --debug option (tools.quiet_option,
             # which also sees `relight --debug CMD`) silences them inside this block unless
-            # --debug was given.
-            with output_transaction(), warnings.catch_warnings():
+            # --debug was given.  Log lines are held until the work shows progress or the
+            # outputs are committed (tools.held_log_lines; outside the transaction, so that
+            # a failed commit drops them too): a failing run says only its error line.
+            with held_log_lines(), output_transaction(), warnings.catch_warnings():
                 return super().invoke(ctx)
         except BrokenPipeError:
             _broken_pipe()

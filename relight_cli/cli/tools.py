@@ -6,6 +6,7 @@ Command modules import this at top level; it must stay light so that
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -265,13 +266,64 @@ def _special_kind(path: str) -> str | None:
 def log(message: str, quiet: bool = False) -> None:
     """A log line on stderr (never stdout, which may carry data).  A ``wrote …`` line is
     said once the command's outputs are committed (relight_cli.fileio.after_commit), so
-    a run that fails after staging an output says only its one error line."""
+    a run that fails after staging an output says only its one error line.  Any other line
+    (``read …``, notes) is held while a command runs, until its work shows progress or it
+    succeeds (:func:`held_log_lines`), so a run refused after reading some of its inputs
+    also says only its error line; the lines keep their order."""
     if quiet:
         return
     if message.startswith("wrote "):
         from relight_cli.fileio import after_commit
-        if after_commit(lambda: click.echo(message, err=True)):
+        if after_commit(lambda: _say(message)):
             return
+        _say(message)
+    elif _HELD is not None:
+        _HELD.append(message)
+    else:
+        click.echo(message, err=True)
+
+
+# The running command's log lines not said yet (None: none held, lines go out at once).
+_HELD: list[str] | None = None
+
+
+@contextlib.contextmanager
+def held_log_lines():
+    """Hold the log lines of the command run in this block (the relight group's invoke):
+    said in order before the first progress is shown (the inputs are read and checked,
+    the work has begun; from then on lines go out as they come), before the first line
+    said at once (``wrote …``), or when the block ends without an error; never said when
+    it fails, whose stderr is then its one error line (DESIGN.md, "How every command
+    behaves").  A deliberate exit (``ctx.exit``) says them too."""
+    global _HELD
+    if _HELD is not None:   # nested: the outer block decides
+        yield
+        return
+    from ..progress import before_shown
+    _HELD = []
+    before_shown(release_log_lines)
+    try:
+        yield
+    except click.exceptions.Exit:
+        release_log_lines()
+        raise
+    else:
+        release_log_lines()
+    finally:
+        _HELD = None
+        before_shown(None)
+
+
+def release_log_lines() -> None:
+    """Say the held log lines now, and hold no more (the block of :func:`held_log_lines`)."""
+    global _HELD
+    held, _HELD = _HELD, None
+    for message in held or ():
+        click.echo(message, err=True)
+
+
+def _say(message: str) -> None:
+    release_log_lines()
     click.echo(message, err=True)
 
 

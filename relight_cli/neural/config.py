@@ -90,6 +90,9 @@ def resolve_config(preset: str = "tiny", config_file: str | None = None,
         if not isinstance(obj, dict):
             raise DataError("a config file holds one JSON object of fields", config_file)
         from_file = obj.get("config", obj) if "format" in obj else obj
+        if not isinstance(from_file, dict):
+            raise DataError("a config record's 'config' holds one JSON object of fields",
+                            config_file)
     flags = {k: v for k, v in (overrides or {}).items() if v is not None}
 
     def build(given: dict):
@@ -103,20 +106,19 @@ def resolve_config(preset: str = "tiny", config_file: str | None = None,
         values.update(given)
         return config_class.from_dict(values)
 
-    try:
-        return build({**from_file, **flags})
-    except UsageProblem as exc:
-        if config_file is None or exc.path is not None:
-            raise
-        # The line names the config file when the file is what is wrong: the preset and
-        # the file alone (with the flags that pick the model) are already refused; a
+    if config_file is not None:
+        # The file is checked on its own first (the preset and the file, with the flags
+        # that pick the model), and its line names the file: a field a flag overrides is
+        # still the file's and must be valid (``"iters": "10"`` under ``--iters 2``); a
         # problem only the other flags bring stays the flags' (no file named).
         kind = {k: flags[k] for k in ("model", "student") if k in flags}
         try:
             build({**from_file, **kind})
-        except UsageProblem:
+        except UsageProblem as exc:
+            if exc.path is not None:
+                raise
             raise UsageProblem(exc.message, config_file, exc.hint) from None
-        raise
+    return build({**from_file, **flags})
 
 
 def resolve_student_config(preset: str = "tiny", config_file: str | None = None,

@@ -196,6 +196,7 @@ class CaptureData:
         self._lights = LRU(4 * cache_poses)
         self._rasters = None
         self._env_maps = {}
+        self._check_eval_grid()
         self._cameras = {c.name: c for c in self.capture.cameras}
         frames = self.capture.frames
         for f in frames:
@@ -222,6 +223,25 @@ class CaptureData:
             if self.heldout_frames else None
         self.train_fully_lit_frames = [f for f in self.fully_lit_frames
                                        if cut is None or (f.time, f.index) < cut]
+
+    def _check_eval_grid(self) -> None:
+        """Bound ``settings.eval_env_res`` by what the folder holds: a capture stores each
+        evaluation env map resampled to that lat-long grid (formats/capture.md), and the
+        stage rebuilt for the ceiling integrates over it, so a grid its maps do not have
+        (a capture.json declaring 8192x4096 over 32x16 maps: > 5 min and 17 GB before
+        any output) is refused naming capture.json, before any work."""
+        grid = (self.capture.settings or {}).get("eval_env_res")
+        ev = self.capture.evaluation
+        if grid is None or ev is None:
+            return
+        h, w = grid
+        for name, file in ev["envs"].items():
+            env = self.env_map(name)
+            if env.layout != "latlong" or (env.height, env.width) != (h, w):
+                size = (f"{env.width}x{env.height}" if env.layout == "latlong"
+                        else f"a {env.layout} map")
+                raise DataError(f"settings.eval_env_res is {w}x{h}, but the evaluation env "
+                                f"map {file!r} stored on it is {size}", self.index_path)
 
     def _check_handedness(self) -> None:
         """Refuse a hand.npz of the other hand(s) than the capture was made of (DataError

@@ -131,6 +131,42 @@ def test_progress_on_a_terminal_is_tqdm():
     bar.close()
 
 
+def test_log_lines_are_held_until_progress_shows_or_the_command_ends(capsys):
+    """A command's log lines (tools.log) are held while it runs (tools.held_log_lines, the
+    relight group's invoke): dropped when it fails, so its stderr is its one error line;
+    said in order before its first progress line, after which lines go out as they come;
+    said when it succeeds, before a ``wrote`` line."""
+    import io
+
+    from relight_cli import progress as P
+    from relight_cli.cli.tools import held_log_lines, log
+    with pytest.raises(ValueError):
+        with held_log_lines():
+            log("read a.exr: latlong 16x8")
+            raise ValueError("a later input is bad")
+    assert capsys.readouterr().err == ""
+    with held_log_lines():
+        log("read a.exr")
+        log("note: b")
+        assert capsys.readouterr().err == ""
+        bar = P.progress(total=2, desc="frames", stream=sys.stderr, interval=0)
+        bar.update(1)                                  # the work shows progress
+        log("frame 0")                                 # from then on, said at once
+        err = capsys.readouterr().err.splitlines()
+        assert err[:2] == ["read a.exr", "note: b"] and err[3:] == ["frame 0"], err
+        assert err[2].endswith(": 1/2 frames (50%)"), err
+        bar.close()
+    capsys.readouterr()
+    with held_log_lines():
+        log("read b")
+        log("wrote c")
+    assert capsys.readouterr().err.splitlines() == ["read b", "wrote c"]
+    assert P._BEFORE_SHOWN == [None]                    # nothing left for a later progress
+    P.progress(total=1, stream=io.StringIO(), interval=0).update(1)
+    log("outside a command")                            # library use: at once
+    assert capsys.readouterr().err == "outside a command\n"
+
+
 def test_progress_lines_of_a_real_command_name_it(run_cli, tmp_path):
     """In a command (stderr is no terminal under CliRunner): the final line names it."""
     r = run_cli("sh-probe", "builtin:sky", "--degree", "1", "-o", tmp_path / "p.json")

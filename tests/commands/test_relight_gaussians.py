@@ -365,3 +365,23 @@ def test_real_robot_view_dependence_survives_placement_and_relighting(shared):
     c[0] = 2.0 * math.sqrt(4 * math.pi)                 # uniform radiance 2 → factor 2
     relit = TF.relight_gaussians(placed, c)
     np.testing.assert_allclose(colour(relit, d), 2 * colour(placed, d), atol=1e-9)
+
+
+def test_cli_info_lines_of_a_failing_run_are_not_said(run_cli, files, monkeypatch):
+    """Without -q, a run refused after it has read some inputs says only its one error line:
+    the ``read …`` lines of the inputs read before the bad one are held until the run's
+    inputs pass (issue 52: here the camera, read after the Gaussians).  A run that succeeds
+    says them as before, first, and its ``wrote`` line last."""
+    monkeypatch.chdir(files)
+    (files / "bad_cam.json").write_text("{")
+    r = run_cli("relight", "avatar.ply", "--probe", "probe.json", "--camera", "bad_cam.json",
+                "-o", "out.exr")
+    assert r.exit_code == 1, r.output
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("relight relight: error: "), r.output
+    assert lines[0].endswith("(bad_cam.json)") and not (files / "out.exr").exists()
+    r = run_cli("relight", "avatar.ply", "--probe", "probe.json", "-o", "out.ply")
+    assert r.exit_code == 0, r.output
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert lines[0] == "read avatar.ply: 300 Gaussians", r.output
+    assert lines[-1].startswith("wrote out.ply"), r.output

@@ -105,6 +105,10 @@ def test_subprocess(tmp_path):
     (["missing.npz"], 1, "no such file"),
     (["--eval-envs", "nothere.exr"], 1, "no such file"),
     (["builtin:martian"], 2, "unknown built-in hand"),
+    # a seed numpy cannot take was an internal error after capture.json and hand.npz were
+    # written (issue 52's sweep); --skin-seed takes what --seed takes
+    (["--skin-seed", "-1"], 2, "--skin-seed"),
+    (["--skin-seed", str(2**32)], 2, "--skin-seed"),
 ])
 def test_bad_input(run_cli, tmp_path, monkeypatch, args, code, message):
     monkeypatch.chdir(tmp_path)

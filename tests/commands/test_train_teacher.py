@@ -116,11 +116,16 @@ BAD_CONFIGS = {"bad-config": {"tex_res": 33}, "bad-head": {"head": "inside", "un
                "shading-inputs-on-ggx": {"model": "ggx", "inputs": "shading"},
                "bad-pose": {"pose": "hands"}, "bad-view": {"view": "eye"},
                "view-none-on-ggx": {"model": "ggx", "view": "none"},
-               "negative-lr": {"lr": -1}}
+               "negative-lr": {"lr": -1},
+               # issue 52's sweep: the file's own value is checked even where a flag
+               # overrides it (the test's --iters 2), as it is without the flag
+               "iters-str-under-flag": {"iters": "10"},
+               "iters-negative-under-flag": {"iters": -3}}
 
 
 @pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
                                   "other-hand", "other-hand-file",
+                                  "eval-env-res-beyond-its-maps", "wrapped-config-list",
                                   "iters-0", "unknown-preset", "not-pt", "not-a-folder",
                                   *BAD_CONFIGS, "resume-other-config"])
 def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli, small_teacher):
@@ -160,6 +165,11 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
         if case == "other-hand-file":        # a capture made from a file: no builtin source
             _edit_index(cap, lambda o: o["provenance"]["inputs"]["hand"].update(
                 path="my_hand.npz"))
+    elif case == "eval-env-res-beyond-its-maps":
+        # issue 52's sweep: a capture.json declaring the largest eval grid over its 32x16
+        # eval maps made the ceiling integrate 33 M directions (> 5 min, 17 GB, no output);
+        # a capture stores each eval map on that grid, so the folder bounds the value
+        _edit_index(cap, lambda o: o["settings"].update(eval_env_res=[4096, 8192]))
     elif case == "iters-0":
         args[-1] = "0"
         code = 2
@@ -171,6 +181,12 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
         code = 2
     elif case == "not-a-folder":
         args[1] = str(tmp_path / "nope")
+    elif case == "wrapped-config-list":
+        # a record with a format whose "config" is not an object was an internal error
+        # naming no file (issue 52's sweep)
+        (tmp_path / "bad.json").write_text(json.dumps({"format": "relight/checkpoint",
+                                                       "config": [1]}))
+        args[3] = str(tmp_path / "bad.json")
     elif case in BAD_CONFIGS:
         (tmp_path / "bad.json").write_text(json.dumps(BAD_CONFIGS[case]))
         args[3] = str(tmp_path / "bad.json")
@@ -188,7 +204,10 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
     assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in r.output, r.output
     if case in ("other-hand", "other-hand-file"):
         assert lines[0].endswith(f"({cap / 'hand.npz'})") and "left" in lines[0], lines[0]
-    if case in BAD_CONFIGS:        # issue 52 cause 12: the line names the config file
+    if case == "eval-env-res-beyond-its-maps":
+        assert lines[0].endswith(f"({cap / 'capture.json'})") and "32x16" in lines[0], lines[0]
+    if case in BAD_CONFIGS or case == "wrapped-config-list":   # issue 52 cause 12: the
+        # line names the config file
         assert lines[0].endswith(f"({tmp_path / 'bad.json'})"), lines[0]
     assert list(out.parent.iterdir()) == []
     assert {p: p.stat().st_mtime_ns for p in cap.rglob("*")} == before

@@ -66,3 +66,35 @@ def test_an_input_replaced_during_a_run_does_not_make_its_old_inode_an_input(tmp
             with atomic_path(config) as tmp:
                 open(tmp, "w").write("clobber")
     assert saved.read_text() == "checkpoint" and config.read_text() == '{"rewritten": true}'
+
+
+
+def test_declaring_a_fifo_input_does_not_open_it(tmp_path):
+    """A JSON input may be a named FIFO (``mkfifo c.json; relight train-teacher ... --config
+    c.json``): declaring it (check_input) must not open it to hash it.  Opening it blocked
+    until a writer came, connected that writer to a reader that closed at once (its bytes
+    lost), and the real read then blocked for ever: the sweep of issue 52 (train-teacher and
+    distill --config FIFO, relight CAPTURE/ with a FIFO capture.json) ran > 60 s.  With no
+    writer at all, the old code blocks here; a reader is then let go by opening the FIFO's
+    other end."""
+    import threading
+
+    from relight_cli.fileio import declare_input, input_digest
+
+    fifo = str(tmp_path / "c.json")
+    os.mkfifo(fifo)
+    done = {}
+
+    def run():
+        with output_transaction():
+            declare_input(fifo)
+            done["digest"] = input_digest(fifo)
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(10)
+    blocked = thread.is_alive()
+    if blocked:   # let the stuck open() return (a writer that writes nothing)
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        thread.join(5)
+    assert not blocked, "declare_input opened the FIFO"
+    assert done == {"digest": None}    # a FIFO's bytes are hashed as read (kept_stream)

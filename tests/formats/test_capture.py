@@ -36,7 +36,11 @@ def test_format_round_trip_and_rejections(tmp_path):
             ({"frames": [{"index": 0, "pose": 0, "images": ["zz"]}]}, "unknown camera"),
             ({"frames": [{"index": 0, "pose": 0, "lit": "half"}]}, "'full' or 'group'"),
             ({"lights": [{"position": [0, "x", 0]}]}, "position"),
-            ({"cameras": []}, "'cameras' is empty")):
+            ({"cameras": []}, "'cameras' is empty"),
+            # an image listed twice would be trained on twice, as a light listed twice in
+            # lights_on would count twice (issue 52's sweep: it was read)
+            ({"frames": [{"index": 0, "pose": 0, "lights_on": [0], "images": ["a", "a"]}]},
+             "lists camera 'a' twice in images")):
         obj = dict(_minimal(), **change)
         path.write_text(json.dumps(obj))
         with pytest.raises(DataError) as info:

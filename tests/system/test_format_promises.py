@@ -36,6 +36,8 @@ Provenance
   fixed zip member dates .................. test_npz_members_have_fixed_zip_dates
   command line without -q/--debug/... ..... test_command_line_leaves_out_presentation_flags
   builtin inputs hashed by name ........... test_builtin_inputs_are_hashed_by_name
+  a JSON FIFO is not opened to be hashed .. engine/test_fileio.py::
+                                            test_declaring_a_fifo_input_does_not_open_it
 Atomic writes
   temp file name and folder ............... test_temporary_file_is_named_and_placed_as_documented
   fsync, not empty ........................ test_finished_output_is_fsynced_before_the_rename,
@@ -88,6 +90,11 @@ Names say what is written (test_outputs_and_bad_inputs.py unless written here)
                                             test_extensions_are_checked_in_any_case
   devices and FIFOs exempt ................ test_character_device_is_written_in_place,
                                             test_fifo_with_reader_gets_the_bytes
+One line for a failure, also without -q
+  log lines held until progress or success  cli/test_cli.py::
+                                            test_log_lines_are_held_until_progress_shows_or_the_command_ends,
+                                            commands/test_relight_gaussians.py::
+                                            test_cli_info_lines_of_a_failing_run_are_not_said
 Streams (test_outputs_and_bad_inputs.py unless written here)
   `-` reads JSON from stdin, provenance `-` test_json_inputs_read_stdin
   one input on stdin; not a terminal ...... test_only_one_input_reads_stdin,
