@@ -152,6 +152,23 @@ demo: install
 	  $(RELIGHT) metrics lighting --scene demo/room_lamp.ply --avatar demo/robot_before.ply \
 	    --relit demo/robot_relit.ply --radius 1.5 -o demo/robot_lighting.json; \
 	fi
+	# animated avatars (the DGSM paper's setting), one process per clip: the Leap pinch as Gaussians
+	# moving over the room; per frame the shadow map rebuilt from the moved hand (--lights) and its
+	# probe refitted at the hand from the room (--probe scene, Sec. 3.4); per-frame EXRs and previews,
+	# and the clip as an animated WebP with one exposure; then PlayCanvas' flipbook monkey (a per-frame
+	# PLY pattern written by another tool: it turns, grows and changes colour) on the floor
+	if [ -f demo/leap_hand.npz ]; then \
+	  mkdir -p demo/clip && \
+	  $(RELIGHT) relight 'demo/leap_hand.npz:translate=0,0.05,0' --frames 0:291:24 --receivers builtin:room \
+	    --lights demo/lights.json --probe scene --direct-light --camera demo/room_cam.json \
+	    -o 'demo/clip/hand_{frame:03d}.exr' --preview 'demo/clip/hand_{frame:03d}.png' --video demo/clip_hand.webp; \
+	fi
+	if [ -d $(SHARED)/gaussians/sequences/flipbook-monkey ]; then \
+	  mkdir -p demo/clip && \
+	  $(RELIGHT) relight '$(SHARED)/gaussians/sequences/flipbook-monkey/frame_{frame:04d}.ply:fit=0.3;on-floor' \
+	    --frames all --receivers builtin:room --lights demo/lights.json --probe scene --direct-light \
+	    --camera demo/room_cam.json -o 'demo/clip/monkey_{frame}.exr' --video demo/clip_monkey.png; \
+	fi
 	# quality metrics of a cube round trip against direct resampling, and the regression gate
 	$(RELIGHT) envmap builtin:sky --to cube --size 32 -o demo/sky_cube.exr
 	$(RELIGHT) envmap demo/sky_cube.exr --to latlong --size 128x64 -o demo/sky_back.exr

@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, log, no_clobber_option,
-                                   parse_size, preview_option, quiet_option, seed_option)
+from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, colour_space_option,
+                                   log, no_clobber_option, parse_size, preview_option,
+                                   quiet_option, seed_option)
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
@@ -74,13 +75,23 @@ from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, log, 
 @click.option("--preview-camera", default=None, metavar="CAMERA.json",
               help="OpenCV camera of --preview (default: one framing the occluders and their "
                    "shadow, from the side and above).")
+@click.option("--frame", "frame", type=click.IntRange(0), default=None, metavar="K",
+              help="One frame of moving OCCLUDERs (a hand.npz's motion, a '{frame}' PLY "
+                   "pattern or a relight/gaussian-sequence index) [default: the first].")
+@click.option("--frames", "frames", default=None, metavar="all|A:B[:S]",
+              help="One DGSM per frame, in one process: every frame (all) or the frames A, "
+                   "A+S, … before B (a Python slice). Receivers read and lights read or "
+                   "estimated once; -o, --occluders-out and --preview are patterns holding "
+                   "{frame}; relight relight --dgsm PATTERN reads them back.")
+@colour_space_option
 @seed_option
 @no_clobber_option
 @quiet_option
 def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, estimator,
             lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
-            allow_light_inside, half, preview, preview_camera, seed, no_clobber, quiet):
+            allow_light_inside, half, preview, preview_camera, frame, frames, colour_space, seed,
+            no_clobber, quiet):
     """Tabulate the transmittance from each light through the OCCLUDER Gaussians
     (closed-form erf optical depth, T = exp(−τ)) on K radial shells over an
     octahedral atlas of directions (Mir et al., Deep Gaussian Shadow Maps).
@@ -126,6 +137,16 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     from relight_cli.jobs.dgsm_build import build
 
     start = time.perf_counter()
+    if frame is not None or frames is not None or any(_moves(spec) for spec in occluders):
+        from relight_cli.commands._dgsm_frames import build_frames
+        options, offset = _options(preview, preview_camera, translate, receivers, size, bins,
+                                   atlas, mapping, kappa, t_max, roi, roi_radius, cull,
+                                   cull_tolerance, footprint, samples, seed, allow_light_inside,
+                                   estimator)
+        if _parse_auto(lights_spec) is not None and receivers is None:
+            raise UsageProblem("--lights auto:K estimates lights from the scene: give "
+                               "--receivers")
+        return build_frames(dict(locals()), options, offset)
     check_output(output, no_clobber, kind="exr")
     check_output(lights_out, no_clobber, kind="json", what="--lights-out")
     check_output(occluders_out, no_clobber, kind="ply", what="--occluders-out")
@@ -139,7 +160,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         raise UsageProblem("--lights auto:K estimates lights from the scene: give --receivers")
 
     parsed, objects, scene, view, lights = _load(occluders, receivers, offset, lights_spec,
-                                                 auto_k, preview_camera)
+                                                 auto_k, preview_camera, colour_space)
     options.camera = view
     result = build(objects, lights if auto_k is None else auto_k, options, scene,
                    names=occluders, receivers_name=receivers, lights_name=lights_spec,
@@ -153,7 +174,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
         inputs["lights"] = lights_spec
     settings = {**result.settings, "lights": lights_spec, "half": half, "translate": translate,
                 "estimator": estimator if auto_k is not None else None,
-                "occluders": list(occluders)}
+                "occluders": list(occluders), "colour_space": colour_space}
     _write(result, scene, inputs, settings, output, half, occluders_out, receivers_out,
            lights_out, preview, quiet, start)
 
@@ -181,7 +202,7 @@ def _options(preview, preview_camera, translate, receivers, size, bins, atlas, m
     return options, offset
 
 
-def _load(occluders, receivers, offset, lights_spec, auto_k, preview_camera):
+def _load(occluders, receivers, offset, lights_spec, auto_k, preview_camera, colour_space="auto"):
     """(parsed OCCLUDER specs, placed occluder objects, receiver Gaussians or None, the
     preview camera or None, the read lights or None for auto:K), in the order whose first
     bad input is reported."""
@@ -198,11 +219,11 @@ def _load(occluders, receivers, offset, lights_spec, auto_k, preview_camera):
     objects = []
     for spec, (source, placement) in zip(occluders, parsed):
         check_input(source)
-        objects.append(load_placed(source, placement, spec, offset))
+        objects.append(load_placed(source, placement, spec, offset, colour_space=colour_space))
     scene = None
     if receivers is not None:
         check_input(receivers)
-        scene = load_gaussians(receivers)
+        scene = load_gaussians(receivers, colour_space=colour_space)
     view = None
     if preview_camera is not None:
         from relight_cli.formats.camera import read_camera
@@ -233,11 +254,14 @@ def _write(result, scene, inputs, settings, output, half, occluders_out, receive
     if occluders_out is not None:
         write_gaussians(occluders_out, result.occluders, provenance(
             GFORMAT, GVERSION, inputs, {"translate": settings["translate"],
-                                        "occluders": settings["occluders"]}))
+                                        "occluders": settings["occluders"],
+                                        "colour_space": settings["colour_space"]}))
         log(f"wrote {occluders_out}", quiet)
     if receivers_out is not None and scene is not None:
         write_gaussians(receivers_out, scene, provenance(GFORMAT, GVERSION,
-                                                         {"receivers": inputs["receivers"]}, {}))
+                                                         {"receivers": inputs["receivers"]},
+                                                         {"colour_space":
+                                                          settings["colour_space"]}))
         log(f"wrote {receivers_out}", quiet)
     if lights_out is not None:
         lights = result.lights
@@ -251,14 +275,16 @@ def _write(result, scene, inputs, settings, output, half, occluders_out, receive
         log(f"wrote {preview}", quiet)
 
 
+def _moves(spec: str) -> bool:
+    """Whether an OCCLUDER names per-frame files (a '{frame}' pattern or a sequence
+    index): such a run builds per frame (commands/_dgsm_frames.py)."""
+    from relight_cli.gaussians.placement import split_spec
+    from relight_cli.gaussians.sequence import is_pattern
+    source = split_spec(spec)[0]
+    return is_pattern(source) or source.lower().endswith(".json")
+
+
 def _parse_auto(spec: str):
-    from relight_cli.errors import UsageProblem
-    if not spec.startswith("auto"):
-        return None
-    try:
-        k = int(spec.split(":", 1)[1])
-    except (IndexError, ValueError):
-        raise UsageProblem(f"--lights auto needs a count, e.g. auto:2, got {spec!r}") from None
-    if not 1 <= k <= 64:
-        raise UsageProblem(f"--lights auto:K needs 1 ≤ K ≤ 64, got {k}")
-    return k
+    """``auto:K`` → K (relight_cli.cli.inputs.parse_auto_lights)."""
+    from relight_cli.cli.inputs import parse_auto_lights
+    return parse_auto_lights(spec)

@@ -14,12 +14,15 @@ from dataclasses import dataclass
 
 import click
 
-from relight_cli.cli.tools import (FiniteFloat, ShadowStrength, check_input, check_output, log,
+from relight_cli.cli.tools import (FiniteFloat, ShadowStrength, check_input, check_output,
+                                   colour_space_option, log,
                                    no_clobber_option, parse_vector, quiet_option, renamed_option,
                                    seed_option)
 
-#: What IN may be in this mode: a Gaussians PLY, a mesh, or a built-in Gaussian object.
-FILES = (".ply", ".obj", ".glb", ".gltf", ".stl", ".off")
+#: What IN may be in this mode: a Gaussians PLY (or a '{frame}' pattern of them), a mesh,
+#: a Gaussian sequence index, or a built-in Gaussian object.
+FILES = (".ply", ".obj", ".glb", ".gltf", ".stl", ".off",
+         ".json")   # a relight/gaussian-sequence index (formats/gaussian_sequence.md)
 BUILTINS = ("builtin:hand", "builtin:room", "builtin:sphere")
 #: The inputs that make a hand (IN = HAND.npz) a Gaussian scene: its posed hand as
 #: Gaussians (fine mesh, the hand's albedo; frame=K in its placement picks the pose).
@@ -60,9 +63,15 @@ class Run:
     intensity: float
     t_max: float | None
     normals: str
+    colour_space: str
     camera: str | None
     background: str
     preview: str | None
+    frame: int | None
+    frames: str | None
+    lights_spec: str | None
+    probe_degree: int | None
+    video: str | None
     seed: int
     no_clobber: bool
     quiet: bool
@@ -139,7 +148,31 @@ class Run:
 @click.option("--background", default="0,0,0", show_default=True, metavar="R,G,B",
               help="Background radiance of the rendered view.")
 @click.option("--preview", default=None, metavar="PNG",
-              help="With --camera: a tone-mapped PNG of the view too.")
+              help="With --camera: a tone-mapped PNG of the view too (with --frames a pattern "
+                   "holding {frame}).")
+@click.option("--frame", "frame", type=click.IntRange(0), default=None, metavar="K",
+              help="One frame of a moving IN/--object (a hand.npz's motion, a "
+                   "'{frame}' PLY pattern or a relight/gaussian-sequence index) [default: its "
+                   "first].")
+@click.option("--frames", "frames", default=None, metavar="all|A:B[:S]",
+              help="A clip in one process: every frame (all) or the frames A, A+S, … before "
+                   "B (A:B[:S], a Python slice). Per frame the moving IN/--object are placed "
+                   "(one placement for the clip), the shadow maps built (--lights) or read "
+                   "(--dgsm holding {frame}), the probes refitted (--probe scene); -o, "
+                   "--preview and --receivers-out are patterns holding {frame}.")
+@click.option("--lights", "lights_spec", default=None, metavar="LIGHTS.json|auto:K",
+              help="Build the shadow maps in-process, per frame, from IN and --object over "
+                   "--receivers (dgsm-build's defaults: 128x128 octahedral atlas, 64 bins, ROI "
+                   "and culling) for these point lights (a relight/lights JSON, or auto:K: K "
+                   "lights estimated once from the scene, paper Sec. 3.1); instead of --dgsm.")
+@click.option("--probe-degree", type=click.IntRange(0, 8), default=None,
+              help="With --probe scene: the SH degree of the refitted probes, fixed for the "
+                   "clip [default: 2].")
+@click.option("--video", default=None, metavar="CLIP.webp|CLIP.png",
+              help="With --frames and --camera: the clip as one animated WebP (lossy, "
+                   "small; plays in browsers) or animated PNG (lossless), tone-mapped with "
+                   "one exposure for every frame (the first frame's).")
+@colour_space_option
 @seed_option
 @no_clobber_option
 @quiet_option
@@ -170,7 +203,24 @@ def command(**options):
           --probe probe.json --dgsm shadows.exr --receivers room.ply --camera cam.json -o view.exr
     """
     from relight_cli.cli.tools import given_options
-    _gaussians(Run(**options), set(given_options(click.get_current_context())))
+    a, given = Run(**options), set(given_options(click.get_current_context()))
+    if _is_clip(a):
+        from relight_cli.commands._clip import clip
+        return clip(a, given)
+    _gaussians(a, given)
+
+
+def _is_clip(a) -> bool:
+    """Whether a run goes through the clip job (relight_cli.jobs.gaussian_clip): a
+    sequence, a frame of one, shadow maps built in-process or per frame, probes
+    refitted from the scene."""
+    from relight_cli.gaussians.placement import split_spec
+    from relight_cli.gaussians.sequence import is_pattern
+    sources = [split_spec(spec)[0] for spec in (a.input, *a.objects)]
+    return (a.frames is not None or a.frame is not None or a.lights_spec is not None
+            or a.probe == "scene" or a.video is not None or a.probe_degree is not None
+            or (a.dgsm is not None and is_pattern(a.dgsm))
+            or any(is_pattern(s) or s.lower().endswith(".json") for s in sources))
 
 
 def _gaussians(a, given: set = frozenset()) -> None:
@@ -200,11 +250,11 @@ def _gaussians(a, given: set = frozenset()) -> None:
     shadow_map = _read_dgsm(a.dgsm) if a.dgsm is not None else None
     objects = []
     for spec, (source, placement) in zip(specs, parsed):
-        objects.append(load_placed(source, placement, spec))
+        objects.append(load_placed(source, placement, spec, colour_space=a.colour_space))
         log(f"read {spec}: {len(objects[-1])} Gaussians", a.quiet)
     scene = None
     if a.receivers is not None:
-        scene = load_gaussians(a.receivers)   # PLY, mesh or builtin:
+        scene = load_gaussians(a.receivers, colour_space=a.colour_space)   # PLY, mesh, builtin:
         log(f"read {a.receivers}: {len(scene)} receiver Gaussians", a.quiet)
     if shadow_map is not None and shadow_map.groups is not None \
             and len(shadow_map.groups) != len(objects):
@@ -214,7 +264,7 @@ def _gaussians(a, given: set = frozenset()) -> None:
     view = _read_view(a.camera)
     relit = G.relight(objects, probe, _gaussian_options(a), shadow_map, scene, view, bg,
                       names=[source for source, _ in parsed], log=lambda m: log(m, a.quiet))
-    settings = dict(relit.settings, objects=specs)
+    settings = dict(relit.settings, objects=specs, colour_space=a.colour_space)
     inputs = _gaussian_inputs(a, parsed, camera=False)
     if a.receivers_out is not None:
         _write_ply(a.receivers_out, relit.receivers, inputs, dict(settings, role="receivers"))
@@ -277,11 +327,8 @@ def _gaussian_usage(a, given: set = frozenset()) -> tuple:
 
 
 def _gaussian_options(a):
-    from relight_cli.jobs.relight_gaussians import GaussianOptions
-    return GaussianOptions(lobe=a.lobe, intensity=a.intensity, t_max=a.t_max, normals=a.normals,
-                           footprint=a.footprint, samples=a.samples, seed=a.seed,
-                           shadow_strength=a.shadow_strength, light_weights=a.light_weights,
-                           direct_light=a.direct_light)
+    from relight_cli.commands._clip import gaussian_options
+    return gaussian_options(a)
 
 
 def _gaussian_inputs(a, parsed, camera: bool) -> dict:
@@ -306,7 +353,7 @@ def _shadow_matte(a, specs, parsed, bg, start) -> None:
     from relight_cli.jobs import relight_gaussians as G
 
     shadow_map = _read_dgsm(a.dgsm)
-    scene = load_gaussians(a.receivers)
+    scene = load_gaussians(a.receivers, colour_space=a.colour_space)
     view = _read_view(a.camera)
     meshes = None
     if a.shadow_matte == "mesh":
@@ -322,7 +369,7 @@ def _shadow_matte(a, specs, parsed, bg, start) -> None:
     matte = G.shadow_matte(a.shadow_matte, scene, shadow_map, view, options, meshes, bg,
                            log=lambda m: log(m, a.quiet))
     _write_view(a, matte.channels, matte.rgb, view, _gaussian_inputs(a, parsed, camera=True),
-                dict(matte.settings, objects=specs),
+                dict(matte.settings, objects=specs, colour_space=a.colour_space),
                 {"relight.matte": f"shadow strength ({a.shadow_matte})"})
     log(f"wrote {a.output} (shadow matte, {a.shadow_matte}: "
         f"{int((matte.strength > 0.1).sum())} of {len(matte.strength)} receivers > 0.1, "
@@ -330,9 +377,8 @@ def _shadow_matte(a, specs, parsed, bg, start) -> None:
 
 
 def _write_ply(path, gaussians, inputs, settings) -> None:
-    from relight_cli.formats.gaussians_ply import FORMAT, VERSION, write_gaussians
-    from relight_cli.provenance import provenance
-    write_gaussians(path, gaussians, provenance(FORMAT, VERSION, inputs, settings))
+    from relight_cli.commands._clip import write_ply
+    write_ply(path, gaussians, inputs, settings)
 
 
 def _write_view(a, channels, rgb, view, inputs, settings, attributes) -> None:

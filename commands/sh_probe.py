@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_output, log,
-                                   no_clobber_option, parse_vector, preview_option, progress,
+from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_output,
+                                   colour_space_option, log, no_clobber_option, parse_vector, preview_option, progress,
                                    quiet_option)
 
 
@@ -40,10 +40,11 @@ from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_o
               show_default=True, help="What to do with NaN/Inf env-map pixels.")
 @preview_option("Also write the probe's radiance as a labelled lat-long PNG (beside the "
                 "env map it was fitted to, on one exposure).")
+@colour_space_option
 @no_clobber_option
 @quiet_option
 def command(input, output, degree, ridge, tolerance, max_negativity, max_degree, at, face_size,
-            near, nonfinite, preview, no_clobber, quiet):
+            near, nonfinite, preview, colour_space, no_clobber, quiet):
     """Fit radiance L(ω) ≈ Σ c_k Y_k(ω) by solid-angle-weighted ridge least squares.
 
     IN is an environment map (EXR lat-long or cube, .hdr, builtin:sky|studio|
@@ -71,11 +72,16 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
 
     # ---- input (data errors), the job, the outputs
     start = time.perf_counter()
-    source = _read(input, options.at is not None, nonfinite, quiet)
+    if options.at is None and colour_space != "auto":
+        from relight_cli.errors import UsageProblem
+        raise UsageProblem("--colour-space is for a Gaussian scene IN (.ply); an env map is "
+                           "linear radiance")
+    source = _read(input, options.at is not None, nonfinite, quiet, colour_space)
     probe = job.fit(source, options, log=lambda message: log(message, quiet),
                     progress=lambda it: progress(it, total=6, desc="cube faces", quiet=quiet))
     settings = {"degree": degree, "ridge": ridge,
-                **({} if options.at is not None else {"nonfinite": nonfinite}), **probe.settings}
+                **({"colour_space": colour_space} if options.at is not None
+                   else {"nonfinite": nonfinite}), **probe.settings}
     write_probe(output, ShProbe(probe.coefficients, probe.degree, ridge, input, options.at,
                                 probe.extra, provenance(FORMAT, VERSION, {"input": input},
                                                         settings)))
@@ -114,12 +120,13 @@ def _options(input, output, degree, ridge, tolerance, max_negativity, max_degree
                         face_size, near)
 
 
-def _read(input, is_scene: bool, nonfinite, quiet):
+def _read(input, is_scene: bool, nonfinite, quiet, colour_space="auto"):
     """IN: the Gaussian scene (a .ply) or the env map, logged."""
     if is_scene:
         from relight_cli.formats.gaussians_ply import read_gaussians
-        scene = read_gaussians(check_input(input))
-        log(f"read {input}: {len(scene)} Gaussians, SH degree {scene.sh_degree}", quiet)
+        scene = read_gaussians(check_input(input), colour_space=colour_space)
+        log(f"read {input}: {len(scene)} Gaussians, SH degree {scene.sh_degree}, "
+            f"{scene.source_colour_space} colours", quiet)
         return scene
     from relight_cli.cli.inputs import load_envmap
     env = load_envmap(input, nonfinite=nonfinite)

@@ -14,6 +14,12 @@ In memory (:class:`Gaussians`) everything is float64 and *activated*: linear
 scales, unit w-first quaternions, opacities in (0, 1), SH as [N, K, 3].
 Files this toolkit writes carry ``relight/gaussians`` version and provenance
 JSON in PLY ``obj_info`` lines; files from other tools have none and load the same.
+
+Colour space: a 3DGS PLY's colours are display-referred sRGB (what the training
+photographs were; KHR_gaussian_splatting's default) unless the file is one this
+toolkit wrote (a ``relight.colour-space linear`` or ``relight.format`` line):
+:func:`read_gaussians` decodes sRGB files to linear once, on read
+(:func:`srgb_to_linear_sh`), so in memory colours are always linear.
 """
 
 from __future__ import annotations
@@ -36,6 +42,9 @@ _REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
              "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
 _FORMAT_TAG = "relight.format"
 _PROVENANCE_TAG = "relight.provenance"
+_COLOUR_TAG = "relight.colour-space"
+#: The colour spaces a PLY's colours may be stored in ("auto": detect, see read_gaussians).
+COLOUR_SPACES = ("srgb", "linear")
 
 
 @dataclass
@@ -54,6 +63,9 @@ class Gaussians:
         sh_degree: the SH degree (0–4 in practice).
         normals: [N, 3] float64 or None.
         provenance: the provenance record of a file this toolkit wrote (or None).
+        source_colour_space: the colour space the colours were stored in where they
+            came from ("srgb" or "linear"); in memory they are always linear (an sRGB
+            file is decoded on read).
     """
 
     means: np.ndarray
@@ -64,6 +76,7 @@ class Gaussians:
     sh_degree: int
     normals: np.ndarray | None = None
     provenance: dict | None = field(default=None, compare=False)
+    source_colour_space: str = field(default="linear", compare=False)
 
     def __post_init__(self):
         self.means = np.asarray(self.means, np.float64).reshape(-1, 3)
@@ -102,7 +115,8 @@ class Gaussians:
         """The Gaussians selected by a boolean mask or an index array."""
         return Gaussians(self.means[index], self.scales[index], self.rotations[index],
                          self.opacities[index], self.sh[index], self.sh_degree,
-                         None if self.normals is None else self.normals[index])
+                         None if self.normals is None else self.normals[index],
+                         source_colour_space=self.source_colour_space)
 
     def with_sh_degree(self, degree: int) -> "Gaussians":
         """A copy with SH truncated or zero-padded to ``degree``."""
@@ -111,7 +125,7 @@ class Gaussians:
         k = min(k_new, self.sh.shape[1])
         sh[:, :k] = self.sh[:, :k]
         return Gaussians(self.means, self.scales, self.rotations, self.opacities, sh, degree,
-                         self.normals)
+                         self.normals, source_colour_space=self.source_colour_space)
 
 
 def concatenate(parts: list[Gaussians]) -> Gaussians:
@@ -126,7 +140,9 @@ def concatenate(parts: list[Gaussians]) -> Gaussians:
                      np.concatenate([p.scales for p in parts]),
                      np.concatenate([p.rotations for p in parts]),
                      np.concatenate([p.opacities for p in parts]),
-                     np.concatenate([p.sh for p in parts]), degree, normals)
+                     np.concatenate([p.sh for p in parts]), degree, normals,
+                     source_colour_space=("srgb" if all(p.source_colour_space == "srgb"
+                                                        for p in parts) else "linear"))
 
 
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -154,6 +170,49 @@ def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
     return (np.asarray(rgb, np.float64) - 0.5) / SH_C0
 
 
+def srgb_eotf(v: np.ndarray) -> np.ndarray:
+    """The sRGB EOTF (IEC 61966-2-1, piecewise): encoded value → linear, per element.
+
+    Negative values are clamped at 0 first (no NaN from a negative base); values above 1
+    follow the same power segment (linear HDR above 1)."""
+    v = np.maximum(np.asarray(v, np.float64), 0.0)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def _srgb_eotf_slope(v: np.ndarray) -> np.ndarray:
+    """d EOTF / dv at v (clamped at 0 like :func:`srgb_eotf`)."""
+    v = np.maximum(np.asarray(v, np.float64), 0.0)
+    return np.where(v <= 0.04045, 1 / 12.92, (2.4 / 1.055) * ((v + 0.055) / 1.055) ** 1.4)
+
+
+def _srgb_eotf_curvature(v: np.ndarray) -> np.ndarray:
+    """d² EOTF / dv² at v (0 on the linear segment)."""
+    v = np.maximum(np.asarray(v, np.float64), 0.0)
+    return np.where(v <= 0.04045, 0.0,
+                    (2.4 * 1.4 / 1.055 ** 2) * ((v + 0.055) / 1.055) ** 0.4)
+
+
+def srgb_to_linear_sh(sh: np.ndarray) -> np.ndarray:
+    """[N, K, 3] SH of sRGB-encoded colour (``0.5 + Σ sh_k Y_k(d)``) → SH of linear colour.
+
+    The decode is not linear, so SH bands cannot be mapped exactly; this expands the
+    EOTF around each Gaussian's mean (DC) colour c̄ = max(0.5 + C0·sh_0, 0):
+    bands l ≥ 1 are scaled by the EOTF's slope at c̄ (first order), and the DC term
+    is EOTF(c̄) plus the second-order mean correction ½·EOTF''(c̄)·Σ_{k≥1} sh_k²/(4π)
+    (the mean over the sphere of the squared view-dependent part).  Degree 0 is exact.
+    A negative DC colour is clamped at 0 before decoding (3DGS clamps it when rendering).
+    See formats/gaussians_ply.md for the measured error against a brute-force fit.
+    """
+    sh = np.asarray(sh, np.float64)
+    mean = np.maximum(0.5 + SH_C0 * sh[:, 0, :], 0.0)                       # [N, 3]
+    out = np.empty_like(sh)
+    out[:, 1:] = sh[:, 1:] * _srgb_eotf_slope(mean)[:, None, :]
+    var = (sh[:, 1:] ** 2).sum(axis=1) / (4 * math.pi)
+    dc = srgb_eotf(mean) + 0.5 * _srgb_eotf_curvature(mean) * var
+    out[:, 0] = (dc - 0.5) / SH_C0
+    return out
+
+
 def sigmoid(x: np.ndarray) -> np.ndarray:
     """Overflow-free logistic function."""
     x = np.asarray(x, np.float64)
@@ -170,8 +229,14 @@ def logit(p: np.ndarray, eps: float = 1e-7) -> np.ndarray:
 # ------------------------------------------------------------------ reading
 
 
-def read_gaussians(path: str) -> Gaussians:
-    """Read and validate a 3DGS PLY file.
+def read_gaussians(path: str, colour_space: str = "auto") -> Gaussians:
+    """Read and validate a 3DGS PLY file; its colours come back linear.
+
+    ``colour_space`` is the space the file's colours are stored in: "srgb" (decoded to
+    linear here by :func:`srgb_to_linear_sh`), "linear" (kept as stored) or "auto":
+    linear for a file this toolkit wrote (a ``relight.colour-space`` line says which;
+    an older file with only a ``relight.format`` line is linear), sRGB otherwise (3DGS
+    training output).  The result's ``source_colour_space`` records the space used.
 
     Raises:
         DataError: missing file, not a PLY, no ``vertex`` element, missing or
@@ -190,7 +255,10 @@ def read_gaussians(path: str) -> Gaussians:
     except Exception as exc:  # plyfile raises PlyParseError, ValueError, struct errors …
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise DataError(f"not a readable PLY file: {msg}", path) from None
-    provenance = _check_header(ply, path)
+    if colour_space not in ("auto",) + COLOUR_SPACES:
+        raise ValueError(f"colour_space must be auto, srgb or linear, got {colour_space!r}")
+    provenance, stored = _check_header(ply, path)
+    space = stored if colour_space == "auto" else colour_space
     if "vertex" not in [e.name for e in ply.elements]:
         raise DataError("PLY has no 'vertex' element (a 3DGS file stores one Gaussian per vertex)",
                         path)
@@ -248,7 +316,10 @@ def read_gaussians(path: str) -> Gaussians:
         nrm = np.stack([column(a) for a in ("nx", "ny", "nz")], axis=1)
         if np.any(nrm != 0):  # INRIA writes all-zero placeholders: those are "no normals"
             normals = nrm
-    return Gaussians(means, scales, quats, opacities, sh, degree, normals, provenance)
+    if space == "srgb":
+        sh = srgb_to_linear_sh(sh)
+    return Gaussians(means, scales, quats, opacities, sh, degree, normals, provenance,
+                     source_colour_space=space)
 
 
 def _degree_from_rest(n_rest: int) -> int | None:
@@ -260,8 +331,12 @@ def _degree_from_rest(n_rest: int) -> int | None:
 
 
 def _check_header(ply, path: str) -> dict | None:
-    """Read relight's format/provenance lines (absent for foreign files); reject newer versions."""
+    """Read relight's format/provenance/colour-space lines (absent for foreign files);
+    reject newer versions.  → (provenance or None, the stored colour space: the
+    colour-space line's, else linear for a file with a format line, else srgb)."""
     provenance = None
+    ours = False
+    colour = None
     for line in list(ply.obj_info) + list(ply.comments):
         # the tag is the line's first word, whatever follows it (nothing, a tab, a space):
         # a tag line without its value is damaged, never skipped as a foreign line
@@ -272,6 +347,7 @@ def _check_header(ply, path: str) -> dict | None:
                     or not parts[2].isascii() or not parts[2].isdigit() or int(parts[2]) < 1):
                 raise DataError(f"damaged '{_FORMAT_TAG}' header line: {line!r} (expected "
                                 f"'{_FORMAT_TAG} {FORMAT} VERSION')"[:240], path)
+            ours = True
             if int(parts[2]) > VERSION:
                 raise DataError(f"{FORMAT} version {parts[2]} is newer than this relight "
                                 f"understands (≤ {VERSION})", path, hint="upgrade relight")
@@ -287,7 +363,12 @@ def _check_header(ply, path: str) -> dict | None:
             if not isinstance(provenance, dict):
                 raise DataError("damaged relight.provenance header line (not a JSON object)",
                                 path)
-    return provenance
+        elif tag == _COLOUR_TAG:
+            if len(parts) != 2 or parts[1] not in COLOUR_SPACES:
+                raise DataError(f"damaged '{_COLOUR_TAG}' header line: {line!r} (expected "
+                                f"'{_COLOUR_TAG} srgb|linear')"[:240], path)
+            colour = parts[1]
+    return provenance, colour or ("linear" if ours else "srgb")
 
 
 # ------------------------------------------------------------------ writing
@@ -314,7 +395,9 @@ def write_gaussians(path: str, g: Gaussians, provenance: dict | None = None) -> 
     Stored as float32: log scales (a zero scale is stored as log 1e-30 m),
     logit opacities (clipped to [1e-7, 1−1e-7]), unit quaternions, SH in the
     INRIA channel-major ``f_rest`` order.  ``provenance`` (from
-    :func:`relight_cli.provenance.provenance`) goes in an ``obj_info`` line.
+    :func:`relight_cli.provenance.provenance`) goes in an ``obj_info`` line, and a
+    ``relight.colour-space linear`` line says the colours are linear (they always are
+    in memory).
     """
     import plyfile
 
@@ -352,6 +435,7 @@ def write_gaussians(path: str, g: Gaussians, provenance: dict | None = None) -> 
     if provenance is not None:
         obj_info.append(f"{_PROVENANCE_TAG} " + json.dumps(provenance, sort_keys=True,
                                                              separators=(",", ":")))
+    obj_info.append(f"{_COLOUR_TAG} linear")
     element = plyfile.PlyElement.describe(data, "vertex")
     ply = plyfile.PlyData([element], text=False, byte_order="<", obj_info=obj_info)
     with atomic_path(path, suffix=".ply") as tmp:

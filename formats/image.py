@@ -104,6 +104,50 @@ def write_png(path: str, display: np.ndarray) -> None:
                               path) from None
 
 
+#: Animation formats: extension → (Pillow format, its save options).  WebP: lossy at
+#: quality 90 (small, plays in every browser); PNG: APNG, lossless.  Both encoders are
+#: deterministic, so identical frames give identical bytes.
+ANIMATIONS = {".webp": ("WEBP", {"quality": 90, "method": 4, "lossless": False}),
+              ".png": ("PNG", {"optimize": False})}
+
+
+def write_animation(path: str, frames: list, fps: float) -> None:
+    """Write 8-bit display frames ([H, W, 3] uint8, all one size) as one animated WebP or
+    PNG (by ``path``'s extension; a device or FIFO gets WebP), looping, each frame shown
+    1000/fps ms (rounded to whole milliseconds, the formats' unit), atomically; the file
+    is read back and its frame count checked before it is committed."""
+    from PIL import Image
+
+    from relight_cli.errors import OutputError
+    from relight_cli.fileio import atomic_path
+
+    if not frames:
+        raise ValueError("an animation needs at least one frame")
+    suffix = os.path.splitext(path)[1].lower()
+    kind, options = ANIMATIONS.get(suffix, ANIMATIONS[".webp"])
+    duration = max(1, int(round(1000.0 / fps)))
+
+    def verify(tmp):
+        with Image.open(tmp) as im:
+            n = getattr(im, "n_frames", 1)
+        if n != len(frames):
+            raise DataError(f"the animation holds {n} frames, not {len(frames)}", path)
+
+    images = [Image.fromarray(np.ascontiguousarray(f), "RGB") for f in frames]
+    with atomic_path(path, suffix=suffix if suffix in ANIMATIONS else ".webp",
+                     verify=verify) as tmp:
+        try:
+            images[0].save(tmp, format=kind, save_all=True, append_images=images[1:],
+                           duration=duration, loop=0, **options)
+        except OSError as exc:
+            raise OutputError(f"cannot write the animation: {exc}", path) from None
+        try:
+            verify(tmp)
+        except (DataError, OSError):
+            raise OutputError("cannot write: the animation was cut short (is the disk full?)",
+                              path) from None
+
+
 def read_image(path: str) -> tuple[np.ndarray, list[str]]:
     """Any OpenImageIO-readable image, level 0, as ([H, W, C] float32, channel names).
 

@@ -103,3 +103,12 @@ def pytest_collection_modifyitems(config, items):
     """The slow files first (in :data:`SLOW_FILES` order); every other test keeps its place."""
     rank = {name: i for i, name in enumerate(SLOW_FILES)}
     items.sort(key=lambda item: rank.get(_tests_path(item.path), len(rank)))
+
+
+def as_foreign_ply(path) -> None:
+    """Strip relight's ``obj_info`` lines from a PLY written by ``write_gaussians``, so it
+    reads as a 3DGS file from another tool (sRGB colours, formats/gaussians_ply.md)."""
+    data = Path(path).read_bytes()
+    head, sep, body = data.partition(b"end_header\n")
+    lines = [line for line in head.split(b"\n") if not line.startswith(b"obj_info relight.")]
+    Path(path).write_bytes(b"\n".join(lines) + sep + body)

@@ -72,15 +72,17 @@ def parse_occluder(spec: str, what: str):
         raise UsageProblem(f"bad {what} placement: {exc}; expected {USAGE}", spec) from None
 
 
-def load_placed(source: str, placement, spec: str, offset=None):
-    """Load Gaussians (PLY, mesh or builtin:) and apply the placement, then ``offset`` [3]."""
+def load_placed(source: str, placement, spec: str, offset=None, colour_space: str = "auto"):
+    """Load Gaussians (PLY, mesh or builtin:) and apply the placement, then ``offset`` [3].
+    ``colour_space``: the space a PLY's colours are stored in (load_gaussians)."""
     import numpy as np
 
     from relight_cli.errors import DataError
     from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.gaussians.placement import place
 
-    g = load_gaussians(source, frame=getattr(placement, "frame", None))
+    g = load_gaussians(source, frame=getattr(placement, "frame", None),
+                       colour_space=colour_space)
     if len(g) == 0:
         raise DataError("no Gaussians", source)
     try:
@@ -328,3 +330,18 @@ def load_albedo(path):
     if pixels.shape[2] < 3:
         raise DataError("albedo map needs 3 colour channels", path)
     return pixels[..., :3]
+
+
+def parse_auto_lights(spec: str):
+    """``--lights auto:K`` → K (1 ≤ K ≤ 64), None for a lights file; a usage error for
+    ``auto`` without a count or one out of range."""
+    from relight_cli.errors import UsageProblem
+    if not spec.startswith("auto"):
+        return None
+    try:
+        k = int(spec.split(":", 1)[1])
+    except (IndexError, ValueError):
+        raise UsageProblem(f"--lights auto needs a count, e.g. auto:2, got {spec!r}") from None
+    if not 1 <= k <= 64:
+        raise UsageProblem(f"--lights auto:K needs 1 ≤ K ≤ 64, got {k}")
+    return k

@@ -133,6 +133,19 @@ def seed_option(func):
                         help="Random seed; identical inputs and seed give identical outputs.")(func)
 
 
+def colour_space_option(func):
+    """``--colour-space auto|srgb|linear``: the space of the input Gaussian PLYs' colours
+    (formats/gaussians_ply.md); they are decoded to linear once, on read."""
+    return click.option("--colour-space", "colour_space",
+                        type=click.Choice(["auto", "srgb", "linear"]), default="auto",
+                        show_default=True,
+                        help="Colour space of the input PLYs' colours, decoded to linear on "
+                             "read: srgb (display-referred, as 3DGS training fits them to "
+                             "photographs), linear (as stored), or auto: linear for PLYs "
+                             "relight wrote (they say so in their header), srgb for others. "
+                             "Meshes, hands and builtin: objects are linear.")(func)
+
+
 def output_option(text: bool = False, required: bool = True, help: str | None = None):
     """``-o/--output``; for text formats ``-`` means stdout."""
     default_help = "Output file" + (" ('-' for stdout)." if text else ".")
@@ -153,6 +166,7 @@ OUTPUT_KINDS = {
     "npz": ((".npz",), "an npz archive"),
     "ply": ((".ply",), "a Gaussians PLY"),
     "pt": ((".pt", ".pth"), "a checkpoint"),
+    "video": ((".webp", ".png"), "an animated WebP or PNG"),
 }
 TEXT_KINDS = ("json", "jsonl")
 

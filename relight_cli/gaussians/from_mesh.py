@@ -155,8 +155,8 @@ def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    c = np.clip(c, 0, 1)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    from relight_cli.formats.gaussians_ply import srgb_eotf
+    return srgb_eotf(np.clip(c, 0, 1))
 
 
 def _broadcast_colors(colors, n: int) -> np.ndarray:
@@ -234,10 +234,16 @@ def hand_gaussians(hand, frame: int = 0, opacity: float = 0.99) -> Gaussians:
 MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".stl", ".off")
 
 
-def load_gaussians(spec: str, frame: int | None = None) -> Gaussians:
+def load_gaussians(spec: str, frame: int | None = None,
+                   colour_space: str = "auto") -> Gaussians:
     """Gaussians from ``builtin:NAME``, a mesh file (.obj .glb .gltf .stl .off → flat
     Gaussians with texture/face colours), a hand .npz (its pose at ``frame``, default
-    0, by :func:`hand_gaussians`) or a 3DGS PLY.  Raises DataError."""
+    0, by :func:`hand_gaussians`) or a 3DGS PLY.  Raises DataError.
+
+    Colours come back linear.  ``colour_space`` ("auto" | "srgb" | "linear") is the
+    space a PLY's colours are stored in (auto: linear for files this toolkit wrote,
+    sRGB otherwise; see :func:`~relight_cli.formats.gaussians_ply.read_gaussians`);
+    built-in objects, meshes and hands are made linear and ignore it."""
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.gaussians_ply import read_gaussians
 
@@ -271,4 +277,4 @@ def load_gaussians(spec: str, frame: int | None = None) -> Gaussians:
         if len(g) == 0:
             raise DataError("mesh has only degenerate (zero-area) faces", spec)
         return g
-    return read_gaussians(spec)
+    return read_gaussians(spec, colour_space=colour_space)

@@ -174,7 +174,8 @@ def transform_gaussians(g: Gaussians, similarity: Similarity) -> Gaussians:
     sh = g.sh if g.sh_degree == 0 else rotate_sh(g.sh, Q)
     normals = None if g.normals is None else g.normals @ Q.T
     return Gaussians(s * g.means @ Q.T + t, s * g.scales, rotations, g.opacities.copy(),
-                     sh.copy(), g.sh_degree, normals)
+                     sh.copy(), g.sh_degree, normals,
+                     source_colour_space=g.source_colour_space)
 
 
 def weighted_percentile(values: np.ndarray, weights: np.ndarray, q: float) -> float:

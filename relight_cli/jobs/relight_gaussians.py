@@ -82,7 +82,9 @@ def weights_mode(light_weights: str, shadow_map, log=_quiet) -> str:
 def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers=None,
             camera=None, background=(0.0, 0.0, 0.0), names=None, log=_quiet) -> RelitGaussians:
     """Relight ``objects`` (a list of Gaussians, IN then each --object) by ``probe`` (an
-    SH probe: ``coefficients``, ``degree``).  With ``shadow_map`` (a DGSM) the
+    SH probe: ``coefficients``, ``degree``; or a list of them, one per object: each
+    object's local light, as a clip refits them at the objects' positions, the first
+    also lighting the receivers' auto shadow strength).  With ``shadow_map`` (a DGSM) the
     ``receivers`` (Gaussians, required then) are shadowed and, for a grouped DGSM, each
     object by the others; with ``camera`` receivers + objects are rendered over
     ``background``.  ``names``: each object's name in errors (a DataError for normals
@@ -105,7 +107,11 @@ def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers
             "--shadow-strength auto cannot weigh them against the probe: s = 1")
         auto, strength_setting = False, 1.0
     light_weights = o.light_weights or ("irradiance" if auto else "intensity")
-    relit, direct = _relit_objects(objects, probe, o, shadow_map, names)
+    probes = list(probe) if isinstance(probe, (list, tuple)) else [probe] * len(objects)
+    if len(probes) != len(objects):
+        raise ValueError(f"{len(probes)} probes for {len(objects)} objects")
+    probe = probes[0]
+    relit, direct = _relit_objects(objects, probes, o, shadow_map, names)
     log(f"probe degree {probe.degree}" + (", objects lit by the shadow map's "
                                           f"{len(shadow_map.lights)} light(s) too"
                                           if o.direct_light else ""))
@@ -117,7 +123,8 @@ def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers
         used = weights_mode(light_weights, shadow_map, log)
         receivers = _shadow_receivers(receivers, probe, shadow_map, used, auto,
                                       strength_setting, o, log)
-        _shadow_objects(relit, direct, probe, shadow_map, used, auto, strength_setting, o, log)
+        _shadow_objects(relit, direct, probes, shadow_map, used, auto, strength_setting, o,
+                        log)
         # which opacity mapping made the shadow map, and how its lights were weighted
         settings.update(dgsm_mapping=shadow_map.mapping, dgsm_kappa=shadow_map.kappa,
                         light_weights=used)
@@ -132,13 +139,13 @@ def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers
     return out
 
 
-def _relit_objects(objects, probe, o: GaussianOptions, shadow_map, names):
-    """Each object relit by the probe (+ the DGSM's lights with direct_light): (relit
+def _relit_objects(objects, probes, o: GaussianOptions, shadow_map, names):
+    """Each object relit by its probe (+ the DGSM's lights with direct_light): (relit
     list, per object [L, N, 3] irradiance of each light or None)."""
     from relight_cli.errors import DataError
     from relight_cli.gaussians import transfer as TF
     relit, direct = [], []
-    for g, name in zip(objects, names):
+    for g, name, probe in zip(objects, names, probes):
         try:
             n = TF.estimate_normals(g, o.normals)
         except ValueError as exc:  # e.g. normals stored on a file without normals
@@ -185,7 +192,7 @@ def _shadow_receivers(scene, probe, shadow_map, weights_used, auto, strength, o,
     return TF.attenuate(scene, factor)
 
 
-def _shadow_objects(relit, direct, probe, shadow_map, weights_used, auto, strength, o, log):
+def _shadow_objects(relit, direct, probes, shadow_map, weights_used, auto, strength, o, log):
     """With a grouped DGSM, each object (in place in ``relit``) shadowed by the others."""
     from relight_cli.gaussians import transfer as TF
     from relight_cli.gaussians.dgsm import sample_transmittance
@@ -201,7 +208,8 @@ def _shadow_objects(relit, direct, probe, shadow_map, weights_used, auto, streng
                                  footprint=o.footprint, samples=o.samples, seed=o.seed)
         if auto:        # colour ρ(S + D): direct share D/(S + D), weights D_l (exact)
             d = direct[j].sum(axis=0) / math.pi
-            probe_part = np.clip(TF.shading(probe.coefficients, obj.normals, o.lobe), 0.0, None)
+            probe_part = np.clip(TF.shading(probes[j].coefficients, obj.normals, o.lobe), 0.0,
+                                 None)
             total = probe_part + d
             share = np.where(total > 0, d / np.where(total > 0, total, 1), 0.0)
             factor = TF.shadow_factor(T, direct[j], share)

@@ -451,3 +451,34 @@ def test_hand_npz_occluder_frame_and_export(scene, tmp_path):
     _fails(["dgsm-build", f"{hand}:frame=x", "--receivers", scene["floor"], "--lights",
             scene["lights"], "-o", str(tmp_path / "x.exr")], 2, "frame must be an integer")
     assert not (tmp_path / "x.exr").exists()
+
+
+def test_colour_space_of_receivers_and_occluders(scene):
+    """--colour-space: a foreign receivers PLY (no relight header) is sRGB and decoded on
+    read, so --receivers-out writes it linear (and says so); --colour-space linear keeps
+    the stored colours; the setting is in the provenance; a bad value is a usage error."""
+    from conftest import as_foreign_ply
+    from relight_cli.formats.exr import read_exr
+    from relight_cli.formats.gaussians_ply import read_gaussians, srgb_eotf
+    as_foreign_ply(scene["floor"])
+    got = {}
+    for space in ("auto", "linear"):
+        out = scene["dir"] / f"shadows-{space}.exr"
+        recv = scene["dir"] / f"recv-{space}.ply"
+        occ = scene["dir"] / f"occ-{space}.ply"
+        r = _run(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+                  scene["lights"], "-o", str(out), "--size", "16", "--bins", "8",
+                  "--colour-space", space, "--receivers-out", str(recv),
+                  "--occluders-out", str(occ), "-q"])
+        assert r.exit_code == 0, r.output
+        assert read_exr(str(out)).provenance()["settings"]["colour_space"] == space
+        got[space] = read_gaussians(str(recv))
+        assert got[space].source_colour_space == "linear"
+        assert got[space].provenance["settings"]["colour_space"] == space
+        # the occluders were written by relight: linear whatever the guess
+        np.testing.assert_allclose(read_gaussians(str(occ)).colors(), 0.6, atol=1e-6)
+    np.testing.assert_allclose(got["linear"].colors(), 0.6, atol=1e-6)
+    np.testing.assert_allclose(got["auto"].colors(), srgb_eotf(0.6), atol=1e-6)
+    _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+            scene["lights"], "-o", str(scene["dir"] / "x.exr"), "--colour-space", "rgb"],
+           2, "colour-space")

@@ -385,3 +385,65 @@ def test_cli_info_lines_of_a_failing_run_are_not_said(run_cli, files, monkeypatc
     lines = [line for line in r.output.splitlines() if line.strip()]
     assert lines[0] == "read avatar.ply: 300 Gaussians", r.output
     assert lines[-1].startswith("wrote out.ply"), r.output
+
+
+def test_cli_colour_space(run_cli, files):
+    """A 3DGS PLY from another tool is sRGB: relit under a uniform probe of radiance 1 its
+    colours come out decoded (the EOTF of the stored colour), as stored with --colour-space
+    linear; the relit PLY says it is linear, its provenance records the option, and a PLY
+    this tool wrote reads back linear (no second decode)."""
+    from conftest import as_foreign_ply
+    from relight_cli.formats.gaussians_ply import srgb_eotf
+    c = np.zeros((1, 3))
+    c[0] = math.sqrt(4 * math.pi)
+    write_probe(str(files / "one.json"), ShProbe(c, 0, 0.0, "test"))
+    as_foreign_ply(files / "avatar.ply")
+    stored = read_gaussians(str(files / "avatar.ply"), colour_space="linear").colors()
+    outs = {}
+    for space in ("auto", "srgb", "linear"):
+        out = files / f"relit-{space}.ply"
+        r = run_cli("relight", files / "avatar.ply", "--probe", files / "one.json",
+                    "--colour-space", space, "-o", out, "-q")
+        assert r.exit_code == 0, r.output
+        outs[space] = read_gaussians(str(out))
+        assert outs[space].source_colour_space == "linear"
+        assert outs[space].provenance["settings"]["colour_space"] == space
+        assert b"relight.colour-space linear" in out.read_bytes()[:4000]
+    np.testing.assert_allclose(outs["auto"].colors(), srgb_eotf(stored), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(outs["srgb"].colors(), outs["auto"].colors(), rtol=0, atol=0)
+    np.testing.assert_allclose(outs["linear"].colors(), stored, rtol=1e-5, atol=1e-7)
+    # relighting our own output again (auto): read as linear, the colours stay
+    again = files / "again.ply"
+    assert run_cli("relight", files / "relit-auto.ply", "--probe", files / "one.json", "-o",
+                   again, "-q").exit_code == 0
+    np.testing.assert_allclose(read_gaussians(str(again)).colors(), outs["auto"].colors(),
+                               rtol=1e-5, atol=1e-7)
+    r = run_cli("relight", files / "avatar.ply", "--probe", files / "one.json",
+                "--colour-space", "rgb", "-o", files / "bad.ply", "-q")
+    assert r.exit_code == 2 and "rgb" in r.output and not (files / "bad.ply").exists()
+
+
+def test_cli_colour_space_render_of_real_file(run_cli, tmp_path, shared):
+    """The real donut (a 3DGS training output) renders darker in its mid tones decoded
+    (auto) than read as linear: the EXR is linear radiance."""
+    from relight_cli.formats.exr import read_exr
+    donut = shared("gaussians", "donut-fused.ply")
+    c = np.zeros((1, 3))
+    c[0] = math.sqrt(4 * math.pi)
+    write_probe(str(tmp_path / "one.json"), ShProbe(c, 0, 0.0, "test"))
+    g = read_gaussians(str(donut))
+    centre = np.median(g.means, axis=0)
+    write_cameras(str(tmp_path / "cam.json"),
+                  [Camera.look_at(centre + [0, 0.15, 0.35], centre, width=48, height=36)])
+    means = {}
+    for space in ("auto", "linear"):
+        out = tmp_path / f"{space}.exr"
+        r = run_cli("relight", donut, "--probe", tmp_path / "one.json", "--receivers", donut,
+                    "--camera", tmp_path / "cam.json", "--colour-space", space, "-o", out, "-q")
+        assert r.exit_code == 0, r.output
+        img = read_exr(str(out))
+        assert img.provenance()["settings"]["colour_space"] == space
+        rgb = np.stack([img.channels[k] for k in "RGB"], -1)
+        assert np.isfinite(rgb).all()
+        means[space] = rgb[img.channels["A"] > 0.5].mean()
+    assert means["auto"] < 0.8 * means["linear"], means

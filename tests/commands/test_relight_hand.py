@@ -43,9 +43,10 @@ def test_help(run_cli, tmp_path):
         assert flag in hand.output
     for flag in ("--probe", "--dgsm", "--receivers", "--footprint", "--splits"):
         assert flag not in hand.output
-    for flag in ("--probe", "--dgsm", "--receivers", "--footprint", "--camera"):
+    for flag in ("--probe", "--dgsm", "--receivers", "--footprint", "--camera", "--frames",
+                 "--lights", "--video"):   # a clip's (issue 49): its own --frames and --lights
         assert flag in gaussians.output
-    for flag in ("--model", "--lights", "--env-res", "--no-sss", "--splits", "--checkpoint"):
+    for flag in ("--model", "--env-res", "--no-sss", "--splits", "--checkpoint"):
         assert flag not in gaussians.output
     for flag in ("--model", "--checkpoint", "--splits", "--eval-samples"):
         assert flag in capture.output

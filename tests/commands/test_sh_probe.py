@@ -127,3 +127,29 @@ def test_bad_criterion_is_a_usage_error(tmp_path, args, option):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("relight sh-probe: error: ")
     assert option in lines[0] and not out.exists()
+
+
+def test_cli_scene_colour_space(run_cli, tmp_path):
+    """A foreign (3DGS training) scene PLY is sRGB: its splatted radiance is decoded before
+    the fit, so the probe of a uniform 0.5-grey shell is EOTF(0.5)/0.5 of the one fitted to
+    the stored colours (--colour-space linear); an env map takes no --colour-space."""
+    from conftest import as_foreign_ply
+    from relight_cli.formats.gaussians_ply import srgb_eotf
+    scene = tmp_path / "room.ply"
+    write_gaussians(str(scene), shell_scene(np.full(3, 0.5), np.full(3, 0.5), n=1500))
+    as_foreign_ply(scene)
+    probes = {}
+    for space in ("auto", "linear"):
+        out = tmp_path / f"{space}.json"
+        r = run_cli("sh-probe", scene, "--at", "0,0,0", "--degree", "0", "--face-size", "12",
+                    "--colour-space", space, "-o", out, "-q")
+        assert r.exit_code == 0, r.output
+        probes[space] = read_probe(str(out))
+        assert probes[space].provenance["settings"]["colour_space"] == space
+    np.testing.assert_allclose(probes["auto"].coefficients[0] / probes["linear"].coefficients[0],
+                               srgb_eotf(0.5) / 0.5, rtol=1e-6)
+    r = run_cli("sh-probe", "builtin:sky", "--colour-space", "srgb", "-o", tmp_path / "s.json")
+    assert r.exit_code == 2 and "--colour-space" in r.output
+    r = run_cli("sh-probe", scene, "--at", "0,0,0", "--colour-space", "rgb", "-o",
+                tmp_path / "b.json")
+    assert r.exit_code == 2 and not (tmp_path / "b.json").exists()

@@ -341,3 +341,11 @@ def test_subprocess_placed_builtin(files):
     assert r.returncode == 0, r.stderr
     lo, hi = PL.robust_bounds(read_gaussians(str(files / "sphere.ply")))
     assert lo[1] == pytest.approx(0.2, abs=1e-5) and (hi - lo).max() == pytest.approx(0.3, abs=1e-5)
+
+
+def test_placement_keeps_the_source_colour_space():
+    """A placed sRGB-sourced object still says where its (decoded, linear) colours came from."""
+    g = random_gaussians(n=10, degree=1)
+    g.source_colour_space = "srgb"
+    placed = PL.place(g, PL.parse_placement("rotate-y=30;translate=1,0,0"))
+    assert placed.source_colour_space == "srgb"

@@ -430,6 +430,10 @@ READERS = {
         "relight": lambda d, b, o: ["relight", b, "--probe", d / "probe.json", "-o", o / "x.ply"],
         "metrics lighting": lambda d, b, o: ["metrics", "lighting", "--scene", b, "--avatar",
                                              d / "ball.ply", "-o", o / "x.json"]}),
+    "relight/gaussian-sequence": (lambda d, w: _sequence_index(d), "seq.json", {
+        "relight": lambda d, b, o: ["relight", b, "--probe", d / "probe.json", "-o", o / "x.ply"],
+        "dgsm-build": lambda d, b, o: ["dgsm-build", b, "--receivers", d / "room.ply",
+                                       "--lights", d / "lights.json", "-o", o / "x.exr"]}),
     "relight/lights": (lambda d, w: d / "lights.json", "lights.json", {
         "dgsm-build --lights": lambda d, b, o: ["dgsm-build", d / "ball.ply", "--receivers",
                                                 d / "room.ply", "--lights", b, "-o", o / "x.exr"],
@@ -471,6 +475,16 @@ READERS = {
         "distill --resume": lambda d, b, o: ["distill", d / "teacher.pt", d / "cap", "--envs",
                                              "builtin:sky", "--resume", b, "-o", o / "x.pt"]}),
 }
+
+
+def _sequence_index(data: Path) -> Path:
+    """A relight/gaussian-sequence index of one frame: ball.ply as ball_{frame}.ply."""
+    import shutil
+    shutil.copy(data / "ball.ply", data / "ball_0.ply")
+    (data / "seq.json").write_text(json.dumps({"format": "relight/gaussian-sequence",
+                                               "version": 1, "frames": "ball_{frame}.ply",
+                                               "count": 1}))
+    return data / "seq.json"
 
 
 def _bad_file(fmt: str, data: Path, written_folder: Path, folder: Path) -> Path:
