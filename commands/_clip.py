@@ -28,6 +28,7 @@ def clip(a, given: set) -> None:
 
     start = time.perf_counter()
     bg = _usage(a, given)
+    dgsm_options = _dgsm_options(a)        # its usage errors too, before any input is read
     check_frame(a.frame, a.frames)
     outputs = Outputs(a.frames, {"-o": (a.output, "exr" if a.camera else "ply"),
                                  "--preview": (a.preview, "png"),
@@ -51,7 +52,7 @@ def clip(a, given: set) -> None:
     if a.probe != "scene":
         from relight_cli.formats.sh_probe_json import read_probe
         probe = read_probe(check_input(a.probe, stdin="--probe"))
-    options = GC.ClipOptions(gaussian_options(a), _dgsm_options(a), _probe_options(a))
+    options = GC.ClipOptions(gaussian_options(a), dgsm_options, _probe_options(a))
     lights = _lights(a, sources, frames, scene)
     shadow_maps = _shadow_maps(a, sources) if a.dgsm is not None else None
     for s in sources:
@@ -108,6 +109,8 @@ def _usage(a, given):
              "--receivers SCENE"),
             (a.probe_degree is not None and a.probe != "scene",
              "--probe-degree sets the degree of --probe scene's refitted probes"),
+            (a.shadow_size is not None and a.lights_spec is None,
+             "--shadow-size sets the atlas of the shadow maps --lights builds"),
             (a.lights_spec is not None and a.dgsm is not None,
              "--lights builds the shadow maps in-process; --dgsm reads them: give one"),
             (a.lights_spec is not None and a.receivers is None,
@@ -120,6 +123,8 @@ def _usage(a, given):
              "--light-weights only applies with shadows (--dgsm or --lights)"),
             (a.direct_light and a.dgsm is None and a.lights_spec is None,
              "--direct-light takes its lights from the shadow maps (--dgsm or --lights)"),
+            (a.self_shadow and a.dgsm is None and a.lights_spec is None,
+             "--self-shadow looks the objects up in the shadow maps (--dgsm or --lights)"),
             (a.receivers_out is not None and a.receivers is None,
              "--receivers-out needs --receivers"),
             (a.preview is not None and a.camera is None,
@@ -146,7 +151,17 @@ def gaussian_options(a):
     return GaussianOptions(lobe=a.lobe, intensity=a.intensity, t_max=a.t_max, normals=a.normals,
                            footprint=a.footprint, samples=a.samples, seed=a.seed,
                            shadow_strength=a.shadow_strength, light_weights=a.light_weights,
-                           direct_light=a.direct_light)
+                           direct_light=a.direct_light, self_shadow=a.self_shadow)
+
+
+def check_self_shadow(shadow_map, path) -> None:
+    """--self-shadow needs a map whose tables cover the objects' own lookups (built by
+    dgsm-build --self-shadow): one line naming the map otherwise."""
+    from relight_cli.errors import DataError
+    if not all(record.get("self_shadow") for record in shadow_map.roi):
+        raise DataError("this shadow map was not built for self-shadowing (its tables do not "
+                        "cover the objects' own lookups): build it with dgsm-build "
+                        "--self-shadow", path)
 
 
 def write_ply(path, gaussians, inputs, settings) -> None:
@@ -160,9 +175,12 @@ def _dgsm_options(a):
     """dgsm-build's defaults for an in-process build (None: no build)."""
     if a.lights_spec is None:
         return None
+    from relight_cli.cli.tools import parse_size
     from relight_cli.jobs.dgsm_build import DgsmOptions
-    o = DgsmOptions(footprint=a.footprint, samples=a.samples, seed=a.seed)
-    return o
+    w, h = (128, 128) if a.shadow_size is None else parse_size(a.shadow_size, "--shadow-size",
+                                                                  minimum=2, maximum=4096)
+    return DgsmOptions(size=(h, w), footprint=a.footprint, samples=a.samples, seed=a.seed,
+                       self_shadow=a.self_shadow, radial="roi")
 
 
 def _probe_options(a):
@@ -208,6 +226,8 @@ def _shadow_maps(a, sources):
     pattern = OutputPattern(a.dgsm, "--dgsm", ("frame",)) if is_pattern(a.dgsm) else None
 
     def checked(shadow_map, path):
+        if a.self_shadow:
+            check_self_shadow(shadow_map, path)
         if shadow_map.groups is not None and len(shadow_map.groups) != len(sources):
             raise DataError(f"the shadow map has {len(shadow_map.groups)} occluder groups "
                             f"({', '.join(shadow_map.group_names)}) but {len(sources)} "

@@ -68,6 +68,15 @@ from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, colou
               help="Monte Carlo samples for --footprint mc.")
 @click.option("--allow-light-inside", is_flag=True,
               help="Build even if a light lies inside an occluder Gaussian (1σ).")
+@click.option("--radial", type=click.Choice(["full", "roi"]), default="full", show_default=True,
+              help="Where the --bins radial bins lie: full = the paper's shells from the light "
+                   "to t_max; roi = ours, over the receivers' distances only (the same bins "
+                   "spent where they are read: finer shadows, e.g. a hand's own with "
+                   "--self-shadow).")
+@click.option("--self-shadow", is_flag=True,
+              help="Also cover each occluder's own self-shadow lookups (relight relight "
+                   "--self-shadow: its Gaussians shadowed by the occluder itself, each "
+                   "looked up 3σ + one radial bin towards the light).")
 @click.option("--half", is_flag=True, help="Store 16-bit half floats (default float32).")
 @preview_option("Also write a labelled PNG: the receivers shadowed (with the occluders) and "
                 "their shadow matte, seen from --preview-camera, and each light's atlas slice "
@@ -90,8 +99,8 @@ from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, colou
 def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, estimator,
             lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
-            allow_light_inside, half, preview, preview_camera, frame, frames, colour_space, seed,
-            no_clobber, quiet):
+            allow_light_inside, radial, self_shadow, half, preview, preview_camera, frame,
+            frames, colour_space, seed, no_clobber, quiet):
     """Tabulate the transmittance from each light through the OCCLUDER Gaussians
     (closed-form erf optical depth, T = exp(−τ)) on K radial shells over an
     octahedral atlas of directions (Mir et al., Deep Gaussian Shadow Maps).
@@ -143,6 +152,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                                    atlas, mapping, kappa, t_max, roi, roi_radius, cull,
                                    cull_tolerance, footprint, samples, seed, allow_light_inside,
                                    estimator)
+        options.self_shadow, options.radial = self_shadow, radial
         if _parse_auto(lights_spec) is not None and receivers is None:
             raise UsageProblem("--lights auto:K estimates lights from the scene: give "
                                "--receivers")
@@ -155,6 +165,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     options, offset = _options(preview, preview_camera, translate, receivers, size, bins, atlas,
                                mapping, kappa, t_max, roi, roi_radius, cull, cull_tolerance,
                                footprint, samples, seed, allow_light_inside, estimator)
+    options.self_shadow, options.radial = self_shadow, radial
     auto_k = _parse_auto(lights_spec)
     if auto_k is not None and receivers is None:
         raise UsageProblem("--lights auto:K estimates lights from the scene: give --receivers")

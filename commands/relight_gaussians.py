@@ -58,6 +58,7 @@ class Run:
     shadow_strength: object
     light_weights: str | None
     direct_light: bool
+    self_shadow: bool
     shadow_matte: str | None
     lobe: float
     intensity: float
@@ -70,6 +71,7 @@ class Run:
     frame: int | None
     frames: str | None
     lights_spec: str | None
+    shadow_size: str | None
     probe_degree: int | None
     video: str | None
     seed: int
@@ -121,6 +123,12 @@ class Run:
                    "objects directly, albedo × Σ I_l C_l max(n·ω_l, 0)/(π r_l²) added to the "
                    "probe's shading (ours: the paper lights avatars by the probe only), each "
                    "light's term shadowed by the other objects.")
+@click.option("--self-shadow", is_flag=True,
+              help="With --dgsm (built by dgsm-build --self-shadow) or --lights: IN and the "
+                   "objects are shadowed by themselves too (fingers on the palm), each "
+                   "Gaussian looked up 3σ (+ one radial bin) towards each light so it never "
+                   "shadows itself (ours: the paper's avatars receive no shadow of their "
+                   "own).")
 @click.option("--shadow-matte", type=click.Choice(["dgsm", "mesh"]), default=None,
               help="With --camera: the receivers-only shadow matte of the paper's "
                    "protocol (Sec. 4.2): receivers coloured by shadow strength 1 − Σw_l V_l/Σw_l, "
@@ -162,9 +170,13 @@ class Run:
                    "--preview and --receivers-out are patterns holding {frame}.")
 @click.option("--lights", "lights_spec", default=None, metavar="LIGHTS.json|auto:K",
               help="Build the shadow maps in-process, per frame, from IN and --object over "
-                   "--receivers (dgsm-build's defaults: 128x128 octahedral atlas, 64 bins, ROI "
-                   "and culling) for these point lights (a relight/lights JSON, or auto:K: K "
+                   "--receivers (128x128 octahedral atlas, 64 bins over the receivers' "
+                   "distances (dgsm-build --radial roi), ROI and culling) for these point "
+                   "lights (a relight/lights JSON, or auto:K: K "
                    "lights estimated once from the scene, paper Sec. 3.1); instead of --dgsm.")
+@click.option("--shadow-size", default=None, metavar="N|WxH",
+              help="With --lights: the in-process shadow maps' octahedral atlas, as "
+                   "dgsm-build --size [default: 128].")
 @click.option("--probe-degree", type=click.IntRange(0, 8), default=None,
               help="With --probe scene: the SH degree of the refitted probes, fixed for the "
                    "clip [default: 2].")
@@ -219,6 +231,7 @@ def _is_clip(a) -> bool:
     sources = [split_spec(spec)[0] for spec in (a.input, *a.objects)]
     return (a.frames is not None or a.frame is not None or a.lights_spec is not None
             or a.probe == "scene" or a.video is not None or a.probe_degree is not None
+            or a.shadow_size is not None
             or (a.dgsm is not None and is_pattern(a.dgsm))
             or any(is_pattern(s) or s.lower().endswith(".json") for s in sources))
 
@@ -248,6 +261,9 @@ def _gaussians(a, given: set = frozenset()) -> None:
         return _shadow_matte(a, specs, parsed, bg, start)
     probe = read_probe(a.probe)
     shadow_map = _read_dgsm(a.dgsm) if a.dgsm is not None else None
+    if a.self_shadow:
+        from relight_cli.commands._clip import check_self_shadow
+        check_self_shadow(shadow_map, a.dgsm)
     objects = []
     for spec, (source, placement) in zip(specs, parsed):
         objects.append(load_placed(source, placement, spec, colour_space=a.colour_space))
@@ -305,6 +321,11 @@ def _gaussian_usage(a, given: set = frozenset()) -> tuple:
              "--dgsm shadows receivers: give --receivers SCENE.ply"),
             (a.direct_light and a.dgsm is None,
              "--direct-light takes its lights from --dgsm SHADOWS.exr"),
+            (a.self_shadow and a.dgsm is None,
+             "--self-shadow looks the objects up in --dgsm SHADOWS.exr (or --lights builds "
+             "it)"),
+            (a.self_shadow and a.shadow_matte is not None,
+             "--self-shadow does not apply to --shadow-matte (the matte is the receivers')"),
             (a.receivers_out is not None and a.receivers is None,
              "--receivers-out needs --receivers"),
             (a.preview is not None and a.camera is None,

@@ -1,7 +1,9 @@
 """Deep Gaussian Shadow Maps in OpenEXR (spec: ``formats/dgsm_exr.md``).
 
 One EXR per build: for light i and bin k the channel ``light{i}.t{k:03d}`` holds
-T at the bin centre t_k = (k + ½)·t_max_i / K over the H×W direction atlas.
+T at the bin centre t_k = t_min_i + (k + ½)·(t_max_i − t_min_i) / K over the H×W
+direction atlas (t_min_i = 0, the paper's shells from the light, unless the map's bins
+were fitted to its receivers: version 3, ``relight.dgsm.t_min``).
 The table is a :class:`DGSM` (arrays and their metadata); building it and the
 geometry (atlas mapping, lookup) live in ``relight_cli.gaussians.dgsm``, the
 opacity mappings in ``relight_cli.gaussians.transmittance``; this module holds,
@@ -20,7 +22,7 @@ import numpy as np
 from relight_cli.errors import DataError
 
 FORMAT = "relight/dgsm"
-VERSION = 2
+VERSION = 3            # 3: optional t_min (bins over the receivers); 2 is still written
 LAYOUTS = ("octahedral", "cube")
 # the opacity→absorption mappings (relight_cli.gaussians.transmittance implements them)
 MAPPINGS = ("avg", "simple", "mass", "diag", "peak")
@@ -60,6 +62,8 @@ class DGSM:
             or None when unknown (DGSM version 1 files); weights each light's
             share of a receiver's direct light (paper Sec. 3.3).
         colors: [L, 3] the lights' linear RGB colours, or None when unknown.
+        t_min: [L] where each light's bins start (metres), or None: 0, the paper's
+            shells from the light.
     """
 
     transmittance: np.ndarray
@@ -75,6 +79,7 @@ class DGSM:
     group_names: list = field(default_factory=list)
     intensities: np.ndarray | None = None
     colors: np.ndarray | None = None
+    t_min: np.ndarray | None = None
 
     def others(self, group: int) -> "DGSM":
         """The shadow map of every group except ``group`` (what that group receives).
@@ -89,7 +94,7 @@ class DGSM:
                  else np.ones_like(self.transmittance))
         return DGSM(table, self.lights, self.t_max, self.layout, self.mapping, self.kappa,
                     self.roi, self.build_seconds, self.stats, intensities=self.intensities,
-                    colors=self.colors)
+                    colors=self.colors, t_min=self.t_min)
 
     @property
     def bins(self) -> int:
@@ -150,6 +155,14 @@ def write_dgsm(path: str, dgsm, provenance: dict | None = None, half: bool = Fal
     if groups is not None:
         names = list(getattr(dgsm, "group_names", []) or [f"group{j}" for j in range(len(groups))])
         attributes[PREFIX + "groups"] = json.dumps([str(n) for n in names])
+    t_min = getattr(dgsm, "t_min", None)
+    if t_min is not None and (np.asarray(t_min) > 0).any():
+        # bins that do not start at the light: a reader of version 2 would misplace them
+        attributes[PREFIX + "t_min"] = json.dumps([float(t) for t in t_min])
+        if provenance is not None:
+            provenance = dict(provenance, version=3)
+    elif provenance is not None and provenance.get("version") == 3:
+        provenance = dict(provenance, version=2)      # nothing of version 3 in it
     write_exr(path, channels, attributes=attributes, half=half, provenance=provenance)
 
 
@@ -370,6 +383,12 @@ def read_dgsm(path: str):
     t_max = _number_attr(image, "t_max", (n_lights,), path, MAX_POSITION)
     if not (t_max > 0).all():
         raise DataError("light positions / t_max must be finite (t_max > 0)", path)
+    t_min = None
+    if version >= 3 and PREFIX + "t_min" in attrs:
+        t_min = _number_attr(image, "t_min", (n_lights,), path, MAX_POSITION)
+        if not ((t_min >= 0).all() and (t_min < t_max).all()):
+            raise DataError(f"header attribute {PREFIX}t_min must hold 0 ≤ t_min < t_max per "
+                            f"light", path)
     mapping = attrs.get(PREFIX + "mapping")
     if not isinstance(mapping, str):
         raise DataError(f"unknown opacity mapping {mapping!r}"[:200], path)
@@ -429,4 +448,4 @@ def read_dgsm(path: str):
     seconds = attrs.get(PREFIX + "build_seconds", 0.0)
     return DGSM(np.clip(table, 0, 1), lights, t_max, layout, mapping, float(kappa), roi,
                 float(seconds) if isinstance(seconds, (int, float)) else 0.0, {},
-                groups, group_names, intensities, colors)
+                groups, group_names, intensities, colors, t_min)

@@ -269,7 +269,8 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
                kappa: float = 1.0, t_max=None, roi: bool = True,
                roi_radius: float | None = None, cull: bool = True,
                cull_tolerance: float = 1e-7, dtype=np.float32, chunk: int = 1 << 20,
-               progress=None, intensities=None, colors=None, backend: str = "auto") -> DGSM:
+               progress=None, intensities=None, colors=None, backend: str = "auto",
+               radial: str = "full", t_min=None) -> DGSM:
     """Build a deep Gaussian shadow map.
 
     Args:
@@ -286,6 +287,12 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
         layout: "octahedral" (paper) or "cube" (ablation C).
         t_max: per-light radial extent (scalar or [L]); default: the farthest ROI
             receiver sits at the last bin centre, t_max = d_max·K/(K − ½).
+        radial: where the K radial bins lie: ``"full"`` (the paper's concentric shells
+            from the light, centres (k + ½)·t_max/K) or ``"roi"`` (ours: over the ROI
+            receivers' distances only, the nearest at the first bin centre and the
+            farthest at the last, centres t_min + (k + ½)(t_max − t_min)/K: the same K
+            bins, spent where receivers are; T still integrates from the light).
+        t_min: with ``t_max`` given, the per-light start of the bins (default 0).
         roi: restrict to texels/bins that ROI receivers read.
         roi_radius: optional radius R around the occluders' alpha-weighted centroid.
         cull: light-space occluder culling (tiles, texels, k_σ ellipse, radial).
@@ -322,10 +329,13 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if receivers is None and t_max is None:
         raise ValueError("without receivers, t_max must be given")
+    if radial not in RADIAL:
+        raise ValueError(f"radial must be one of {RADIAL}, got {radial!r}")
     dirs = atlas_directions(layout, h, w).reshape(-1, 3)
     n_lights = len(lights)
     table = np.ones((n_lights, bins, h, w), np.float32)
     t_maxes = np.zeros(n_lights)
+    t_mins = np.zeros(n_lights)
     rois = []
     stats = {"pairs_tested": 0, "pairs_kept": 0, "gaussians": len(mix), "gaussians_used": [],
              "texels_computed": 0, "bins_computed": 0}
@@ -346,14 +356,20 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
             sel = np.zeros((0, 3))
             info = {"centroid": [float(c) for c in mix.alpha_weighted_centroid()],
                     "radius": None, "height": [-math.inf, math.inf]}
+        tn = 0.0
         if t_max is not None:
             tm = float(np.broadcast_to(np.asarray(t_max, np.float64), (n_lights,))[li])
+            if t_min is not None:
+                tn = float(np.broadcast_to(np.asarray(t_min, np.float64), (n_lights,))[li])
         else:
             all_recv = np.asarray(receivers, np.float64).reshape(-1, 3)
             far = np.linalg.norm((sel if len(sel) else all_recv) - light, axis=1)
             tm = float(far.max()) * bins / (bins - 0.5) if len(far) else 1.0
             tm = max(tm, 1e-6)
+            if radial == "roi" and len(sel):
+                tn, tm = roi_radial_range(far, bins, tm)
         t_maxes[li] = tm
+        t_mins[li] = tn
         # Texels and bins to compute.
         if roi and receivers is not None:
             texel_mask = np.zeros(h * w, bool)
@@ -362,7 +378,7 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
                 dist = np.linalg.norm(v, axis=1)
                 rows, cols, _ = _bilinear_taps(atlas_pixel(v, layout, h, w), layout, h, w)
                 texel_mask[(rows * w + cols).ravel()] = True
-                r = dist * bins / tm - 0.5
+                r = (dist - tn) * bins / (tm - tn) - 0.5
                 k0 = int(np.clip(np.floor(r.min()), 0, bins - 1))
                 k1 = int(np.clip(np.floor(r.max()) + 1, 0, bins - 1))
             else:
@@ -384,13 +400,31 @@ def build_dgsm(occluders, lights, receivers=None, size: tuple[int, int] = (128, 
             stats["gaussians_used"].append(0)
             continue
         tau = _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, tm, h, w, cull,
-                                   trunc, dtype, chunk, stats, layout, backend)
+                                   trunc, dtype, chunk, stats, layout, backend, tn)
         table[li, k0:k1 + 1].reshape(k1 - k0 + 1, h * w)[:, texels] = np.exp(-tau.T)
         stats["texels_computed"] += int(len(texels))
         stats["bins_computed"] += int(k1 - k0 + 1)
     intensities, colors = _light_properties(n_lights, intensities, colors)
     return DGSM(table, lights, t_maxes, layout, mix.mapping, mix.kappa, rois,
-                time.perf_counter() - start, stats, intensities=intensities, colors=colors)
+                time.perf_counter() - start, stats, intensities=intensities, colors=colors,
+                t_min=t_mins if (t_mins > 0).any() else None)
+
+
+#: Where a map's radial bins lie (build_dgsm ``radial``).
+RADIAL = ("full", "roi")
+
+
+def roi_radial_range(distances, bins: int, full_t_max: float) -> tuple[float, float]:
+    """(t_min, t_max) putting the nearest of ``distances`` at the first bin centre and the
+    farthest at the last; the full range (0, ``full_t_max``) where that would start at or
+    before the light, or the distances are one."""
+    near, far = float(np.min(distances)), float(np.max(distances))
+    if bins < 2 or not far > near:
+        return 0.0, full_t_max
+    step = (far - near) / (bins - 1)
+    if near - step / 2 <= 0:
+        return 0.0, full_t_max
+    return near - step / 2, far + step / 2
 
 
 def _light_properties(n_lights, intensities, colors):
@@ -405,7 +439,7 @@ def _light_properties(n_lights, intensities, colors):
 
 
 def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, names=None,
-                      t_max=None, progress=None, **kwargs) -> DGSM:
+                      t_max=None, progress=None, own_receivers=None, **kwargs) -> DGSM:
     """One shadow map per occluder group (several objects in one scene), sharing t_max.
 
     Group j's table is built from its own Gaussians only, for the receivers
@@ -422,6 +456,8 @@ def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, name
         group_receivers: None or J arrays [M_j, 3] (points of group j that receive
             the others' shadows: its centres or footprint samples).
         names: J labels stored with the map.
+        own_receivers: None or J arrays [M_j, 3] that group j's OWN table covers too
+            (its self-shadow lookups, :func:`self_lookup_points`).
         t_max: as :func:`build_dgsm`; default: the farthest ROI receiver of any
             group sits at the last bin centre.
         **kwargs: passed to :func:`build_dgsm` (size, bins, layout, mapping,
@@ -441,14 +477,20 @@ def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, name
     extra = [np.zeros((0, 3)) if group_receivers is None
              else np.asarray(group_receivers[j], np.float64).reshape(-1, 3) for j in range(n)]
     base = np.zeros((0, 3)) if receivers is None else np.asarray(receivers, np.float64).reshape(-1, 3)
-    per_group = [np.concatenate([base] + [extra[i] for i in range(n) if i != j]) for j in range(n)]
+    own = [np.zeros((0, 3)) if own_receivers is None
+           else np.asarray(own_receivers[j], np.float64).reshape(-1, 3) for j in range(n)]
+    per_group = [np.concatenate([base] + [extra[i] for i in range(n) if i != j] + [own[j]])
+                 for j in range(n)]
     if receivers is None and group_receivers is None and t_max is None:
         raise ValueError("without receivers, t_max must be given")
     bins = int(kwargs.get("bins", 64))
+    radial = kwargs.pop("radial", "full")
+    t_min = kwargs.pop("t_min", None)
     if t_max is None:
         t_max = np.zeros(len(lights))
+        t_min = np.zeros(len(lights))
         for li, light in enumerate(lights):
-            far = 0.0
+            far, near = 0.0, math.inf
             for j in range(n):
                 recv = per_group[j]
                 if not len(recv):
@@ -457,13 +499,16 @@ def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, name
                     mask, _ = receiver_roi(mixes[j], light, recv, kwargs.get("roi_radius"),
                                            kwargs.get("cull_tolerance", 1e-7))
                     recv = recv[mask] if mask.any() else recv
-                far = max(far, float(np.linalg.norm(recv - light, axis=1).max()))
+                d = np.linalg.norm(recv - light, axis=1)
+                far, near = max(far, float(d.max())), min(near, float(d.min()))
             t_max[li] = max(far * bins / (bins - 0.5), 1e-6)
+            if radial == "roi" and math.isfinite(near):
+                t_min[li], t_max[li] = roi_radial_range([near, far], bins, t_max[li])
     maps = []
     iterator = range(n) if progress is None else progress(range(n), n)
     for j in iterator:
         maps.append(build_dgsm(mixes[j], lights, per_group[j] if len(per_group[j]) else None,
-                               t_max=t_max, **kwargs))
+                               t_max=t_max, t_min=t_min, **kwargs))
     table = np.prod(np.stack([m.transmittance for m in maps]), axis=0, dtype=np.float32)
     rois = []
     for li in range(len(lights)):
@@ -487,7 +532,7 @@ def build_dgsm_groups(groups, lights, receivers=None, group_receivers=None, name
                 time.perf_counter() - start, stats,
                 np.stack([m.transmittance for m in maps]),
                 list(names) if names is not None else [f"group{j}" for j in range(n)],
-                first.intensities, first.colors)
+                first.intensities, first.colors, t_min=first.t_min)
 
 
 def _use_torch(backend, dtype, pairs: int) -> bool:
@@ -509,10 +554,12 @@ def _use_torch(backend, dtype, pairs: int) -> bool:
 
 
 def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cull, trunc,
-                         dtype, chunk, stats, layout="octahedral", backend="numpy"):
-    """[T, k1−k0+1] optical depth for the given texels and bins of one light."""
+                         dtype, chunk, stats, layout="octahedral", backend="numpy",
+                         t_min: float = 0.0):
+    """[T, k1−k0+1] optical depth for the given texels and bins of one light (bin centres
+    t_min + (k + ½)(t_max − t_min)/bins)."""
     n_bins = k1 - k0 + 1
-    t_centres = (np.arange(k0, k1 + 1) + 0.5) * t_max / bins
+    t_centres = t_min + (np.arange(k0, k1 + 1) + 0.5) * (t_max - t_min) / bins
     # Per-Gaussian light-space quantities (shared by every texel of this light).
     rel = mix.means - light
     dist = np.linalg.norm(rel, axis=1)
@@ -556,7 +603,7 @@ def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cu
         from . import dgsm_torch
         stats["backend"] = "torch"
         return dgsm_torch.light_pairs_optical_depth(mix, dirs[texels], r_l_all, pt, pg, trunc,
-                                                    cull, t_max, bins, k0, k1, stats)
+                                                    cull, t_max, bins, k0, k1, stats, t_min)
     stats["backend"] = "numpy"
     step = np.zeros(len(texels) * (n_bins + 1))
     direct = np.zeros(len(texels) * n_bins)
@@ -572,7 +619,7 @@ def _light_optical_depth(mix, light, dirs, texels, k0, k1, bins, t_max, h, w, cu
             terms = TR.PairTerms(terms.t_star[ok], terms.sigma_t[ok], terms.m2[ok],
                                  terms.half_amplitude[ok])
         kept += len(ti)
-        _accumulate(terms, ti, t_max, bins, k0, k1, step, direct)
+        _accumulate(terms, ti, t_max, bins, k0, k1, step, direct, t_min)
     stats["pairs_kept"] += kept
     step = step.reshape(len(texels), n_bins + 1)[:, :n_bins]
     return np.cumsum(step, axis=1) + direct.reshape(len(texels), n_bins)
@@ -622,8 +669,9 @@ def cone_texel_pairs(texel_dirs, cone_dirs, half_angles, growth: float = 1.5):
     return np.concatenate(out_t), np.concatenate(out_g), tested
 
 
-def _accumulate(terms: TR.PairTerms, ti, t_max, bins, k0, k1, step, direct):
-    """Add each pair's τ(t_k) = G·[erf(u_k) − erf(u_0)] for bins k0..k1.
+def _accumulate(terms: TR.PairTerms, ti, t_max, bins, k0, k1, step, direct, t_min=0.0):
+    """Add each pair's τ(t_k) = G·[erf(u_k) − erf(u_0)] for bins k0..k1 (centres
+    t_k = t_min + (k + ½)(t_max − t_min)/bins; τ always integrates from the light).
 
     Bins inside the erf's transition window |u| ≤ 6.5 are evaluated explicitly;
     from the first bin past the window on, the term is the constant G·erfc(u_0),
@@ -634,9 +682,9 @@ def _accumulate(terms: TR.PairTerms, ti, t_max, bins, k0, k1, step, direct):
     sig = terms.sigma_t.astype(np.float64)
     G = terms.half_amplitude.astype(np.float64)
     width = _ERF_WINDOW * math.sqrt(2) * sig
-    scale = bins / t_max
-    k_lo = np.ceil((t_star - width) * scale - 0.5)
-    k_hi = np.floor((t_star + width) * scale - 0.5) + 1          # first bin past the window
+    scale = bins / (t_max - t_min)
+    k_lo = np.ceil((t_star - t_min - width) * scale - 0.5)
+    k_hi = np.floor((t_star - t_min + width) * scale - 0.5) + 1  # first bin past the window
     k_lo = np.clip(k_lo, k0, k1 + 1).astype(np.int64)
     k_hi = np.clip(k_hi, k0, k1 + 1).astype(np.int64)
     u0 = terms.u(np.zeros((), terms.t_star.dtype))
@@ -653,14 +701,15 @@ def _accumulate(terms: TR.PairTerms, ti, t_max, bins, k0, k1, step, direct):
         rep = np.repeat(np.arange(len(count)), count)
         first = np.repeat(np.cumsum(count) - count, count)
         k = k_lo[rep] + (np.arange(total) - first)
-        tk = (k + 0.5) * (t_max / bins)
+        tk = t_min + (k + 0.5) * ((t_max - t_min) / bins)
         u_k = ((tk - t_star[rep]) / (math.sqrt(2) * sig[rep]))
         vals = G[rep] * TR.erf_difference(u0[rep].astype(np.float64), np.maximum(u_k, u0[rep]))
         idx = ti[rep] * n_bins + (k - k0)
         direct += np.bincount(idx, vals, minlength=len(direct))
 
 
-def build_dgsm_reference(mix: TR.Mixture, light, size, bins, t_max, layout="octahedral"):
+def build_dgsm_reference(mix: TR.Mixture, light, size, bins, t_max, layout="octahedral",
+                         t_min: float = 0.0):
     """Slow twin: [K, H, W] T for EVERY texel and bin by the dense float64 closed form."""
     h, w = size
     if layout == "cube":
@@ -670,7 +719,7 @@ def build_dgsm_reference(mix: TR.Mixture, light, size, bins, t_max, layout="octa
     light = np.asarray(light, np.float64)
     out = np.empty((bins, h * w))
     for k in range(bins):
-        tk = (k + 0.5) * t_max / bins
+        tk = t_min + (k + 0.5) * (t_max - t_min) / bins
         out[k] = TR.transmittance(mix, np.broadcast_to(light, dirs.shape), dirs, 0.0, tk)
     return out.reshape(bins, h, w)
 
@@ -683,7 +732,9 @@ def lookup(dgsm: DGSM, light_index: int, points: np.ndarray) -> np.ndarray:
 
     Bilinear over texels (clamped at the atlas border, or inside the face for
     the cube), linear over bins; between the light (T = 1 at t = 0) and the first
-    bin centre it interpolates from 1; beyond the last bin centre it clamps.
+    bin centre it interpolates from 1; beyond the last bin centre it clamps.  A map whose
+    bins start at t_min > 0 (``radial`` ``roi``) clamps below its first bin centre too
+    (no receiver it was built for lies there).
     """
     points = np.asarray(points, np.float64).reshape(-1, 3)
     light = dgsm.lights[light_index]
@@ -692,8 +743,9 @@ def lookup(dgsm: DGSM, light_index: int, points: np.ndarray) -> np.ndarray:
     v = points - light
     dist = np.linalg.norm(v, axis=1)
     rows, cols, wts = _bilinear_taps(atlas_pixel(v, dgsm.layout, H, W), dgsm.layout, H, W)
-    r = dist * K / dgsm.t_max[light_index] - 0.5
-    r = np.clip(r, -0.5, K - 1)
+    t_min = 0.0 if dgsm.t_min is None else float(dgsm.t_min[light_index])
+    r = (dist - t_min) * K / (dgsm.t_max[light_index] - t_min) - 0.5
+    r = np.clip(r, -0.5 if t_min == 0 else 0.0, K - 1)
     k0 = np.floor(r).astype(np.int64)
     f = r - k0
     ka = np.clip(k0, 0, K - 1)
@@ -728,6 +780,67 @@ def sample_transmittance(dgsm: DGSM, points, scales=None, rotations=None,
     out = np.stack([lookup(dgsm, i, flat).reshape(m, n).mean(axis=1) for i in which])
     out = np.clip(out, 0.0, 1.0)
     return out[0] if light_index is not None else out
+
+
+# ------------------------------------------------------------------ self-shadowing
+
+#: Self-shadow lookups start this many standard deviations of the receiving Gaussian
+#: (along the direction to the light) towards the light: its own optical depth before
+#: that point is Φ(−3) = 0.13 % of its whole (a Gaussian never shadows itself).
+SELF_SIGMAS = 3.0
+
+
+def self_offsets(lights, means, scales, rotations, bin_width) -> np.ndarray:
+    """[L, M] how far (metres) a Gaussian's self-shadow lookups move towards each light:
+    ``SELF_SIGMAS`` of its own extent along that direction, σ_u = √(uᵀΣu), plus one
+    radial bin (``bin_width`` [L], metres) so the table's interpolation between bins
+    does not reach back into the bin holding the Gaussian."""
+    lights = np.asarray(lights, np.float64).reshape(-1, 3)
+    means = np.asarray(means, np.float64).reshape(-1, 3)
+    m = len(means)
+    s = np.asarray(scales, np.float64).reshape(m, 3)
+    rot = np.asarray(rotations, np.float64)
+    R = TR._quat_to_matrix(rot.reshape(m, 4)) if rot.size == 4 * m else rot.reshape(m, 3, 3)
+    out = np.empty((len(lights), m))
+    for i, light in enumerate(lights):
+        u = light - means
+        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+        local = np.einsum("mji,mj->mi", R, u)                  # u in each principal frame
+        sigma = np.sqrt(((local * s) ** 2).sum(axis=1))
+        out[i] = SELF_SIGMAS * sigma + np.asarray(bin_width, np.float64).reshape(-1)[i]
+    return out
+
+
+def self_lookup_points(lights, means, scales, rotations, bin_width, footprint="centre",
+                       samples=16, seed=0) -> list:
+    """Per light, [M, S, 3] footprint samples of each Gaussian moved towards that light by
+    :func:`self_offsets` (never past the light): where its self-shadow is looked up."""
+    pts, _ = footprint_samples(means, scales, rotations, footprint, samples, seed)
+    offsets = self_offsets(lights, means, scales, rotations, bin_width)
+    out = []
+    for i, light in enumerate(np.asarray(lights, np.float64).reshape(-1, 3)):
+        v = light - pts                                          # [M, S, 3]
+        dist = np.linalg.norm(v, axis=2, keepdims=True)
+        step = np.minimum(offsets[i][:, None, None], 0.999 * dist)
+        out.append(pts + v / np.maximum(dist, 1e-300) * step)
+    return out
+
+
+def sample_self_transmittance(dgsm: DGSM, means, scales, rotations, footprint: str = "centre",
+                              samples: int = 16, seed: int = 0) -> np.ndarray:
+    """[L, M] transmittance from each light to Gaussians of the occluders the map was built
+    from, each Gaussian's own optical depth left out: looked up at its footprint moved
+    towards the light (:func:`self_lookup_points`), so only what lies between it and the
+    light shadows it (self-shadowing; the paper's avatars receive no shadow of their own).
+    The map must cover those points (built with them as receivers: relight_cli.jobs.
+    dgsm_build, ``self_shadow``)."""
+    t_min = 0.0 if dgsm.t_min is None else np.asarray(dgsm.t_min, np.float64)
+    width = (np.asarray(dgsm.t_max, np.float64) - t_min) / dgsm.bins
+    points = self_lookup_points(dgsm.lights, means, scales, rotations, width, footprint,
+                                samples, seed)
+    out = np.stack([lookup(dgsm, i, p.reshape(-1, 3)).reshape(p.shape[:2]).mean(axis=1)
+                    for i, p in enumerate(points)])
+    return np.clip(out, 0.0, 1.0)
 
 
 # ------------------------------------------------------------------ table-free

@@ -82,7 +82,8 @@ class _Tables:
 
 
 def light_pairs_optical_depth(mix: TR.Mixture, tex_dirs, r_l_all, pt, pg, trunc, cull: bool,
-                              t_max: float, bins: int, k0: int, k1: int, stats: dict):
+                              t_max: float, bins: int, k0: int, k1: int, stats: dict,
+                              t_min: float = 0.0):
     """[T, k1−k0+1] float64 optical depth of the texels from the given pairs (torch float32).
 
     Args:
@@ -92,7 +93,8 @@ def light_pairs_optical_depth(mix: TR.Mixture, tex_dirs, r_l_all, pt, pg, trunc,
         pt, pg: [P] texel index (into tex_dirs) and Gaussian index of each pair.
         trunc: [N] Mahalanobis culling radius (NaN: never contributes).
         cull: drop pairs outside the k_σ ellipse (m² > trunc²).
-        t_max, bins, k0, k1: the radial bins (centres (k + ½)·t_max/bins) to fill.
+        t_max, bins, k0, k1, t_min: the radial bins (centres t_min + (k + ½)·(t_max −
+            t_min)/bins) to fill.
         stats: ``pairs_kept`` is incremented.
     """
     import torch
@@ -104,7 +106,7 @@ def light_pairs_optical_depth(mix: TR.Mixture, tex_dirs, r_l_all, pt, pg, trunc,
     r_l64 = torch.from_numpy(np.ascontiguousarray(r_l_all, np.float64))
     step = torch.zeros(n_tex * (n_bins + 1), dtype=f64)
     direct = torch.zeros(n_tex * n_bins, dtype=f64)
-    scale = bins / t_max
+    scale = bins / (t_max - t_min)
     sqrt2 = math.sqrt(2.0)
     kept = 0
     pt_all = torch.from_numpy(np.asarray(pt, np.int64))
@@ -137,8 +139,10 @@ def light_pairs_optical_depth(mix: TR.Mixture, tex_dirs, r_l_all, pt, pg, trunc,
         inv = 1.0 / (sqrt2 * sig)
         u0 = -t_star * inv
         width = _ERF_WINDOW * sqrt2 * sig
-        k_lo = torch.clamp(torch.ceil((t_star - width) * scale - 0.5), k0, k1 + 1).to(torch.int64)
-        k_hi = torch.clamp(torch.floor((t_star + width) * scale - 0.5) + 1, k0, k1 + 1).to(torch.int64)
+        k_lo = torch.clamp(torch.ceil((t_star - t_min - width) * scale - 0.5), k0,
+                           k1 + 1).to(torch.int64)
+        k_hi = torch.clamp(torch.floor((t_star - t_min + width) * scale - 0.5) + 1, k0,
+                           k1 + 1).to(torch.int64)
         has_step = torch.nonzero(k_hi <= k1).squeeze(1)
         if len(has_step):
             full = (G.index_select(0, has_step) * torch.erfc(u0.index_select(0, has_step))).to(f64)
@@ -150,7 +154,7 @@ def light_pairs_optical_depth(mix: TR.Mixture, tex_dirs, r_l_all, pt, pg, trunc,
             rep = torch.repeat_interleave(torch.arange(len(count)), count)
             first = torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
             k = k_lo.index_select(0, rep) + (torch.arange(total) - first)
-            tk = (k.to(f32) + 0.5) * (t_max / bins)
+            tk = t_min + (k.to(f32) + 0.5) * ((t_max - t_min) / bins)
             u_k = (tk - t_star.index_select(0, rep)) * inv.index_select(0, rep)
             u0r = u0.index_select(0, rep)
             vals = (G.index_select(0, rep) * _erf_difference(u0r, torch.maximum(u_k, u0r))).to(f64)

@@ -49,6 +49,8 @@ class DgsmOptions:
     samples: int = 16
     seed: int = 0
     allow_light_inside: bool = False
+    self_shadow: bool = False
+    radial: str = "full"
     estimator: str = "paper"
     preview: bool = False
     camera: object = None
@@ -121,10 +123,14 @@ def build(occluders, lights, options: DgsmOptions, receivers=None, names=None,
     kwargs = dict(size=tuple(options.size), bins=options.bins, layout=options.atlas,
                   t_max=options.t_max, roi=options.roi, roi_radius=options.roi_radius,
                   cull=options.cull, cull_tolerance=options.cull_tolerance,
-                  intensities=lights.intensities, colors=lights.colors)
+                  intensities=lights.intensities, colors=lights.colors, radial=options.radial)
     desc = "lights" if len(occluders) == 1 else "occluders"
     bar = (lambda it, total: progress(it, total=total, desc=desc, quiet=quiet))
+    own = (_self_points(occluders, lights.positions, recv_points, options)
+           if options.self_shadow else None)
     if len(occluders) == 1:
+        if own is not None:
+            recv_points = np.concatenate([p for p in (recv_points, own[0]) if p is not None])
         shadow_map = D.build_dgsm(mix, lights.positions, recv_points, progress=bar, **kwargs)
     else:
         # each object receives the others' shadows: its footprint samples join their ROIs
@@ -133,7 +139,10 @@ def build(occluders, lights, options: DgsmOptions, receivers=None, names=None,
                         for o in occluders]
         shadow_map = D.build_dgsm_groups(
             [TR.from_gaussians(o, mapping, options.kappa) for o in occluders], lights.positions,
-            recv_points, group_points, names=names, progress=bar, **kwargs)
+            recv_points, group_points, names=names, progress=bar, own_receivers=own, **kwargs)
+    if options.self_shadow:       # recorded in the map: its tables cover self lookups
+        for record in shadow_map.roi:
+            record["self_shadow"] = True
     _log_build(say, shadow_map, receivers is not None and options.roi, mapping, options.kappa)
 
     sheet = None
@@ -141,6 +150,31 @@ def build(occluders, lights, options: DgsmOptions, receivers=None, names=None,
         sheet = preview_sheet(shadow_map, occ, receivers, options, mapping, len(lights), names,
                               receivers_name if receivers is not None else None)
     return DgsmResult(shadow_map, lights, occ, mapping, sheet, _settings(options, mapping))
+
+
+def _self_points(occluders, lights, recv_points, options: DgsmOptions) -> list:
+    """Per occluder, the points its own table must cover for self-shadow lookups
+    (relight_cli.gaussians.dgsm.sample_self_transmittance): its footprint samples and the
+    same moved towards each light by the lookup's offset, taken with the widest radial bin
+    the build can choose (t_max/K ≤ the farthest receiver's distance/(K − ½)), so the
+    lookups, which move less or as far, lie between them."""
+    from relight_cli.gaussians import dgsm as D
+    lights = np.asarray(lights, np.float64).reshape(-1, 3)
+    own = [D.footprint_samples(o.means, o.scales, o.rotations, options.footprint,
+                               options.samples, options.seed)[0].reshape(-1, 3)
+           for o in occluders]
+    every = np.concatenate([p for p in [recv_points, *own] if p is not None])
+    if options.t_max is not None:
+        width = np.full(len(lights), options.t_max / options.bins)
+    else:
+        far = np.array([np.linalg.norm(every - light, axis=1).max() for light in lights])
+        width = far / (options.bins - 0.5)
+    out = []
+    for o, points in zip(occluders, own):
+        moved = D.self_lookup_points(lights, o.means, o.scales, o.rotations, width,
+                                     options.footprint, options.samples, options.seed)
+        out.append(np.concatenate([points] + [m.reshape(-1, 3) for m in moved]))
+    return out
 
 
 def _check_inside(mix, positions, allow: bool, label: str, say) -> None:
@@ -162,7 +196,9 @@ def _settings(options: DgsmOptions, mapping: str) -> dict:
             "kappa": options.kappa, "t_max": options.t_max, "roi": options.roi,
             "roi_radius": options.roi_radius, "cull": options.cull,
             "cull_tolerance": options.cull_tolerance, "footprint": options.footprint,
-            "samples": options.samples, "seed": options.seed}
+            "samples": options.samples, "seed": options.seed,
+            **({"self_shadow": True} if options.self_shadow else {}),
+            **({"radial": options.radial} if options.radial != "full" else {})}
 
 
 def _log_build(say, shadow_map, receivers_roi: bool, mapping: str, kappa: float) -> None:

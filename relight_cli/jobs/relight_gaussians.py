@@ -40,6 +40,7 @@ class GaussianOptions:
     shadow_strength: float | str = "auto"
     light_weights: str | None = None
     direct_light: bool = False
+    self_shadow: bool = False
 
 
 @dataclass
@@ -97,6 +98,8 @@ def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers
         raise ValueError("a shadow map shadows receivers: give receivers")
     if o.direct_light and shadow_map is None:
         raise ValueError("direct_light takes its lights from a shadow map")
+    if o.self_shadow and shadow_map is None:
+        raise ValueError("self_shadow looks the objects up in a shadow map: give one")
     if shadow_map is not None and shadow_map.groups is not None \
             and len(shadow_map.groups) != len(objects):
         raise ValueError(f"the shadow map has {len(shadow_map.groups)} occluder groups but "
@@ -118,7 +121,8 @@ def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers
     settings = {"lobe": o.lobe, "intensity": o.intensity, "t_max": o.t_max,
                 "normals": o.normals, "footprint": o.footprint, "samples": o.samples,
                 "seed": o.seed, "shadow_strength": strength_setting,
-                "direct_light": o.direct_light}
+                "direct_light": o.direct_light,
+                **({"self_shadow": True} if o.self_shadow else {})}
     if shadow_map is not None:
         used = weights_mode(light_weights, shadow_map, log)
         receivers = _shadow_receivers(receivers, probe, shadow_map, used, auto,
@@ -193,10 +197,16 @@ def _shadow_receivers(scene, probe, shadow_map, weights_used, auto, strength, o,
 
 
 def _shadow_objects(relit, direct, probes, shadow_map, weights_used, auto, strength, o, log):
-    """With a grouped DGSM, each object (in place in ``relit``) shadowed by the others."""
+    """Each object (in place in ``relit``) shadowed by the others (a grouped DGSM); with
+    ``o.self_shadow`` by the others and by itself, each Gaussian's own optical depth left
+    out (relight_cli.gaussians.dgsm.sample_self_transmittance; ours, beyond the paper)."""
     from relight_cli.gaussians import transfer as TF
-    from relight_cli.gaussians.dgsm import sample_transmittance
-    if shadow_map.groups is None:
+    from relight_cli.gaussians.dgsm import sample_self_transmittance, sample_transmittance
+    if o.self_shadow:
+        if not all(record.get("self_shadow") for record in shadow_map.roi):
+            raise ValueError("the shadow map was not built for self-shadowing: its tables do "
+                             "not cover the objects' own lookups (dgsm-build --self-shadow)")
+    elif shadow_map.groups is None:
         if len(relit) > 1:
             log("note: the shadow map has no occluder groups, so the objects do not shadow "
                 "each other (build it from all objects: dgsm-build A B ...)")
@@ -204,8 +214,12 @@ def _shadow_objects(relit, direct, probes, shadow_map, weights_used, auto, stren
     for j, obj in enumerate(relit):
         if auto and direct[j] is None:
             continue    # lit by the probe only: the lights' shadows do not reach it
-        T = sample_transmittance(shadow_map.others(j), obj.means, obj.scales, obj.rotations,
-                                 footprint=o.footprint, samples=o.samples, seed=o.seed)
+        if o.self_shadow:
+            T = sample_self_transmittance(shadow_map, obj.means, obj.scales, obj.rotations,
+                                          footprint=o.footprint, samples=o.samples, seed=o.seed)
+        else:
+            T = sample_transmittance(shadow_map.others(j), obj.means, obj.scales, obj.rotations,
+                                     footprint=o.footprint, samples=o.samples, seed=o.seed)
         if auto:        # colour ρ(S + D): direct share D/(S + D), weights D_l (exact)
             d = direct[j].sum(axis=0) / math.pi
             probe_part = np.clip(TF.shading(probes[j].coefficients, obj.normals, o.lobe), 0.0,
@@ -217,7 +231,8 @@ def _shadow_objects(relit, direct, probes, shadow_map, weights_used, auto, stren
             weights = TF.dgsm_light_weights(weights_used, shadow_map, obj, obj.normals)
             factor = TF.shadow_factor(T, weights, strength)
         relit[j] = TF.attenuate(obj, factor)
-        log(f"shadowed object {j} by the others: {_darkened(factor)}")
+        log(f"shadowed object {j} by " + ("the others and itself" if o.self_shadow
+                                           else "the others") + f": {_darkened(factor)}")
 
 
 def shadow_matte(mode: str, receivers, shadow_map, camera, options: GaussianOptions,

@@ -150,6 +150,10 @@ def test_bad_options_and_values_are_one_line_without_usage(tmp_path):
            ("bench_teacher.py", ["--iters", "0"], "--iters"),
            ("bench_linear.py", ["--iters", "x"], "--iters"),
            ("bench_dgsm.py", ["--occluder", "cube"], "--occluder"),
+           ("bench_dgsm.py", ["--scenes", "hand:wave"], "--scenes"),
+           ("bench_dgsm.py", ["--speed-seeds", "0"], "--speed-seeds"),
+           ("bench_dgsm_lighting.py", ["--clips", "nope"], "--clips"),
+           ("bench_dgsm_lighting.py", ["--frames", "1"], "--frames"),
            ("study_hands.py", ["--seeds", "0"], "--seeds"),
            ("study_hands.py", ["--tables", "nope"], "nope"),
            ("study_hands.py", ["--workers", "-1"], "--workers")]

@@ -120,10 +120,11 @@ def test_clip_frames_equal_single_frame_runs_and_shadow_follows(scene, tmp_path)
 
 
 def test_dgsm_build_frames_are_what_the_clip_builds(scene, tmp_path):
-    """Composable: dgsm-build --frames writes one DGSM per frame and relight --dgsm PATTERN
-    reads them back; every frame's pixels equal the in-process clip's."""
+    """Composable: dgsm-build --frames (--radial roi, as the in-process build) writes one
+    DGSM per frame and relight --dgsm PATTERN reads them back; every frame's pixels equal
+    the in-process clip's."""
     r = _invoke(scene, "dgsm-build", "seq.json", "--frames", "1:4:2", "--receivers", "floor.ply",
-                "--lights", "lights.json", "-o", tmp_path / "s_{frame:02d}.exr",
+                "--lights", "lights.json", "--radial", "roi", "-o", tmp_path / "s_{frame:02d}.exr",
                 "--occluders-out", tmp_path / "o_{frame:02d}.ply")
     assert r.exit_code == 0, r.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o_01.ply", "o_03.ply", "s_01.exr",
@@ -207,6 +208,11 @@ def test_clip_subprocess(scene, tmp_path):
                                        "-o", "x.ply"], 2, "--receivers"),
     ("probe-degree-without-scene", ["seq/ball_{frame:03d}.ply", "--probe", "p.json",
                                     "--probe-degree", "3", "-o", "x.ply"], 2, "--probe-degree"),
+    ("shadow-size-without-lights", ["seq/ball_{frame:03d}.ply", "--probe", "scene",
+                                    "--receivers", "floor.ply", "--shadow-size", "64",
+                                    "-o", "x.ply"], 2, "--shadow-size"),
+    ("shadow-size-bad", ["seq/ball_{frame:03d}.ply", *CLIP, "--shadow-size", "1x0",
+                         "-o", "x.exr"], 2, "--shadow-size"),
     ("frame-out-of-range", ["seq/ball_{frame:03d}.ply", "--frame", "9", *CLIP, "-o", "x.exr"],
      2, "frame 9"),
     ("frames-select-none", ["seq/ball_{frame:03d}.ply", "--frames", "7:9", *CLIP,
@@ -259,3 +265,48 @@ def test_dgsm_build_frames_bad_input(scene, tmp_path):
     r = _invoke(scene, "dgsm-build", "floor.ply", "--frames", "all", "--t-max", "2",
                 "--lights", "lights.json", "-o", tmp_path / "s_{frame}.exr")
     assert r.exit_code == 2 and "moves" in r.output and list(tmp_path.iterdir()) == []
+
+
+def test_self_shadow_cli(scene, tmp_path):
+    """--self-shadow (ours): an object shadowed by itself, built in-process (--lights) or
+    by dgsm-build --self-shadow, the two equal; a map built without it is refused naming
+    it; the option needs shadow maps."""
+    import sys
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "gaussians"))
+    from test_self_shadow import shelf
+    g, _ = shelf()
+    write_gaussians(str(tmp_path / "shelf.ply"), g)
+    common = ["relight", tmp_path / "shelf.ply", "--receivers", "floor.ply", "--probe", "scene",
+              "--shadow-strength", "1"]
+    r = _invoke(scene, *common, "--lights", "lights.json", "--self-shadow",
+                "-o", tmp_path / "self.ply")
+    assert r.exit_code == 0, r.output
+    r = _invoke(scene, *common, "--lights", "lights.json", "-o", tmp_path / "plain.ply")
+    assert r.exit_code == 0, r.output
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    a, b = read_gaussians(str(tmp_path / "self.ply")), read_gaussians(str(tmp_path / "plain.ply"))
+    under = (g.means[:, 1] < 0.03) & (g.means[:, 0] < -0.01) & (np.abs(g.means[:, 2]) < 0.04)
+    assert under.sum() > 50
+    from relight_cli.formats.gaussians_ply import SH_C0
+    ca, cb = 0.5 + SH_C0 * a.sh[:, 0, 0], 0.5 + SH_C0 * b.sh[:, 0, 0]
+    assert cb[under].min() > 0 and np.median(ca[under] / cb[under]) < 0.5   # the shelf's shadow
+    top = g.means[:, 1] > 0.03          # lit: never shadowed by itself (the 128² atlas's
+    assert np.median(ca[top] / cb[top]) > 0.9    # texels blur the oblique lamp's edge a bit)
+    r = _invoke(scene, "dgsm-build", tmp_path / "shelf.ply", "--receivers", "floor.ply",
+                "--lights", "lights.json", "--radial", "roi", "--self-shadow",
+                "-o", tmp_path / "s.exr")
+    assert r.exit_code == 0, r.output
+    r = _invoke(scene, *common, "--dgsm", tmp_path / "s.exr", "--self-shadow",
+                "-o", tmp_path / "read.ply")
+    assert r.exit_code == 0, r.output
+    np.testing.assert_array_equal(read_gaussians(str(tmp_path / "read.ply")).sh, a.sh)
+    r = _invoke(scene, "dgsm-build", tmp_path / "shelf.ply", "--receivers", "floor.ply",
+                "--lights", "lights.json", "-o", tmp_path / "plain.exr")
+    assert r.exit_code == 0, r.output
+    r = _invoke(scene, *common, "--dgsm", tmp_path / "plain.exr", "--self-shadow",
+                "-o", tmp_path / "x.ply")
+    assert r.exit_code == 1 and "self-shadowing" in r.output
+    assert r.output.strip().endswith(f"({tmp_path / 'plain.exr'})") and not (tmp_path / "x.ply").exists()
+    r = _invoke(scene, "relight", tmp_path / "shelf.ply", "--probe", "scene", "--receivers",
+                "floor.ply", "--self-shadow", "-o", tmp_path / "x.ply")
+    assert r.exit_code == 2 and "--self-shadow" in r.output

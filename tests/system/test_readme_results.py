@@ -735,3 +735,56 @@ def test_readme_mitsuba_table_is_the_committed_run():
             assert float(ratio) == pytest.approx(r["mean_ratio"], abs=6e-3), (case, env, label)
         seen += 1
     assert seen == 4
+
+
+DGSM = ROOT / "benchmarks" / "results"
+
+
+@pytest.mark.skipif(not (DGSM / "dgsm.json").exists() or not (DGSM / "dgsm_lighting.json").exists(),
+                    reason="no committed DGSM tables")
+def test_readme_dgsm_claims_are_the_committed_results():
+    """README "Do the papers' claims hold?": the DGSM table is what
+    benchmarks/readme_tables.py makes from benchmarks/results/dgsm.json and
+    dgsm_lighting.json (issue 49), and the sentences after it count its verdicts."""
+    R = _tables()
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert _block(readme, "dgsm") == R.dgsm()
+    shadow = json.loads((DGSM / "dgsm.json").read_text())
+    light = json.loads((DGSM / "dgsm_lighting.json").read_text())
+    assert not shadow["quick"] and not light["quick"]
+    assert len(shadow["scenes"]) >= 3 and shadow["speed_seeds"] >= 2
+    assert len(light["scenes"]["room"]["clips"]) >= 3
+    after = " ".join(readme.split("<!-- dgsm:end -->", 1)[1].split())
+    shadow_claims = [c for c in shadow["claims"] if c["table"] != "D"]
+    held = sum(c["verdict"] == "reproduced" for c in shadow_claims)
+    reversed_ = sum(c["verdict"] == "reversed" for c in shadow_claims)
+    assert (f"Of the {len(shadow_claims)} comparisons of Tables 3–5 (one per metric), "
+            f"{held} reproduce, {reversed_} reverse") in after
+    room = light["scenes"]["room"]["judged"]
+    words = ", ".join(f"{label} {room[m]['verdict']}" for m, label in
+                      (("paa_y", "PAA-Y"), ("apf_y", "APF-Y"), ("ncm_ab", "NCM-ab")))
+    assert f"In the room, relighting: {words}" in after
+
+
+def test_the_dgsm_table_reads_every_verdict_from_the_results(tmp_path):
+    """A verdict moved in a committed DGSM record moves the README's cell."""
+    R = _tables()
+    if not (DGSM / "dgsm.json").exists() or not (DGSM / "dgsm_lighting.json").exists():
+        pytest.skip("no committed DGSM tables")
+    for name in ("dgsm.json", "dgsm_lighting.json"):
+        (tmp_path / name).write_text((DGSM / name).read_text())
+    before = R.dgsm(tmp_path)
+    assert before == R.dgsm()
+    rec = json.loads((tmp_path / "dgsm.json").read_text())
+    claim = next(c for c in rec["claims"] if c["table"] == "Table 5" and c["metric"] == "sae")
+    claim["verdict"] = "reversed" if claim["verdict"] != "reversed" else "tie"
+    (tmp_path / "dgsm.json").write_text(json.dumps(rec))
+    light = json.loads((tmp_path / "dgsm_lighting.json").read_text())
+    j = light["scenes"]["room"]["judged"]["paa_y"]
+    j["verdict"] = "improves" if j["verdict"] != "improves" else "worsens"
+    (tmp_path / "dgsm_lighting.json").write_text(json.dumps(light))
+    after = R.dgsm(tmp_path)
+    t5 = [x for x in after.splitlines() if "| Table 5 |" in x][0]
+    assert t5 != [x for x in before.splitlines() if "| Table 5 |" in x][0]
+    paa = [x for x in after.splitlines() if "PAA-Y" in x][0]
+    assert paa != [x for x in before.splitlines() if "PAA-Y" in x][0]
