@@ -291,8 +291,9 @@ def _moves(spec: str) -> bool:
     index): such a run builds per frame (commands/_dgsm_frames.py)."""
     from relight_cli.gaussians.placement import split_spec
     from relight_cli.gaussians.sequence import is_pattern
-    source = split_spec(spec)[0]
-    return is_pattern(source) or source.lower().endswith(".json")
+    source, placement = split_spec(spec)
+    return (is_pattern(source) or source.lower().endswith(".json")
+            or "path=" in (placement or ""))
 
 
 def _parse_auto(spec: str):

@@ -229,9 +229,10 @@ def _is_clip(a) -> bool:
     from relight_cli.gaussians.placement import split_spec
     from relight_cli.gaussians.sequence import is_pattern
     sources = [split_spec(spec)[0] for spec in (a.input, *a.objects)]
+    walks = any("path=" in (split_spec(spec)[1] or "") for spec in (a.input, *a.objects))
     return (a.frames is not None or a.frame is not None or a.lights_spec is not None
             or a.probe == "scene" or a.video is not None or a.probe_degree is not None
-            or a.shadow_size is not None
+            or a.shadow_size is not None or walks
             or (a.dgsm is not None and is_pattern(a.dgsm))
             or any(is_pattern(s) or s.lower().endswith(".json") for s in sources))
 

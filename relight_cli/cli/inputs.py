@@ -81,6 +81,10 @@ def load_placed(source: str, placement, spec: str, offset=None, colour_space: st
     from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.gaussians.placement import place
 
+    if getattr(placement, "path", None) is not None:
+        from relight_cli.errors import UsageProblem
+        raise UsageProblem("path=FILE.json moves an object over a clip: give it to relight "
+                           "relight --frames or dgsm-build --frames", spec)
     g = load_gaussians(source, frame=getattr(placement, "frame", None),
                        colour_space=colour_space)
     if len(g) == 0:

@@ -28,6 +28,9 @@ Spec language (``SOURCE[:KEY=VALUE;KEY=VALUE;FLAG]``, see :func:`split_spec`):
 ``translate=x,y,z`` finally add this offset (metres)
 ``frame=K``        for a hand .npz source: the pose (frame K) made into Gaussians
                    (not a transform; refused for other sources)
+``path=FILE.json`` a clip's per-frame translation (a ``relight/path``, formats/
+                   path_json.md), added after everything else: a static object
+                   moves (``relight --frames``, ``dgsm-build --frames``)
 =================  ==============================================================
 
 The order is fixed, whatever the order of the keys: fit/centre → scale →
@@ -49,9 +52,10 @@ from relight_cli.formats.gaussians_ply import (Gaussians, matrix_to_quaternion,
 from relight_cli.sh import sh_basis
 
 KEYS = ("fit", "centre", "scale", "rotate-x", "rotate-y", "rotate-z", "on-floor", "translate",
-        "frame")
+        "frame", "path")
 USAGE = ("SOURCE[:KEY=VALUE;...] with keys fit=SIZE, centre, scale=S, rotate-x|y|z=DEG, "
-         "on-floor, translate=X,Y,Z, frame=K (a hand .npz's pose) (e.g. donut.ply:fit=0.15;on-floor;translate=0.3,0,0)")
+         "on-floor, translate=X,Y,Z, frame=K (a hand .npz's pose), path=FILE.json (a clip's "
+         "per-frame translations) (e.g. donut.ply:fit=0.15;on-floor;translate=0.3,0,0)")
 
 
 @dataclass
@@ -66,6 +70,8 @@ class Placement:
         on_floor: rest the robust box's bottom on y = 0.
         translate: [3] final offset, metres.
         frame: for a hand .npz source, the frame whose pose becomes Gaussians (None: 0).
+        path: a relight/path JSON of per-frame translations (None: none), read by
+            relight_cli.gaussians.sequence (a clip); not part of the similarity.
     """
 
     fit: float | None = None
@@ -75,6 +81,7 @@ class Placement:
     on_floor: bool = False
     translate: tuple = (0.0, 0.0, 0.0)
     frame: int | None = None
+    path: str | None = None
 
     def is_identity(self) -> bool:
         return (self.fit is None and not self.centre and self.scale == 1.0
@@ -292,6 +299,11 @@ def parse_placement(text: str | None) -> Placement:
             if len(vec) != 3 or not all(math.isfinite(v) for v in vec):
                 raise ValueError(f"translate must be 3 finite numbers X,Y,Z, got {value!r}")
             p.translate = vec
+            continue
+        if key == "path":
+            if not value.lower().endswith(".json"):
+                raise ValueError(f"path names a relight/path .json file, got {value!r}")
+            p.path = value
             continue
         if key == "frame":
             if not value.isdigit():

@@ -135,6 +135,24 @@ class GaussianSource:
             self.frames = list(range(self._hand.n_frames)) if self._hand.n_frames > 1 else None
         else:
             self.kind, self.pattern, self.frames = "static", None, None
+        self.path = None
+        if self.placement.path is not None:
+            self._read_path()
+
+    def _read_path(self) -> None:
+        """``path=FILE.json``: per-frame translations; a static source moves over the
+        path's frames, a moving one keeps its own (each must have a translation)."""
+        from relight_cli.fileio import declare_input
+        from relight_cli.formats.path_json import read_path
+        declare_input(self.placement.path)
+        self.path = read_path(self.placement.path)
+        n = len(self.path)
+        if self.frames is None:
+            self.frames = list(range(n))
+        elif self.frames[-1] >= n:
+            raise DataError(f"the path has {n} translation(s), but {self.source} has frames up "
+                            f"to {self.frames[-1]}", self.placement.path)
+        self.fps = self.fps or self.path.fps
 
     @property
     def moves(self) -> bool:
@@ -147,27 +165,39 @@ class GaussianSource:
         return [self.source]
 
     def frame(self, frame: int):
-        """The placed Gaussians of ``frame`` (a static source: the same every frame)."""
-        from relight_cli.gaussians.placement import transform_gaussians
+        """The placed Gaussians of ``frame`` (a static source: the same every frame; with a
+        path, moved by the frame's translation)."""
         if self.frames is None and self._static is not None:
             return self._static
         if self.frames is not None and frame not in self._frame_set():
             raise UsageProblem(f"frame {frame} is not in {self.spec} (frames "
                                f"{self.frames[0]}–{self.frames[-1]})")
-        g = self._raw(frame)
+        if self.kind == "static":           # read and placed once (a path moves it)
+            if self._static is None:
+                self._static = self._place(self._raw(0), 0)
+            placed = self._static
+        else:
+            placed = self._place(self._raw(frame), frame)
+        if self.path is not None:           # path=FILE.json: the frame's translation, last
+            from dataclasses import replace
+            placed = replace(placed, means=placed.means + self.path.translations[frame])
+        _check_reach(placed, self.spec)
+        return placed
+
+    def _place(self, g, frame: int):
+        """``g`` (frame ``frame``) placed by the clip's one similarity (resolved on the
+        recording's first frame) and dgsm-build's --translate."""
+        from relight_cli.gaussians.placement import transform_gaussians
         if self._similarity is None:
-            first = g if self.frames is None or frame == self.frames[0] \
+            first = g if self.kind == "static" or frame == self.frames[0] \
                 else self._raw(self.frames[0])
-            self._similarity = _resolve_placement(self.placement, first, self.spec)
+            self._similarity = _resolve_placement(self.placement, first, self.spec) or False
         try:
-            placed = g if self._similarity is None else transform_gaussians(g, self._similarity)
+            placed = g if self._similarity is False else transform_gaussians(g, self._similarity)
         except ValueError as exc:
             raise DataError(f"cannot place it: {exc}", self.spec) from None
         if self.offset is not None:      # dgsm-build --translate: after the placement
             placed.means = placed.means + self.offset
-        _check_reach(placed, self.spec)
-        if self.frames is None:
-            self._static = placed
         return placed
 
     def _frame_set(self):

@@ -117,6 +117,9 @@ def test_clip_frames_equal_single_frame_runs_and_shadow_follows(scene, tmp_path)
     from PIL import Image
     with Image.open(out / "clip.webp") as im:
         assert im.n_frames == N_FRAMES and im.size == (48, 36)
+        im.seek(1)
+        im.load()
+        assert im.info["duration"] == 42                   # 24 fps (a pattern declares none)
 
 
 def test_dgsm_build_frames_are_what_the_clip_builds(scene, tmp_path):
@@ -310,3 +313,53 @@ def test_self_shadow_cli(scene, tmp_path):
     r = _invoke(scene, "relight", tmp_path / "shelf.ply", "--probe", "scene", "--receivers",
                 "floor.ply", "--self-shadow", "-o", tmp_path / "x.ply")
     assert r.exit_code == 2 and "--self-shadow" in r.output
+
+
+def test_a_path_moves_a_static_object_and_its_shadow(scene, tmp_path):
+    """path=FILE.json (a relight/path): a static ball walks along x over three frames; its
+    frames are the path's, its shadow follows; bad paths are one line naming the file;
+    path= outside a clip command is a usage error."""
+    walk = tmp_path / "walk.json"
+    walk.write_text(json.dumps({"format": "relight/path", "version": 1, "fps": 12,
+                                "translations": [[-0.2, 0, 0], [0.0, 0, 0], [0.2, 0, 0]]}))
+    r = _invoke(scene, "relight", f"seq/ball_000.ply:path={walk}", "--frames", "all", *CLIP,
+                "-o", tmp_path / "w_{frame}.exr")
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in tmp_path.glob("w_*.exr")) == ["w_0.exr", "w_1.exr", "w_2.exr"]
+    from relight_cli.gaussians.sequence import GaussianSource
+    s = GaussianSource(f"{scene / 'seq' / 'ball_000.ply'}:translate=0,0.1,0;path={walk}")
+    assert s.frames == [0, 1, 2] and s.fps == 12.0
+    np.testing.assert_allclose(s.frame(2).means - s.frame(0).means, np.tile([0.4, 0, 0], (150, 1)),
+                               atol=1e-12)
+    np.testing.assert_allclose(s.frame(1).means.mean(axis=0)[1], 0.35, atol=0.02)
+    r = _invoke(scene, "relight", f"seq/ball_000.ply:path={walk}", "--frames", "all",
+                "--receivers", "floor.ply", "--probe", "scene", "--camera", "cam.json",
+                "-o", tmp_path / "lit_{frame}.exr")
+    assert r.exit_code == 0, r.output
+    darkest = []
+    for k in range(3):
+        drop = (_pixels(tmp_path / f"lit_{k}.exr").layer("")
+                - _pixels(tmp_path / f"w_{k}.exr").layer("")).sum(axis=2)
+        darkest.append(np.unravel_index(np.argmax(drop), drop.shape)[1])
+    assert darkest[0] < darkest[1] < darkest[2], darkest
+    for body, words in (({"format": "relight/path", "version": 1, "translations": []},
+                         "'translations'"),
+                        ({"format": "relight/path", "version": 1,
+                          "translations": [[0, 0]]}, "[x, y, z]"),
+                        ({"format": "relight/path", "version": 1,
+                          "translations": [[0, 0, 1e7]]}, "within"),
+                        ({"format": "relight/path", "version": 1, "fps": -1,
+                          "translations": [[0, 0, 0]]}, "'fps'")):
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps(body))
+        r = _invoke(scene, "relight", f"seq/ball_000.ply:path={bad}", "--frames", "all", *CLIP,
+                    "-o", tmp_path / "b_{frame}.exr")
+        assert r.exit_code == 1 and words in r.output and f"({bad})" in r.output, r.output
+    r = _invoke(scene, "relight", "seq/ball_{frame:03d}.ply:path=" + str(walk), "--frames",
+                "all", *CLIP, "-o", tmp_path / "b_{frame}.exr")        # 4 frames, 3 steps
+    assert r.exit_code == 1 and "3 translation(s)" in r.output
+    r = _invoke(scene, "metrics", "shadow", tmp_path / "w_0.exr", tmp_path / "w_1.exr",
+                "--roi-avatar", f"seq/ball_000.ply:path={walk}", "--camera", "cam.json",
+                "-o", tmp_path / "m.json")                  # one frame: no path there
+    assert r.exit_code == 2 and "path=FILE.json" in r.output, r.output
+    assert not list(tmp_path.glob("b_*")) and not (tmp_path / "m.json").exists()

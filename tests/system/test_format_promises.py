@@ -434,6 +434,12 @@ READERS = {
         "relight": lambda d, b, o: ["relight", b, "--probe", d / "probe.json", "-o", o / "x.ply"],
         "dgsm-build": lambda d, b, o: ["dgsm-build", b, "--receivers", d / "room.ply",
                                        "--lights", d / "lights.json", "-o", o / "x.exr"]}),
+    "relight/path": (lambda d, w: _path_file(d), "walk.json", {
+        "relight": lambda d, b, o: ["relight", f"{d / 'ball.ply'}:path={b}", "--probe",
+                                    d / "probe.json", "-o", o / "x.ply"],
+        "dgsm-build": lambda d, b, o: ["dgsm-build", f"{d / 'ball.ply'}:path={b}",
+                                       "--receivers", d / "room.ply", "--lights",
+                                       d / "lights.json", "-o", o / "x.exr"]}),
     "relight/lights": (lambda d, w: d / "lights.json", "lights.json", {
         "dgsm-build --lights": lambda d, b, o: ["dgsm-build", d / "ball.ply", "--receivers",
                                                 d / "room.ply", "--lights", b, "-o", o / "x.exr"],
@@ -475,6 +481,13 @@ READERS = {
         "distill --resume": lambda d, b, o: ["distill", d / "teacher.pt", d / "cap", "--envs",
                                              "builtin:sky", "--resume", b, "-o", o / "x.pt"]}),
 }
+
+
+def _path_file(data: Path) -> Path:
+    """A relight/path of two frames."""
+    (data / "walk.json").write_text(json.dumps({"format": "relight/path", "version": 1,
+                                                "translations": [[0, 0, 0], [0.1, 0, 0]]}))
+    return data / "walk.json"
 
 
 def _sequence_index(data: Path) -> Path:
