@@ -363,3 +363,25 @@ def test_a_path_moves_a_static_object_and_its_shadow(scene, tmp_path):
                 "-o", tmp_path / "m.json")                  # one frame: no path there
     assert r.exit_code == 2 and "path=FILE.json" in r.output, r.output
     assert not list(tmp_path.glob("b_*")) and not (tmp_path / "m.json").exists()
+
+
+def test_two_moving_avatars_shadow_each_other(scene, tmp_path):
+    """Several avatars at once: a ball moving along x (a '{frame}' pattern) passes over a
+    second ball walking below it (a path); per frame the in-process maps are built per
+    object (groups), so the lower ball is darkened only where the upper one is above it."""
+    walk = tmp_path / "walk.json"
+    walk.write_text(json.dumps({"format": "relight/path", "version": 1,
+                                "translations": [[0.1, -0.15, 0.0]] * N_FRAMES}))
+    r = _invoke(scene, "relight", "seq/ball_{frame:03d}.ply", "--object",
+                f"seq/ball_000.ply:path={walk}", "--frames", "all", "--receivers", "floor.ply",
+                "--lights", "lights.json", "--probe", "scene", "--shadow-strength", "1",
+                "-o", tmp_path / "o_{frame}.ply")
+    assert r.exit_code == 0, r.output
+    from relight_cli.formats.gaussians_ply import SH_C0, read_gaussians
+    lower = []
+    for k in range(N_FRAMES):
+        g = read_gaussians(str(tmp_path / f"o_{k}.ply"))
+        assert len(g) == 300                       # both objects, IN first
+        lower.append(float((0.5 + SH_C0 * g.sh[150:, 0]).mean()))
+    # the upper ball is at x = -0.3 + 0.2 k: over the lower one (x = -0.2) at k = 0, 1
+    assert min(lower[:2]) < 0.8 * max(lower[2:]), lower
