@@ -385,3 +385,30 @@ def test_two_moving_avatars_shadow_each_other(scene, tmp_path):
         lower.append(float((0.5 + SH_C0 * g.sh[150:, 0]).mean()))
     # the upper ball is at x = -0.3 + 0.2 k: over the lower one (x = -0.2) at k = 0, 1
     assert min(lower[:2]) < 0.8 * max(lower[2:]), lower
+
+
+def test_avatar_export_quirks_are_repaired(scene, tmp_path):
+    """What avatar exports get wrong: non-unit quaternions (normalised on read), zero and
+    1e-12 m scales (a point, a sheet of no thickness): the clip renders finite pixels and
+    the read rotations are unit."""
+    import plyfile
+
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    (tmp_path / "seq").mkdir()
+    for k in range(2):
+        g = ball([0.1 * k, 0.25, 0.0])
+        g.scales[0] = 0.0
+        g.scales[1] = [0.05, 1e-12, 0.05]
+        write_gaussians(str(tmp_path / f"t_{k}.ply"), g)
+        v = plyfile.PlyData.read(str(tmp_path / f"t_{k}.ply"), mmap=False)["vertex"].data.copy()
+        for c in ("rot_0", "rot_1", "rot_2", "rot_3"):
+            v[c] = v[c] * 3.7
+        plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex")]).write(
+            str(tmp_path / "seq" / f"b_{k}.ply"))
+    back = read_gaussians(str(tmp_path / "seq" / "b_1.ply"))
+    np.testing.assert_allclose(np.linalg.norm(back.rotations, axis=1), 1.0, atol=1e-6)
+    r = _invoke(scene, "relight", str(tmp_path / "seq" / "b_{frame}.ply"), "--frames", "all",
+                *CLIP, "--self-shadow", "-o", tmp_path / "o_{frame}.exr")
+    assert r.exit_code == 0, r.output
+    for k in range(2):
+        assert np.isfinite(_pixels(tmp_path / f"o_{k}.exr").layer("")).all()
