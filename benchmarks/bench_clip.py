@@ -319,10 +319,10 @@ def write_outputs(out: Path, report: dict) -> None:
                   "truth: the hand's light-facing Gaussians coloured by shadow strength, seen "
                   "from the lamp's side, mean (min–max) over the frames:", "",
                   "| variant | DGSM build s | SAE ↓ | SM-IoU ↑ | boundary F ↑ |", "|---|---|---|---|---|"]
-        by = {}
+        by_variant = {}
         for r in report["self_shadow"]:
-            by.setdefault(r["variant"], []).append(r)
-        for name, rows in by.items():
+            by_variant.setdefault(r["variant"], []).append(r)
+        for name, rows in by_variant.items():
             cells = []
             for key in ("sae", "sm_iou", "boundary_f"):
                 v = np.array([r[key] for r in rows])
