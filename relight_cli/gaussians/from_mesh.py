@@ -207,28 +207,42 @@ def builtin_gaussians(name: str) -> Gaussians:
     raise ValueError(f"unknown built-in Gaussians {name!r}; choose from {', '.join(BUILTINS)}")
 
 
-def hand_gaussians(hand, frame: int = 0, opacity: float = 0.99) -> Gaussians:
+def hand_gaussians(hand, frame: int = 0, opacity: float = 0.99, colors=None) -> Gaussians:
     """A posed hand (HandData, every hand of it) as flat Gaussians on its fine mesh.
 
     One Gaussian per triangle of the skinned fine mesh at ``frame``
     (:func:`gaussians_from_mesh`), coloured by the hand's albedo (its procedural
     per-region material, or its image maps) at the triangle's UV centroid, with
     the triangle's normal stored: the bridge from the hand half of the toolkit
-    (hand.npz) to the Gaussian half (dgsm-build, relight --object).
+    (hand.npz) to the Gaussian half (dgsm-build, relight --object).  ``colors``:
+    :func:`hand_colors` computed before (a sequence's frames share them).
     """
     from relight_cli.formats.gaussians_ply import concatenate
     from relight_cli.hand.scene import posed_meshes
-    from relight_cli.render.appearance import hand_materials
 
     if not 0 <= frame < hand.n_frames:
         raise ValueError(f"frame {frame} is out of range: the hand has {hand.n_frames} "
                          f"frame(s)")
-    parts = []
-    for pm, material in zip(posed_meshes(hand, frame, "fine"), hand_materials(hand, "fine")):
-        uv_centroid = pm.uv[pm.faces_uv].mean(axis=1)
-        colors = np.clip(material.albedo_at(uv_centroid), 0.0, 1.0)
-        parts.append(gaussians_from_mesh(pm.vertices, pm.faces, colors, opacity=opacity))
+    meshes = posed_meshes(hand, frame, "fine")
+    if colors is None:
+        colors = hand_colors(hand)
+    parts = [gaussians_from_mesh(pm.vertices, pm.faces, c, opacity=opacity)
+             for pm, c in zip(meshes, colors)]
     return concatenate(parts)
+
+
+def hand_colors(hand) -> list:
+    """Per hand of ``hand``, the [F, 3] albedo of each fine triangle at its UV centroid:
+    the same for every frame (the UVs do not move), so a sequence computes it once
+    (:func:`hand_gaussians` ``colors``)."""
+    from relight_cli.hand.scene import posed_meshes
+    from relight_cli.render.appearance import hand_materials
+
+    out = []
+    for pm, material in zip(posed_meshes(hand, 0, "fine"), hand_materials(hand, "fine")):
+        uv_centroid = pm.uv[pm.faces_uv].mean(axis=1)
+        out.append(np.clip(material.albedo_at(uv_centroid), 0.0, 1.0))
+    return out
 
 
 MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".stl", ".off")

@@ -110,6 +110,7 @@ class GaussianSource:
         self.fps = None
         self.base = None            # the index's units/up similarity (before the placement)
         self._hand = None
+        self._colors = None
         self._static = None
         self._similarity = None
         self._count = None
@@ -211,8 +212,12 @@ class GaussianSource:
         from relight_cli.gaussians.from_mesh import hand_gaussians
         from relight_cli.gaussians.placement import transform_gaussians
         if self.kind == "hand":
+            if self._colors is None:          # the same every frame: computed once
+                from relight_cli.gaussians.from_mesh import hand_colors
+                self._colors = hand_colors(self._hand)
             try:
-                g = hand_gaussians(self._hand, frame if self.frames is not None else 0)
+                g = hand_gaussians(self._hand, frame if self.frames is not None else 0,
+                                   colors=self._colors)
             except ValueError as exc:
                 raise DataError(str(exc), self.source) from None
         elif self.kind in ("pattern", "index"):
