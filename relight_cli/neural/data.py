@@ -198,6 +198,7 @@ class CaptureData:
         self._env_maps = {}
         self._check_eval_grid()
         self._cameras = {c.name: c for c in self.capture.cameras}
+        self._check_image_sizes()
         frames = self.capture.frames
         for f in frames:
             if not 0 <= f.pose < self.hand.n_frames:
@@ -223,6 +224,28 @@ class CaptureData:
             if self.heldout_frames else None
         self.train_fully_lit_frames = [f for f in self.fully_lit_frames
                                        if cut is None or (f.time, f.index) < cut]
+
+    def _check_image_sizes(self) -> None:
+        """Each camera's size against the first image of it in the folder, and against
+        every evaluation render (their EXR headers only, milliseconds each): a camera
+        whose declared size its images do not have is refused naming the image before any
+        training, not when the final evaluation reads it (issue 52's sweep: a distill run
+        trained, then failed).  Any other image of a wrong size is still refused when read."""
+        from relight_cli.formats.capture import image_path
+        first = {}
+        for f in self.capture.frames:
+            for name in f.images:
+                first.setdefault(name, image_path(f.index, name))
+        checks = list(first.items())
+        if self.capture.evaluation is not None:
+            checks += [(r["camera"], r["image"]) for r in self.capture.evaluation["renders"]]
+        for name, relative in checks:
+            path = os.path.join(self.folder, relative)
+            size = _exr_size(path)
+            camera = self._cameras[name]
+            if size is not None and size != (camera.width, camera.height):
+                raise DataError(f"image is {size[0]}x{size[1]}, camera {name!r} is "
+                                f"{camera.width}x{camera.height}", path)
 
     def _check_eval_grid(self) -> None:
         """Bound ``settings.eval_env_res`` by what the folder holds: a capture stores each
@@ -485,3 +508,21 @@ class CaptureData:
                 mean = mean[iy, ix]
             out[k] = np.transpose(mean, (2, 0, 1))
         return out
+
+
+def _exr_size(path: str):
+    """(width, height) from an image's header, or None when it cannot be opened (its
+    reader says why when it is read)."""
+    import OpenImageIO as oiio
+
+    from relight_cli.formats.image import _library_quiet
+    with _library_quiet():
+        inp = oiio.ImageInput.open(path)
+        if inp is None:
+            oiio.geterror()
+            return None
+        try:
+            spec = inp.spec()
+            return int(spec.width), int(spec.height)
+        finally:
+            inp.close()

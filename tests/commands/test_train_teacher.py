@@ -126,6 +126,7 @@ BAD_CONFIGS = {"bad-config": {"tex_res": 33}, "bad-head": {"head": "inside", "un
 @pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
                                   "other-hand", "other-hand-file",
                                   "eval-env-res-beyond-its-maps", "wrapped-config-list",
+                                  "camera-size-mismatch",
                                   "iters-0", "unknown-preset", "not-pt", "not-a-folder",
                                   *BAD_CONFIGS, "resume-other-config"])
 def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli, small_teacher):
@@ -170,6 +171,10 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
         # eval maps made the ceiling integrate 33 M directions (> 5 min, 17 GB, no output);
         # a capture stores each eval map on that grid, so the folder bounds the value
         _edit_index(cap, lambda o: o["settings"].update(eval_env_res=[4096, 8192]))
+    elif case == "camera-size-mismatch":
+        # issue 52's sweep: a camera whose declared size its images do not have trained
+        # (distill, minutes) and failed at the final evaluation; now refused before
+        _edit_index(cap, lambda o: o["cameras"][0].update(width=32, height=24))
     elif case == "iters-0":
         args[-1] = "0"
         code = 2
@@ -204,6 +209,8 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
     assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in r.output, r.output
     if case in ("other-hand", "other-hand-file"):
         assert lines[0].endswith(f"({cap / 'hand.npz'})") and "left" in lines[0], lines[0]
+    if case == "camera-size-mismatch":
+        assert "camera 'cam000' is 32x24" in lines[0] and lines[0].endswith(".exr)"), lines[0]
     if case == "eval-env-res-beyond-its-maps":
         assert lines[0].endswith(f"({cap / 'capture.json'})") and "32x16" in lines[0], lines[0]
     if case in BAD_CONFIGS or case == "wrapped-config-list":   # issue 52 cause 12: the
