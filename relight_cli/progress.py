@@ -74,7 +74,8 @@ class PlainProgress:
 
     A line is written when at least ``interval`` seconds passed since the last
     one (or the start), and once at the end (exhausted iteration, ``close()``, or
-    a ``with`` block left without an exception); an error leaves no final line,
+    a ``with`` block left without an exception; not twice when the last update
+    said the same line); an error leaves no final line,
     so a failing command still prints its one error line last.  ``stream=None``
     writes nothing (``--quiet``).
     """
@@ -141,6 +142,10 @@ class PlainProgress:
     def _write(self) -> None:
         if self.stream is None:
             return
+        line = self.line()
+        if line == getattr(self, "_said", None):
+            return          # the final line of a bar whose last update said it already
         _shown()
-        self.stream.write(self.line() + "\n")
+        self._said = line
+        self.stream.write(line + "\n")
         self.stream.flush()
