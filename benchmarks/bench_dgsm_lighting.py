@@ -339,9 +339,11 @@ def main():
         print("# DGSM paper Table 1: lighting consistency per clip, original against relit\n")
         print("{run}\n")
         print(B.machine_line(machine) + "\n")
+        lamp = ("the lamp as a direct light on the room without it" if args.direct_light
+                else "the lamp in the probe")
         print(f"Clips: {', '.join(sources)}, {n_frames} frames each; the avatar relit per "
               f"frame with its probe refitted at its centre (degree 2), the DGSM rebuilt, "
-              f"{'the lamp as a direct light on the room without it' if args.direct_light else 'the lamp in the probe'}"
+              f"{lamp}"
               f"; original = relit by a uniform probe of radiance 1 (its captured colours). "
               f"Paper's Table 1 for scale: PAA-Y {PAPER['paa_y']}, APF-Y {PAPER['apf_y']}, "
               f"NCM-ab {PAPER['ncm_ab']}.")

@@ -127,10 +127,12 @@ def dgsm(results: Path = RESULTS) -> str:
             continue
         seen.append(key)
         if c["table"] == "D":
-            ratio = c["ours"][1] / c["ours"][0]
-            lines.append(f"| disabling {c['other']} slows the DGSM build ({c['paper'][0]} s → "
+            what = {"no ROI": "the receiver ROI", "no light-space culling":
+                    "light-space culling"}.get(c["other"], c["other"])
+            lines.append(f"| disabling {what} slows the DGSM build ({c['paper'][0]} s → "
                          f"{c['paper'][1]} s) | D | {_dgsm_word(c['verdict'])} "
-                         f"({ratio:.1f}× slower, {n_seeds} seeds) |")
+                         f"({c['mean']:+.2f} ± {c['std']:.2f} dB of the time ratio, "
+                         f"{n_seeds} seeds) |")
             continue
         cells = []
         for metric, label in DGSM_METRICS:

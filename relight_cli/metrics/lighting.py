@@ -227,10 +227,15 @@ def robust_linear_fit(design: np.ndarray, target: np.ndarray, weights: np.ndarra
 
 
 def lab_ab(colors: np.ndarray) -> np.ndarray:
-    """[N, 2] CIE-Lab (a*, b*) of degree-0 colours read as sRGB in [0, 1]."""
-    from skimage.color import rgb2lab
-    rgb = np.clip(np.asarray(colors, np.float64), 0.0, 1.0).reshape(-1, 1, 3)
-    return rgb2lab(rgb).reshape(-1, 3)[:, 1:]
+    """[N, 2] CIE-Lab (a*, b*, D65) of degree-0 colours, which are linear RGB in memory
+    (formats/gaussians_ply.md, "Colour space": a 3DGS file's sRGB is decoded on read):
+    linear sRGB → XYZ → Lab (scikit-image's ``xyz2lab``), negatives clipped at 0, values
+    above 1 kept (Lab of HDR colours has L* > 100; a* and b* stay chromaticity)."""
+    from skimage.color import xyz2lab
+    from skimage.color.colorconv import xyz_from_rgb     # linear sRGB → XYZ (its rgb2lab's)
+    rgb = np.clip(np.asarray(colors, np.float64), 0.0, None).reshape(-1, 3)
+    xyz = (rgb @ np.asarray(xyz_from_rgb).T).reshape(-1, 1, 3)
+    return xyz2lab(xyz).reshape(-1, 3)[:, 1:]
 
 
 def systematic_resample(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

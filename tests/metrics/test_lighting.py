@@ -239,3 +239,20 @@ def test_metrics_version1_lighting_record_upgrades():
     assert rec["metrics"]["delta"]["paa_angle"] == -2.0
     image = {"format": "relight/metrics", "version": 1, "kind": "image", "metrics": {"mse": 1.0}}
     assert loads(json.dumps(image), "i.json")["metrics"] == {"mse": 1.0}
+
+
+def test_lab_ab_reads_linear_colours_as_scikit_image_reads_their_srgb_encoding():
+    """Colours are linear in memory (a 3DGS file's sRGB is decoded on read), so a*b* are
+    those of the same colour sRGB-encoded, as scikit-image's rgb2lab reads it (the old
+    code read the linear values as sRGB: (0.604, 0.133, 0.033) gave a*b* (48.0, 43.6)
+    instead of (36.9, 46.1)); HDR values above 1 keep their chromaticity."""
+    from skimage.color import rgb2lab
+
+    from relight_cli.formats.gaussians_ply import srgb_eotf
+    srgb = np.random.default_rng(0).uniform(0, 1, (200, 3))
+    srgb[0] = [0.8, 0.4, 0.2]
+    linear = srgb_eotf(srgb)
+    expected = rgb2lab(srgb.reshape(-1, 1, 3)).reshape(-1, 3)[:, 1:]
+    np.testing.assert_allclose(lab_ab(linear), expected, atol=2e-3)
+    np.testing.assert_allclose(lab_ab(linear[:1]), [[36.9, 46.1]], atol=0.1)
+    assert np.isfinite(lab_ab(4.0 * linear)).all()
