@@ -13,7 +13,9 @@ from relight_cli.sequence import parse_frames
 @click.command("fit-geometry", short_help="Pose or fit the articulated hand; write hand.npz.")
 @click.option("-o", "--output", required=True, help="Output hand.npz.")
 @click.option("--template", default="builtin:right", show_default=True,
-              help="builtin:right, builtin:left, a skinned glTF/GLB hand, or a hand.npz.")
+              help="builtin:right, builtin:left, a skinned glTF/GLB hand, or a hand.npz. "
+                   "Not given: the built-in hand of the tracked side (--hand left, or a "
+                   "recording of a left hand, takes builtin:left).")
 @click.option("--pose", default=None,
               help="Without targets: a named pose (open relaxed fist point pinch ok spread claw), "
                    "'random', or a JSON file of poses. Default: relaxed.")
@@ -93,6 +95,10 @@ def command(output, template, pose, n_frames, keypoints, keypoints_format, hand_
         check_input(keypoints)
 
     # ---- inputs, then the job (its log lines come once every input has been read)
+    from relight_cli.cli.tools import given_options
+    chosen = "template" in given_options(click.get_current_context())
+    if not chosen and hand_choice in ("left", "right"):
+        template = f"builtin:{hand_choice}"      # --hand left: the left built-in hand
     template_hand = I.load_template(template)
     inputs = {} if template.startswith("builtin:") else {"template": template}
     settings = {"template": template, "seed": seed, "two_hands": two_hands}
@@ -105,7 +111,14 @@ def command(output, template, pose, n_frames, keypoints, keypoints_format, hand_
             inputs["pose"] = pose
     else:
         kp = None if keypoints is None else I.load_keypoints(
-            keypoints, template_hand, keypoints_format, leap_hand, frame_slice)
+            keypoints, template_hand, keypoints_format, leap_hand, frame_slice,
+            side_follows=not chosen)
+        if kp is not None and kp.side not in (None, template_hand.side):
+            # the tracked hand is the other one and --template was not given: its built-in
+            template = f"builtin:{kp.side}"
+            template_hand = I.load_template(template)
+            settings["template"] = template
+            say(f"note: the tracked hand is a {kp.side} hand: template {template}")
         points = None if scan_paths is None else I.load_scans(scan_paths, seed)
         options = job.FitGeometryOptions(iterations, not no_bone_scales, offsets, smooth,
                                          interpolate, seed, two_hands)

@@ -223,12 +223,15 @@ def leap_hand(text: str | None):
         raise UsageProblem(str(exc)) from None
 
 
-def load_keypoints(spec: str, template, reader: str = "auto", hand=None, frames=None):
+def load_keypoints(spec: str, template, reader: str = "auto", hand=None, frames=None,
+                   side_follows: bool = False):
     """3D keypoints of ``spec`` (relight/keypoints JSON/.npy, or a Leap recording) in
     ``template``'s joint order (a :class:`relight_cli.formats.keypoints.Keypoints`),
     checked against the template's handedness and cut to the ``frames`` slice of frame
     numbers (``--frames``: :func:`relight_cli.sequence.parse_frames`).  ``reader``: auto|keypoints|leap; ``hand``: the Leap
-    hand (:func:`leap_hand`)."""
+    hand (:func:`leap_hand`); ``side_follows``: a tracked hand of the other side than
+    ``template``'s is returned (the caller takes the matching template) instead of
+    refused."""
     from relight_cli.errors import DataError, UsageProblem
     from relight_cli.formats.keypoints import read_keypoints
 
@@ -236,9 +239,9 @@ def load_keypoints(spec: str, template, reader: str = "auto", hand=None, frames=
     if hand is not None and kp.source is None:
         raise UsageProblem("--hand applies to Leap recordings only")
     side = template.side
-    if kp.side is not None and kp.side != side:
+    if kp.side is not None and kp.side != side and not side_follows:
         raise DataError(f"the tracked hand is a {kp.side} hand but the template is a {side} "
-                        f"hand; use --template builtin:{kp.side} (or --hand)", spec)
+                        f"hand; use --template builtin:{kp.side}", spec)
     if frames is not None:
         f = kp.frames
         start, step = frames.start or 0, frames.step or 1

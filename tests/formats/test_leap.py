@@ -315,8 +315,8 @@ def test_cli_bad_input(run_cli, tmp_path, truth):
     joints = truth[4]
     good = _write(tmp_path, leap_recording([[(3, "right", joints[0])]]))
     left = _write(tmp_path, leap_recording([[(3, "left", joints[0] * [-1, 1, 1])]]), "left.json")
-    _one_error(run_cli("fit-geometry", "--keypoints", left, "-o", out), 1,
-               "left hand but the template is a right hand")
+    _one_error(run_cli("fit-geometry", "--keypoints", left, "--template", "builtin:right",
+                       "-o", out), 1, "left hand but the template is a right hand")
     _one_error(run_cli("fit-geometry", "--keypoints", good, "--hand", "8", "-o", out), 1,
                "no hand with id 8")
     _one_error(run_cli("fit-geometry", "--keypoints", good, "--hand", "thumb", "-o", out), 2,
@@ -421,3 +421,29 @@ def test_type_tie_is_broken_by_order_of_appearance_not_hash_seed():
                                capture_output=True, text=True, check=True)
             outs.add(r.stdout.strip())
         assert outs == {first}, (first, outs)
+
+
+def test_a_left_hand_recording_takes_the_left_template_unless_one_is_given(tmp_path):
+    """Issue 53: `fit-geometry --keypoints REC --hand left` failed unless `--template
+    builtin:left` was added, and its message suggested "(or --hand)", which was given.
+    Without --template the left built-in hand is taken (for --hand left, and for an
+    automatic choice that finds a left hand); an explicit --template of the other hand is
+    still refused, naming the template to use."""
+    from click.testing import CliRunner
+
+    from relight_cli.cli import cli
+    from relight_cli.formats.hand_npz import read_hand
+    left = builtin_hand("left", pose="relaxed")
+    joints = posed_joints(left.poses[0], left.translations[0], left.rest_joints, left.parents)
+    rec = _write(tmp_path, leap_recording([[(3, "left", joints)] for _ in range(2)]),
+                 "rec.json")
+    for extra in (["--hand", "left"], []):
+        out = tmp_path / f"fit{len(extra)}.npz"
+        r = CliRunner().invoke(cli, ["fit-geometry", "--keypoints", str(rec), *extra,
+                                     "--iterations", "20", "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        assert read_hand(str(out)).side == "left"
+    r = CliRunner().invoke(cli, ["fit-geometry", "--keypoints", str(rec), "--hand", "left",
+                                 "--template", "builtin:right", "-o", str(tmp_path / "x.npz")])
+    assert r.exit_code == 1 and "use --template builtin:left" in r.output
+    assert "(or --hand)" not in r.output and not (tmp_path / "x.npz").exists()
