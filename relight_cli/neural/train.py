@@ -422,6 +422,9 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
     seconds = time.perf_counter() - t_start
     final = {}
     if rank == 0:
+        if log:     # it can take minutes on a large capture: say what the silence is
+            log("final validation: scoring the model on the capture's validation samples, "
+                "each beside its ceiling")
         final = {"step": config.iters, **task.evaluate(model, device)}
         history.append(final)
         every = evaluate_every(task, model, device)
