@@ -62,7 +62,8 @@ def clip(a, given: set) -> None:
     made = GC.frames(sources, frames, scene, options, lights, probe, shadow_maps, view, bg,
                     names=[s.spec for s in sources], log=say)
     settings = _settings(a, sources, options, lights, bg)
-    video = _Video(a.video, _fps(sources)) if a.video is not None else None
+    video = (_Video(a.video, _fps(sources), a.preview_exposure) if a.video is not None
+             else None)
 
     def write(f):
         say.done = True
@@ -129,6 +130,8 @@ def _usage(a, given):
              "--receivers-out needs --receivers"),
             (a.preview is not None and a.camera is None,
              "--preview needs --camera (a rendered view)"),
+            (a.preview_exposure is not None and a.preview is None and a.video is None,
+             "--preview-exposure sets the tone mapping of --preview or --video: give one"),
             (a.video is not None and (a.camera is None or a.frames is None),
              "--video plays a clip's views: give --frames and --camera CAMERA.json")):
         if wrong:
@@ -322,7 +325,7 @@ def _write_frame(a, paths, f, view, inputs, settings, bg) -> None:
               provenance=provenance("relight/render", 1, inputs, settings), camera=view)
     if paths.get("--preview") is not None:
         from relight_cli.preview import write_preview
-        write_preview(paths["--preview"], relit.rgb)
+        write_preview(paths["--preview"], relit.rgb, exposure=a.preview_exposure)
 
 
 class _first_frame_log:
@@ -342,8 +345,8 @@ class _Video:
     so the light's change between frames shows and nothing flickers), kept as 8-bit
     frames and written at the end as one animated WebP or PNG."""
 
-    def __init__(self, path: str, fps: float):
-        self.path, self.fps, self.frames, self.exposure = path, fps, [], None
+    def __init__(self, path: str, fps: float, exposure: float | None = None):
+        self.path, self.fps, self.frames, self.exposure = path, fps, [], exposure
 
     def add(self, rgb) -> None:
         import numpy as np

@@ -68,6 +68,7 @@ class Run:
     camera: str | None
     background: str
     preview: str | None
+    preview_exposure: float | None
     frame: int | None
     frames: str | None
     lights_spec: str | None
@@ -158,6 +159,12 @@ class Run:
 @click.option("--preview", default=None, metavar="PNG",
               help="With --camera: a tone-mapped PNG of the view too (with --frames a pattern "
                    "holding {frame}).")
+@click.option("--preview-exposure", type=FiniteFloat(0, 1e12, min_open=True), default=None,
+              metavar="S",
+              help="A fixed scale for --preview's tone mapping (Reinhard after × S), the same "
+                   "for every picture: renders compared side by side, or a sequence's frames, "
+                   "show their change [default: each picture its own, key 0.18 over its "
+                   "log-average].")
 @click.option("--frame", "frame", type=click.IntRange(0), default=None, metavar="K",
               help="One frame of a moving IN/--object (a hand.npz's motion, a "
                    "'{frame}' PLY pattern or a relight/gaussian-sequence index) [default: its "
@@ -331,6 +338,8 @@ def _gaussian_usage(a, given: set = frozenset()) -> tuple:
              "--receivers-out needs --receivers"),
             (a.preview is not None and a.camera is None,
              "--preview needs --camera (a rendered view)"),
+            (a.preview_exposure is not None and a.preview is None,
+             "--preview-exposure sets --preview's tone mapping: give --preview PNG"),
             (a.shadow_matte is not None and (a.camera is None or a.dgsm is None),
              "--shadow-matte renders a matte: give --camera CAMERA.json and --dgsm "
              "SHADOWS.exr (its lights)")):
@@ -411,7 +420,7 @@ def _write_view(a, channels, rgb, view, inputs, settings, attributes) -> None:
               provenance=provenance("relight/render", 1, inputs, settings), camera=view)
     if a.preview is not None:
         from relight_cli.preview import write_preview
-        write_preview(a.preview, rgb)
+        write_preview(a.preview, rgb, exposure=a.preview_exposure)
 
 
 def _read_view(path):

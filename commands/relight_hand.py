@@ -51,6 +51,7 @@ class Run:
     camera: str | None
     background: str
     preview: str | None
+    preview_exposure: float | None
     hand_size: str | None
     hand_lights: str | None
     hand_frame: int | None
@@ -152,6 +153,12 @@ def _model_help() -> str:
               help="Background radiance of the image.")
 @click.option("--preview", default=None, metavar="PNG",
               help="A tone-mapped PNG too (with --frames a pattern holding {frame}).")
+@click.option("--preview-exposure", type=FiniteFloat(0, 1e12, min_open=True), default=None,
+              metavar="S",
+              help="A fixed scale for --preview's tone mapping (Reinhard after × S), the same "
+                   "for every picture: renders compared side by side, or a sequence's frames, "
+                   "show their change [default: each picture its own, key 0.18 over its "
+                   "log-average].")
 @seed_option
 @no_clobber_option
 @quiet_option
@@ -274,7 +281,8 @@ def _hand_physical(a) -> None:
     record = J.physical_settings(settings, mesh_name, p.roughness_map, a.seed, bg)
     renders = J.physical(data, frames, framing, materials, settings,
                          lights, envmap, bg, mesh_name, aovs, a.input)
-    write_renders(outputs, renders, len(frames), inputs, record, start, a.output, a.quiet)
+    write_renders(outputs, renders, len(frames), inputs, record, start, a.output, a.quiet,
+                  exposure=a.preview_exposure)
 
 
 def _physical_usage(a) -> tuple:
@@ -354,7 +362,7 @@ def _hand_learned(a, spec) -> None:
                                denv, bg, a.input,
                                progress=None if passes_bar is None else passes_bar.update)
         write_renders(outputs, renders, len(frames), inputs, settings, start, a.output, a.quiet,
-                      passes=passes is not None)
+                      passes=passes is not None, exposure=a.preview_exposure)
 
 
 def _load_model(a, spec, paths, data, device):
@@ -391,6 +399,8 @@ def _view_options(a) -> tuple:
     from relight_cli.sequence import Outputs, check_frame
     if a.env is None and a.hand_lights is None:
         raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
+    if a.preview_exposure is not None and a.preview is None:
+        raise UsageProblem("--preview-exposure sets --preview's tone mapping: give --preview PNG")
     check_extension(a.output, "exr")
     if a.camera is not None and a.hand_size is not None:
         raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")

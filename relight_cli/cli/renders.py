@@ -10,7 +10,8 @@ from __future__ import annotations
 
 
 def write_renders(outputs, renders, n_frames: int, inputs: dict, settings: dict, start: float,
-                  output: str, quiet: bool = False, passes: bool = False) -> list:
+                  output: str, quiet: bool = False, passes: bool = False,
+                  exposure: float | None = None) -> list:
     """Write each FrameRender of ``renders`` (EXR: its channels and camera, provenance with
     its ``frame``; the ``--preview`` PNG), then log what the run cost (``passes``: its
     network passes too).  ``inputs``' None roles are left out.  Returns the renders, their
@@ -32,7 +33,7 @@ def write_renders(outputs, renders, n_frames: int, inputs: dict, settings: dict,
             provenance=record, camera=r.view)
         if paths.get("--preview") is not None:
             from relight_cli.preview import write_preview
-            write_preview(paths["--preview"], r.rgb)
+            write_preview(paths["--preview"], r.rgb, exposure=exposure)
         r.rgb = r.channels = None          # the pixels are written; keep the timings
         return r
     done = write_sequence(renders, write, n_frames, "relight (frames)", quiet,

@@ -412,3 +412,26 @@ def test_avatar_export_quirks_are_repaired(scene, tmp_path):
     assert r.exit_code == 0, r.output
     for k in range(2):
         assert np.isfinite(_pixels(tmp_path / f"o_{k}.exr").layer("")).all()
+
+
+def test_preview_exposure_is_one_scale_for_every_picture(scene, tmp_path, monkeypatch):
+    """--preview-exposure (issue 53: previews each exposed on their own hide the change
+    they show): every preview of a sequence, and its video, tone-mapped with the one
+    scale given (the tone mapping itself is tests/render's); without --preview it is a
+    usage error."""
+    import relight_cli.preview as P
+    from relight_cli.tonemap import tonemap
+    used, video = [], []
+    real = P.write_preview
+    monkeypatch.setattr(P, "write_preview", lambda path, rgb, exposure=None, **kw: (
+        used.append(exposure), real(path, rgb, exposure=exposure, **kw))[1])
+    monkeypatch.setattr("relight_cli.tonemap.tonemap", lambda rgb, exposure=None, **kw: (
+        video.append(exposure), tonemap(rgb, exposure, **kw))[1])
+    r = _invoke(scene, "relight", "seq/ball_{frame:03d}.ply", "--frames", "0:3", *CLIP,
+                "-o", tmp_path / "f_{frame}.exr", "--preview", tmp_path / "p_{frame}.png",
+                "--video", tmp_path / "v.webp", "--preview-exposure", "2")
+    assert r.exit_code == 0, r.output
+    assert used == [2.0] * 3 and video == [2.0] * 6, (used, video)   # previews + video
+    r = _invoke(scene, "relight", "seq/ball_{frame:03d}.ply", "--frame", "0", *CLIP,
+                "-o", tmp_path / "x.exr", "--preview-exposure", "2")
+    assert r.exit_code == 2 and "--preview-exposure" in r.output

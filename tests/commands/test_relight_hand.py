@@ -205,3 +205,23 @@ def test_image_maps(run_cli, files):
     r = run_cli(*base, "--albedo", files / "hot.exr", "-o", files / "hot_out.exr")
     assert r.exit_code == 1 and "albedo map values" in r.output and "hot.exr" in r.output
     assert not (files / "hot_out.exr").exists()
+
+
+def test_preview_exposure(run_cli, files, monkeypatch):
+    """--preview-exposure S: the hand's --preview tone-mapped with that one scale (issue 53:
+    two renders compared side by side each exposed on their own look alike); without
+    --preview a usage error, nothing written."""
+    import relight_cli.preview as P
+    used = []
+    real = P.write_preview
+    monkeypatch.setattr(P, "write_preview", lambda path, rgb, exposure=None, **kw: (
+        used.append(exposure), real(path, rgb, exposure=exposure, **kw))[1])
+    r = run_cli("relight", "builtin:right", "builtin:sky", "--camera", files / "cam.json",
+                "-o", files / "e.exr", "--preview", files / "e.png", "--preview-exposure",
+                "0.5", *FAST, "-q")
+    assert r.exit_code == 0, r.output
+    assert used == [0.5]
+    r = run_cli("relight", "builtin:right", "builtin:sky", "--camera", files / "cam.json",
+                "-o", files / "f.exr", "--preview-exposure", "0.5", *FAST)
+    assert r.exit_code == 2 and "--preview-exposure" in r.output
+    assert not (files / "f.exr").exists()
