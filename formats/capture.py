@@ -198,6 +198,16 @@ def _settings(settings, path):
                             f"[{hlo}, {hhi}] and W in [{wlo}, {whi}], got {value!r}"[:200], path)
 
 
+def _inside(value, what, path):
+    """A file the capture names: a relative path inside the capture folder (no absolute
+    path, no ``..`` leaving it), so a capture reads only its own files."""
+    norm = os.path.normpath(value)
+    if os.path.isabs(value) or norm == ".." or norm.startswith(".." + os.sep):
+        raise DataError(f"{what} must be a path inside the capture folder, got {value!r}"[:200],
+                        path)
+    return value
+
+
 def _evaluation(ev, camera_names, path):
     """The checked ``evaluation`` object: ``hand`` (a path), ``envs`` (name → path) and
     ``renders`` (each a pose ≥ 0, one of the envs, one of the cameras and an image path)."""
@@ -206,12 +216,13 @@ def _evaluation(ev, camera_names, path):
     for key in ("hand", "envs", "renders"):
         if key not in ev:
             raise DataError(f"'evaluation' lacks '{key}'", path)
-    _string(ev["hand"], "evaluation.hand", path)
+    _inside(_string(ev["hand"], "evaluation.hand", path), "evaluation.hand", path)
     envs = ev["envs"]
     if not isinstance(envs, dict):
         raise DataError("evaluation.envs must be an object (env name → env map path)", path)
     for name, file in envs.items():
-        _string(file, f"evaluation.envs[{name!r}]", path)
+        _inside(_string(file, f"evaluation.envs[{name!r}]", path), f"evaluation.envs[{name!r}]",
+                path)
     if not isinstance(ev["renders"], list):
         raise DataError("evaluation.renders must be a list", path)
     for i, r in enumerate(ev["renders"]):
@@ -225,7 +236,7 @@ def _evaluation(ev, camera_names, path):
         if r.get("camera") not in camera_names:
             raise DataError(f"{what}.camera must name one of the cameras, got "
                             f"{r.get('camera')!r}"[:200], path)
-        _string(r.get("image"), f"{what}.image", path)
+        _inside(_string(r.get("image"), f"{what}.image", path), f"{what}.image", path)
     return ev
 
 
@@ -249,7 +260,8 @@ def capture_from_json(obj, path: str = "") -> Capture:
             raise DataError(f"'{key}' must be a list", path)
     if "hand" not in obj:
         raise DataError("'hand' is missing (the path of the capture's hand.npz)", path)
-    hand = _string(obj["hand"], "'hand' (the path of the capture's hand.npz)", path)
+    hand = _inside(_string(obj["hand"], "'hand' (the path of the capture's hand.npz)", path),
+                   "'hand'", path)
     fps = obj.get("fps", 30.0)
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not (
             math.isfinite(fps) and fps > 0):

@@ -243,6 +243,9 @@ class CaptureData:
             path = os.path.join(self.folder, relative)
             size = _exr_size(path)
             camera = self._cameras[name]
+            if size is None and os.path.isfile(path):
+                raise DataError("not a readable EXR image (a capture image is an OpenEXR "
+                                "file, formats/capture.md)", path)
             if size is not None and size != (camera.width, camera.height):
                 raise DataError(f"image is {size[0]}x{size[1]}, camera {name!r} is "
                                 f"{camera.width}x{camera.height}", path)

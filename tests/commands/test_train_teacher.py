@@ -126,7 +126,7 @@ BAD_CONFIGS = {"bad-config": {"tex_res": 33}, "bad-head": {"head": "inside", "un
 @pytest.mark.parametrize("case", ["no-grouped", "missing-image", "nan-image", "wrong-hand",
                                   "other-hand", "other-hand-file",
                                   "eval-env-res-beyond-its-maps", "wrapped-config-list",
-                                  "camera-size-mismatch",
+                                  "camera-size-mismatch", "eval-render-not-exr",
                                   "iters-0", "unknown-preset", "not-pt", "not-a-folder",
                                   *BAD_CONFIGS, "resume-other-config"])
 def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_cli, small_teacher):
@@ -171,6 +171,10 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
         # eval maps made the ceiling integrate 33 M directions (> 5 min, 17 GB, no output);
         # a capture stores each eval map on that grid, so the folder bounds the value
         _edit_index(cap, lambda o: o["settings"].update(eval_env_res=[4096, 8192]))
+    elif case == "eval-render-not-exr":
+        # issue 52's sweep: an eval render that is no EXR trained first, then failed
+        render = json.loads((cap / "capture.json").read_text())["evaluation"]["renders"][0]
+        (cap / render["image"]).write_text("not an image")
     elif case == "camera-size-mismatch":
         # issue 52's sweep: a camera whose declared size its images do not have trained
         # (distill, minutes) and failed at the final evaluation; now refused before
@@ -209,6 +213,8 @@ def test_train_teacher_bad_input(case, capture_dir, small_config, tmp_path, run_
     assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in r.output, r.output
     if case in ("other-hand", "other-hand-file"):
         assert lines[0].endswith(f"({cap / 'hand.npz'})") and "left" in lines[0], lines[0]
+    if case == "eval-render-not-exr":
+        assert "not a readable EXR image" in lines[0], lines[0]
     if case == "camera-size-mismatch":
         assert "camera 'cam000' is 32x24" in lines[0] and lines[0].endswith(".exr)"), lines[0]
     if case == "eval-env-res-beyond-its-maps":

@@ -37,6 +37,19 @@ def test_format_round_trip_and_rejections(tmp_path):
             ({"frames": [{"index": 0, "pose": 0, "lit": "half"}]}, "'full' or 'group'"),
             ({"lights": [{"position": [0, "x", 0]}]}, "position"),
             ({"cameras": []}, "'cameras' is empty"),
+            # a capture reads only its own files (issue 52's sweep: an eval render of
+            # /etc/passwd or ../x trained first and failed when read)
+            ({"hand": "/etc/hand.npz"}, "inside the capture folder"),
+            ({"evaluation": {"hand": "eval/hand.npz", "envs": {"sky": "../sky.exr"},
+                             "renders": []}}, "inside the capture folder"),
+            ({"evaluation": {"hand": "eval/hand.npz", "envs": {"sky": "eval/sky.exr"},
+                             "renders": [{"pose": 0, "env": "sky", "camera": "a",
+                                          "image": "/etc/passwd"}]}},
+             "inside the capture folder"),
+            ({"evaluation": {"hand": "eval/hand.npz", "envs": {"sky": "eval/sky.exr"},
+                             "renders": [{"pose": 0, "env": "sky", "camera": "a",
+                                          "image": "eval/../../x.exr"}]}},
+             "inside the capture folder"),
             # an image listed twice would be trained on twice, as a light listed twice in
             # lights_on would count twice (issue 52's sweep: it was read)
             ({"frames": [{"index": 0, "pose": 0, "lights_on": [0], "images": ["a", "a"]}]},
