@@ -244,6 +244,8 @@ class CaptureData:
             size = _exr_size(path)
             camera = self._cameras[name]
             if size is None and os.path.isfile(path):
+                from relight_cli.formats.exr import read_exr
+                read_exr(path)       # its reader's own line (permission denied, damaged …)
                 raise DataError("not a readable EXR image (a capture image is an OpenEXR "
                                 "file, formats/capture.md)", path)
             if size is not None and size != (camera.width, camera.height):
