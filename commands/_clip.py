@@ -8,12 +8,50 @@ video."""
 
 from __future__ import annotations
 
+import click
+
 from relight_cli.cli.tools import check_input, check_output, log
 
-#: Video file kinds: extension → Pillow format.
-VIDEO_FORMATS = {".webp": "WEBP", ".png": "PNG"}
 #: The frame rate of a clip whose sources do not declare one.
 DEFAULT_FPS = 24.0
+
+
+_CLIP_OPTIONS = [
+    click.option("--frame", "frame", type=click.IntRange(0), default=None, metavar="K",
+                 help="One frame of a moving IN/--object (a hand.npz's motion, a "
+                      "'{frame}' PLY pattern or a relight/gaussian-sequence index) [default: its "
+                      "first]."),
+    click.option("--frames", "frames", default=None, metavar="all|A:B[:S]",
+                 help="A clip in one process: every frame (all) or the frames A, A+S, … before "
+                      "B (A:B[:S], a Python slice). Per frame the moving IN/--object are placed "
+                      "(one placement for the clip), the shadow maps built (--lights) or read "
+                      "(--dgsm holding {frame}), the probes refitted (--probe scene); -o, "
+                      "--preview and --receivers-out are patterns holding {frame}."),
+    click.option("--lights", "lights_spec", default=None, metavar="LIGHTS.json|auto:K",
+                 help="Build the shadow maps in-process, per frame, from IN and --object over "
+                      "--receivers (128x128 octahedral atlas, 64 bins over the receivers' "
+                      "distances (dgsm-build --radial roi), ROI and culling) for these point "
+                      "lights (a relight/lights JSON, or auto:K: K "
+                      "lights estimated once from the scene, paper Sec. 3.1); instead of --dgsm."),
+    click.option("--shadow-size", default=None, metavar="N|WxH",
+                 help="With --lights: the in-process shadow maps' octahedral atlas, as "
+                      "dgsm-build --size [default: 128]."),
+    click.option("--probe-degree", type=click.IntRange(0, 8), default=None,
+                 help="With --probe scene: the SH degree of the refitted probes, fixed for the "
+                      "clip [default: 2]."),
+    click.option("--video", default=None, metavar="CLIP.webp|CLIP.png",
+                 help="With --frames and --camera: the clip as one animated WebP (lossy, "
+                      "small; plays in browsers) or animated PNG (lossless), tone-mapped with "
+                      "one exposure for every frame (the first frame's)."),
+]
+
+
+def clip_options(func):
+    """The Gaussian mode's clip options (--frame, --frames, --lights, --shadow-size,
+    --probe-degree, --video), in the order --help lists them."""
+    for option in reversed(_CLIP_OPTIONS):
+        func = option(func)
+    return func
 
 
 def clip(a, given: set) -> None:
@@ -88,9 +126,8 @@ def clip(a, given: set) -> None:
     what = (a.output if not outputs.sequence
             else f"{len(done)} frames to {a.output}")
     log(f"wrote {what} ({wall:.2f} s; per frame: {cost} s)", a.quiet)
-    for extra in (a.video,):
-        if extra is not None:
-            log(f"wrote {extra}", a.quiet)
+    if a.video is not None:
+        log(f"wrote {a.video}", a.quiet)
 
 
 def _usage(a, given):

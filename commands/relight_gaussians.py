@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import click
 
 from relight_cli.cli.tools import (FiniteFloat, ShadowStrength, check_input, check_output,
-                                   colour_space_option, log,
-                                   no_clobber_option, parse_vector, quiet_option, renamed_option,
+                                   colour_space_option, log, no_clobber_option, parse_vector,
+                                   preview_exposure_option, quiet_option, renamed_option,
                                    seed_option)
+from relight_cli.commands._clip import clip_options, gaussian_options, write_ply
 
 #: What IN may be in this mode: a Gaussians PLY (or a '{frame}' pattern of them), a mesh,
 #: a Gaussian sequence index, or a built-in Gaussian object.
@@ -159,38 +160,8 @@ class Run:
 @click.option("--preview", default=None, metavar="PNG",
               help="With --camera: a tone-mapped PNG of the view too (with --frames a pattern "
                    "holding {frame}).")
-@click.option("--preview-exposure", type=FiniteFloat(0, 1e12, min_open=True), default=None,
-              metavar="S",
-              help="A fixed scale for --preview's tone mapping (Reinhard after × S), the same "
-                   "for every picture: renders compared side by side, or a sequence's frames, "
-                   "show their change [default: each picture its own, key 0.18 over its "
-                   "log-average].")
-@click.option("--frame", "frame", type=click.IntRange(0), default=None, metavar="K",
-              help="One frame of a moving IN/--object (a hand.npz's motion, a "
-                   "'{frame}' PLY pattern or a relight/gaussian-sequence index) [default: its "
-                   "first].")
-@click.option("--frames", "frames", default=None, metavar="all|A:B[:S]",
-              help="A clip in one process: every frame (all) or the frames A, A+S, … before "
-                   "B (A:B[:S], a Python slice). Per frame the moving IN/--object are placed "
-                   "(one placement for the clip), the shadow maps built (--lights) or read "
-                   "(--dgsm holding {frame}), the probes refitted (--probe scene); -o, "
-                   "--preview and --receivers-out are patterns holding {frame}.")
-@click.option("--lights", "lights_spec", default=None, metavar="LIGHTS.json|auto:K",
-              help="Build the shadow maps in-process, per frame, from IN and --object over "
-                   "--receivers (128x128 octahedral atlas, 64 bins over the receivers' "
-                   "distances (dgsm-build --radial roi), ROI and culling) for these point "
-                   "lights (a relight/lights JSON, or auto:K: K "
-                   "lights estimated once from the scene, paper Sec. 3.1); instead of --dgsm.")
-@click.option("--shadow-size", default=None, metavar="N|WxH",
-              help="With --lights: the in-process shadow maps' octahedral atlas, as "
-                   "dgsm-build --size [default: 128].")
-@click.option("--probe-degree", type=click.IntRange(0, 8), default=None,
-              help="With --probe scene: the SH degree of the refitted probes, fixed for the "
-                   "clip [default: 2].")
-@click.option("--video", default=None, metavar="CLIP.webp|CLIP.png",
-              help="With --frames and --camera: the clip as one animated WebP (lossy, "
-                   "small; plays in browsers) or animated PNG (lossless), tone-mapped with "
-                   "one exposure for every frame (the first frame's).")
+@preview_exposure_option
+@clip_options
 @colour_space_option
 @seed_option
 @no_clobber_option
@@ -286,15 +257,15 @@ def _gaussians(a, given: set = frozenset()) -> None:
                         f"({', '.join(shadow_map.group_names)}) but {len(objects)} "
                         f"object(s) were given (IN + --object, in dgsm-build's order)", a.dgsm)
     view = _read_view(a.camera)
-    relit = G.relight(objects, probe, _gaussian_options(a), shadow_map, scene, view, bg,
+    relit = G.relight(objects, probe, gaussian_options(a), shadow_map, scene, view, bg,
                       names=[source for source, _ in parsed], log=lambda m: log(m, a.quiet))
     settings = dict(relit.settings, objects=specs, colour_space=a.colour_space)
     inputs = _gaussian_inputs(a, parsed, camera=False)
     if a.receivers_out is not None:
-        _write_ply(a.receivers_out, relit.receivers, inputs, dict(settings, role="receivers"))
+        write_ply(a.receivers_out, relit.receivers, inputs, dict(settings, role="receivers"))
         log(f"wrote {a.receivers_out}", a.quiet)
     if view is None:
-        _write_ply(a.output, relit.objects, inputs, settings)
+        write_ply(a.output, relit.objects, inputs, settings)
         log(f"wrote {a.output} ({time.perf_counter() - start:.2f} s)", a.quiet)
         return
     _write_view(a, relit.channels, relit.rgb, view, _gaussian_inputs(a, parsed, camera=True),
@@ -357,11 +328,6 @@ def _gaussian_usage(a, given: set = frozenset()) -> tuple:
     return bg
 
 
-def _gaussian_options(a):
-    from relight_cli.commands._clip import gaussian_options
-    return gaussian_options(a)
-
-
 def _gaussian_inputs(a, parsed, camera: bool) -> dict:
     """The provenance roles of the Gaussian mode's input files."""
     inputs = {"input": parsed[0][0]}
@@ -395,7 +361,7 @@ def _shadow_matte(a, specs, parsed, bg, start) -> None:
                 meshes.append(SM.load_placed_mesh(source, placement))
             except ValueError as exc:
                 raise DataError(str(exc), spec) from None
-    options = _gaussian_options(a)
+    options = gaussian_options(a)
     options.light_weights = a.light_weights or "intensity"
     matte = G.shadow_matte(a.shadow_matte, scene, shadow_map, view, options, meshes, bg,
                            log=lambda m: log(m, a.quiet))
@@ -405,11 +371,6 @@ def _shadow_matte(a, specs, parsed, bg, start) -> None:
     log(f"wrote {a.output} (shadow matte, {a.shadow_matte}: "
         f"{int((matte.strength > 0.1).sum())} of {len(matte.strength)} receivers > 0.1, "
         f"{time.perf_counter() - start:.2f} s)", a.quiet)
-
-
-def _write_ply(path, gaussians, inputs, settings) -> None:
-    from relight_cli.commands._clip import write_ply
-    write_ply(path, gaussians, inputs, settings)
 
 
 def _write_view(a, channels, rgb, view, inputs, settings, attributes) -> None:

@@ -16,8 +16,8 @@ from dataclasses import dataclass, fields
 import click
 
 from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_output, log,
-                                   no_clobber_option, parse_vector, quiet_option, refuse_given,
-                                   seed_option)
+                                   no_clobber_option, parse_vector, preview_exposure_option,
+                                   quiet_option, refuse_given, seed_option)
 from relight_cli.cli.renders import frames_text, select_frames, view_of, write_renders
 from relight_cli.provenance import numbered_roles
 from relight_cli.sequence import FRAME_HELP, FRAMES_HELP
@@ -153,12 +153,7 @@ def _model_help() -> str:
               help="Background radiance of the image.")
 @click.option("--preview", default=None, metavar="PNG",
               help="A tone-mapped PNG too (with --frames a pattern holding {frame}).")
-@click.option("--preview-exposure", type=FiniteFloat(0, 1e12, min_open=True), default=None,
-              metavar="S",
-              help="A fixed scale for --preview's tone mapping (Reinhard after × S), the same "
-                   "for every picture: renders compared side by side, or a sequence's frames, "
-                   "show their change [default: each picture its own, key 0.18 over its "
-                   "log-average].")
+@preview_exposure_option
 @seed_option
 @no_clobber_option
 @quiet_option

@@ -201,6 +201,18 @@ def check_output(path: str | None, no_clobber: bool = False, text: bool = False,
         check_extension(path, kind, what)
 
 
+def preview_exposure_option(func):
+    """``--preview-exposure S``: one fixed tone-mapping scale for every preview of a run
+    (relight's hand and Gaussian modes; formats/preview.md)."""
+    return click.option(
+        "--preview-exposure", type=FiniteFloat(0, 1e12, min_open=True), default=None,
+        metavar="S",
+        help="A fixed scale for --preview's tone mapping (Reinhard after × S), the same for "
+             "every picture: renders compared side by side, or a sequence's frames, show "
+             "their change [default: each picture its own, key 0.18 over its "
+             "log-average].")(func)
+
+
 def preview_option(help: str):
     """``--preview PNG``: a picture of the result (relight_cli.preview), never data;
     commands check it with ``check_output(path, no_clobber, kind="png", what="--preview")``."""
