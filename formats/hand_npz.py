@@ -92,6 +92,9 @@ class HandData:
         bone_scales: [J] float64 personalization already baked into rest_joints/vertices
             (scale of the offset joint − parent; 1 for the root), for information.
         inverse_bind_matrices: [J, 4, 4] float64 from an imported glTF skin, or None.
+        mean_texture: [3, N, N] float32 the subject's mean texture T̄ in sr⁻¹ (URHand
+            Sec. 4: what ``relight --model linear`` conditions on; ``relight
+            personalize`` writes it), in the fine mesh's UV layout, or None.
     """
 
     joint_names: list[str]
@@ -104,6 +107,7 @@ class HandData:
     label_names: list[str] = field(default_factory=list)
     bone_scales: np.ndarray | None = None
     inverse_bind_matrices: np.ndarray | None = None
+    mean_texture: np.ndarray | None = None
 
     @property
     def n_joints(self) -> int:
@@ -175,6 +179,8 @@ def to_arrays(hand: HandData, provenance: dict | None = None) -> dict[str, np.nd
                                               for h in hand.hands[1:]])
     if hand.inverse_bind_matrices is not None:
         out["inverse_bind_matrices"] = np.asarray(hand.inverse_bind_matrices, np.float64)
+    if hand.mean_texture is not None:
+        out["mean_texture"] = np.asarray(hand.mean_texture, np.float32)
     return out
 
 
@@ -387,7 +393,27 @@ def from_arrays(arrays: dict, path: str = "<in memory>") -> HandData:
     ibm = _float(arrays, "inverse_bind_matrices", path, (J, 4, 4), required=False)
     return HandData(joint_names=[str(s) for s in names], parents=parents, rest_joints=rest,
                     coarse=meshes["coarse_"], fine=meshes["fine_"], side=side, hands=hands,
-                    label_names=label_names, bone_scales=scales, inverse_bind_matrices=ibm)
+                    label_names=label_names, bone_scales=scales, inverse_bind_matrices=ibm,
+                    mean_texture=_mean_texture(arrays, path))
+
+
+#: Side of a stored mean texture: a power of two from 4 to 4096 texels.
+MEAN_TEXTURE_SIZES = tuple(2**k for k in range(2, 13))
+
+
+def _mean_texture(arrays, path):
+    """The optional ``mean_texture`` [3, N, N] (float32, finite, ≥ 0, N a power of two in
+    4 … 4096), or None."""
+    t = _float(arrays, "mean_texture", path, (3, None, None), required=False)
+    if t is None:
+        return None
+    if t.shape[1] != t.shape[2] or t.shape[1] not in MEAN_TEXTURE_SIZES:
+        raise DataError(f"'mean_texture' must be (3, N, N) with N a power of two in 4 … 4096, "
+                        f"got {t.shape}", path)
+    if t.min() < 0 or t.max() > 1e6:
+        raise DataError(f"'mean_texture' values must lie in [0, 1e6] sr⁻¹ (found "
+                        f"{t.min():.3g} … {t.max():.3g})", path)
+    return t.astype(np.float32)
 
 
 def validate(hand: HandData, path: str = "<in memory>") -> None:
@@ -427,4 +453,6 @@ def validate(hand: HandData, path: str = "<in memory>") -> None:
         arrays["bone_scales"] = np.asarray(hand.bone_scales)
     if hand.inverse_bind_matrices is not None:
         arrays["inverse_bind_matrices"] = np.asarray(hand.inverse_bind_matrices)
+    if hand.mean_texture is not None:
+        arrays["mean_texture"] = np.asarray(hand.mean_texture)
     from_arrays(arrays, path)

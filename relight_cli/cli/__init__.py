@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "envmap": "relight_cli.commands.envmap:command",
     "fit-geometry": "relight_cli.commands.fit_geometry:command",
     "metrics": "relight_cli.commands.metrics:command",
+    "personalize": "relight_cli.commands.personalize:command",
     "relight": "relight_cli.commands.relight:command",
     "sh-probe": "relight_cli.commands.sh_probe:command",
     "synth-capture": "relight_cli.commands.synth_capture:command",

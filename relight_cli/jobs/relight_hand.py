@@ -410,6 +410,11 @@ class PerHandModels:
         except ValueError as exc:
             raise ModelProblem(str(exc), getattr(exc, "path", None)) from None
         self.config = self.per_hand[0].config
+        if data.mean_texture is not None and spec.subjects:
+            self.per_hand = EV.with_own_subject(self.per_hand, data.mean_texture)
+            if log is not None:
+                log("note: the hand file carries its subject's mean texture "
+                    f"({data.mean_texture.shape[-1]}²): the model renders that subject")
         for k, (m, side) in enumerate(zip(self.per_hand, handedness(data))):
             if log is not None and m.sides and side not in m.sides:
                 log(f"note: hand {k} ({side}) is rendered by {m.name}, trained on the "

@@ -455,14 +455,13 @@ class CaptureData:
         cosine between its normal and the view.  Texels no camera saw copy their nearest
         seen texel.  Used by the GGX baseline (App. B's T̄) and, later, URHand.
         """
-        from scipy.ndimage import distance_transform_edt
+        from relight_cli.formats import capture as C
 
-        from relight_cli.render.appearance import bilinear
+        from .unwrap import Accumulator, view_samples
 
         frames = self.fully_lit_frames or self.train_frames
         n = self.tex_res
-        total = np.zeros((self.n_hands, n, n, 3))
-        weight = np.zeros((self.n_hands, n, n))
+        acc = Accumulator(self.n_hands, n)
         views = 0
         for frame in frames:
             texels = self.texels(frame.pose)
@@ -471,47 +470,13 @@ class CaptureData:
                     break
                 views += 1
                 camera = self._cameras[cam_name]
-                from relight_cli.formats import capture as C
                 image, _ = C.read_image(os.path.join(self.folder, C.image_path(frame.index,
                                                                                 cam_name)), camera)
-                eye = np.asarray(camera.center, np.float64)
-                for k, surf in enumerate(texels.surfaces):
-                    d = surf.points - eye
-                    dist = np.linalg.norm(d, axis=1)
-                    d /= np.maximum(dist, 1e-300)[:, None]
-                    cos = -np.sum(d * surf.normals, 1)
-                    hits = texels.renderer.scene.intersect(np.broadcast_to(eye, d.shape), d)
-                    seen = (hits.hit & (hits.mesh == k) & (cos > 0)
-                            & (np.abs(hits.t - dist) < 1e-3 * np.maximum(dist, 1e-6) + 1e-4))
-                    cam = surf.points @ np.asarray(camera.R).T + np.asarray(camera.t)
-                    z = np.maximum(cam[:, 2], 1e-9)
-                    K = np.asarray(camera.K)
-                    px = K[0, 0] * cam[:, 0] / z + K[0, 1] * cam[:, 1] / z + K[0, 2]
-                    py = K[1, 1] * cam[:, 1] / z + K[1, 2]
-                    # pixel centres at integers (camera.md): pixel i covers [i − ½, i + ½)
-                    inside = ((px >= -0.5) & (px < camera.width - 0.5) & (py >= -0.5)
-                              & (py < camera.height - 0.5))
-                    ok = seen & inside & (cam[:, 2] > 0)
-                    if not ok.any():
-                        continue
-                    # bilinear() samples a map at UV (texel centres at (i + ½)/W); a pixel
-                    # position maps to (u, v) = ((px + ½) / W, 1 − (py + ½) / H).
-                    uv = np.stack([(px[ok] + 0.5) / camera.width,
-                                   1 - (py[ok] + 0.5) / camera.height], 1)
-                    colour = bilinear(image.astype(np.float64), uv)
-                    rows, cols = np.nonzero(surf.inside)
-                    rr, cc = rows[ok], cols[ok]
-                    np.add.at(total[k], (rr, cc), colour * cos[ok, None])
-                    np.add.at(weight[k], (rr, cc), cos[ok])
+                for k in range(self.n_hands):
+                    acc.add(k, view_samples(texels, k, camera, image))
         out = np.zeros((self.n_hands, 3, n, n), np.float32)
         for k in range(self.n_hands):
-            seen = weight[k] > 0
-            mean = np.divide(total[k], weight[k][..., None], out=np.zeros_like(total[k]),
-                             where=seen[..., None])
-            if seen.any():
-                _, (iy, ix) = distance_transform_edt(~seen, return_indices=True)
-                mean = mean[iy, ix]
-            out[k] = np.transpose(mean, (2, 0, 1))
+            out[k] = np.transpose(acc.mean(k), (2, 0, 1))
         return out
 
 

@@ -118,6 +118,43 @@ def load_hand_model(checkpoint: dict, device="cpu", name: str = "") -> HandModel
                      subjects)
 
 
+def resample_texture(texture: np.ndarray, n: int) -> np.ndarray:
+    """[3, M, M] → [3, n, n]: area averaging when M is a multiple of n (a stored T̄ at a
+    finer resolution than the model's), else bilinear at the texel centres."""
+    t = np.asarray(texture, np.float64)
+    m = t.shape[-1]
+    if m == n:
+        return t.astype(np.float32)
+    if m % n == 0:
+        f = m // n
+        return t.reshape(3, n, f, n, f).mean((2, 4)).astype(np.float32)
+    from relight_cli.render.appearance import bilinear
+    c = (np.arange(n) + 0.5) / n
+    u, v = np.meshgrid(c, 1 - c)
+    out = bilinear(np.transpose(t, (1, 2, 0)), np.stack([u.ravel(), v.ravel()], 1))
+    return np.transpose(out.reshape(n, n, 3), (2, 0, 1)).astype(np.float32)
+
+
+def with_own_subject(models: list, texture: np.ndarray) -> list:
+    """Each model conditioned on a subject's own T̄ ([3, M, M], e.g. a personalised
+    hand.npz's ``mean_texture``; URHand Sec. 5.4: a new identity's mean texture fed to
+    the universal model without finetuning), resampled to its resolution; ``subject``
+    becomes ``own``.  Models that take no T̄ (teachers without one) are returned as they
+    are."""
+    import dataclasses
+
+    from . import registry
+    out = []
+    for m in models:
+        if not registry.for_kind(m.kind).subjects or m.mean_texture is None:
+            out.append(m)
+            continue
+        t = torch.from_numpy(resample_texture(texture, m.tex_res))[None]
+        out.append(dataclasses.replace(m, mean_texture=t.to(m.mean_texture.device),
+                                       subject="own"))
+    return out
+
+
 def assign_models(models: list, sides: list) -> list:
     """The model of each hand of a scene whose hands have handedness ``sides``.
 
