@@ -96,7 +96,7 @@ demo: install
 		-o demo/hand_lsq_student_env.exr --preview demo/hand_lsq_student_env.png
 	# spherical-harmonic light probes
 	$(RELIGHT) sh-probe builtin:studio --degree 2 -o demo/studio_probe.json --preview demo/studio_probe.png
-	$(RELIGHT) sh-probe builtin:sky --degree auto -o demo/sky_probe.json --preview demo/sky_probe.png
+	$(RELIGHT) sh-probe builtin:sky --degree auto --window hanning --max-degree 16 -o demo/sky_probe.json --preview demo/sky_probe.png
 	# Gaussian avatar in a Gaussian room: a deep Gaussian shadow map, then relighting with shadows
 	printf '{"format": "relight/lights", "version": 1, "lights": [{"position": [0.35, 1.3, 0.45], "color": [1.0, 0.95, 0.9], "intensity": 5.0}]}\n' > demo/lights.json
 	$(RELIGHT) camera --eye 0.45,0.55,0.6 --target 0,0.15,0 --fov 45 --size 320x240 -o demo/room_cam.json

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import click
 
-from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, colour_space_option,
-                                   log, no_clobber_option, parse_size, preview_option,
-                                   quiet_option, seed_option)
+from relight_cli.cli.tools import (FiniteFloat, ShadowStrength, check_input, check_output,
+                                   colour_space_option, log, no_clobber_option, parse_size,
+                                   preview_option, quiet_option, seed_option)
 
 
 @click.command("dgsm-build", short_help="Build Deep Gaussian Shadow Maps (occluders → lights).")
@@ -78,12 +78,22 @@ from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, colou
                    "--self-shadow: its Gaussians shadowed by the occluder itself, each "
                    "looked up 3σ + one radial bin towards the light).")
 @click.option("--half", is_flag=True, help="Store 16-bit half floats (default float32).")
-@preview_option("Also write a labelled PNG: the receivers shadowed (with the occluders) and "
+@preview_option("Also write a labelled PNG: the receivers shadowed as relight relight "
+                "shadows them (with the occluders; its label says the shadow strength) and "
                 "their shadow matte, seen from --preview-camera, and each light's atlas slice "
                 "(min T over the bins).")
 @click.option("--preview-camera", default=None, metavar="CAMERA.json",
               help="OpenCV camera of --preview (default: one framing the occluders and their "
                    "shadow, from the side and above).")
+@click.option("--preview-probe", default=None, metavar="PROBE.json",
+              help="The scene's SH probe (relight sh-probe), as relight relight --probe "
+                   "gets it: the --preview then shows the shadow relight's default "
+                   "--shadow-strength auto delivers (each receiver's direct share of its "
+                   "light, lighter than a full shadow).")
+@click.option("--preview-shadow-strength", type=ShadowStrength(), default=None,
+              help="The relight --shadow-strength the --preview shows: a number in [0, 1] "
+                   "or auto (needs --preview-probe) [default: auto with --preview-probe, "
+                   "else 1, the paper's full shadow].")
 @click.option("--frame", "frame", type=click.IntRange(0), default=None, metavar="K",
               help="One frame of moving OCCLUDERs (a hand.npz's motion, a '{frame}' PLY "
                    "pattern or a relight/gaussian-sequence index) [default: the first].")
@@ -99,7 +109,8 @@ from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, colou
 def command(occluders, receivers, translate, occluders_out, receivers_out, lights_spec, estimator,
             lights_out, output, size, bins, atlas, mapping,
             kappa, t_max, roi, roi_radius, cull, cull_tolerance, footprint, samples,
-            allow_light_inside, radial, self_shadow, half, preview, preview_camera, frame,
+            allow_light_inside, radial, self_shadow, half, preview, preview_camera,
+            preview_probe, preview_shadow_strength, frame,
             frames, colour_space, seed, no_clobber, quiet):
     """Tabulate the transmittance from each light through the OCCLUDER Gaussians
     (closed-form erf optical depth, T = exp(−τ)) on K radial shells over an
@@ -111,17 +122,28 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
     0, or frame=K, as flat Gaussians with the hand's albedo; --occluders-out then
     exports it as a PLY), or builtin:hand | builtin:room | builtin:sphere.  An
     OCCLUDER may carry its own placement, SOURCE:KEY=VALUE;...  with keys
-    fit=SIZE (scale the opacity-weighted 1-99 % box of its centres to SIZE
-    metres on its largest side and centre it at the origin), centre, scale=S,
-    rotate-x|y|z=DEG, on-floor (rest that box's bottom on y = 0) and
-    translate=X,Y,Z, applied in that order whatever the order written
-    (frame=K only picks a hand.npz's pose).
+    crop=X0,Y0,Z0,X1,Y1,Z1 (keep the Gaussians whose centres lie in this box,
+    in the source's own frame and units), min-opacity=A (drop opacities below
+    A), max-scale=S (drop Gaussians whose largest std dev exceeds S, the
+    source's units: needle floaters), fit=SIZE (scale the opacity-weighted
+    1-99 % box of the kept centres to SIZE metres on its largest side and
+    centre it at the origin), centre, scale=S, rotate-x|y|z=DEG, on-floor
+    (rest that box's bottom on y = 0) and translate=X,Y,Z, applied in that
+    order whatever the order written (frame=K only picks a hand.npz's pose).
+    A scene capture becomes an object by a crop and a prune, e.g.
+    'desk.ply:crop=-0.2,-0.3,0.4,0.1,0.05,0.8;min-opacity=0.3;fit=0.3'.
 
     With several OCCLUDERs, one table per occluder is built (all sharing t_max)
     and stored besides their product: scene receivers read the product, and
     `relight relight` shadows each object by the OTHER objects' tables (each
     object's Gaussians are receivers of the others' tables here).  An object
     does not shadow itself.
+
+    --preview draws the receivers shadowed as relight relight will, at the
+    shadow strength its label gives: relight's default --shadow-strength auto
+    takes away only each receiver's direct share of its light, which needs
+    the scene's probe (--preview-probe); without one the preview shows the
+    full shadow (strength 1), darker than relight's default delivers.
 
     Only what the receivers need is computed: receivers that can be shadowed at
     all mark the atlas texels and radial bins that lookups will read (everything
@@ -153,6 +175,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                                    cull_tolerance, footprint, samples, seed, allow_light_inside,
                                    estimator)
         options.self_shadow, options.radial = self_shadow, radial
+        _preview_shadow(options, preview, preview_probe, preview_shadow_strength)
         if _parse_auto(lights_spec) is not None and receivers is None:
             raise UsageProblem("--lights auto:K estimates lights from the scene: give "
                                "--receivers")
@@ -166,6 +189,7 @@ def command(occluders, receivers, translate, occluders_out, receivers_out, light
                                mapping, kappa, t_max, roi, roi_radius, cull, cull_tolerance,
                                footprint, samples, seed, allow_light_inside, estimator)
     options.self_shadow, options.radial = self_shadow, radial
+    _preview_shadow(options, preview, preview_probe, preview_shadow_strength)
     auto_k = _parse_auto(lights_spec)
     if auto_k is not None and receivers is None:
         raise UsageProblem("--lights auto:K estimates lights from the scene: give --receivers")
@@ -211,6 +235,24 @@ def _options(preview, preview_camera, translate, receivers, size, bins, atlas, m
                           seed=seed, allow_light_inside=allow_light_inside, estimator=estimator,
                           preview=preview is not None)
     return options, offset
+
+
+def _preview_shadow(options, preview, probe_path, strength) -> None:
+    """The --preview's shadow strength and probe into ``options`` (usage errors first; the
+    probe is read now, as relight relight --probe reads it)."""
+    from relight_cli.errors import UsageProblem
+    for name, value in (("--preview-probe", probe_path),
+                        ("--preview-shadow-strength", strength)):
+        if value is not None and preview is None:
+            raise UsageProblem(f"{name} needs --preview PNG")
+    if strength == "auto" and probe_path is None:
+        raise UsageProblem("--preview-shadow-strength auto weighs the lights against the "
+                           "scene's probe: give --preview-probe PROBE.json")
+    options.preview_strength = strength
+    if probe_path is not None:
+        from relight_cli.formats.sh_probe_json import read_probe
+        check_input(probe_path, stdin="--preview-probe")
+        options.preview_probe = read_probe(probe_path)
 
 
 def _load(occluders, receivers, offset, lights_spec, auto_k, preview_camera, colour_space="auto"):

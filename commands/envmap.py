@@ -27,11 +27,16 @@ from relight_cli.cli.tools import (FiniteFloat, check_output, dumps_json, log, n
                    "an EXR.")
 @click.option("--nonfinite", type=click.Choice(["error", "zero", "clamp"]), default="error",
               show_default=True, help="What to do with NaN/Inf pixels in the input.")
+@click.option("--negative", type=click.Choice(["error", "clamp"]), default="error",
+              show_default=True,
+              help="What to do with negative radiance in the input (a filtered or "
+                   "reconstructed map's undershoot): refuse it, naming how many pixels and "
+                   "how deep, or clamp it to 0 (the power grows by what was cut).")
 @click.option("--half", is_flag=True, help="Store 16-bit half floats (default float32).")
 @no_clobber_option
 @quiet_option
-def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite, half,
-            no_clobber, quiet):
+def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite, negative,
+            half, no_clobber, quiet):
     """Read IN (EXR lat-long or cube, Radiance .hdr, any OpenImageIO format, or
     builtin:sky|studio|uniform|point) and write it as an EXR environment map.
 
@@ -45,22 +50,24 @@ def command(input, output, layout, size, rotate_y, preview, show_info, nonfinite
       relight envmap StageEnvCube.exr --to latlong -o stage.exr --preview stage.png
       relight envmap stage.exr --info
       relight envmap stage.exr --info -o - | jq .power
+      relight envmap Desk.exr --negative clamp -o desk.exr
     """
     from relight_cli.cli.inputs import load_envmap
     from relight_cli.jobs import envmap as job
 
     # ---- options (usage errors, before any work)
     options, exr_out, info_out = _options(output, layout, size, rotate_y, preview, show_info,
-                                          no_clobber)
+                                          no_clobber, negative)
 
     # ---- input (data errors), the job, the outputs
-    env = load_envmap(input, nonfinite=nonfinite)
+    env = load_envmap(input, nonfinite=nonfinite,
+                      negative="keep" if negative == "clamp" else "error")
     log(f"read {input}: {env.layout} {env.width}x{env.height}", quiet)
     done = job.convert(env, options, log=lambda message: log(message, quiet))
     _write(done, input, exr_out, preview, info_out, nonfinite, half, quiet)
 
 
-def _options(output, layout, size, rotate_y, preview, show_info, no_clobber):
+def _options(output, layout, size, rotate_y, preview, show_info, no_clobber, negative):
     """The options' usage errors (exit 2), before any work, every output checked: (the
     job's EnvmapOptions, the EXR output or None, the --info JSON's path, '-' or None)."""
     from relight_cli.errors import UsageProblem
@@ -95,7 +102,7 @@ def _options(output, layout, size, rotate_y, preview, show_info, no_clobber):
                 raise UsageProblem("lat-long maps need at least 2x2 texels")
             requested = (w, h)
     info_out = None if not show_info else output if info_to_file else "-"
-    return EnvmapOptions(layout, requested, rotate_y), exr_out, info_out
+    return EnvmapOptions(layout, requested, rotate_y, negative), exr_out, info_out
 
 
 def _write(done, input, exr_out, preview, info_out, nonfinite, half, quiet):

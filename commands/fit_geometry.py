@@ -28,10 +28,12 @@ from relight_cli.sequence import parse_frames
               default="auto", show_default=True,
               help="Reader of --keypoints: relight/keypoints, a Leap Motion recording (LeapJS "
                    "JSON, formats/leap.md), or auto (Leap when the JSON holds Leap frames).")
-@click.option("--hand", "hand_choice", default=None, metavar="left|right|ID",
-              help="Leap: the hand to fit, by type or Leap hand id (default: the type present "
-                   "in most frames). Frames without it are missing, not filled unless "
-                   "--interpolate.")
+@click.option("--hand", "hand_choice", default=None, metavar="left|right|both|ID",
+              help="The hand to fit: by type, or a Leap hand id (default: a Leap recording's "
+                   "type present in most frames; both hands of a keypoints file with a "
+                   "'hands' list). both: the left and the right hand in one two-hand "
+                   "hand.npz (one skeleton, the other hand its mirror image). Frames "
+                   "without the hand are missing, not filled unless --interpolate.")
 @click.option("--frames", "frame_range", default=None, metavar="all|A:B[:S]",
               help="Fit only the keypoint frames numbered A, A+S, … below B (the frame "
                    "grammar of every command: a Python slice, e.g. 0:300:10) [default: all].")
@@ -78,6 +80,7 @@ def command(output, template, pose, n_frames, keypoints, keypoints_format, hand_
       relight fit-geometry --keypoints kp.json --scans 'scan_*.ply' --offsets -o fit.npz
       relight fit-geometry --keypoints pinch.json --hand right --frames 0:300:10 \
           --interpolate -o pinch.npz --report pinch_fit.json   # a Leap Motion recording
+      relight fit-geometry --keypoints claps.json --hand both --interpolate -o two.npz
     """
     from relight_cli.cli import inputs as I
     from relight_cli.formats.hand_npz import FORMAT, VERSION, write_hand
@@ -86,8 +89,8 @@ def command(output, template, pose, n_frames, keypoints, keypoints_format, hand_
 
     size = _check_usage(output, pose, n_frames, keypoints, keypoints_format, hand_choice,
                         frame_range, scans, interpolate, iterations, offsets, report, preview,
-                        preview_size, no_clobber)
-    leap_hand = I.leap_hand(hand_choice)
+                        preview_size, no_clobber, two_hands)
+    leap_hand = "both" if hand_choice == "both" else I.leap_hand(hand_choice)
     frame_slice = None if frame_range is None else \
         parse_frames(frame_range, "--frames", count_option="--n-frames").as_slice()
     scan_paths = None if scans is None else I.scan_paths(scans)
@@ -109,6 +112,17 @@ def command(output, template, pose, n_frames, keypoints, keypoints_format, hand_
         settings["pose"] = pose or "relaxed"
         if pose is not None and pose.endswith(".json"):
             inputs["pose"] = pose
+    elif _two_hands_wanted(keypoints, keypoints_format, leap_hand):
+        kps = [I.load_keypoints(keypoints, template_hand, keypoints_format, side, frame_slice,
+                                side_follows=True)
+               for side in (template_hand.side, _other(template_hand.side))]
+        options = job.FitGeometryOptions(iterations, not no_bone_scales, False, smooth,
+                                         interpolate, seed)
+        fitted = job.fit_hands(template_hand, kps, options, log=say, quiet=quiet,
+                               names={"template": template, "keypoints": keypoints})
+        inputs["keypoints"] = keypoints
+        settings.update(keypoints_format=keypoints_format, frame_range=frame_range,
+                        hand="both")
     else:
         kp = None if keypoints is None else I.load_keypoints(
             keypoints, template_hand, keypoints_format, leap_hand, frame_slice,
@@ -147,9 +161,23 @@ def command(output, template, pose, n_frames, keypoints, keypoints_format, hand_
         log(f"wrote {preview}", quiet)
 
 
+def _other(side: str) -> str:
+    return "left" if side == "right" else "right"
+
+
+def _two_hands_wanted(keypoints, keypoints_format, leap_hand) -> bool:
+    """``--hand both``, or no --hand and a keypoints file whose 'hands' list holds two."""
+    if leap_hand == "both":
+        return True
+    if leap_hand is not None or keypoints is None or keypoints_format == "leap":
+        return False
+    from relight_cli.formats.keypoints import keypoint_sides
+    return len(keypoint_sides(keypoints) or ()) == 2
+
+
 def _check_usage(output, pose, n_frames, keypoints, keypoints_format, hand_choice, frame_range,
                  scans, interpolate, iterations, offsets, report, preview, preview_size,
-                 no_clobber):
+                 no_clobber, two_hands=False):
     """The options' usage errors (exit 2), before any work; the preview size (W, H)."""
     from relight_cli.errors import UsageProblem
 
@@ -183,8 +211,9 @@ def _check_usage(output, pose, n_frames, keypoints, keypoints_format, hand_choic
     if frame_range is not None and scans is not None:
         raise UsageProblem("--frames selects keypoint frames; it cannot be combined "
                            "with --scans (one scan per keypoint frame)")
-    if keypoints_format == "keypoints" and hand_choice is not None:
-        raise UsageProblem("--hand applies to Leap recordings only")
+    if hand_choice == "both" and (scans is not None or two_hands):
+        raise UsageProblem("--hand both fits two hands to keypoints; it cannot be combined "
+                           "with --scans or --two-hands")
     return size
 
 

@@ -42,8 +42,8 @@ from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, dumps
 @click.option("--tex-res", type=click.IntRange(4, 4096), default=None, metavar="N",
               help="Side of T̄ (a power of two) [default: the checkpoint's, else 256].")
 @click.option("--iterations", type=click.IntRange(1, 100_000), default=200, show_default=True,
-              help="Refinement iterations on the images (after a 3D fit to the "
-                   "triangulated keypoints).")
+              help="Iterations of the 3D fit to the triangulated keypoints (its pose-only "
+                   "stage runs a third), then of the refinement on the images.")
 @click.option("--colour-space", "colour_space", type=click.Choice(["auto", "srgb", "linear"]),
               default="auto", show_default=True,
               help="Of the images: auto = EXR linear, PNG/JPEG/TIFF 8-bit sRGB.")

@@ -6,9 +6,9 @@ each); this module only dispatches:
 
     IN                                       mode                             module
     CAPTURE/ (a relight/capture folder)      score learned models on it       score_capture
-    AVATAR.ply, a mesh, builtin:hand|room|   Gaussians relit by an SH probe   relight_gaussians
-      sphere (a hand .npz with --probe,      (+ DGSM shadows)
-      --dgsm, --receivers, --object or
+    AVATAR.ply [ENV], a mesh, builtin:hand|  Gaussians relit by an SH probe   relight_gaussians
+      room|sphere (a hand .npz with --probe, (--probe, or fitted from ENV)
+      --dgsm, --receivers, --object or       (+ DGSM shadows)
       --shadow-matte: its posed hand)
     HAND.npz, builtin:right|left|two[:POSE]  a hand rendered (physical or     relight_hand
                                              a learned model)
@@ -145,9 +145,10 @@ def command():
     """Relight IN under new lighting: IN decides what is done.
 
     \b
-      IN = AVATAR.ply (or a mesh, builtin:hand|room|sphere): Gaussians relit
-        by an SH probe (--probe), shadowed by a DGSM (--dgsm, --receivers);
-        a relit PLY, or with --camera an EXR view.
+      IN = AVATAR.ply (or a mesh, builtin:hand|room|sphere) [ENV]: Gaussians
+        relit by an SH probe (--probe, or fitted from an env map ENV), turned
+        into IN's frame by --up, shadowed by a DGSM (--dgsm, --receivers); a
+        relit PLY in IN's own frame, or with --camera an EXR view.
       IN = HAND.npz (or builtin:right|left|two[:POSE]) [ENV]: the posed hands
         rendered under an env map and/or --lights, by the physical renderer
         or a learned --model with --checkpoint; one EXR, or --frames.
@@ -157,6 +158,7 @@ def command():
     \b
     Examples:
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
+      relight relight statue.ply sky.hdr --up -y -o statue-relit.ply
       relight relight hand.npz builtin:sky --model physical -o img.exr
       relight relight capture/ --model teacher --checkpoint teacher.pt -o scores.json
       relight relight hand.npz --help      (the hand mode's options)

@@ -48,8 +48,11 @@ class Run:
     """This mode's options as given (the click parameters, one field each)."""
 
     input: str
+    env: str | None
     output: str
     probe: str | None
+    up: str | None
+    coordinates: str | None
     dgsm: str | None
     receivers: str | None
     objects: tuple
@@ -81,13 +84,25 @@ class Run:
     quiet: bool
 
 
-@click.command("relight", short_help="Relight Gaussians with an SH probe (+ DGSM shadows).")
+@click.command("relight",
+               short_help="Relight Gaussians with an SH probe or env map (+ DGSM shadows).")
 @click.argument("input", metavar="IN")
+@click.argument("env", metavar="[ENV]", required=False)
 @click.option("-o", "--output", required=True,
               help="The relit Gaussians PLY, or with --camera an EXR image.")
 @click.option("--probe", default=None, metavar="PROBE.json",
               help="SH light probe (relight sh-probe) lighting the avatar ('-': "
-                   "stdin).")
+                   "stdin); or give an env map ENV after IN instead.")
+@click.option("--up", default=None, metavar="AXIS|X,Y,Z",
+              help="The up axis of IN's frame (after its placement): +y, -y, +x, -x, +z, -z "
+                   "or a vector X,Y,Z.  ENV/--probe (+Y up) is turned into that frame, the "
+                   "Gaussians stay where they are: a COLMAP capture (+Y down) takes --up -y, "
+                   "the same as placing it with rotate-x=180 and back.  [default: +y]")
+@click.option("--coordinates", type=click.Choice(["source", "scene"]), default=None,
+              help="The frame of the relit PLY when IN is placed (SOURCE:KEY=VALUE): source "
+                   "writes the relit Gaussians back in IN's own frame (its positions bit for "
+                   "bit, so it still registers with its cameras), scene where the placement "
+                   "put them.  [default: source; scene with --object]")
 @click.option("--dgsm", default=None, metavar="SHADOWS.exr",
               help="Deep Gaussian Shadow Map (relight dgsm-build) darkening --receivers.")
 @click.option("--receivers", default=None, metavar="SCENE.ply",
@@ -169,10 +184,13 @@ class Run:
 def command(**options):
     """Relight IN = AVATAR.ply (3DGS Gaussians; also a mesh or
     builtin:hand|room|sphere, optionally placed as SOURCE:KEY=VALUE;... like
-    dgsm-build's OCCLUDERs): per-Gaussian SH radiance transfer from --probe
-    (paper Eq. 9-10): colour = γ · albedo · clip(S(n), 0, t_max), t_max =
-    --shading-clip, S the cosine-lobe (exponent q) weighted mean probe radiance
-    around the normal n (normals per object).  --object inserts more objects,
+    dgsm-build's OCCLUDERs): per-Gaussian SH radiance transfer from --probe,
+    or from ENV's probe fitted here as relight sh-probe ENV --degree L fits it
+    (L the smallest degree holding 99 % of the transfer lobe's energy: 2 for
+    --lobe 1), turned into IN's frame by --up (paper Eq. 9-10): colour =
+    γ · albedo · clip(S(n), 0, t_max), t_max = --shading-clip, S the
+    cosine-lobe (exponent q) weighted mean probe radiance around the normal n
+    (normals per object).  --object inserts more objects,
     relit the same way.  With --dgsm and --receivers, each light's
     transmittance attenuates that light's share of a receiver's direct light
     (paper Sec. 3.3): colour × ((1 − s) + s·Σ w_l T_l / Σ w_l) per channel,
@@ -183,10 +201,13 @@ def command(**options):
     receivers + objects.  A HAND.npz given with --probe, --dgsm, --receivers,
     --object or --shadow-matte is its posed hand as Gaussians (fine mesh, the
     hand's albedo; frame=K in its placement picks the pose), as in dgsm-build.
+    A placed IN's relit PLY is written back in IN's own frame
+    (--coordinates).
 
     \b
     Examples:
       relight relight avatar.ply --probe probe.json -o avatar-relit.ply
+      relight relight statue.ply sky.hdr --up -y -o statue-relit.ply
       relight relight avatar.ply --probe probe.json --dgsm shadows.exr \\
           --receivers room.ply --camera cam.json -o view.exr --preview view.png
       relight relight 'builtin:hand:translate=0,0.25,0' --object 'donut.ply:fit=0.15;on-floor' \\
@@ -195,6 +216,7 @@ def command(**options):
     from relight_cli.cli.tools import given_options
     a, given = Run(**options), set(given_options(click.get_current_context()))
     if _is_clip(a):
+        _refuse_in_clip(a)
         from relight_cli.commands._clip import clip
         return clip(a, given)
     _gaussians(a, given)
@@ -215,13 +237,88 @@ def _is_clip(a) -> bool:
             or any(is_pattern(s) or s.lower().endswith(".json") for s in sources))
 
 
+def _refuse_in_clip(a) -> None:
+    """ENV, --up and --coordinates are for one relit PLY or view: a clip's usage error
+    saying what to do instead."""
+    from relight_cli.errors import UsageProblem
+    if a.env is not None:
+        raise UsageProblem("a clip (--frames, --frame, --lights, --probe scene, a moving IN) "
+                           "reads its light from --probe: fit ENV's probe once with relight "
+                           f"sh-probe {a.env} -o probe.json and give --probe probe.json")
+    if a.up is not None:
+        raise UsageProblem("--up turns the light for one relit PLY or view; a clip is lit in "
+                           "the scene's frame: place IN upright instead (IN:rotate-x=180 for a "
+                           "+Y-down capture)")
+    if a.coordinates is not None:
+        raise UsageProblem("--coordinates sets the frame of one relit PLY; a clip writes its "
+                           "frames where the scene puts them")
+
+
+def _lighting(a, log_line):
+    """The SH probe lighting IN: --probe read, or ENV's probe fitted (jobs.relight_gaussians.
+    env_probe); turned into IN's frame by --up.  (probe, settings it adds)."""
+    from dataclasses import replace
+
+    from relight_cli.jobs import relight_gaussians as G
+    settings = {}
+    if a.env is not None:
+        from relight_cli.cli.inputs import load_envmap
+        env = load_envmap(a.env)
+        log_line(f"read {a.env}: {env.layout} {env.width}x{env.height}")
+        probe = G.env_probe(env, a.lobe, a.env, log=log_line)
+        settings["env_probe_degree"] = probe.degree
+    else:
+        from relight_cli.formats.sh_probe_json import read_probe
+        probe = read_probe(a.probe)
+    if a.up is not None:
+        probe = replace(probe, coefficients=G.lighting_in_frame(probe.coefficients,
+                                                                _upright(a.up)))
+        settings["up"] = a.up
+    return probe, settings
+
+
+def _upright(text: str):
+    """--up's rotation taking IN's up axis to +Y (a usage error for a bad value)."""
+    from relight_cli.errors import UsageProblem
+    from relight_cli.jobs import relight_gaussians as G
+    up = text if "," not in text else parse_vector(text, 3, "--up")
+    try:
+        return G.upright_rotation(up)
+    except ValueError as exc:
+        raise UsageProblem(f"--up: {exc}") from None
+
+
+def _coordinates(a) -> str:
+    """The relit PLY's frame: --coordinates, else source for IN alone, scene with --object."""
+    return a.coordinates or ("scene" if a.objects else "source")
+
+
+def _load_in(a, source, placement, spec):
+    """IN placed for the scene, and (when its PLY is written back in its own frame and the
+    placement moves it) IN as read, less what the placement prunes, with the similarity
+    that placed it: (placed, unplaced or None, similarity or None)."""
+    from relight_cli.cli.inputs import load_placed
+    from relight_cli.errors import DataError
+    from relight_cli.gaussians import placement as PL
+    if a.camera is not None or _coordinates(a) != "source" or placement.is_identity():
+        return load_placed(source, placement, spec, colour_space=a.colour_space), None, None
+    unplaced = load_placed(source, PL.Placement(frame=placement.frame), spec,
+                           colour_space=a.colour_space)
+    try:
+        similarity = PL.resolve(placement, unplaced)
+        placed = PL.place(unplaced, placement)
+        kept = PL.prune(unplaced, placement)       # what crop/min-opacity/max-scale keep
+    except ValueError as exc:
+        raise DataError(f"cannot place it: {exc}", spec) from None
+    return placed, kept, similarity
+
+
 def _gaussians(a, given: set = frozenset()) -> None:
     """Gaussian mode: IN (+ --object) relit by --probe, shadowed by --dgsm with
     --receivers, → a PLY or with --camera an EXR view (relight_cli.jobs.relight_gaussians)."""
     import time
 
     from relight_cli.errors import DataError
-    from relight_cli.formats.sh_probe_json import read_probe
     from relight_cli.gaussians.from_mesh import load_gaussians
     from relight_cli.cli.inputs import load_placed, parse_occluder
     from relight_cli.jobs import relight_gaussians as G
@@ -235,16 +332,20 @@ def _gaussians(a, given: set = frozenset()) -> None:
     for path, role in ((a.probe, "--probe"), (a.camera, "--camera")):
         if path is not None:
             check_input(path, stdin=role)
+    if a.env is not None and not a.env.startswith("builtin:"):
+        check_input(a.env)
     start = time.perf_counter()
     if a.shadow_matte is not None:
         return _shadow_matte(a, specs, parsed, bg, start)
-    probe = read_probe(a.probe)
+    probe, lighting = _lighting(a, lambda m: log(m, a.quiet))
     shadow_map = _read_dgsm(a.dgsm) if a.dgsm is not None else None
     if a.self_shadow:
         from relight_cli.commands._clip import check_self_shadow
         check_self_shadow(shadow_map, a.dgsm)
-    objects = []
-    for spec, (source, placement) in zip(specs, parsed):
+    placed, unplaced, similarity = _load_in(a, *parsed[0], specs[0])
+    objects = [placed]
+    log(f"read {specs[0]}: {len(placed)} Gaussians", a.quiet)
+    for spec, (source, placement) in zip(specs[1:], parsed[1:]):
         objects.append(load_placed(source, placement, spec, colour_space=a.colour_space))
         log(f"read {spec}: {len(objects[-1])} Gaussians", a.quiet)
     scene = None
@@ -259,13 +360,19 @@ def _gaussians(a, given: set = frozenset()) -> None:
     view = _read_view(a.camera)
     relit = G.relight(objects, probe, gaussian_options(a), shadow_map, scene, view, bg,
                       names=[source for source, _ in parsed], log=lambda m: log(m, a.quiet))
-    settings = dict(relit.settings, objects=specs, colour_space=a.colour_space)
+    settings = dict(relit.settings, objects=specs, colour_space=a.colour_space, **lighting)
     inputs = _gaussian_inputs(a, parsed, camera=False)
     if a.receivers_out is not None:
         write_ply(a.receivers_out, relit.receivers, inputs, dict(settings, role="receivers"))
         log(f"wrote {a.receivers_out}", a.quiet)
     if view is None:
-        write_ply(a.output, relit.objects, inputs, settings)
+        written = relit.objects
+        if unplaced is not None:       # IN back in its own frame: it registers with its cameras
+            written = G.in_source_frame(relit.objects, unplaced, similarity)
+            settings["coordinates"] = "source"
+            log("the relit Gaussians are written back in IN's own frame (--coordinates "
+                "source)", a.quiet)
+        write_ply(a.output, written, inputs, settings)
         log(f"wrote {a.output} ({time.perf_counter() - start:.2f} s)", a.quiet)
         return
     _write_view(a, relit.channels, relit.rgb, view, _gaussian_inputs(a, parsed, camera=True),
@@ -281,10 +388,25 @@ def _gaussian_usage(a, given: set = frozenset()) -> tuple:
     parameter names given on the command line -- an option that cannot apply is refused
     even when it is given as its default (--shadow-strength auto)."""
     from relight_cli.errors import UsageProblem
-    if a.probe is None and a.shadow_matte is None:
+    if a.probe is None and a.env is None and a.shadow_matte is None:
         raise UsageProblem("Gaussian relighting needs --probe PROBE.json (make one with relight "
-                           "sh-probe)")
+                           "sh-probe ENV) or an env map ENV after IN (its probe is then fitted "
+                           "here)")
     for wrong, message in (
+            (a.env is not None and a.probe is not None,
+             f"give the light once: ENV ({a.env}, its SH probe fitted here) or --probe "
+             f"PROBE.json, not both"),
+            (a.env is not None and a.shadow_matte is not None,
+             f"ENV ({a.env}) does not apply to --shadow-matte (the matte draws the receivers' "
+             "shadow from --dgsm's lights only): drop ENV"),
+            (a.up is not None and a.shadow_matte is not None,
+             "--up turns ENV/--probe; --shadow-matte uses neither: drop --up"),
+            (a.coordinates is not None and a.camera is not None,
+             "--coordinates sets the relit PLY's frame; a --camera view is rendered where the "
+             "scene puts IN: drop --coordinates"),
+            (a.coordinates == "source" and bool(a.objects),
+             "--coordinates source writes IN back in its own frame; with --object the objects "
+             "share one PLY only in the scene's frame (--coordinates scene)"),
             (a.dgsm is None and "shadow_strength" in given,
              "--shadow-strength only applies with --dgsm SHADOWS.exr (the direct light it "
              "shadows)"),
@@ -316,6 +438,8 @@ def _gaussian_usage(a, given: set = frozenset()) -> tuple:
              "SHADOWS.exr (its lights)")):
         if wrong:
             raise UsageProblem(message)
+    if a.up is not None:
+        _upright(a.up)
     bg = parse_vector(a.background, 3, "--background", minimum=0)
     if a.camera is not None and not a.output.lower().endswith(".exr"):
         raise UsageProblem("with --camera, -o is an EXR image (name it .exr)", a.output)
@@ -332,7 +456,7 @@ def _gaussian_inputs(a, parsed, camera: bool) -> dict:
     """The provenance roles of the Gaussian mode's input files."""
     inputs = {"input": parsed[0][0]}
     if a.shadow_matte is None:
-        inputs["probe"] = a.probe
+        inputs.update({"env": a.env} if a.env is not None else {"probe": a.probe})
     inputs.update({f"object{j}": source for j, (source, _) in enumerate(parsed[1:])})
     inputs.update({role: path for role, path in (("receivers", a.receivers), ("dgsm", a.dgsm))
                    if path})

@@ -67,11 +67,14 @@ class Run:
 
 
 def _model_help() -> str:
+    """--model's help: every name first (the registry's learned models after 'physical'),
+    then what each is and which command trains it."""
     from relight_cli.neural.registry import MODELS
-    return ("Appearance model: 'physical' (Lambert + GGX, shadows, SSS) or a learned model "
-            "with --checkpoint: " + ", ".join(f"'{name}' ({spec.title}, {spec.trainer})"
-                                               for name, spec in MODELS.items())
-            + " [default: physical].")
+    names = [f"'{name}'" for name in ("physical", *MODELS)]
+    return ("Appearance model: " + ", ".join(names[:-1]) + " or " + names[-1]
+            + " [default: physical].  physical: Lambert + GGX, shadows, SSS; the learned "
+            "ones need --checkpoint: " + "; ".join(f"{name}: {spec.title}, from {spec.trainer}"
+                                                  for name, spec in MODELS.items()) + ".")
 
 
 @click.command("relight", short_help="Render posed hands under an env map and/or lights.")

@@ -150,9 +150,19 @@ def _capture(a) -> None:
     write_metrics(a.output, make_record("validation", result.scores,
                                         {r: {"path": p} for r, p in inputs.items()},
                                         result.settings, record))
-    summary = "; ".join(f"{n}: MSE {m['mse'] * 1e3:.3f}e-3 SSIM {m['ssim']:.3f} ({m['samples']})"
-                        for n, m in result.scores.items())
-    log(f"wrote {a.output} ({time.perf_counter() - start:.1f} s): {summary}", a.quiet)
+    log(f"wrote {a.output} ({time.perf_counter() - start:.1f} s): {summary(result.scores)}",
+        a.quiet)
+
+
+def summary(scores: dict) -> str:
+    """The scores line: per split its MSE, PSNR (and the gap to the perfect texture's
+    ceiling where scored), SSIM and sample count."""
+    def split(name, m):
+        gap = (f" ({m['gap_to_ceiling']:.2f} dB below its ceiling)"
+               if m.get("gap_to_ceiling") is not None else "")
+        return (f"{name}: MSE {m['mse'] * 1e3:.3f}e-3 PSNR {m['psnr']:.2f} dB{gap} "
+                f"SSIM {m['ssim']:.3f} ({m['samples']})")
+    return "; ".join(split(n, m) for n, m in scores.items())
 
 
 def _load_hand_models(paths, kind: str, device) -> list:

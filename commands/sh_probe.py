@@ -13,9 +13,12 @@ from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_o
 @click.argument("input", metavar="IN")
 @click.option("-o", "--output", required=True, help="Probe JSON ('-' for stdout).")
 @click.option("--degree", default="auto", show_default=True,
-              help="SH degree N (0-8), or 'auto': the smallest degree whose irradiance is within "
+              help="SH degree N (0-16), or 'auto': the smallest degree whose irradiance is within "
                    "--tolerance of a direct quadrature of IN and whose radiance rings no deeper "
-                   "than --max-negativity (see formats/sh_probe_json.md).")
+                   "than --max-negativity (see formats/sh_probe_json.md); when no degree up to "
+                   "--max-degree keeps both, nothing is written and the command exits 1 saying "
+                   "so (maps with a sun or small bright lights need --window, or a looser "
+                   "criterion, or a fixed degree).")
 @click.option("--ridge", type=FiniteFloat(0), default=0.0, show_default=True,
               help="Ridge weight λ of the least-squares fit (paper Eq. 7).")
 @click.option("--tolerance", type=FiniteFloat(0, 1, min_open=True, max_open=True),
@@ -25,11 +28,16 @@ from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_o
                    "small bright lights take degree 2 (1-2.4 % error).")
 @click.option("--max-negativity", type=FiniteFloat(0), default=2.0, show_default=True,
               help="For --degree auto: deepest negative radiance (ringing) allowed, in units of "
-                   "the probe's mean radiance; 2 is the dip of a lone point light at degree 1-2. "
-                   "When no degree within it meets --tolerance, the most accurate one is taken "
-                   "and the log says so.")
-@click.option("--max-degree", type=click.IntRange(1, 12), default=8, show_default=True,
+                   "the probe's mean radiance; 2 is the dip of a lone point light at degree 1-2.")
+@click.option("--max-degree", type=click.IntRange(1, 16), default=8, show_default=True,
               help="For --degree auto: the highest degree tried.")
+@click.option("--window", type=click.Choice(["none", "hanning", "lanczos"]), default="none",
+              show_default=True,
+              help="Deringing window applied to the fitted bands (Sloan, 'Stupid SH Tricks'), "
+                   "width degree+1: hanning (1+cos(pi l/w))/2 or lanczos sinc(l/w). It damps "
+                   "the negative lobes of a sun's probe (builtin:sky at degree 8: negativity "
+                   "9.1 -> 0.53, negative area 48 % -> 15 %) but blurs, so the same irradiance "
+                   "error needs a higher degree (sky: 3 % at degree 14 with hanning).")
 @click.option("--at", "at", default=None, metavar="X,Y,Z",
               help="Probe position (metres, world) for a Gaussian scene IN (.ply).")
 @click.option("--face-size", type=SquareSize(4, 1024), default=64, show_default=True,
@@ -43,8 +51,8 @@ from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_o
 @colour_space_option
 @no_clobber_option
 @quiet_option
-def command(input, output, degree, ridge, tolerance, max_negativity, max_degree, at, face_size,
-            near, nonfinite, preview, colour_space, no_clobber, quiet):
+def command(input, output, degree, ridge, tolerance, max_negativity, max_degree, window, at,
+            face_size, near, nonfinite, preview, colour_space, no_clobber, quiet):
     """Fit radiance L(ω) ≈ Σ c_k Y_k(ω) by solid-angle-weighted ridge least squares.
 
     IN is an environment map (EXR lat-long or cube, .hdr, builtin:sky|studio|
@@ -55,10 +63,11 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
 
     \b
     Examples:
-      relight sh-probe builtin:sky -o sky.json
+      relight sh-probe venice_sunset_1k.hdr -o venice.json
       relight sh-probe stage.exr --degree 2 -o stage.json --preview stage.png
+      relight sh-probe builtin:sky --window hanning --max-degree 16 -o sky.json
       relight sh-probe room.ply --at 0,1.2,0 -o room-probe.json
-      relight sh-probe builtin:sky -o - | relight relight avatar.ply --probe - -o relit.ply
+      relight sh-probe builtin:sky --degree 2 -o - | relight relight avatar.ply --probe - -o relit.ply
     """
     import time
 
@@ -68,7 +77,7 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
 
     # ---- options (usage errors, before any work)
     options = _options(input, output, degree, ridge, tolerance, max_negativity, max_degree, at,
-                       face_size, near, preview, no_clobber)
+                       face_size, near, preview, no_clobber, window)
 
     # ---- input (data errors), the job, the outputs
     start = time.perf_counter()
@@ -77,8 +86,12 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
         raise UsageProblem("--colour-space is for a Gaussian scene IN (.ply); an env map is "
                            "linear radiance")
     source = _read(input, options.at is not None, nonfinite, quiet, colour_space)
-    probe = job.fit(source, options, log=lambda message: log(message, quiet),
-                    progress=lambda it: progress(it, total=6, desc="cube faces", quiet=quiet))
+    try:
+        probe = job.fit(source, options, log=lambda message: log(message, quiet),
+                        progress=lambda it: progress(it, total=6, desc="cube faces", quiet=quiet))
+    except job.ProbePromiseBroken as broken:
+        broken.path = broken.path or input
+        raise
     settings = {"degree": degree, "ridge": ridge,
                 **({"colour_space": colour_space} if options.at is not None
                    else {"nonfinite": nonfinite}), **probe.settings}
@@ -89,12 +102,12 @@ def command(input, output, degree, ridge, tolerance, max_negativity, max_degree,
         log(f"wrote {output} (degree {probe.degree}, {len(probe.coefficients)} coefficients, "
             f"{time.perf_counter() - start:.2f} s)", quiet)
     if preview is not None:
-        _write_preview(preview, probe, input, source, options.at)
+        _write_preview(preview, probe, input, source, options.at, options.window, quiet)
         log(f"wrote {preview}", quiet)
 
 
 def _options(input, output, degree, ridge, tolerance, max_negativity, max_degree, at, face_size,
-             near, preview, no_clobber):
+             near, preview, no_clobber, window="none"):
     """The options' usage errors (exit 2), before any work: the job's ProbeOptions."""
     from relight_cli.errors import UsageProblem
     from relight_cli.jobs.sh_probe import ProbeOptions
@@ -108,8 +121,8 @@ def _options(input, output, degree, ridge, tolerance, max_negativity, max_degree
             fixed = int(degree)
         except ValueError:
             raise UsageProblem(f"--degree must be an integer or 'auto', got {degree!r}") from None
-        if not 0 <= fixed <= 8:
-            raise UsageProblem(f"--degree must be in 0..8, got {fixed}")
+        if not 0 <= fixed <= 16:
+            raise UsageProblem(f"--degree must be in 0..16, got {fixed}")
     is_scene = input.lower().endswith(".ply")
     if is_scene and at is None:
         raise UsageProblem("a Gaussian scene needs the probe position: --at X,Y,Z")
@@ -117,7 +130,7 @@ def _options(input, output, degree, ridge, tolerance, max_negativity, max_degree
         raise UsageProblem("--at is only for Gaussian scenes (.ply); IN looks like an env map")
     position = parse_vector(at, 3, "--at") if is_scene else None
     return ProbeOptions(fixed, ridge, tolerance, max_negativity, max_degree, position,
-                        face_size, near)
+                        face_size, near, window)
 
 
 def _read(input, is_scene: bool, nonfinite, quiet, colour_space="auto"):
@@ -134,12 +147,17 @@ def _read(input, is_scene: bool, nonfinite, quiet, colour_space="auto"):
     return env
 
 
-def _write_preview(path, probe, input, source, position):
-    """The probe's radiance as a labelled lat-long PNG beside what it was fitted to."""
+def _write_preview(path, probe, input, source, position, window="none", quiet=False):
+    """The probe's radiance as a labelled lat-long PNG beside what it was fitted to
+    (a progress line: a large cube map's resampling takes seconds)."""
     from relight_cli.formats.image import write_png
     from relight_cli.preview import probe_sheet
     env = source
-    if position is not None:   # what the probe was fitted to: the splatted cube faces
-        from relight_cli.preview import samples_latlong
-        env = samples_latlong(probe.samples.directions, probe.samples.radiance)
-    write_png(path, probe_sheet(probe.coefficients, probe.degree, input, env, position))
+    with progress(total=4, desc="preview", quiet=quiet) as bar:
+        if position is not None:   # what the probe was fitted to: the splatted cube faces
+            from relight_cli.preview import samples_latlong
+            env = samples_latlong(probe.samples.directions, probe.samples.radiance)
+        image = probe_sheet(probe.coefficients, probe.degree, input, env, position,
+                            window=window, step=bar.update)
+        write_png(path, image)
+        bar.update(1)

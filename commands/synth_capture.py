@@ -65,6 +65,14 @@ from relight_cli.cli.tools import (SEED_MAX, SquareSize, check_output, log, no_c
 @click.option("--skin-seed", type=click.IntRange(0, SEED_MAX), default=0, show_default=True,
               help="Seed of the procedural skin: the subject (keep it across the right, left "
                    "and two-hand captures of one study; --seed changes their motion).")
+@click.option("--phone-scan", "phone_scan", default=None, metavar="ENV",
+              help="Instead of a capture, a phone scan of the subject (HAND's shape, "
+                   "--skin-seed's skin) under ENV for relight personalize: --views photos "
+                   "(view_NN.exr, RGBA, A = mask) from around the still hand, cameras.json "
+                   "and keypoints.json (the joints projected, with pixel noise; "
+                   "formats/keypoints2d.md).")
+@click.option("--views", type=click.IntRange(2, 256), default=8, show_default=True,
+              help="--phone-scan: number of photos.")
 @preview_option("Also write a labelled PNG contact sheet: a few cameras (rows) × fully lit, "
                 "grouped and held-out env-map frames (columns).")
 @seed_option
@@ -72,8 +80,8 @@ from relight_cli.cli.tools import (SEED_MAX, SquareSize, check_output, log, no_c
 @quiet_option
 def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
             keyframe_every, tex_res, aa, no_sss, bounce, eval_poses, eval_envs, eval_cameras,
-            eval_env_res, eval_env_space, ggx_shadowing, skin_seed, preview, seed, no_clobber,
-            quiet):
+            eval_env_res, eval_env_space, ggx_shadowing, skin_seed, phone_scan, views, preview,
+            seed, no_clobber, quiet):
     """Render a light-stage capture of HAND (a hand.npz, or
     builtin:right|left|two[:POSE]; default builtin:right) into FOLDER in the
     relight/capture format (formats/capture.md): capture.json, the ground-truth
@@ -97,6 +105,7 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
       relight synth-capture builtin:two -o both/ --seed 3
       relight synth-capture hand.npz -o capture/ --motion file --size 256
       relight synth-capture -o capture/ --cameras 8 --n-frames 6 --preview capture.png
+      relight synth-capture hand.npz --skin-seed 7 --phone-scan builtin:sky -o scan/
     """
     import os
     import time
@@ -106,6 +115,9 @@ def command(hand, output, cameras, leds, group, frames, full_every, res, motion,
     from relight_cli.cli.inputs import load_envmap, load_hand
     from relight_cli.jobs.synth_capture import StageSettings, light_stage, write_capture_folder
 
+    if phone_scan is not None:
+        return _phone_scan(hand, output, phone_scan, views, res, tex_res, aa, no_sss, skin_seed,
+                           seed, preview, no_clobber, quiet)
     # ---- usage checks before any work
     env_specs, env_res, existing = _check_usage(
         hand, output, cameras, leds, group, frames, full_every, res, motion, keyframe_every,
@@ -194,3 +206,36 @@ def _check_usage(hand, output, cameras, leds, group, frames, full_every, res, mo
                                "give a new or empty folder", output)
         existing = C.read_capture(os.path.join(output, C.INDEX))
     return env_specs, env_res, existing
+
+
+def _phone_scan(hand, output, env, views, res, tex_res, aa, no_sss, skin_seed, seed, preview,
+                no_clobber, quiet):
+    """``--phone-scan``: the subject's scan (relight_cli.jobs.phone_scan) into ``output``."""
+    import os
+
+    from relight_cli.cli.inputs import load_envmap, load_hand
+    from relight_cli.cli.tools import check_input
+    from relight_cli.errors import UsageProblem
+    from relight_cli.jobs import phone_scan as job
+    from relight_cli.jobs.synth_capture import StageSettings
+    from relight_cli.provenance import provenance
+
+    if preview is not None:
+        raise UsageProblem("--preview makes a capture's contact sheet; a --phone-scan has none")
+    if os.path.lexists(output) and (not os.path.isdir(output) or os.listdir(output)):
+        raise UsageProblem("--phone-scan writes into a new or empty folder", output)
+    check_input(env)
+    data = load_hand(hand)
+    if len(data.hands) != 1:
+        raise UsageProblem("--phone-scan scans one hand; give a one-hand HAND", hand)
+    lighting = load_envmap(env)
+    settings = StageSettings(res=res, tex_res=tex_res, aa=aa, sss=not no_sss,
+                             skin_seed=skin_seed, seed=seed)
+    scan = job.phone_scan(data, settings, lighting, views=views, res=res, seed=seed)
+    inputs = {k: v for k, v in (("hand", hand), ("env", env)) if not v.startswith("builtin:")}
+    record = {"views": views, "size": res, "tex_res": tex_res, "aa": aa, "sss": not no_sss,
+              "skin_seed": skin_seed, "seed": seed, "env": env, "hand": hand}
+    written = job.write_scan(output, scan, lambda fmt, version: provenance(fmt, version, inputs,
+                                                                           record))
+    log(f"wrote {output}: {len(written) - 2} photo(s) of the {data.side} hand under {env}, "
+        f"cameras.json, keypoints.json", quiet)

@@ -94,13 +94,33 @@ def handle_nonfinite(radiance: np.ndarray, path: str, policy: str = "error") -> 
     return out
 
 
-def read_envmap(path: str, nonfinite: str = "error", layout: str | None = None) -> EnvMap:
+def check_negative(radiance: np.ndarray, path: str) -> None:
+    """DataError when ``radiance`` ([H, W, 3]) holds negative values: how many pixels, how
+    negative against the map's mean, and the way forward (``relight envmap --negative
+    clamp``)."""
+    low = radiance < 0
+    if not low.any():
+        return
+    n = int(low.any(axis=-1).sum())
+    deepest = float(radiance.min())
+    mean = float(radiance.mean(dtype=np.float64))
+    raise DataError(f"{n} of {radiance.shape[0] * radiance.shape[1]} pixel(s) have negative "
+                    f"radiance, down to {deepest:.4g} (the map's mean is {mean:.4g})", path,
+                    hint="relight envmap IN --negative clamp -o OUT.exr writes a copy with "
+                         "them set to 0")
+
+
+def read_envmap(path: str, nonfinite: str = "error", layout: str | None = None,
+                negative: str = "error") -> EnvMap:
     """Read an environment map file.
 
     The EXR ``envmap`` attribute decides the layout (absent: lat-long); other
     formats go through OpenImageIO as lat-long.  ``layout`` overrides it.
-    Negative radiance is refused (it is never physical and breaks sampling).
+    Negative radiance is refused (it is never physical and breaks sampling) unless
+    ``negative`` is ``keep``: the caller handles it (``relight envmap --negative clamp``).
     """
+    if negative not in ("error", "keep"):
+        raise UsageProblem(f"unknown negative-radiance policy {negative!r}")
     path = str(path)
     if not os.path.exists(path):
         raise DataError("no such file", path)
@@ -125,9 +145,8 @@ def read_envmap(path: str, nonfinite: str = "error", layout: str | None = None) 
             raise DataError(f"cube map must be N wide and 6N tall (faces stacked), got {w}x{h}", path)
     elif h < 2 or w < 2:
         raise DataError(f"lat-long map is too small ({w}x{h})", path)
-    if (radiance < 0).any():
-        n = int((radiance < 0).any(axis=-1).sum())
-        raise DataError(f"{n} pixel(s) have negative radiance", path)
+    if negative == "error":
+        check_negative(radiance, path)
     return EnvMap(radiance=radiance, layout=layout, name=path)
 
 

@@ -70,7 +70,8 @@ def read_keypoints(path: str, n_joints: int = 25, reader: str = "auto", hand=Non
     Args:
         reader: ``"keypoints"`` (this format), ``"leap"`` (a Leap Motion recording,
             ``formats/leap.md``) or ``"auto"``: Leap when the JSON holds Leap frames.
-        hand: which Leap hand (None, ``"left"``, ``"right"`` or an int id); Leap only.
+        hand: which Leap hand (None, ``"left"``, ``"right"`` or an int id), or which hand
+            of a two-hand file's ``hands`` list (None: its only hand; ``"left"``/``"right"``).
     """
     if not os.path.exists(path):
         raise DataError("no such file", path)
@@ -99,10 +100,10 @@ def read_keypoints(path: str, n_joints: int = 25, reader: str = "auto", hand=Non
     if reader == "leap":
         raise DataError("not a Leap Motion recording (expected LeapJS frames with 'hands' and "
                         "'pointables')", path)
-    return _keypoints_from_json(obj, path, n_joints)
+    return _keypoints_from_json(obj, path, n_joints, hand)
 
 
-def _keypoints_from_json(obj, path: str, n_joints: int) -> Keypoints:
+def _keypoints_from_json(obj, path: str, n_joints: int, hand=None) -> Keypoints:
     frames = names = None
     if isinstance(obj, dict):
         if "format" in obj and obj["format"] != FORMAT:
@@ -110,18 +111,85 @@ def _keypoints_from_json(obj, path: str, n_joints: int) -> Keypoints:
         if "version" in obj and (obj["version"] != VERSION or isinstance(obj["version"], bool)):
             raise DataError(f"unsupported {FORMAT} version {obj['version']!r} (this tool reads "
                             f"version {VERSION})", path)
+        if "hands" in obj:
+            return _hand_of(obj, path, n_joints, hand)
         if "keypoints" not in obj:
-            raise DataError("JSON object lacks 'keypoints'", path)
+            raise DataError("JSON object lacks 'keypoints' (or a 'hands' list)", path)
         frames, names = obj.get("frames"), obj.get("joint_names")
         obj = obj["keypoints"]
+    return _keypoints_of(obj, frames, names, path, n_joints, "'keypoints'")
+
+
+def _keypoints_of(array, frames, names, path: str, n_joints: int, what: str) -> Keypoints:
     from ._common import number_array
-    a = number_array(obj, "'keypoints' (a regular N × J × 3 or 4 array)", path)
+    a = number_array(array, f"{what} (a regular N × J × 3 or 4 array)", path)
     if frames is not None:
         try:
             frames = np.array(frames)
         except (TypeError, ValueError):
             raise DataError("'frames' must be a list of integers", path) from None
     return keypoints_from_array(a, path, n_joints, frames, names)
+
+
+SIDES = ("right", "left")
+
+
+def _hand_entries(obj, path: str) -> list[dict]:
+    """The checked ``hands`` list of a two-hand file: 1 or 2 objects with distinct
+    ``side`` right/left and ``keypoints``; a top-level ``keypoints`` is refused."""
+    hands = obj["hands"]
+    if "keypoints" in obj or "frames" in obj:
+        raise DataError("give either 'hands' or top-level 'keypoints'/'frames', not both", path)
+    if not isinstance(hands, list) or not 1 <= len(hands) <= 2:
+        raise DataError("'hands' must be a list of one or two hands", path)
+    sides = []
+    for i, h in enumerate(hands):
+        if not isinstance(h, dict) or h.get("side") not in SIDES or "keypoints" not in h:
+            raise DataError(f"hands[{i}] must be an object with 'side' (right or left) and "
+                            f"'keypoints'", path)
+        if h["side"] in sides:
+            raise DataError(f"two {h['side']} hands in 'hands'", path)
+        sides.append(h["side"])
+    return hands
+
+
+def _hand_of(obj, path: str, n_joints: int, hand) -> Keypoints:
+    """One hand of a ``hands`` file: ``hand`` right/left, or the only one (None)."""
+    hands = _hand_entries(obj, path)
+    sides = [h["side"] for h in hands]
+    if hand is None:
+        if len(hands) > 1:
+            raise DataError(f"the file holds a {sides[0]} and a {sides[1]} hand: fit one "
+                            "with --hand right|left, or both with --hand both", path)
+        hand = sides[0]
+    if hand not in sides:
+        what = "a Leap hand id" if isinstance(hand, int) else f"no {hand} hand"
+        raise DataError(f"{what} in a {FORMAT} file (its 'hands': {', '.join(sides)})", path)
+    i = sides.index(hand)
+    kp = _keypoints_of(hands[i]["keypoints"], hands[i].get("frames"), obj.get("joint_names"),
+                       path, n_joints, f"hands[{i}].keypoints")
+    kp.side = hand
+    kp.source = {"format": FORMAT, "hand": hand, "rows": int(len(kp.frames))}
+    return kp
+
+
+def keypoint_sides(path: str) -> list[str] | None:
+    """The sides a ``relight/keypoints`` JSON with a ``hands`` list holds (file order);
+    None for any other file (one unnamed hand, ``.npy``, a Leap recording) or one that
+    does not read (its reader says why)."""
+    if path.lower().endswith(".npy") or not os.path.isfile(path):
+        return None
+    from ._common import read_json
+    try:
+        obj = read_json(path)
+    except DataError:
+        return None
+    if not isinstance(obj, dict) or "hands" not in obj or obj.get("format", FORMAT) != FORMAT:
+        return None
+    try:
+        return [h["side"] for h in _hand_entries(obj, path)]
+    except DataError:
+        return None
 
 
 def write_keypoints(path: str, kp: Keypoints, provenance: dict | None = None) -> None:

@@ -58,14 +58,16 @@ def looks_like_leap(obj) -> bool:
 
 
 def parse_hand_choice(text: str | None):
-    """``--hand``: None (automatic), ``"left"``, ``"right"`` or an integer Leap hand id."""
+    """``--hand`` for one hand: None (automatic), ``"left"``, ``"right"`` or an integer Leap
+    hand id.  (``both``, fit-geometry's two-hand fit, reads each side in turn.)"""
     if text is None:
         return None
     if text in ("left", "right"):
         return text
     if text.isdigit():
         return int(text)
-    raise ValueError(f"--hand must be left, right or a Leap hand id (an integer), got {text!r}")
+    raise ValueError(f"--hand must be left, right, both or a Leap hand id (an integer), "
+                     f"got {text!r}")
 
 
 def _vector(value, what: str, path: str) -> np.ndarray:

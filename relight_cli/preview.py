@@ -502,41 +502,90 @@ def samples_latlong(directions, radiance, height: int = 64):
 
 
 def probe_sheet(coefficients, degree: int, source: str = "", source_env=None,
-                position=None, height: int = 128) -> np.ndarray:
-    """The probe on a lat-long map, labelled with its degree and source.
+                position=None, height: int = 128, window: str = "none", step=None) -> np.ndarray:
+    """The probe on a lat-long map, labelled with its degree, window and source.
 
     Top row: radiance L(ω) of the source env map (when given) and of the probe,
-    on the source's exposure, so ringing (negative lobes, drawn black) and the
-    detail a low degree drops are seen as they are.  Bottom row: the irradiance
-    E(n)/π both give a surface of normal n (what shading uses; equal to L for a
-    uniform env), on one exposure: a good probe matches here even where its
-    radiance rings.
+    on the source's exposure, so the detail a low degree drops is seen as it
+    is; where the probe's reconstruction is negative (ringing) it is drawn as
+    green stripes, brighter where it is deeper (:func:`mark_negative`), not as
+    black, which would read as a dark part of the scene.  Bottom row: the
+    irradiance E(n)/π both give a surface of normal n (what shading uses; equal
+    to L for a uniform env), on one exposure: a good probe matches here even
+    where its radiance rings.  ``step`` (callable(int) or None) is called after
+    each of the three costly stages (a large cube map takes seconds).
     """
     from relight_cli import envmap as E
     from relight_cli.gaussians.probe import irradiance_from_sh
+    step = step or (lambda n: None)
     normals = E.latlong_directions(height, 2 * height).reshape(-1, 3)
     probe_l = probe_latlong(coefficients, height)
     probe_e = irradiance_from_sh(coefficients, normals).reshape(height, 2 * height, 3) / math.pi
+    step(1)
     n = (degree + 1) ** 2
-    name = f"SH probe, degree {degree} ({n} coefficients)"
+    name = f"SH probe, degree {degree} ({n} coefficients" + (
+        f", {window} window)" if window != "none" else ")")
     radiance, irradiance = [], []
     white_l = white_e = None
     if source_env is not None:
-        src_l = E.resample(source_env, "latlong", height, 2 * height).radiance
-        coarse = E.resample(source_env, "latlong", 32, 64)     # power-preserving: E is smooth
+        fine = E.resample(source_env, "latlong", height, 2 * height)
+        src_l = fine.radiance
+        step(1)
+        # Power-preserving, and E is smooth: from the 128-row map, not again from a large
+        # cube map's millions of texels (which took most of a 1k cube's preview).
+        coarse = E.resample(fine, "latlong", 32, 64)
         src_e = E.irradiance(coarse, normals).reshape(height, 2 * height, 3) / math.pi
+        step(1)
         display, note, white_l = expose(src_l)
         radiance.append(Tile(display, f"source radiance: {source}", note))
         display, note, white_e = expose(src_e)
         irradiance.append(Tile(display, "source irradiance / pi", note))
+    else:
+        step(2)
     shared = ", as the source" if source_env is not None else ""
-    display, note, _ = expose(probe_l, white=white_l)
-    radiance.append(Tile(display, name + ": radiance", note + shared))
-    display, note, _ = expose(probe_e, white=white_e)
-    irradiance.append(Tile(display, name + ": irradiance / pi", note + shared))
+    mean = np.asarray(coefficients, np.float64)[0] / math.sqrt(4 * math.pi)
+    for values, white, row, what in ((probe_l, white_l, radiance, "radiance"),
+                                     (probe_e, white_e, irradiance, "irradiance / pi")):
+        display, note, white = expose(np.maximum(values, 0), white=white)
+        display, negative_note = mark_negative(display, values, white, mean)
+        row.append(Tile(display, f"{name}: {what}",
+                        ", ".join(filter(None, (note + shared, negative_note)))))
     where = "" if position is None else " at (" + ", ".join(f"{float(x):.3g}" for x in position) + ")"
     title = f"sh-probe of {source}{where}: lat-long maps, +Y at the top, +Z in the middle"
     return sheet([radiance, irradiance], title)
+
+
+NEGATIVE = np.array([0.15, 0.9, 0.35])   # green stripes: a reconstruction below zero
+
+
+def mark_negative(display, values, white: float, mean=None, period: int = 4):
+    """Draw where linear ``values`` [H, W, 3] are negative in any channel over ``display``
+    [H, W, 3]: diagonal stripes of :data:`NEGATIVE`, dimmed to 30 % where the dip is
+    shallow and full where it reaches ``white`` (display is unchanged elsewhere).
+
+    → (display, note): the note names the marking, the part of the picture it
+    covers (by pixel count; a lat-long's pixels are not equal areas) and, with
+    ``mean`` [3] (the mean radiance per channel), the deepest dip in units of it.
+    """
+    v = np.asarray(values, np.float64)
+    negative = (v < 0).any(axis=-1)
+    if not negative.any():
+        return display, ""
+    out = np.array(display, np.float64, copy=True)
+    depth = np.clip(-v.min(axis=-1) / (white if white > 0 else 1.0), 0, 1)    # [H, W]
+    rows, cols = np.indices(negative.shape)
+    stripe = ((rows + cols) // (period // 2)) % 2 == 0
+    colour = NEGATIVE * (0.3 + 0.7 * np.sqrt(depth))[..., None]
+    out[negative & stripe] = colour[negative & stripe]
+    out[negative & ~stripe] = 0.0
+    note = f"green stripes: < 0 on {negative.mean():.0%}"
+    if mean is not None:
+        m = np.asarray(mean, np.float64)
+        lit = m > 0
+        if lit.any():
+            deepest = float((np.clip(-v.min(axis=(0, 1)), 0, None)[lit] / m[lit]).max())
+            note += f", to -{deepest:.2f}x mean"
+    return out, note
 
 
 # ------------------------------------------------------------------ feature maps
@@ -819,10 +868,14 @@ def dgsm_camera(occluders, receivers, strength, lights, width: int = 320, height
 
 
 def dgsm_sheet(shadow_map, occluders, receivers=None, camera=None, footprint: str = "stencil",
-               samples: int = 16, seed: int = 0, title: str = "", max_lights: int = 3):
+               samples: int = 16, seed: int = 0, title: str = "", max_lights: int = 3,
+               strength=1.0, probe_coefficients=None, shadowed: list | None = None):
     """A DGSM's result as a sheet.  With receivers: (1) the scene as ``relight``
-    draws it (receivers darkened by the shadow factor, occluders in their own
-    colours), ``reinhard`` as relight's own previews; (2) the paper's shadow matte 1 − Σ w_l T_l / Σ w_l
+    draws it (receivers darkened by relight's own shadow factor at shadow ``strength``,
+    a number or ``auto`` with the scene's ``probe_coefficients``:
+    relight_cli.gaussians.receiver_shadow; the strength in the tile's label; occluders
+    in their own colours; the shadowed receivers appended to ``shadowed`` if given),
+    ``reinhard`` as relight's own previews; (2) the paper's shadow matte 1 − Σ w_l T_l / Σ w_l
     on the receivers only (Sec. 4.2), ``unit``; both from ``camera`` (default
     :func:`dgsm_camera`).  Then per light (at most ``max_lights``) the atlas
     slice the lookups read, min over radial bins of T (``unit``, black = opaque).
@@ -840,16 +893,23 @@ def dgsm_sheet(shadow_map, occluders, receivers=None, camera=None, footprint: st
                                    receivers.rotations, footprint=footprint, samples=samples,
                                    seed=seed)                                    # [L, M]
         factor = TF.shadow_factor(T, weights, 1.0)
-        strength = SM.shadow_strength(factor)
+        matte_strength = SM.shadow_strength(factor)
         if camera is None:
-            camera = dgsm_camera(occluders, receivers, strength, shadow_map.lights)
-        scene = render(concatenate([TF.attenuate(receivers, factor), occluders]), camera)
-        matte = render(receivers, camera, colors=SM.matte_colors(strength))
+            camera = dgsm_camera(occluders, receivers, matte_strength, shadow_map.lights)
+        from relight_cli.gaussians.receiver_shadow import receiver_shadow
+        shadow = receiver_shadow(shadow_map, receivers, T, strength,
+                                 probe_coefficients=probe_coefficients)
+        darkened = TF.attenuate(receivers, shadow.factor)
+        if shadowed is not None:
+            shadowed.append(darkened)
+        scene = render(concatenate([darkened, occluders]), camera)
+        matte = render(receivers, camera, colors=SM.matte_colors(matte_strength))
         where = f"{camera.width}x{camera.height}, camera {camera.name or 'given'}"
-        rows.append([tile(scene.image, "receivers shadowed + occluders", "reinhard", note=where),
+        rows.append([tile(scene.image, f"relight's shadow at strength {shadow.describe()}",
+                          "reinhard", note=f"receivers + occluders, {where}"),
                      tile(matte.image, "shadow matte on receivers",
-                          "unit", note=f"{int((strength > 0.1).sum())} of {len(strength)} "
-                                       f"> 0.1")])
+                          "unit", note=f"{int((matte_strength > 0.1).sum())} of "
+                                       f"{len(matte_strength)} > 0.1")])
     atlas = []
     for li in range(min(len(shadow_map.lights), max_lights)):
         slice_ = shadow_map.transmittance[li].min(axis=0)                      # [H, W]

@@ -73,6 +73,9 @@ def fit_sh(directions: np.ndarray, values: np.ndarray, weights: np.ndarray, degr
 
     With weights = exact solid angles this approximates the projection integral
     ∫ L Y dω and stays well-posed when directions cover only part of the sphere.
+    The normal equations are summed over blocks of :data:`FIT_BLOCK` samples, so
+    a 1k HDRI at degree 16 needs a few tens of MB, not the [N, K] basis at once
+    (a map of at most FIT_BLOCK texels is one block, as before).
 
     Args:
         directions: [N, 3]; values: [N, C]; weights: [N] (≥ 0, e.g. steradians).
@@ -81,12 +84,58 @@ def fit_sh(directions: np.ndarray, values: np.ndarray, weights: np.ndarray, degr
     Returns:
         [(degree+1)², C] coefficients.
     """
-    basis = sh_basis(directions, degree)
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
     w = np.asarray(weights, np.float64).reshape(-1)
     v = np.asarray(values, np.float64).reshape(len(w), -1)
-    gram = basis.T @ (basis * w[:, None]) + ridge * np.eye(basis.shape[1])
-    rhs = basis.T @ (v * w[:, None])
+    k = n_coefficients(degree)
+    gram = ridge * np.eye(k)
+    rhs = np.zeros((k, v.shape[1]))
+    for start in range(0, max(len(w), 1), FIT_BLOCK):
+        basis = sh_basis(d[start:start + FIT_BLOCK], degree)            # [B, K]
+        gram = gram + basis.T @ (basis * w[start:start + FIT_BLOCK, None])
+        rhs = rhs + basis.T @ (v[start:start + FIT_BLOCK] * w[start:start + FIT_BLOCK, None])
     return np.linalg.solve(gram, rhs)
+
+
+#: Samples per block of :func:`fit_sh`'s normal equations ([65536, 289] float64 = 150 MB
+#: at degree 16; a 64×128 map or a 64² scene probe's 24576 pixels are one block).
+FIT_BLOCK = 65536
+
+
+# ------------------------------------------------------------------ deringing windows
+
+#: ``--window`` names: no window, or a standard deringing window (Sloan, "Stupid
+#: Spherical Harmonics (SH) Tricks", GDC 2008, sec. "Windowing").
+WINDOWS = ("none", "hanning", "lanczos")
+
+
+def window_factors(kind: str, degree: int) -> np.ndarray:
+    """[degree+1] per-band factors h_l of a deringing window of width w = degree + 1.
+
+    ``none``: h_l = 1.  ``hanning``: h_l = (1 + cos(π l / w)) / 2.  ``lanczos``
+    (Lanczos σ factors): h_l = sin(π l / w) / (π l / w), h_0 = 1.  Multiplying
+    band l of a probe by h_l convolves its radiance with a zonal kernel, which
+    damps the Gibbs ringing of a truncated expansion (negative lobes) at the
+    price of blur: the irradiance of a windowed probe is less accurate at the
+    same degree (formats/sh_probe_json.md has the measured trade).
+    """
+    if kind not in WINDOWS:
+        raise ValueError(f"window must be one of {WINDOWS}, got {kind!r}")
+    band = np.arange(degree + 1, dtype=np.float64) / (degree + 1)
+    if kind == "hanning":
+        return (1 + np.cos(math.pi * band)) / 2
+    if kind == "lanczos":
+        return np.sinc(band)          # numpy's sinc is sin(πx)/(πx)
+    return np.ones(degree + 1)
+
+
+def apply_window(coefficients: np.ndarray, kind: str) -> np.ndarray:
+    """[(d+1)², C] coefficients with band l scaled by :func:`window_factors` (a copy)."""
+    c = np.asarray(coefficients, np.float64)
+    degree = int(round(math.sqrt(c.shape[0]))) - 1
+    factors = window_factors(kind, degree)
+    per_coef = np.concatenate([np.full(2 * l + 1, factors[l]) for l in range(degree + 1)])
+    return c * per_coef.reshape(-1, *([1] * (c.ndim - 1)))
 
 
 def lambert_band_factors(degree: int) -> np.ndarray:

@@ -19,15 +19,16 @@ def env_grid(text: str, what: str = "--env-res"):
     return EnvGrid.from_wh(*parse_env_res(text, what))
 
 
-def load_envmap(spec: str, nonfinite: str = "error"):
-    """An EnvMap from a file path or a ``builtin:NAME`` (see relight_cli.builtin_envs)."""
+def load_envmap(spec: str, nonfinite: str = "error", negative: str = "error"):
+    """An EnvMap from a file path or a ``builtin:NAME`` (see relight_cli.builtin_envs);
+    ``negative``: ``error`` refuses negative radiance, ``keep`` leaves it to the caller."""
     if spec.startswith("builtin:"):
         from relight_cli.builtin_envs import builtin_envmap
         return builtin_envmap(spec)
     from relight_cli.cli.tools import check_input
     from relight_cli.formats.envmap import read_envmap
     check_input(spec)
-    return read_envmap(spec, nonfinite=nonfinite)
+    return read_envmap(spec, nonfinite=nonfinite, negative=negative)
 
 
 def load_hand(spec: str):

@@ -17,8 +17,15 @@ exactly:
 Spec language (``SOURCE[:KEY=VALUE;KEY=VALUE;FLAG]``, see :func:`split_spec`):
 
 =================  ==============================================================
+``crop=BOX``       BOX = X0,Y0,Z0,X1,Y1,Z1: keep only the Gaussians whose centres
+                   lie in this axis-aligned box (bounds included), in the source's
+                   own frame and units, before any transform (X0 < X1, Y0 < Y1,
+                   Z0 < Z1)
+``min-opacity=A``  drop the Gaussians whose opacity (activated, in [0, 1]) is < A
+``max-scale=S``    drop the Gaussians whose largest std dev (activated scale, the
+                   source's own units) is > S: a capture's needle floaters
 ``fit=S``          scale so the largest side of the robust box is S metres, and
-                   move the robust box's centre to the origin (done first)
+                   move the robust box's centre to the origin (first, after pruning)
 ``centre``         move the robust box's centre to the origin (no scaling)
 ``scale=s``        multiply by s > 0 (after fit/centre)
 ``rotate-x=deg``   rotate about the world x axis through the origin (also
@@ -33,8 +40,10 @@ Spec language (``SOURCE[:KEY=VALUE;KEY=VALUE;FLAG]``, see :func:`split_spec`):
                    moves (``relight --frames``, ``dgsm-build --frames``)
 =================  ==============================================================
 
-The order is fixed, whatever the order of the keys: fit/centre → scale →
-rotations → on-floor → translate.  The robust box is the alpha(opacity)-
+The order is fixed, whatever the order of the keys: crop/min-opacity/max-scale
+(:func:`prune`, on the source as read) → fit/centre → scale → rotations → on-floor →
+translate, so ``fit`` and ``on-floor`` measure what is kept (a clip prunes every
+frame and resolves the similarity on its first).  The robust box is the alpha(opacity)-
 weighted 1st–99th percentile of the centres per axis (floaters of a trained
 scene do not inflate it); it ignores the Gaussians' own extents, so a
 surface "on the floor" may dip by about one std dev of its bottom Gaussians.
@@ -52,10 +61,12 @@ from relight_cli.formats.gaussians_ply import (Gaussians, matrix_to_quaternion,
 from relight_cli.sh import sh_basis
 
 KEYS = ("fit", "centre", "scale", "rotate-x", "rotate-y", "rotate-z", "on-floor", "translate",
-        "frame", "path")
-USAGE = ("SOURCE[:KEY=VALUE;...] with keys fit=SIZE, centre, scale=S, rotate-x|y|z=DEG, "
-         "on-floor, translate=X,Y,Z, frame=K (a hand .npz's pose), path=FILE.json (a clip's "
-         "per-frame translations) (e.g. donut.ply:fit=0.15;on-floor;translate=0.3,0,0)")
+        "frame", "path", "crop", "min-opacity", "max-scale")
+USAGE = ("SOURCE[:KEY=VALUE;...] with keys crop=X0,Y0,Z0,X1,Y1,Z1, min-opacity=A, "
+         "max-scale=S (these three prune the source first), fit=SIZE, centre, scale=S, "
+         "rotate-x|y|z=DEG, on-floor, translate=X,Y,Z, frame=K (a hand .npz's pose), "
+         "path=FILE.json (a clip's per-frame translations) "
+         "(e.g. donut.ply:fit=0.15;on-floor;translate=0.3,0,0)")
 
 
 @dataclass
@@ -72,6 +83,9 @@ class Placement:
         frame: for a hand .npz source, the frame whose pose becomes Gaussians (None: 0).
         path: a relight/path JSON of per-frame translations (None: none), read by
             relight_cli.gaussians.sequence (a clip); not part of the similarity.
+        crop: (x0, y0, z0, x1, y1, z1) box of centres kept, the source's frame, or None.
+        min_opacity: drop opacities below this (None: keep all).
+        max_scale: drop Gaussians whose largest std dev exceeds this (None: keep all).
     """
 
     fit: float | None = None
@@ -82,8 +96,17 @@ class Placement:
     translate: tuple = (0.0, 0.0, 0.0)
     frame: int | None = None
     path: str | None = None
+    crop: tuple | None = None
+    min_opacity: float | None = None
+    max_scale: float | None = None
+
+    def prunes(self) -> bool:
+        """Whether crop, min-opacity or max-scale drops Gaussians (:func:`prune`)."""
+        return self.crop is not None or self.min_opacity is not None \
+            or self.max_scale is not None
 
     def is_identity(self) -> bool:
+        """Whether the similarity is the identity (pruning aside: see :meth:`prunes`)."""
         return (self.fit is None and not self.centre and self.scale == 1.0
                 and not self.rotations and not self.on_floor and tuple(self.translate) == (0, 0, 0))
 
@@ -212,8 +235,52 @@ def robust_bounds(g: Gaussians, low: float = 1.0, high: float = 99.0) -> tuple[n
     return lo, hi
 
 
+def prune_mask(g: Gaussians, placement: Placement) -> np.ndarray:
+    """[N] bool: the Gaussians that ``placement``'s crop box, min-opacity and max-scale
+    keep (centres inside the box, bounds included; opacity ≥ A; largest scale ≤ S)."""
+    keep = np.ones(len(g), bool)
+    if placement.crop is not None:
+        box = np.asarray(placement.crop, np.float64)
+        keep &= np.all((g.means >= box[:3]) & (g.means <= box[3:]), axis=1)
+    if placement.min_opacity is not None:
+        keep &= g.opacities >= placement.min_opacity
+    if placement.max_scale is not None:
+        keep &= g.scales.max(axis=1) <= placement.max_scale
+    return keep
+
+
+def prune(g: Gaussians, placement: Placement) -> Gaussians:
+    """``g`` less what crop/min-opacity/max-scale drop (``g`` itself when none is given).
+
+    Raises:
+        ValueError: nothing is left (the message counts what each key dropped).
+    """
+    if not placement.prunes():
+        return g
+    keep = prune_mask(g, placement)
+    if keep.all():
+        return g
+    if not keep.any():
+        dropped = []
+        if placement.crop is not None:
+            box = np.asarray(placement.crop, np.float64)
+            outside = ~np.all((g.means >= box[:3]) & (g.means <= box[3:]), axis=1)
+            dropped.append(f"{int(outside.sum()):,} outside the crop box")
+        if placement.min_opacity is not None:
+            dropped.append(f"{int((g.opacities < placement.min_opacity).sum()):,} below "
+                           f"min-opacity {placement.min_opacity:g}")
+        if placement.max_scale is not None:
+            dropped.append(f"{int((g.scales.max(axis=1) > placement.max_scale).sum()):,} "
+                           f"above max-scale {placement.max_scale:g}")
+        raise ValueError(f"no Gaussians left after pruning (of {len(g):,}: "
+                         + ", ".join(dropped) + ")")
+    return g.subset(keep)
+
+
 def resolve(placement: Placement, g: Gaussians) -> Similarity:
-    """The similarity that ``placement`` means for these Gaussians (fit and on-floor read them)."""
+    """The similarity that ``placement`` means for these Gaussians (fit and on-floor read
+    them, after :func:`prune`)."""
+    g = prune(g, placement)
     sim = identity()
     if placement.fit is not None or placement.centre:
         lo, hi = robust_bounds(g)
@@ -240,7 +307,9 @@ def resolve(placement: Placement, g: Gaussians) -> Similarity:
 
 
 def place(g: Gaussians, placement: Placement) -> Gaussians:
-    """:func:`transform_gaussians` by :func:`resolve` (the identity returns ``g`` unchanged)."""
+    """:func:`prune`, then :func:`transform_gaussians` by :func:`resolve` (nothing to do
+    returns ``g`` unchanged)."""
+    g = prune(g, placement)
     if placement.is_identity():
         return g
     return transform_gaussians(g, resolve(placement, g))
@@ -305,6 +374,21 @@ def parse_placement(text: str | None) -> Placement:
                 raise ValueError(f"path names a relight/path .json file, got {value!r}")
             p.path = value
             continue
+        if key == "crop":
+            try:
+                box = tuple(float(v) for v in value.split(","))
+            except ValueError:
+                raise ValueError(f"crop must be X0,Y0,Z0,X1,Y1,Z1 numbers, got {value!r}") \
+                    from None
+            if len(box) != 6 or not all(math.isfinite(v) for v in box):
+                raise ValueError(f"crop must be 6 finite numbers X0,Y0,Z0,X1,Y1,Z1, got "
+                                 f"{value!r}")
+            for axis, lo, hi in zip("XYZ", box[:3], box[3:]):
+                if not lo < hi:
+                    raise ValueError(f"crop box is empty: {axis}0 = {lo:g} must be < "
+                                     f"{axis}1 = {hi:g}")
+            p.crop = box
+            continue
         if key == "frame":
             if not value.isdigit():
                 raise ValueError(f"frame must be an integer ≥ 0, got {value!r}")
@@ -316,9 +400,16 @@ def parse_placement(text: str | None) -> Placement:
             raise ValueError(f"{key} must be a number, got {value!r}") from None
         if not math.isfinite(number):
             raise ValueError(f"{key} must be finite, got {value!r}")
-        if key in ("fit", "scale") and not number > 0:
+        if key in ("fit", "scale", "max-scale") and not number > 0:
             raise ValueError(f"{key} must be > 0, got {value!r}")
-        if key == "fit":
+        if key == "min-opacity" and not 0 <= number <= 1:
+            raise ValueError(f"min-opacity must be in [0, 1] (an activated opacity), got "
+                             f"{value!r}")
+        if key == "min-opacity":
+            p.min_opacity = number
+        elif key == "max-scale":
+            p.max_scale = number
+        elif key == "fit":
             p.fit = number
         elif key == "scale":
             p.scale = number

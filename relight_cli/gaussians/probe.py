@@ -22,7 +22,7 @@ import numpy as np
 from relight_cli.formats.camera import Camera
 from relight_cli.formats.envmap import EnvMap
 from relight_cli.formats.gaussians_ply import Gaussians
-from relight_cli.sh import fit_sh, irradiance_coefficients, sh_basis
+from relight_cli.sh import apply_window, fit_sh, irradiance_coefficients, sh_basis
 
 AUTO_MAX_DEGREE = 8
 # (forward, down) axes of the six faces; right = down × forward (OpenCV x right, y down, z forward).
@@ -245,6 +245,7 @@ class DegreeChoice:
         limited_by: None when the tolerance is met, else ``"max_negativity"`` (a
             degree with a smaller error rings past the limit) or ``"max_degree"``.
         reference: how the reference irradiance was computed (cells, normals).
+        window: the deringing window applied to every candidate (``relight_cli.sh``).
     """
 
     degree: int
@@ -260,11 +261,13 @@ class DegreeChoice:
     tolerance_met: bool
     limited_by: str | None
     reference: str = ""
+    window: str = "none"
 
 
 def choose_degree(samples: Samples, tolerance: float = AUTO_TOLERANCE, ridge: float = 0.0,
                   max_degree: int = AUTO_MAX_DEGREE, max_negativity: float = AUTO_MAX_NEGATIVITY,
-                  n_normals: int = SEARCH_NORMALS, height: int = SEARCH_HEIGHT) -> DegreeChoice:
+                  n_normals: int = SEARCH_NORMALS, height: int = SEARCH_HEIGHT,
+                  window: str = "none") -> DegreeChoice:
     """The smallest degree whose irradiance is within ``tolerance`` of a direct quadrature of
     the samples and whose radiance rings no deeper than ``max_negativity``.
 
@@ -277,6 +280,8 @@ def choose_degree(samples: Samples, tolerance: float = AUTO_TOLERANCE, ridge: fl
     measured (a candidate whose full fit fails the criterion is passed over).
     If no candidate within the negativity limit reaches the tolerance, the one
     of them with the smallest error is taken and ``limited_by`` says why.
+    ``window`` (``relight_cli.sh.WINDOWS``) is applied to every candidate's fit
+    before it is judged: what is judged is what would be written.
     """
     if not tolerance >= 0 or not max_negativity >= 0:
         raise ValueError("tolerance and max_negativity must be ≥ 0")
@@ -285,7 +290,7 @@ def choose_degree(samples: Samples, tolerance: float = AUTO_TOLERANCE, ridge: fl
     reference = reference_irradiance(cells, normals)
     grid = _negativity_grid(height)
     degrees = candidate_degrees(max_degree)
-    fits = fit_cells(cells, degrees, ridge)
+    fits = {d: apply_window(c, window) for d, c in fit_cells(cells, degrees, ridge).items()}
     errors = {d: irradiance_error(fits[d], normals, reference) for d in degrees}
     negativities = {d: radiance_negativity(fits[d], _grid=grid)[0] for d in degrees}
     admissible = [d for d in degrees if negativities[d] <= max_negativity]
@@ -295,27 +300,27 @@ def choose_degree(samples: Samples, tolerance: float = AUTO_TOLERANCE, ridge: fl
            f"Fibonacci-sphere normals")
 
     def full(d):
-        c = fit_probe(samples, d, ridge)
+        c = apply_window(fit_probe(samples, d, ridge), window)
         return (c, irradiance_error(c, normals, reference)) + radiance_negativity(c, _grid=grid)
 
     for d in meets:
         c, err, neg, frac = full(d)
         if err <= tolerance and neg <= max_negativity:
             return DegreeChoice(d, c, err, neg, frac, errors, negativities, tolerance,
-                                max_negativity, max_degree, True, None, how)
+                                max_negativity, max_degree, True, None, how, window)
     pool = admissible or [0]
     d = min(pool, key=lambda k: (errors[k], k))
     c, err, neg, frac = full(d)
     ringing = any(errors[k] < errors[d] for k in degrees if k not in admissible)
     return DegreeChoice(d, c, err, neg, frac, errors, negativities, tolerance, max_negativity,
                         max_degree, err <= tolerance, None if err <= tolerance else
-                        ("max_negativity" if ringing else "max_degree"), how)
+                        ("max_negativity" if ringing else "max_degree"), how, window)
 
 
 def degree_search_record(choice: DegreeChoice) -> dict:
     """The probe JSON's ``degree_search`` object (formats/sh_probe_json.md)."""
     return {"tolerance": choice.tolerance, "max_negativity": choice.max_negativity,
-            "max_degree": choice.max_degree,
+            "max_degree": choice.max_degree, "window": choice.window,
             "reference": choice.reference,
             "irradiance_error": choice.error, "negativity": choice.negativity,
             "negative_solid_angle": choice.negative_fraction,

@@ -188,12 +188,13 @@ class GaussianSource:
     def _place(self, g, frame: int):
         """``g`` (frame ``frame``) placed by the clip's one similarity (resolved on the
         recording's first frame) and dgsm-build's --translate."""
-        from relight_cli.gaussians.placement import transform_gaussians
+        from relight_cli.gaussians.placement import prune, transform_gaussians
         if self._similarity is None:
             first = g if self.kind == "static" or frame == self.frames[0] \
                 else self._raw(self.frames[0])
             self._similarity = _resolve_placement(self.placement, first, self.spec) or False
         try:
+            g = prune(g, self.placement)     # crop/min-opacity/max-scale: every frame
             placed = g if self._similarity is False else transform_gaussians(g, self._similarity)
         except ValueError as exc:
             raise DataError(f"cannot place it: {exc}", self.spec) from None

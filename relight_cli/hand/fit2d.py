@@ -33,7 +33,7 @@ import numpy as np
 
 @dataclass
 class Fit2DOptions:
-    iterations: int = 200          # refinement iterations (the 3D initial fit: its own)
+    iterations: int = 200          # refinement iterations, and the initial 3D fit's
     w_mask: float = 0.5            # silhouette terms against the keypoint term
     w_limits: float = 10.0
     w_scale: float = 1e-3
@@ -138,7 +138,8 @@ def fit_views(template, cameras: list, uv: np.ndarray, confidence: np.ndarray,
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        init = fit(template, kp3, seen.astype(np.float64), options=FitOptions(seed=opt.seed),
+        init = fit(template, kp3, seen.astype(np.float64),
+                   options=FitOptions(iterations=opt.iterations, seed=opt.seed),
                    progress=progress)
         return _refine(template, init, cameras, uv, confidence, groups, masks, opt, seen,
                        progress)

@@ -45,6 +45,9 @@ class FitOptions:
     fit_offsets: bool = False      # per-vertex offsets (only meaningful with scans)
     w_limits: float = 10.0
     w_smooth: float = 0.0
+    # rows that start a new sequence (e.g. a second hand's frames stacked after the first's):
+    # no smoothness term links such a row to the one before it
+    sequence_starts: tuple = ()
     w_scale: float = 1e-3
     w_laplacian: float = 10.0
     w_scan: float = 1.0
@@ -396,6 +399,9 @@ def _fit(template, keypoints, confidence, scans, options, side, progress):
             return out if scan_joint_terms is None else out + scan_joint_terms
         if opt.w_smooth > 0 and poses.shape[0] > 1:
             d = ((poses[1:] - poses[:-1]) ** 2).sum((1, 2)) + ((trans[1:] - trans[:-1]) / 0.01).pow(2).sum(1)
+            starts = [s - 1 for s in opt.sequence_starts if 0 < s < poses.shape[0]]
+            if starts:
+                d = d.index_fill(0, torch.tensor(starts), 0.0)
             terms = terms + opt.w_smooth * torch.cat([d, d.new_zeros(1)])
         if per_frame:
             return terms

@@ -5,7 +5,8 @@ objects), the receivers' Gaussians (or none, with ``t_max``), and point lights (
 relight/lights record, or a count K to estimate K lights from the receivers' scene,
 paper Sec. 3.1), and returns the DGSM (one table per light; with several objects one
 per object and their product), the lights used, the combined occluders, the
-optional preview sheet and the settings its provenance records.  Only what the
+optional preview sheet (with the receivers as it draws them) and the settings its
+provenance records.  Only what the
 receivers need is computed (receiver ROI, light-space occluder culling: see
 :func:`relight_cli.gaussians.dgsm.build_dgsm`).
 
@@ -33,7 +34,10 @@ class DgsmOptions:
     ``size`` is (height, width) of the atlas; ``mapping`` may be an old name (``eq5``),
     recorded under its canonical name; ``estimator`` is the variant of the auto:K light
     estimate; ``preview`` also makes the labelled preview sheet, seen from ``camera``
-    (an OpenCV camera, or None for one framing the occluders and their shadow)."""
+    (an OpenCV camera, or None for one framing the occluders and their shadow), its
+    receivers shadowed as ``relight`` shadows them at ``preview_strength`` (a number in
+    [0, 1] or ``auto``, which needs ``preview_probe``, the scene's SH probe: an object
+    with ``coefficients``; None: auto with a probe, else 1, the paper's full shadow)."""
 
     size: tuple = (128, 128)
     bins: int = 64
@@ -54,6 +58,15 @@ class DgsmOptions:
     estimator: str = "paper"
     preview: bool = False
     camera: object = None
+    preview_strength: object = None
+    preview_probe: object = None
+
+    def shown_strength(self):
+        """The strength the preview shows: ``preview_strength``, or by default auto with
+        a probe (relight's default) and 1 without one."""
+        if self.preview_strength is not None:
+            return self.preview_strength
+        return "auto" if self.preview_probe is not None else 1.0
 
 
 @dataclass
@@ -61,8 +74,9 @@ class DgsmResult:
     """What :func:`build` made: ``shadow_map`` (:class:`relight_cli.gaussians.dgsm.DGSM`),
     ``lights`` (the relight/lights record used: read or estimated), ``occluders`` (all
     occluder Gaussians in one set), ``mapping`` (canonical name), ``preview`` (the
-    [H, W, 3] display sheet in [0, 1], or None) and ``settings`` (the build's provenance
-    settings, in order)."""
+    [H, W, 3] display sheet in [0, 1], or None), ``preview_receivers`` (the receivers
+    shadowed as the preview draws them, as relight relight would at its strength, or
+    None) and ``settings`` (the build's provenance settings, in order)."""
 
     shadow_map: object
     lights: object
@@ -70,6 +84,7 @@ class DgsmResult:
     mapping: str
     preview: object = None
     settings: dict = field(default_factory=dict)
+    preview_receivers: object = None
 
 
 def build(occluders, lights, options: DgsmOptions, receivers=None, names=None,
@@ -145,11 +160,12 @@ def build(occluders, lights, options: DgsmOptions, receivers=None, names=None,
             record["self_shadow"] = True
     _log_build(say, shadow_map, receivers is not None and options.roi, mapping, options.kappa)
 
-    sheet = None
+    sheet, shadowed = None, []
     if options.preview:
         sheet = preview_sheet(shadow_map, occ, receivers, options, mapping, len(lights), names,
-                              receivers_name if receivers is not None else None)
-    return DgsmResult(shadow_map, lights, occ, mapping, sheet, _settings(options, mapping))
+                              receivers_name if receivers is not None else None, shadowed)
+    return DgsmResult(shadow_map, lights, occ, mapping, sheet, _settings(options, mapping),
+                      shadowed[0] if shadowed else None)
 
 
 def _self_points(occluders, lights, recv_points, options: DgsmOptions) -> list:
@@ -218,18 +234,23 @@ def _log_build(say, shadow_map, receivers_roi: bool, mapping: str, kappa: float)
 
 
 def preview_sheet(shadow_map, occluders, receivers, options: DgsmOptions, mapping: str,
-                  n_lights: int, names, receivers_name=None):
+                  n_lights: int, names, receivers_name=None, shadowed: list | None = None):
     """The labelled preview ([H, W, 3] display values in [0, 1]): the receivers shadowed
-    (with the occluders) and their shadow matte seen from ``options.camera``, and each
-    light's atlas slice."""
+    at :meth:`DgsmOptions.shown_strength` (with the occluders; appended to ``shadowed``
+    if given) and their shadow matte seen from ``options.camera``, and each light's
+    atlas slice."""
     from relight_cli.preview import dgsm_sheet
 
     h, w = options.size
     title = (f"dgsm-build: {n_lights} light(s), {options.atlas} atlas {w}x{h}, {options.bins} "
              f"bins, mapping {mapping}\noccluders: {' '.join(names)}"
              + (f"\nreceivers: {receivers_name}" if receivers_name else ""))
+    probe = options.preview_probe
     image, _ = dgsm_sheet(shadow_map, occluders, receivers, options.camera, options.footprint,
-                          options.samples, options.seed, title)
+                          options.samples, options.seed, title,
+                          strength=options.shown_strength(),
+                          probe_coefficients=None if probe is None else probe.coefficients,
+                          shadowed=shadowed)
     return image
 
 

@@ -20,11 +20,13 @@ from dataclasses import dataclass
 class EnvmapOptions:
     """``relight envmap``'s options, parsed: ``layout`` (``latlong``, ``cube``, None: the
     input's), ``size`` (width, height: a cube map's is (N, 6N); None: from the input),
-    ``rotate_y`` (degrees about +Y)."""
+    ``rotate_y`` (degrees about +Y), ``negative`` (what to do with negative radiance:
+    ``error`` refuses it, ``clamp`` sets it to 0)."""
 
     layout: str | None = None
     size: tuple | None = None
     rotate_y: float = 0.0
+    negative: str = "error"
 
 
 @dataclass
@@ -46,6 +48,9 @@ def convert(env, options: EnvmapOptions, log=None) -> Converted:
     from relight_cli import envmap as E
     from relight_cli.errors import UsageProblem
 
+    clamped = _negative(env, options.negative, log)
+    if clamped is not None:
+        env = clamped
     target = options.layout or env.layout
     if options.size is not None and options.layout is None and target == "cube":
         # The input is a cube and stays one: --size is its face size, never WxH.
@@ -67,5 +72,28 @@ def convert(env, options: EnvmapOptions, log=None) -> Converted:
         if log is not None:
             log(f"resampled to {target} {w}x{h}"
                 + (f", rotated {rotate_y}° about +Y" if rotate_y else ""))
-    return Converted(result, E.info(result),
-                     {"layout": target, "width": w, "height": h, "rotate_y": rotate_y})
+    settings = {"layout": target, "width": w, "height": h, "rotate_y": rotate_y}
+    if options.negative != "error":     # recorded when it can change pixels
+        settings["negative"] = options.negative
+    return Converted(result, E.info(result), settings)
+
+
+def _negative(env, policy: str, log):
+    """``env`` with its negative radiance set to 0 (``clamp``, logged: how many pixels,
+    how deep), None when it has none; ``error`` refuses it as the reader does."""
+    import numpy as np
+
+    from relight_cli.errors import UsageProblem
+    from relight_cli.formats.envmap import EnvMap, check_negative
+
+    if policy not in ("error", "clamp"):
+        raise UsageProblem(f"--negative must be error or clamp, got {policy!r}")
+    low = env.radiance < 0
+    if not low.any():
+        return None
+    if policy == "error":
+        check_negative(env.radiance, env.name)
+    if log is not None:
+        log(f"clamped {int(low.any(axis=-1).sum())} pixel(s) of negative radiance (down to "
+            f"{float(env.radiance.min()):.4g}) to 0")
+    return EnvMap(np.maximum(env.radiance, np.float32(0.0)), env.layout, env.name)

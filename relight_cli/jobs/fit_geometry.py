@@ -2,6 +2,7 @@
 
     pose(template, poses, translations, ...)    the template posed (``--pose``)
     fit(template, keypoints, scans, options)    fitted to 3D keypoints and/or scan points
+    fit_hands(template, [kp, kp_other], ...)    both hands of one recording (``--hand both``)
 
 Both take a loaded template (:func:`relight_cli.cli.inputs.load_template`: one hand, rest
 frame) and return a :class:`Fitted`: the hand to write (``hand.npz``), the report's
@@ -117,6 +118,144 @@ def fit(template, keypoints=None, scans=None, options: FitGeometryOptions | None
     return Fitted(hand, report, options.settings())
 
 
+def fit_hands(template, hands, options: FitGeometryOptions | None = None,
+              names: dict | None = None, log=None, quiet: bool = True) -> Fitted:
+    """Fit the two hands of one recording into one two-hand hand (``--hand both``).
+
+    ``hands``: two :class:`relight_cli.formats.keypoints.Keypoints` of one recording (frame
+    numbers shared), the first of ``template``'s side, the second of the other side.
+    hand.npz holds one model and draws the other hand as its mirror image (x → −x), so
+    the other hand's keypoints are mirrored onto the template's side and both sequences
+    are fitted at once: per-frame pose and translation per hand, one set of bone scales
+    shared by both (the hands of one person; the report's ``bone_lengths_mm`` per hand
+    shows the bias this leaves on each).  The result has hand 0 (``template``'s side) and
+    hand 1 (the other side, ``mirror`` true, its poses the mirror images of the fitted
+    ones, identity roots: both hands where the recording has them).  A frame where one
+    hand is missing is that hand's missing frame: it is filled by slerp with
+    ``options.interpolate`` (each hand clamped to its own first/last measured frame
+    outside its range); without it the two-hand output keeps only the frames where both
+    are measured, the other hand's fit of that frame still in the report.
+    """
+    import copy
+
+    from relight_cli.errors import DataError
+    from relight_cli.formats.hand_npz import HandInstance
+    from relight_cli.hand.fitting import FitOptions, fit as fit_hand
+    from relight_cli.hand.poses import interpolate_poses
+    from relight_cli.hand.skinning import mirror_pose
+
+    options = options or FitGeometryOptions()
+    names = {"template": "template", "keypoints": "keypoints", **(names or {})}
+    sides = [kp.side for kp in hands]
+    if len(hands) != 2 or sides[0] != template.side or set(sides) != {"left", "right"}:
+        raise ValueError(f"fit_hands needs a {template.side} and the other hand, got {sides}")
+    kps, skipped = [], []
+    for kp in hands:
+        if not (kp.confidence > 0).any():
+            raise DataError(f"no selected keypoint frame measures any joint of the {kp.side} "
+                            "hand: nothing to fit", names["keypoints"])
+        kp, missing = _measured_frames(copy.copy(kp), False, names["keypoints"])
+        kps.append(kp)
+        skipped.append(missing)
+    if not options.interpolate and not len(np.intersect1d(kps[0].frames, kps[1].frames)):
+        raise DataError(f"the {sides[0]} and the {sides[1]} hand are measured in no common "
+                        "frame: a two-hand hand.npz needs both in each frame; --interpolate "
+                        "fills each hand's missing frames", names["keypoints"])
+    n = [len(kp.frames) for kp in kps]
+    _log(log, template_line(template, names["template"]))
+    for kp, missing in zip(kps, skipped):
+        _log_source(log, kp)
+        if missing:
+            _log(log, f"skipping {len(missing)} {kp.side}-hand keypoint frame(s) that measure "
+                      "no joint: missing frames of that hand")
+    _log(log, f"fitting {n[0]} {sides[0]} + {n[1]} {sides[1]} frame(s) to "
+              f"{names['keypoints']}: one skeleton, the {sides[1]} hand its mirror image")
+    # the other hand's targets mirrored onto the template's side (x → −x)
+    positions = np.concatenate([kps[0].positions, kps[1].positions * [-1.0, 1.0, 1.0]])
+    confidence = np.concatenate([kps[0].confidence, kps[1].confidence])
+    bar = _FrameBar(sum(n), quiet)
+    result = fit_hand(template, positions, confidence, None,
+                      FitOptions(iterations=options.iterations,
+                                 fit_bone_scales=options.bone_scales, w_smooth=options.smooth,
+                                 seed=options.seed, sequence_starts=(n[0],)),
+                      progress=bar)
+    bar.close()
+    _personalize(template, result)
+    parts = [_rows(result, slice(0, n[0])), _rows(result, slice(n[0], None))]
+
+    frame_ids = [kp.frames for kp in kps]
+    if options.interpolate:
+        out_frames = np.arange(min(f[0] for f in frame_ids), max(f[-1] for f in frame_ids) + 1)
+        motion = [interpolate_poses(f, r.poses, r.translations, out_frames)
+                  for f, r in zip(frame_ids, parts)]
+    else:
+        out_frames = np.intersect1d(*frame_ids)
+        motion = []
+        for f, r in zip(frame_ids, parts):
+            rows = np.searchsorted(f, out_frames)
+            motion.append((r.poses[rows], r.translations[rows]))
+        dropped = sorted(set(np.union1d(*frame_ids)) - set(out_frames.tolist()))
+        if dropped:
+            shown = ", ".join(map(str, dropped[:8])) + (", …" if len(dropped) > 8 else "")
+            _log(log, f"{len(dropped)} frame(s) measure one hand only (frame {shown}): missing "
+                      "from the two-hand output; --interpolate fills them")
+    (poses0, trans0), (poses1, trans1) = motion
+    template.hands = [
+        HandInstance(sides[0], False, np.eye(4), poses0, trans0),
+        # the mirrored model with the mirror image of the pose fitted to the mirrored
+        # targets puts the joints back on the other hand's own targets
+        HandInstance(sides[1], True, np.eye(4), mirror_pose(poses1), trans1 * [-1.0, 1.0, 1.0])]
+
+    per_hand, per_frame = [], []
+    for index, (kp, part, missing) in enumerate(zip(kps, parts, skipped)):
+        entry = _report(template, part, kp, missing, kp.frames, out_frames)
+        del entry["output_frames"], entry["bone_scales"]
+        rows = [{"hand": kp.side, **row} for row in entry.pop("per_frame")]
+        per_frame += rows
+        left_out = [int(f) for f in kp.frames if f not in set(out_frames.tolist())]
+        per_hand.append({"hand": kp.side, "index": index, "mirrored": bool(index == 1),
+                         **entry, "frames_left_out": left_out})
+    all_errors = np.concatenate([p.joint_error_mm for p in parts])
+    report = {
+        "hands": per_hand,
+        "fitted_frames": int(sum(n)),
+        "output_frames": [int(f) for f in out_frames],
+        "bone_scales": {name: float(s)
+                        for name, s in zip(template.joint_names, result.bone_scales)},
+        "per_frame": per_frame,
+        "mpjpe_mm": _num(np.nanmean(all_errors)),
+    }
+    return Fitted(template, report, {**options.settings(), "hands": sides})
+
+
+def _rows(result, rows: slice):
+    """The per-frame parts of a FitResult for ``rows`` (shared parts kept)."""
+    import dataclasses
+    cut = (lambda a: None if a is None else a[rows])
+    return dataclasses.replace(result, poses=result.poses[rows],
+                               translations=result.translations[rows],
+                               joint_error_mm=result.joint_error_mm[rows],
+                               joint_median_mm=result.joint_median_mm[rows],
+                               energy=cut(result.energy), scan_mm=cut(result.scan_mm),
+                               joint_errors_mm=cut(result.joint_errors_mm))
+
+
+def _log_source(log, kp) -> None:
+    """The line saying what the keypoint reader found (a Leap hand, a hand of a
+    two-hand relight/keypoints file); nothing for an unnamed hand."""
+    src = kp.source
+    if src is None:
+        return
+    if src.get("format") == "leap":
+        _log(log, f"Leap recording: {src['hand']} hand (id "
+                  f"{', '.join(map(str, src['hand_ids']))}) in "
+                  f"{src['recorded_frames'] - src['frames_without_hand']} of "
+                  f"{src['recorded_frames']} frames; missing joints (never measured): "
+                  f"{', '.join(src['never_observed_joints']) or 'none'}")
+    else:
+        _log(log, f"{src['format']}: {src['hand']} hand, {src['rows']} row(s)")
+
+
 def _log(log, message: str) -> None:
     if log is not None:
         log(message)
@@ -151,13 +290,8 @@ def _measured_frames(kp, with_scans: bool, name: str):
 
 def _log_targets(log, template, kp, scans, skipped, n, names, interpolate) -> None:
     _log(log, template_line(template, names["template"]))
-    if kp is not None and kp.source is not None:
-        src = kp.source
-        _log(log, f"Leap recording: {src['hand']} hand (id "
-                  f"{', '.join(map(str, src['hand_ids']))}) in "
-                  f"{src['recorded_frames'] - src['frames_without_hand']} of "
-                  f"{src['recorded_frames']} frames; missing joints (never measured): "
-                  f"{', '.join(src['never_observed_joints']) or 'none'}")
+    if kp is not None:
+        _log_source(log, kp)
     if skipped:
         shown = ", ".join(map(str, skipped[:8])) + (", …" if len(skipped) > 8 else "")
         _log(log, f"skipping {len(skipped)} keypoint frame(s) that measure no joint (frame "

@@ -97,25 +97,30 @@ def phone_scan(subject, settings, env, views: int = 8, res: int = 256, radius: f
     return Scan(images, masks, cameras, kp, hand, stage_env)
 
 
-def write_scan(folder: str, scan: Scan, provenance: dict | None = None) -> list:
+def write_scan(folder: str, scan: Scan, provenance=None) -> list:
     """Write ``scan`` into ``folder`` (created; each file atomic): ``view_NN.exr`` (RGBA,
     linear, A the coverage mask), ``cameras.json`` (one relight/camera per view, in
-    order), ``keypoints.json`` (relight/keypoints-2d).  Returns the paths written."""
+    order), ``keypoints.json`` (relight/keypoints-2d).  ``provenance``: callable(format,
+    version) → the record each file carries, or None.  Returns the paths written."""
     import os
 
-    from relight_cli.formats.camera import write_cameras
+    from relight_cli.formats import camera as cameras_json
+    from relight_cli.formats import keypoints2d as K
     from relight_cli.formats.exr import write_exr
-    from relight_cli.formats.keypoints2d import write_keypoints2d
+
+    def record(fmt, version):
+        return None if provenance is None else provenance(fmt, version)
     os.makedirs(folder, exist_ok=True)
     written = []
     for name, image, mask in zip(scan.keypoints.images, scan.images, scan.masks):
         path = os.path.join(folder, name)
         a = mask.astype(np.float32)
         write_exr(path, {"R": image[..., 0] * a, "G": image[..., 1] * a, "B": image[..., 2] * a,
-                         "A": a})
+                         "A": a}, provenance=record("relight/render", 1))
         written.append(path)
     cams = os.path.join(folder, "cameras.json")
-    write_cameras(cams, scan.cameras, provenance)
+    cameras_json.write_cameras(cams, scan.cameras,
+                               record(cameras_json.FORMAT, cameras_json.VERSION))
     kp = os.path.join(folder, "keypoints.json")
-    write_keypoints2d(kp, scan.keypoints, provenance)
+    K.write_keypoints2d(kp, scan.keypoints, record(K.FORMAT, K.VERSION))
     return written + [cams, kp]

@@ -5,6 +5,14 @@
                         the DGSM (Sec. 3.3), optionally rendered from a camera
     shadow_matte(...)   the receivers-only shadow matte of the paper's Sec. 4.2
 
+Relighting a capture where it stands (issue 53):
+
+    env_probe(...)         an env map's SH probe, fitted as ``relight sh-probe`` fits it,
+                           at the degree the transfer's lobe needs (transfer_degree)
+    upright_rotation(...)  the rotation taking a capture whose up axis is ``up`` upright
+    lighting_in_frame(...) a world (+Y up) probe turned into that capture's frame
+    in_source_frame(...)   placed, relit Gaussians written back in their source's frame
+
 Both take what the command has read (Gaussians, an SH probe, a DGSM, a camera) and an
 options dataclass, and return arrays plus the settings the provenance records; logging
 goes through the ``log`` callable given (none by default).
@@ -68,6 +76,114 @@ class Matte:
     rgb: np.ndarray
     strength: np.ndarray
     settings: dict = field(default_factory=dict)
+
+
+#: ``--up`` axis names → the proper rotation U [3, 3] taking that axis to +Y, exactly (integer
+#: entries): the minimal rotation about an axis perpendicular to both, and for -y the half turn
+#: about x (the OpenCV/COLMAP → OpenGL flip diag(1, -1, -1), = placement rotate-x=180).
+UP_AXES = {
+    "+y": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "-y": ((1, 0, 0), (0, -1, 0), (0, 0, -1)),
+    "+z": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "-z": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),
+    "+x": ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
+    "-x": ((0, 1, 0), (-1, 0, 0), (0, 0, 1)),
+}
+#: Share of the transfer lobe's SH energy a probe fitted from an env map keeps (transfer_degree).
+LOBE_ENERGY = 0.99
+#: The highest degree transfer_degree picks (relight sh-probe's --degree range).
+MAX_ENV_DEGREE = 8
+
+
+def upright_rotation(up) -> np.ndarray:
+    """[3, 3] proper rotation U with U·up = +Y: ``up`` an axis name of :data:`UP_AXES` or a
+    3-vector (any length > 0) in the capture's own coordinates.  A vector with up_y ≥ 0 takes
+    the minimal rotation (about up × Y); one pointing downwards is first flipped as "-y" is
+    (the half turn about x), then tilted minimally, so a COLMAP capture's slightly tilted up
+    is "-y" plus a small correction (and both branches are well conditioned).  Raises
+    ValueError for an unknown name or a zero/non-finite vector."""
+    if isinstance(up, str):
+        key = up.strip().lower()
+        key = key if key[:1] in "+-" else "+" + key
+        if key not in UP_AXES:
+            raise ValueError(f"up must be one of {', '.join(UP_AXES)} or X,Y,Z, got {up!r}")
+        return np.array(UP_AXES[key], np.float64)
+    u = np.asarray(up, np.float64).reshape(3)
+    length = float(np.linalg.norm(u))
+    if not (math.isfinite(length) and length > 0):
+        raise ValueError(f"up must be a finite non-zero vector, got {list(u)}")
+    u = u / length
+    if u[1] < 0:
+        flip = np.array(UP_AXES["-y"], np.float64)
+        return _minimal_rotation_to_y(flip @ u) @ flip
+    return _minimal_rotation_to_y(u)
+
+
+def _minimal_rotation_to_y(u: np.ndarray) -> np.ndarray:
+    """[3, 3] the rotation about u × Y taking unit ``u`` (u_y ≥ 0) to +Y (Rodrigues, with
+    1 − cos θ = sin²θ / (1 + cos θ), 1 + cos θ ≥ 1 here)."""
+    axis = np.cross(u, [0.0, 1.0, 0.0])                 # |axis| = sin θ
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + float(u[1]))
+
+
+def lighting_in_frame(coefficients, upright: np.ndarray) -> np.ndarray:
+    """[(d+1)², 3] SH radiance L of the world (+Y up) → L_c(d) = L(U d), the same light in
+    the frame of a capture that ``upright`` (U, :func:`upright_rotation`) takes upright.
+    Relighting the capture under L_c is relighting it placed upright by U under L, then
+    moved back: the lighting turns, the data stay where they are."""
+    from relight_cli.gaussians.placement import rotate_sh
+    c = np.asarray(coefficients, np.float64)
+    return rotate_sh(c[None], np.asarray(upright, np.float64).T)[0]
+
+
+def transfer_degree(lobe: float, energy: float = LOBE_ENERGY,
+                    max_degree: int = MAX_ENV_DEGREE) -> int:
+    """The smallest SH degree L whose bands hold ``energy`` of the transfer lobe's SH energy
+    Σ_l (2l+1) a_l(q)² (a_l the Funk–Hecke factors of max(n·ω, 0)^q, relight_cli.gaussians.
+    transfer): shading from a probe of degree L misses the rest, whatever the env map.  q = 1
+    (Lambertian) gives 2 (99.2 %), q = 3 gives 3, q = 10 gives 6; at most ``max_degree``."""
+    from relight_cli.gaussians.transfer import lobe_band_factors
+    a = lobe_band_factors(lobe, 256)
+    band = (2 * np.arange(257) + 1) * a ** 2
+    held = np.cumsum(band) / band.sum()
+    return int(min(int(np.argmax(held >= energy)), max_degree))
+
+
+def env_probe(env, lobe: float, source: str = "", log=_quiet):
+    """The SH probe (formats.sh_probe_json.ShProbe) of an env map (envmap.EnvMap) for a
+    transfer of lobe exponent ``lobe``: fitted by :func:`relight_cli.jobs.sh_probe.fit`
+    exactly as ``relight sh-probe ENV --degree L`` fits it (ridge 0), L =
+    :func:`transfer_degree`."""
+    from relight_cli.formats.sh_probe_json import ShProbe
+    from relight_cli.jobs.sh_probe import ProbeOptions, fit
+    degree = transfer_degree(lobe)
+    probe = fit(env, ProbeOptions(degree=degree))
+    log(f"fitted the env map's SH probe at degree {degree} (the transfer lobe q = {lobe:g} "
+        f"keeps {100 * LOBE_ENERGY:g} % of its energy there; relight sh-probe fits the same)")
+    return ShProbe(np.asarray(probe.coefficients, np.float64), degree, 0.0, source)
+
+
+def in_source_frame(relit, source, similarity):
+    """Relit Gaussians of a placed object (``relit``, scene frame) written back in the frame
+    of its ``source`` (the Gaussians before the placement ``similarity``, placement.
+    Similarity): geometry and opacity are the source's own arrays (bit for bit), the relit
+    colours' view-dependent bands turned back by Qᵀ, the stored normals by Qᵀ.  Relighting
+    changes only colours, so the result registers with the source's cameras.  A placement
+    that dropped Gaussians (another count) is undone by the inverse similarity instead
+    (geometry to float64 round-off)."""
+    from relight_cli.formats.gaussians_ply import Gaussians
+    from relight_cli.gaussians.placement import Similarity, rotate_sh, transform_gaussians
+    Q = np.asarray(similarity.rotation, np.float64)
+    if len(relit) != len(source):
+        inverse = Similarity(1.0 / similarity.scale, Q.T,
+                             -(Q.T @ np.asarray(similarity.translation, np.float64))
+                             / similarity.scale)
+        return transform_gaussians(relit, inverse)
+    sh = relit.sh if relit.sh_degree == 0 else rotate_sh(relit.sh, Q.T)
+    normals = None if relit.normals is None else relit.normals @ Q      # Qᵀ n, row-wise
+    return Gaussians(source.means, source.scales, source.rotations, source.opacities, sh,
+                     relit.sh_degree, normals, source_colour_space=relit.source_colour_space)
 
 
 def weights_mode(light_weights: str, shadow_map, log=_quiet) -> str:
@@ -174,24 +290,21 @@ def _darkened(factor) -> str:
 
 def _shadow_receivers(scene, probe, shadow_map, weights_used, auto, strength, o, log):
     """The receivers, each light's share of their direct light attenuated by its
-    transmittance (auto strength: per receiver, the lights' share against the probe's)."""
+    transmittance (auto strength: per receiver, the lights' share against the probe's;
+    relight_cli.gaussians.receiver_shadow, which dgsm-build --preview shares)."""
     from relight_cli.gaussians import transfer as TF
     from relight_cli.gaussians.dgsm import sample_transmittance
+    from relight_cli.gaussians.receiver_shadow import receiver_shadow
     T = sample_transmittance(shadow_map, scene.means, scene.scales, scene.rotations,
                              footprint=o.footprint, samples=o.samples, seed=o.seed)   # [L, M]
-    receiver_normals = None
+    shadow = receiver_shadow(shadow_map, scene, T, "auto" if auto else strength, weights_used,
+                             probe.coefficients)
     if auto:        # per receiver: the lights' share of its light against the probe's
-        receiver_normals = TF.facing_lights(scene.means, TF.estimate_normals(scene, "axis"),
-                                            shadow_map.lights)
-        e_direct = TF.direct_irradiance(shadow_map.intensities, shadow_map.colors,
-                                        shadow_map.lights, scene.means,
-                                        receiver_normals).sum(axis=0)
-        strength = TF.direct_share(e_direct, probe.coefficients, receiver_normals)
+        strength = shadow.strength
         log(f"direct share of the receivers' light (auto): median "
             f"{float(np.median(strength)):.2f}, range {float(strength.min()):.2f}–"
             f"{float(strength.max()):.2f}")
-    weights = TF.dgsm_light_weights(weights_used, shadow_map, scene, receiver_normals)
-    factor = TF.shadow_factor(T, weights, strength)  # [M, 3]
+    factor = shadow.factor  # [M, 3]
     log(f"shadowed receivers: {_darkened(factor)}")
     return TF.attenuate(scene, factor)
 

@@ -482,3 +482,93 @@ def test_colour_space_of_receivers_and_occluders(scene):
     _fails(["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
             scene["lights"], "-o", str(scene["dir"] / "x.exr"), "--colour-space", "rgb"],
            2, "colour-space")
+
+
+# ------------------------------------------------------------------ preview shadow (issue 53, 8)
+
+
+def _uniform_probe(path, radiance=0.2):
+    from relight_cli.formats.sh_probe_json import ShProbe, write_probe
+    c = np.zeros((1, 3))
+    c[0] = radiance * np.sqrt(4 * np.pi)              # uniform radiance: E_probe = π·radiance
+    write_probe(str(path), ShProbe(c, 0))
+    return str(path)
+
+
+@pytest.mark.parametrize("strength", ["auto", 1.0, 0.4])
+def test_preview_shadow_is_relights_shadow(scene, strength):
+    """dgsm-build --preview draws the receivers as relight relight shadows them: for the
+    same scene, strength and probe the shadowed/lit ratio of every receiver is the
+    render's (one function, relight_cli.gaussians.receiver_shadow); at auto it is lighter
+    than the full shadow the preview used to show."""
+    from relight_cli.formats.gaussians_ply import read_gaussians
+    from relight_cli.formats.lights_json import read_lights
+    from relight_cli.formats.sh_probe_json import read_probe
+    from relight_cli.jobs.dgsm_build import DgsmOptions, build
+    from relight_cli.jobs.relight_gaussians import GaussianOptions, relight
+    probe = read_probe(_uniform_probe(scene["dir"] / "p.json"))
+    occ, floor = read_gaussians(scene["occ"]), read_gaussians(scene["floor"])
+    options = DgsmOptions(size=(32, 32), bins=16, preview=True, preview_strength=strength,
+                          preview_probe=probe)
+    built = build([occ], read_lights(scene["lights"]), options, floor)
+    rendered = relight([occ], probe, GaussianOptions(shadow_strength=strength),
+                       built.shadow_map, floor)
+    lit = floor.colors()
+    preview_ratio = built.preview_receivers.colors() / lit
+    render_ratio = rendered.receivers.colors() / lit
+    np.testing.assert_allclose(preview_ratio, render_ratio, rtol=1e-12, atol=0)
+    assert preview_ratio.min() < 0.97                     # something is really shadowed
+    if strength == "auto":
+        full = build([occ], read_lights(scene["lights"]),
+                     DgsmOptions(size=(32, 32), bins=16, preview=True), floor)   # default: 1
+        darkest = np.argmin(full.preview_receivers.colors()[:, 1])
+        assert preview_ratio[darkest, 1] > full.preview_receivers.colors()[darkest, 1] / \
+            lit[darkest, 1] + 0.05
+
+
+def test_preview_strength_on_the_command_line(scene):
+    """--preview-probe: the label says auto and its median; without one: strength 1, said;
+    the options need --preview, and auto needs a probe (usage errors, nothing written)."""
+    probe = _uniform_probe(scene["dir"] / "p.json")
+    out, png = str(scene["dir"] / "s.exr"), str(scene["dir"] / "s.png")
+    base = ["dgsm-build", scene["occ"], "--receivers", scene["floor"], "--lights",
+            scene["lights"], "-o", out, "--size", "16", "--bins", "8", "-q"]
+    for extra in (["--preview-probe", probe], ["--preview-shadow-strength", "0.5"]):
+        _fails(base + extra, 2, extra[0], "needs --preview")
+    _fails(base + ["--preview", png, "--preview-shadow-strength", "auto"], 2,
+           "--preview-probe")
+    _fails(base + ["--preview", png, "--preview-shadow-strength", "1.5"], 2,
+           "--preview-shadow-strength")
+    _fails(base + ["--preview", png, "--preview-probe", str(scene["dir"] / "nope.json")], 1,
+           "no such file")
+    assert not os.path.exists(out) and not os.path.exists(png)
+    r = _run(base + ["--preview", png, "--preview-probe", probe])
+    assert r.exit_code == 0, r.output
+    from PIL import Image
+    with Image.open(png) as im:
+        assert im.size[0] > 300
+    r = _run(base + ["--preview", png, "--preview-probe", probe,
+                     "--preview-shadow-strength", "0.3"])
+    assert r.exit_code == 0, r.output
+
+
+def test_preview_labels_its_strength(monkeypatch):
+    """The scene tile's label names the strength it shows (what relight would deliver)."""
+    from relight_cli import preview as P
+    labels = []
+    real_tile = P.tile
+    monkeypatch.setattr(P, "tile", lambda values, label, *a, **k:
+                        labels.append(label) or real_tile(values, label, *a, **k))
+    rng = np.random.default_rng(1)
+    occ = _gaussians(rng.normal(size=(40, 3)) * 0.1 + [0, 0.8, 0], 0.04)
+    gx, gz = np.meshgrid(np.linspace(-1, 1, 12), np.linspace(-1, 1, 12))
+    floor = _gaussians(np.stack([gx.ravel(), np.zeros(gx.size), gz.ravel()], 1), 0.08,
+                       flat=True)
+    floor.rotations[:] = [np.cos(np.pi / 4), np.sin(np.pi / 4), 0, 0]
+    m = D.build_dgsm(TR.from_gaussians(occ), [[0.2, 2.5, 0.1]], floor.means, size=(16, 16),
+                     bins=8, intensities=[5.0], colors=[[1, 1, 1]])
+    c = np.full((1, 3), 0.2 * np.sqrt(4 * np.pi))
+    P.dgsm_sheet(m, occ, floor, strength="auto", probe_coefficients=c)
+    P.dgsm_sheet(m, occ, floor)
+    assert labels[0].startswith("relight's shadow at strength auto (median 0.")
+    assert "relight's shadow at strength 1" in labels

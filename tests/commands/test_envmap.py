@@ -182,3 +182,65 @@ def test_damaged_exr_through_console_script(tmp_path):
         assert r.returncode == 1 and "Traceback" not in r.stderr
         assert len(r.stderr.strip().splitlines()) == 1
         assert not (tmp_path / "out.exr").exists()
+
+
+def _negative_map(path):
+    """A 16x8 lat-long EXR from another tool (no relight header) whose pixels are 0.5 but
+    three: one with R −0.5, one with G −0.02, one with G and B −0.1 (a filtered map's
+    undershoot)."""
+    from relight_cli.formats.exr import write_exr
+    rgb = np.full((8, 16, 3), 0.5, np.float32)
+    rgb[1, 2, 0] = -0.5
+    rgb[4, 9, 1] = -0.02
+    rgb[6, 15, 1:] = -0.1
+    write_exr(str(path), {c: rgb[..., i] for i, c in enumerate("RGB")})
+    return rgb
+
+
+def test_negative_radiance_is_refused_naming_the_way_forward(run_cli, tmp_path):
+    """Issue 53: negative radiance is one line saying how many pixels, how deep against the
+    map's mean, and the option that goes on (--negative clamp); exit 1, nothing written,
+    for the EXR, the --info JSON and the preview alike, and from another command too."""
+    src = tmp_path / "neg.exr"
+    rgb = _negative_map(src)
+    mean = float(rgb.mean(dtype=np.float64))
+    for extra in (["-o", tmp_path / "out.exr"], ["--info", "-o", tmp_path / "out.json"],
+                  ["--preview", tmp_path / "out.png"]):
+        r = run_cli("envmap", src, *extra)
+        _assert_clean_failure(r, 1, tmp_path, "3 of 128 pixel(s) have negative radiance",
+                              "down to -0.5 ", f"(the map's mean is {mean:.4g})", "(",
+                              "neg.exr)", "--negative clamp")
+    r = run_cli("sh-probe", src, "-o", tmp_path / "out.json")
+    assert r.exit_code == 1 and "relight envmap IN --negative clamp" in r.output, r.output
+    assert not (tmp_path / "out.json").exists()
+
+
+def test_negative_clamp_sets_negative_radiance_to_zero(run_cli, tmp_path):
+    """--negative clamp: every negative channel becomes exactly 0, every other value is
+    kept bit for bit; the log says how many pixels and how deep; the provenance records it;
+    the output reads with the default policy, and a resampled one holds no negative."""
+    src = tmp_path / "neg.exr"
+    rgb = _negative_map(src)
+    out = tmp_path / "out.exr"
+    r = run_cli("envmap", src, "--negative", "clamp", "-o", out)
+    assert r.exit_code == 0, r.output
+    assert "clamped 3 pixel(s) of negative radiance (down to -0.5) to 0" in r.output
+    got = read_envmap(str(out)).radiance
+    expected = np.where(rgb < 0, np.float32(0), rgb)
+    assert got.dtype == np.float32 and np.array_equal(got, expected)
+    assert read_exr(str(out)).provenance()["settings"]["negative"] == "clamp"
+    cube = tmp_path / "out_cube.exr"
+    r = run_cli("envmap", src, "--negative", "clamp", "--to", "cube", "--size", "4", "-o", cube,
+                "-q")
+    assert r.exit_code == 0, r.output
+    assert read_envmap(str(cube)).radiance.min() >= 0
+    # a map with no negative pixel: nothing logged, nothing recorded
+    r = run_cli("envmap", "builtin:sky", "--size", "16x8", "-o", tmp_path / "sky.exr")
+    assert r.exit_code == 0 and "clamped" not in r.output
+    assert "negative" not in read_exr(str(tmp_path / "sky.exr")).provenance()["settings"]
+
+
+def test_negative_policy_is_a_usage_choice(run_cli, tmp_path):
+    r = run_cli("envmap", "builtin:sky", "--negative", "zero", "-o", tmp_path / "out.exr")
+    assert r.exit_code == 2 and "--negative" in r.output
+    assert not (tmp_path / "out.exr").exists()

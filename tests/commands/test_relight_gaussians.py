@@ -447,3 +447,248 @@ def test_cli_colour_space_render_of_real_file(run_cli, tmp_path, shared):
         assert np.isfinite(rgb).all()
         means[space] = rgb[img.channels["A"] > 0.5].mean()
     assert means["auto"] < 0.8 * means["linear"], means
+
+
+# ------------------------------------------------------------------ relight in place (issue 53)
+
+
+def _vertex(path):
+    """The PLY's raw vertex record (the bytes as stored)."""
+    import plyfile
+    return plyfile.PlyData.read(str(path), mmap=False)["vertex"].data
+
+
+#: Stored byte for byte through relighting.  Rotations are written normalized (1 float32 ulp
+#: from an input's) and opacity logits re-derived (extreme logits clamped) by the PLY writer
+#: itself, with or without relighting: _same_geometry checks those to float32.
+GEOMETRY = ("x", "y", "z", "scale_0", "scale_1", "scale_2")
+
+
+def _same_geometry(path, source_path):
+    stored, source = _vertex(path), _vertex(source_path)
+    for name in GEOMETRY:
+        assert stored[name].tobytes() == source[name].tobytes(), (path, name)
+    a, b = read_gaussians(str(path)), read_gaussians(str(source_path))
+    np.testing.assert_allclose(a.rotations, b.rotations, atol=1.2e-7)
+    np.testing.assert_allclose(a.opacities, b.opacities, atol=1e-7)
+
+
+@pytest.fixture
+def sh_files(tmp_path):
+    """A small avatar with view-dependent SH (degree 2) off the origin, and a degree-2 probe
+    lit unevenly from every side (all bands non-zero, radiance positive)."""
+    g, _ = sphere_of_splats(n=120, seed=3)
+    rng = np.random.default_rng(7)
+    sh = np.concatenate([g.sh, rng.normal(0, 0.05, (len(g), 8, 3))], axis=1)
+    g = Gaussians(g.means, g.scales, g.rotations, g.opacities, sh, 2)
+    write_gaussians(str(tmp_path / "avatar.ply"), g)
+    c = rng.normal(0, 0.15, (9, 3))
+    c[0] = math.sqrt(4 * math.pi)
+    c[2] = [0.6, 0.5, 0.4]                                        # brighter towards +z
+    write_probe(str(tmp_path / "probe.json"), ShProbe(c, 2, 0.0, "test"))
+    return tmp_path
+
+
+def test_up_minus_y_turns_the_light_as_flipping_the_data_and_back(run_cli, sh_files):
+    """--up -y (the lighting turned into a +Y-down frame) equals placing the avatar upright
+    (rotate-x=180), relighting it there and writing it back in its own frame: the same
+    colours and view-dependent bands, and the geometry of the input byte for byte."""
+    f = sh_files
+    assert run_cli("relight", f / "avatar.ply", "--probe", f / "probe.json", "--up", "-y",
+                   "-o", f / "up.ply", "-q").exit_code == 0
+    r = run_cli("relight", f"{f / 'avatar.ply'}:rotate-x=180", "--probe", f / "probe.json",
+                "-o", f / "flipped.ply", "-q")
+    assert r.exit_code == 0, r.output
+    up, flipped = read_gaussians(str(f / "up.ply")), read_gaussians(str(f / "flipped.ply"))
+    # two float64 routes to the same numbers (lstsq SH rotation blocks, cos 180° = -1 + 0 ·
+    # 1e-16): equal to a few float32 ulps of the stored values
+    np.testing.assert_allclose(up.sh, flipped.sh, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(up.normals, flipped.normals, atol=1e-6)
+    for path in ("up.ply", "flipped.ply"):
+        _same_geometry(f / path, f / "avatar.ply")
+    assert read_gaussians(str(f / "flipped.ply")).provenance["settings"]["coordinates"] == "source"
+    # and the light really turned: the flip of the probe is not the probe
+    assert run_cli("relight", f / "avatar.ply", "--probe", f / "probe.json", "-o",
+                   f / "plain.ply", "-q").exit_code == 0
+    assert np.abs(read_gaussians(str(f / "plain.ply")).sh - up.sh).max() > 0.01
+
+
+@pytest.mark.parametrize("up, axis, sign", [("-y", 1, -1), ("0,-2,0", 1, -1), ("+z", 2, 1),
+                                             ("-x", 0, -1), ("0,0,5", 2, 1)])
+def test_up_known_answer(run_cli, files, up, axis, sign):
+    """Probe L = 1 + 0.5·C1·y (brighter from world +Y).  In a capture whose up is ``up`` the
+    sky is along that axis: S(n) = 1 + sign·(2/3)·0.5·C1·n_axis (test_cli_relit_ply's answer
+    with y replaced by the capture's up)."""
+    out = files / "relit-up.ply"
+    r = run_cli("relight", files / "avatar.ply", "--probe", files / "probe.json", "--up", up,
+                "-o", out, "-q")
+    assert r.exit_code == 0, r.output
+    relit, avatar = read_gaussians(str(out)), read_gaussians(str(files / "avatar.ply"))
+    expected = 1 + sign * (2 / 3) * 0.5 * math.sqrt(3 / (4 * math.pi)) * relit.normals[:, axis]
+    np.testing.assert_allclose(relit.colors() / avatar.colors(),
+                               expected[:, None].repeat(3, 1), rtol=1e-5)
+    assert relit.provenance["settings"]["up"] == up
+
+
+def test_relit_ply_keeps_the_inputs_positions(run_cli, sh_files):
+    """A placed IN (fit, tilted rotations, translate) is relit in the scene but written back
+    in its own frame: every geometry field byte-equal to the input's; --coordinates scene
+    keeps the placed positions (placement.place's, to float32)."""
+    from relight_cli.gaussians.placement import parse_placement, place
+    f = sh_files
+    placement = "fit=0.3;rotate-z=33;rotate-x=-71;translate=0.4,1.1,-2"
+    spec = f"{f / 'avatar.ply'}:{placement}"
+    assert run_cli("relight", spec, "--probe", f / "probe.json", "-o", f / "source.ply",
+                   "-q").exit_code == 0
+    assert run_cli("relight", spec, "--probe", f / "probe.json", "--coordinates", "scene",
+                   "-o", f / "scene.ply", "-q").exit_code == 0
+    _same_geometry(f / "source.ply", f / "avatar.ply")
+    placed = place(read_gaussians(str(f / "avatar.ply")), parse_placement(placement))
+    scene = read_gaussians(str(f / "scene.ply"))
+    np.testing.assert_allclose(scene.means, placed.means, atol=1e-6)
+    assert np.abs(scene.means - read_gaussians(str(f / "avatar.ply")).means).max() > 0.3
+    # colour is the scene's relighting: the same shading factor in both frames (DC band)
+    np.testing.assert_allclose(read_gaussians(str(f / "source.ply")).colors(), scene.colors(),
+                               rtol=1e-5, atol=1e-7)
+    # a crop (the source's frame) with the placement: the kept Gaussians, in place, byte
+    # for byte (the crop box keeps the avatar's upper half: y > 1.0)
+    crop = "crop=-9,1.0,-9,9,9,9;" + placement
+    assert run_cli("relight", f"{f / 'avatar.ply'}:{crop}", "--probe", f / "probe.json",
+                   "-o", f / "cropped.ply", "-q").exit_code == 0
+    kept = _vertex(f / "avatar.ply")["y"] >= 1.0
+    assert 0 < kept.sum() < len(kept)
+    cropped = _vertex(f / "cropped.ply")
+    for name in GEOMETRY:
+        assert cropped[name].tobytes() == _vertex(f / "avatar.ply")[name][kept].tobytes(), name
+
+
+def test_env_probe_equals_sh_probe_then_probe(run_cli, files):
+    """relight AVATAR ENV fits the probe as sh-probe ENV --degree L does (L = 2 for the
+    Lambertian lobe, 3 for --lobe 3): the relit colours equal sh-probe + --probe exactly."""
+    for lobe, degree in (("1", 2), ("3", 3)):
+        assert run_cli("sh-probe", "builtin:sky", "--degree", str(degree), "-o",
+                       files / f"sky{degree}.json", "-q").exit_code == 0
+        via_probe, via_env = files / f"p{degree}.ply", files / f"e{degree}.ply"
+        assert run_cli("relight", files / "avatar.ply", "--probe", files / f"sky{degree}.json",
+                       "--lobe", lobe, "--up", "+z", "-o", via_probe, "-q").exit_code == 0
+        r = run_cli("relight", files / "avatar.ply", "builtin:sky", "--lobe", lobe, "--up", "+z",
+                    "-o", via_env)
+        assert r.exit_code == 0, r.output
+        assert f"SH probe at degree {degree}" in r.output
+        a, b = read_gaussians(str(via_probe)), read_gaussians(str(via_env))
+        assert np.array_equal(a.sh, b.sh) and np.array_equal(a.normals, b.normals)
+        assert b.provenance["settings"]["env_probe_degree"] == degree
+        assert set(b.provenance["inputs"]) == {"input", "env"}
+
+
+def test_transfer_degree_against_a_numerical_projection():
+    """transfer_degree: the smallest L whose bands hold 99 % of the unit-mass lobe
+    max(μ,0)^q's SH energy Σ (2l+1) a_l², the a_l found here by Gauss–Legendre quadrature
+    of the Legendre projection (not the recurrence the engine uses)."""
+    from numpy.polynomial import legendre
+    from relight_cli.jobs.relight_gaussians import transfer_degree
+    mu, w = legendre.leggauss(400)
+    x, wx = (mu + 1) / 2, w / 2                                # nodes on [0, 1]
+    for q in (1.0, 2.0, 3.0, 5.0, 10.0):
+        a = np.array([(wx * x ** q * legendre.legval(x, np.eye(121)[l])).sum() * (q + 1)
+                      for l in range(121)])
+        held = np.cumsum((2 * np.arange(121) + 1) * a ** 2)
+        held /= held[-1]
+        assert transfer_degree(q) == min(int(np.argmax(held >= 0.99)), 8), q
+    assert transfer_degree(1.0) == 2 and transfer_degree(50.0) == 8
+
+
+def test_upright_rotation_takes_up_to_plus_y():
+    """Each axis name and any vector: a proper rotation with U·up = +Y; the names agree
+    with the minimal rotation of their vectors, and -y is rotate-x=180's flip."""
+    from relight_cli.gaussians.placement import axis_rotation
+    from relight_cli.jobs.relight_gaussians import UP_AXES, upright_rotation
+    rng = np.random.default_rng(1)
+    ups = [rng.normal(size=3) for _ in range(20)] + [np.array([1e-9, -1.0, 0.0])]
+    for name in UP_AXES:
+        axis = np.zeros(3)
+        axis["xyz".index(name[1])] = 1.0 if name[0] == "+" else -1.0
+        ups.append(axis)
+        U = upright_rotation(name)
+        np.testing.assert_array_equal(U @ axis, [0.0, 1.0, 0.0])
+        np.testing.assert_allclose(upright_rotation(axis * 3), U, atol=1e-15)
+    for up in ups:
+        U = upright_rotation(up)
+        np.testing.assert_allclose(U @ U.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(U) > 0
+        np.testing.assert_allclose(U @ (up / np.linalg.norm(up)), [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(upright_rotation("-y"), axis_rotation("x", 180), atol=1e-15)
+    for bad in ("up", "+w", (0, 0, 0), (np.nan, 1, 0)):
+        with pytest.raises(ValueError):
+            upright_rotation(bad)
+
+
+@pytest.mark.parametrize("args, code, message", [
+    (["avatar.ply", "builtin:sky", "--probe", "probe.json"], 2, "give the light once"),
+    (["avatar.ply", "builtin:sky", "--receivers", "scene.ply", "--dgsm", "x.exr", "--camera",
+      "cam.json", "--shadow-matte", "dgsm"], 2, "does not apply to --shadow-matte"),
+    (["avatar.ply", "builtin:sky", "--frames", "all"], 2,
+     "fit ENV's probe once with relight sh-probe builtin:sky -o probe.json"),
+    (["avatar.ply", "builtin:sky", "--up", "-y", "--frame", "0"], 2, "fit ENV's probe once"),
+    (["avatar.ply", "--probe", "probe.json", "--up", "-y", "--frames", "all"], 2,
+     "place IN upright instead"),
+    (["avatar.ply", "builtin:sky", "--up", "down"], 2, "--up: up must be one of"),
+    (["avatar.ply", "builtin:sky", "--up", "0,0,0"], 2, "finite non-zero vector"),
+    (["avatar.ply", "builtin:sky", "--up", "1,2"], 2, "--up must be 3"),
+    (["avatar.ply", "builtin:sky", "--coordinates", "source", "--object", "avatar.ply"], 2,
+     "--coordinates source writes IN back"),
+    (["avatar.ply", "builtin:sky", "--coordinates", "scene", "--camera", "cam.json"], 2,
+     "drop --coordinates"),
+    (["avatar.ply", "missing.hdr"], 1, "no such file"),
+    (["avatar.ply", "bad.exr"], 1, "bad.exr"),
+])
+def test_cli_env_and_up_bad_input(run_cli, files, monkeypatch, args, code, message):
+    monkeypatch.chdir(files)
+    (files / "bad.exr").write_bytes(b"not an exr")
+    target = "out.exr" if "--camera" in args else "out.ply"
+    r = run_cli("relight", *args, "-o", target)
+    assert r.exit_code == code, r.output
+    assert message in r.output, r.output
+    assert len(r.output.strip().splitlines()) == 1, r.output
+    assert not (files / "out.ply").exists() and not (files / "out.exr").exists()
+
+
+def test_real_colmap_capture_relit_where_it_stands(shared, tmp_path):
+    """A real +Y-down 3DGS capture (statue-massa, COLMAP's frame) under builtin:sky with
+    --up -y, through the console script: the sky lights what faces the capture's up (−y)
+    several times more than what faces down (1.05 against 0.16 under forest_slope; without
+    --up it is the other way round), and every position is the input's, byte for byte."""
+    statue = shared("gaussians", "statue-massa.ply")
+    out = tmp_path / "up.ply"
+    r = run_relight("relight", statue, "builtin:sky", "--up", "-y", "-o", out, "-q")
+    assert r.returncode == 0, r.stderr
+    relit, source = read_gaussians(str(out)), read_gaussians(str(statue))
+    lit = source.colors().mean(axis=1) > 0.05
+    factor = relit.colors().mean(axis=1)[lit] / source.colors().mean(axis=1)[lit]
+    n_y = relit.normals[lit, 1]
+    assert np.median(factor[n_y < -0.5]) > 2 * np.median(factor[n_y > 0.5])   # the top is lit
+    for field in "xyz":
+        assert _vertex(out)[field].tobytes() == _vertex(statue)[field].tobytes()
+
+
+def test_in_source_frame_undoes_the_placement():
+    """jobs.relight_gaussians.in_source_frame: with the source's count, the source's own
+    geometry arrays and the SH bands / normals turned back by Qᵀ; with another count (a
+    library caller's subset) the inverse similarity, to round-off."""
+    from relight_cli.gaussians.placement import parse_placement, place, resolve
+    from relight_cli.jobs.relight_gaussians import in_source_frame
+    g, _ = sphere_of_splats(n=60, seed=5)
+    rng = np.random.default_rng(2)
+    sh = np.concatenate([g.sh, rng.normal(0, 0.1, (len(g), 3, 3))], axis=1)
+    g = Gaussians(g.means, g.scales, g.rotations, g.opacities, sh, 1, rng.normal(size=(60, 3)))
+    placement = parse_placement("scale=2;rotate-y=40;rotate-x=-25;translate=1,2,3")
+    similarity, placed = resolve(placement, g), place(g, placement)
+    back = in_source_frame(placed, g, similarity)
+    assert np.array_equal(back.means, g.means) and np.array_equal(back.rotations, g.rotations)
+    np.testing.assert_allclose(back.sh, g.sh, atol=1e-12)
+    np.testing.assert_allclose(back.normals, g.normals, atol=1e-12)
+    keep = np.arange(0, 60, 3)
+    subset = in_source_frame(placed.subset(keep), g, similarity)
+    np.testing.assert_allclose(subset.means, g.means[keep], atol=1e-12)
+    np.testing.assert_allclose(subset.scales, g.scales[keep], rtol=1e-12)
+    np.testing.assert_allclose(subset.sh, g.sh[keep], atol=1e-12)

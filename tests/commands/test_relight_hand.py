@@ -54,6 +54,22 @@ def test_help(run_cli, tmp_path):
         assert flag not in capture.output
 
 
+def test_model_help_names_every_model(run_cli):
+    """``--model``'s help (issue 53): 'physical' and every learned model of the registry,
+    the student included, named up front, each with the command that trains it."""
+    from relight_cli.neural.registry import MODELS
+    r = run_cli("relight", "builtin:right", "--help")
+    assert r.exit_code == 0
+    said = " ".join(r.output.split("--model NAME", 1)[1].split("--checkpoint CKPT.pt")[0].split())
+    said = said.replace("train- teacher", "train-teacher")    # click wraps at the hyphen
+    assert said.startswith("Appearance model: 'physical', 'teacher', 'linear' or 'student' "
+                           "[default: physical].")
+    assert set(MODELS) == {"teacher", "linear", "student"}
+    for name, spec in MODELS.items():
+        assert f"{name}: {spec.title}, from {spec.trainer}" in said
+    assert "student: RelightableHands' student (or its DRAM baseline), from distill" in said
+
+
 def test_env_render_with_aovs(run_cli, files):
     out, png = files / "hand.exr", files / "hand.png"
     r = run_cli("relight", "builtin:right", "builtin:sky", "--model", "physical", "--camera",
@@ -164,7 +180,8 @@ def test_subprocess(files):
     (["builtin:right", "builtin:sky", "--tex-res", "16x8", "-o", "o.exr"], 2, "not square"),
     (["builtin:right", "builtin:sky", "--preview", "p.jpg", "-o", "o.exr"], 2, "name it .png"),
     (["builtin:nobody", "builtin:sky", "-o", "o.exr"], 2, "unknown built-in hand"),
-    (["avatar.ply", "builtin:sky", "-o", "o.ply"], 2, "only apply to a hand"),
+    (["avatar.ply", "builtin:sky", "--model", "physical", "-o", "o.ply"], 2,
+     "--model only apply to"),            # issue 53: ENV itself now lights Gaussians
     (["builtin:right", "missing.exr", "-o", "o.exr"], 1, "no such file"),
     (["missing.npz", "builtin:sky", "-o", "o.exr"], 1, "no such file"),
     (["builtin:right", "builtin:sky", "--camera", "bad.json", "-o", "o.exr"], 1, "invalid JSON"),

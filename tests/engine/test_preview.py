@@ -256,6 +256,40 @@ def test_probe_sheet_has_source_and_probe_rows():
     assert alone.shape[:2][::-1] == grid_size(1, 2, cell, cell // 2)
 
 
+def test_negative_reconstruction_is_marked_not_black():
+    """Issue 53: a probe's negative lobes were drawn black, like a dark part of the scene.
+    mark_negative draws them as green stripes (black between), brighter where deeper, and
+    leaves every pixel ≥ 0 as exposed; the note gives the share and the deepest dip."""
+    values = np.zeros((8, 8, 3))
+    values[:, :4] = 0.5                                  # left half lit
+    values[:, 4:6] = -0.1                                # a shallow dip
+    values[:, 6:] = -2.0                                 # a dip deeper than white
+    display, note, white = PV.expose(np.maximum(values, 0), white=1.0)
+    marked, note = PV.mark_negative(display, values, white, mean=np.full(3, 0.25))
+    np.testing.assert_array_equal(marked[:, :4], display[:, :4])
+    stripes = marked[:, 4:].reshape(-1, 3)
+    green = stripes[stripes.any(axis=1)]
+    assert 0.3 * len(stripes) <= len(green) <= 0.7 * len(stripes)          # striped, not filled
+    np.testing.assert_allclose(green / np.linalg.norm(green, axis=1, keepdims=True),
+                               np.tile(PV.NEGATIVE / np.linalg.norm(PV.NEGATIVE), (len(green), 1)))
+    assert marked[:, 6:].max() > marked[:, 4:6].max()                        # deeper is brighter
+    assert note == "green stripes: < 0 on 50%, to -8.00x mean"
+    assert PV.mark_negative(display, np.abs(values), white) == (display, "")
+
+
+def test_probe_sheet_marks_the_ringing_of_a_sun():
+    """builtin:sky at degree 2 rings below zero over ~half the sphere: the probe's radiance
+    tile shows green stripes and says so, the source's tile none."""
+    from relight_cli.builtin_envs import builtin_envmap
+    from relight_cli.gaussians import probe as P
+    env = builtin_envmap("builtin:sky")
+    c = P.fit_probe(P.env_samples(env), 2)
+    image = PV.probe_sheet(c, 2, "builtin:sky", env, height=32)
+    half = image.shape[1] // 2
+    green = (image[..., 1] > 0.5) & (image[..., 0] < 0.25) & (image[..., 2] < 0.45)
+    assert green[:, half:].mean() > 0.05 and not green[:, :half].any()
+
+
 # ------------------------------------------------------------------ commands
 
 

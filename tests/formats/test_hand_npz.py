@@ -140,3 +140,22 @@ def test_provenance_is_json(tmp_path):
     with np.load(tmp_path / "h.npz") as z:
         record = json.loads(str(z["provenance"]))
     assert record["format"] == FORMAT and record["settings"]["pose"] == "relaxed"
+
+
+def test_mean_texture_round_trips_and_bad_ones_are_refused(tmp_path):
+    """The optional subject texture (relight personalize): exact round trip; a file without
+    it reads as None; a non-square, non-power-of-two, negative or NaN one is refused."""
+    hand = builtin_hand()
+    assert to_arrays(hand).get("mean_texture") is None
+    t = np.random.default_rng(0).uniform(0, 0.3, (3, 16, 16)).astype(np.float32)
+    hand.mean_texture = t
+    write_hand(str(tmp_path / "h.npz"), hand)
+    np.testing.assert_array_equal(read_hand(str(tmp_path / "h.npz")).mean_texture, t)
+    for bad, message in ((np.zeros((3, 16, 8)), "power of two"),
+                         (np.zeros((3, 12, 12)), "power of two"),
+                         (-t, "negative|\\[0, 1e6\\]"), (t * np.nan, "NaN")):
+        arrays = dict(to_arrays(builtin_hand()))
+        arrays["mean_texture"] = bad.astype(np.float32)
+        np.savez(tmp_path / "bad.npz", **arrays)
+        with pytest.raises(DataError, match=message):
+            read_hand(str(tmp_path / "bad.npz"))

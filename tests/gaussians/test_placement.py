@@ -349,3 +349,188 @@ def test_placement_keeps_the_source_colour_space():
     g.source_colour_space = "srgb"
     placed = PL.place(g, PL.parse_placement("rotate-y=30;translate=1,0,0"))
     assert placed.source_colour_space == "srgb"
+
+
+# ------------------------------------------------------------------ crop and prune (issue 53, 7)
+
+
+def _grid_scene():
+    """125 Gaussians on the integer grid {0..4}³ (index = 25x + 5y + z); opacity 0.9 and
+    largest scale 0.01 except: opacity 0.04 at (2, 2, 2) and (4, 4, 4), a 0.5 needle
+    (largest std dev, on x) at (1, 2, 3) and (0, 0, 0)."""
+    axis = np.arange(5.0)
+    xs, ys, zs = np.meshgrid(axis, axis, axis, indexing="ij")
+    means = np.column_stack([xs.ravel(), ys.ravel(), zs.ravel()])
+    n = len(means)
+    index = {tuple(p): i for i, p in enumerate(means.astype(int).tolist())}
+    scales = np.tile([0.01, 0.004, 0.002], (n, 1))
+    opacities = np.full(n, 0.9)
+    for p in ((2, 2, 2), (4, 4, 4)):
+        opacities[index[p]] = 0.04
+    for p in ((1, 2, 3), (0, 0, 0)):
+        scales[index[p]] = [0.5, 0.004, 0.002]
+    g = Gaussians(means, scales, np.tile([1.0, 0, 0, 0], (n, 1)), opacities,
+                  rgb_to_sh_dc(np.full((n, 3), 0.5))[:, None, :], 0, np.tile([0, 1.0, 0], (n, 1)))
+    return g, index
+
+
+def _kept_points(g):
+    return sorted(map(tuple, np.rint(g.means).astype(int).tolist()))
+
+
+def test_parse_crop_and_prune_keys():
+    p = PL.parse_placement("crop=-1,0,-2.5,1,2,2.5;min-opacity=0.1;max-scale=0.05;fit=0.3")
+    assert p.crop == (-1.0, 0.0, -2.5, 1.0, 2.0, 2.5) and p.min_opacity == 0.1
+    assert p.max_scale == 0.05 and p.fit == 0.3 and p.prunes() and not p.is_identity()
+    only = PL.parse_placement("min-opacity=0.5")
+    assert only.prunes() and only.is_identity()       # pruning only: the similarity is I
+    assert not PL.parse_placement("fit=1").prunes()
+    assert PL.split_spec("desk.ply:min-opacity=0.2") == ("desk.ply", "min-opacity=0.2")
+
+
+@pytest.mark.parametrize("text, reason", [
+    ("crop=0,0,0,1,1", "6 finite numbers"), ("crop=0,0,0,1,1,1,1", "6 finite numbers"),
+    ("crop=0,0,a,1,1,1", "X0,Y0,Z0,X1,Y1,Z1 numbers"), ("crop=0,0,0,1,inf,1", "6 finite"),
+    ("crop=1,0,0,1,1,1", "X0 = 1 must be < X1 = 1"), ("crop=0,2,0,1,1,1", "Y0 = 2 must be"),
+    ("crop=0,0,0.5,1,1,-0.5", "Z0 = 0.5 must be < Z1 = -0.5"), ("crop=", "needs a value"),
+    ("crop=0,0,0,1,1,1;crop=0,0,0,2,2,2", "twice"),
+    ("min-opacity=1.5", r"in \[0, 1\]"), ("min-opacity=-0.1", r"in \[0, 1\]"),
+    ("min-opacity=nan", "must be finite"), ("min-opacity=x", "must be a number"),
+    ("max-scale=0", "must be > 0"), ("max-scale=-1", "must be > 0"),
+    ("max-scale=inf", "must be finite"), ("min-opacity", "needs a value"),
+])
+def test_bad_prune_keys(text, reason):
+    with pytest.raises(ValueError, match=reason):
+        PL.parse_placement(text)
+
+
+def test_prune_keeps_exactly_the_known_set():
+    g, index = _grid_scene()
+    # crop bounds are inclusive: the 3×3×3 block 1..3 on every axis
+    kept = PL.prune(g, PL.parse_placement("crop=1,1,1,3,3,3"))
+    expected = [(x, y, z) for x in (1, 2, 3) for y in (1, 2, 3) for z in (1, 2, 3)]
+    assert _kept_points(kept) == expected
+    # + min-opacity drops (2,2,2) (0.04 < 0.05; (4,4,4) is outside anyway), max-scale (1,2,3)
+    kept = PL.prune(g, PL.parse_placement("crop=1,1,1,3,3,3;min-opacity=0.05;max-scale=0.2"))
+    assert _kept_points(kept) == [p for p in expected if p not in ((2, 2, 2), (1, 2, 3))]
+    # every array follows the selection (normals included, colours and order kept)
+    rows = [index[p] for p in _kept_points(kept)]
+    np.testing.assert_array_equal(kept.scales, g.scales[rows])
+    np.testing.assert_array_equal(kept.normals, g.normals[rows])
+    np.testing.assert_array_equal(kept.sh, g.sh[rows])
+    # the thresholds themselves are kept (opacity ≥ A, largest scale ≤ S)
+    assert len(PL.prune(g, PL.parse_placement("min-opacity=0.04"))) == 125
+    assert len(PL.prune(g, PL.parse_placement("min-opacity=0.0400001"))) == 123
+    assert len(PL.prune(g, PL.parse_placement("max-scale=0.5"))) == 125
+    assert len(PL.prune(g, PL.parse_placement("max-scale=0.4999"))) == 123
+    # a box in the source's own frame, before the placement's transform: the same set
+    placed = PL.place(g, PL.parse_placement("crop=1,1,1,3,3,3;rotate-y=90;translate=10,0,0"))
+    assert len(placed) == 27
+    np.testing.assert_allclose(np.sort(placed.means[:, 0]), np.sort(10 + _z_of(expected)))
+
+
+def _z_of(points):
+    """x' = z after rotate-y=90 (x' = cos·x + sin·z)."""
+    return np.array([p[2] for p in points], np.float64)
+
+
+def test_fit_and_on_floor_measure_what_is_kept():
+    """A 0.2 m object at the origin and a bright 4 m slab of 'desk' beside it: cropped to
+    the object, fit=1 makes the object's robust box 1 m and on-floor rests the object."""
+    obj = _blob([0, 0.5, 0], n=400, seed=3)
+    rng = np.random.default_rng(4)
+    desk = Gaussians(np.column_stack([rng.uniform(-2, 2, 600), rng.uniform(-0.1, 0, 600),
+                                      rng.uniform(-2, 2, 600)]), np.full((600, 3), 0.02),
+                     np.tile([1.0, 0, 0, 0], (600, 1)), np.full(600, 0.9),
+                     rgb_to_sh_dc(np.full((600, 3), 0.3))[:, None, :], 0)
+    scene = concatenate([obj, desk])
+    spec = "crop=-0.5,0.1,-0.5,0.5,1,0.5;fit=1;on-floor"
+    placed = PL.place(scene, PL.parse_placement(spec))
+    assert len(placed) == 400
+    expected = PL.place(obj, PL.parse_placement("fit=1;on-floor"))     # the object alone
+    np.testing.assert_allclose(placed.means, expected.means, atol=1e-12)
+    lo, hi = PL.robust_bounds(placed)
+    assert (hi - lo).max() == pytest.approx(1.0, abs=1e-9) and lo[1] == pytest.approx(0, abs=1e-9)
+    # without the crop the desk sets the size: the object would be a fraction of 1 m
+    whole = PL.place(scene, PL.parse_placement("fit=1;on-floor"))
+    assert np.ptp(whole.means[:400], axis=0).max() < 0.3 * np.ptp(placed.means, axis=0).max()
+    # resolve (used for meshes and clips) sees the same kept set
+    sim = PL.resolve(PL.parse_placement(spec), scene)
+    np.testing.assert_allclose(sim.apply(obj.means), expected.means, atol=1e-12)
+
+
+def test_prune_to_nothing_says_what_each_key_dropped():
+    g, _ = _grid_scene()
+    with pytest.raises(ValueError, match=r"no Gaussians left after pruning \(of 125: 124 "
+                                         r"outside the crop box, 2 below min-opacity 0\.5, 2 "
+                                         r"above max-scale 0\.1\)"):
+        PL.place(g, PL.parse_placement("crop=3.5,3.5,3.5,5,5,5;min-opacity=0.5;max-scale=0.1"))
+
+
+def test_cli_crop_and_prune(run_cli, files, monkeypatch):
+    """dgsm-build writes exactly the kept occluders; an empty result is one data error."""
+    g, index = _grid_scene()
+    write_gaussians(str(files / "grid.ply"), g)
+    monkeypatch.chdir(files)
+    spec = "grid.ply:crop=1,1,1,3,3,3;min-opacity=0.05;max-scale=0.2;fit=0.2;translate=0,1,0"
+    r = run_cli("dgsm-build", spec, "--receivers", "floor.ply", "--lights", "lights.json",
+                "--size", "8", "--bins", "4", "-o", "s.exr", "--occluders-out", "occ.ply", "-q")
+    assert r.exit_code == 0, r.output
+    occ = read_gaussians("occ.ply")
+    assert len(occ) == 25
+    # the kept block, 2 m across, fitted to 0.2 m (a scale of 0.1), centred, then lifted
+    np.testing.assert_allclose(occ.means.min(0), [-0.1, 0.9, -0.1], atol=1e-6)
+    np.testing.assert_allclose(occ.scales.max(), 0.001, rtol=1e-6)
+    r = run_cli("dgsm-build", "grid.ply:crop=10,10,10,11,11,11", "--receivers", "floor.ply",
+                "--lights", "lights.json", "-o", "empty.exr")
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert r.exit_code == 1 and len(lines) == 1, r.output
+    assert lines[0].startswith("relight dgsm-build: error: cannot place it: no Gaussians left")
+    assert "125 outside the crop box" in lines[0] and "grid.ply" in lines[0]
+    assert not (files / "empty.exr").exists()
+    r = run_cli("dgsm-build", "grid.ply:crop=1,1,1,0,3,3", "--receivers", "floor.ply",
+                "--lights", "lights.json", "-o", "bad.exr")
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert r.exit_code == 2 and len(lines) == 1 and "X0 = 1 must be < X1 = 0" in lines[0]
+    assert not (files / "bad.exr").exists()
+
+
+def test_clip_prunes_every_frame(tmp_path):
+    """A per-frame pattern: each frame pruned by the same keys (its own kept set), placed
+    by the one similarity resolved on the first frame's kept Gaussians."""
+    from relight_cli.gaussians.sequence import GaussianSource
+    g, _ = _grid_scene()
+    write_gaussians(str(tmp_path / "f_0.ply"), g)
+    shifted = g.subset(np.arange(len(g)))
+    shifted.means = shifted.means + [0.5, 0, 0]          # frame 1: moved by +0.5 on x
+    write_gaussians(str(tmp_path / "f_1.ply"), shifted)
+    source = GaussianSource(str(tmp_path / "f_{frame}.ply") + ":crop=1,1,1,3,3,3;centre")
+    first, second = source.frame(0), source.frame(1)
+    assert len(first) == 27 and len(second) == 18     # frame 1 keeps x = 1.5, 2.5 only
+    np.testing.assert_allclose(first.means.mean(0), 0, atol=1e-6)          # centred
+    # frame 0's centre (2, 2, 2) taken off frame 1 too: x = 1.5, 2.5 → -0.5, 0.5
+    np.testing.assert_allclose(np.unique(second.means[:, 0]), [-0.5, 0.5], atol=1e-6)
+
+
+def test_real_capture_crop_and_min_opacity(shared):
+    """A real trained capture: the kept count equals a count made from the PLY's raw
+    columns (sigmoid of the opacity logit, exp of the log scales), independently."""
+    from plyfile import PlyData
+    path = shared("gaussians", "statue-massa.ply")
+    v = PlyData.read(str(path))["vertex"]
+    xyz = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64)
+    alpha = 1 / (1 + np.exp(-np.asarray(v["opacity"], np.float64)))
+    largest = np.exp(np.column_stack([v[f"scale_{i}"] for i in range(3)]).astype(np.float64)
+                     ).max(axis=1)
+    box = np.array([-0.4, -1.8, -0.4, 0.4, -0.8, 0.4])       # the bust (+Y down as captured)
+    inside = np.all((xyz >= box[:3]) & (xyz <= box[3:]), axis=1)
+    expected = int((inside & (alpha >= 0.2) & (largest <= 0.05)).sum())
+    from relight_cli.gaussians.from_mesh import load_gaussians
+    g = load_gaussians(str(path))
+    spec = "crop=-0.4,-1.8,-0.4,0.4,-0.8,0.4;min-opacity=0.2;max-scale=0.05;fit=0.3;rotate-x=180"
+    placed = PL.place(g, PL.parse_placement(spec))
+    assert 1000 < expected < len(g) // 2 and len(placed) == expected
+    lo, hi = PL.robust_bounds(placed)
+    # fit is measured before rotate-x=180; the capture's quantised y has ties, so the
+    # percentile box of −y differs from that of y by ~2e-6 m (midpoint weighted CDF)
+    assert (hi - lo).max() == pytest.approx(0.3, abs=1e-5)

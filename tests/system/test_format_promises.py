@@ -211,7 +211,15 @@ def _written_runs(d: Path, w: Path) -> dict[str, list[list]]:
         "synth-capture": [["synth-capture", d / "hand.npz", "-o", w / "cap", "--cameras", "1",
                            "--leds", "3", "--group", "1", "--n-frames", "3", "--size", "8",
                            "--tex-res", "8", "--aa", "1", "--eval-poses", "1", "--eval-cameras",
-                           "1", "--eval-envs", "builtin:sky"]],
+                           "1", "--eval-envs", "builtin:sky"],
+                          ["synth-capture", d / "hand.npz", "--phone-scan", "builtin:sky",
+                           "--views", "2", "--size", "32", "--tex-res", "16", "--aa", "1",
+                           "--no-sss", "-o", w / "scan"]],
+        "personalize": [["personalize", w / "scan" / "view_00.exr", w / "scan" / "view_01.exr",
+                         "--cameras", w / "scan" / "cameras.json", "--keypoints",
+                         w / "scan" / "keypoints.json", "--env", "builtin:sky", "--tex-res",
+                         "8", "--iterations", "2", "-o", w / "me.npz", "--report",
+                         w / "me.json"]],
         "train-teacher": [["train-teacher", d / "cap", "--config", d / "small.json", "--iters",
                            "1", "-o", w / "teacher.pt", "--metrics-out", w / "teacher.json"]],
         "distill": [["distill", d / "teacher.pt", d / "cap", "--envs", "builtin:sky", "--iters",
@@ -223,6 +231,7 @@ def _written_runs(d: Path, w: Path) -> dict[str, list[list]]:
 def written(data, tmp_path_factory):
     """(folder, {output path: command that wrote it}): every command, every kind of output."""
     folder = tmp_path_factory.mktemp("written")
+    WRITTEN["folder"] = folder
     made = {}
     for command, runs in _written_runs(data, folder).items():
         for args in runs:
@@ -383,6 +392,18 @@ def _capture_with(d: Path, hand: Path, out: Path) -> Path:
 def _train(d: Path) -> list:
     return ["--config", d / "small.json", "--iters", "1"]
 
+#: The ``written`` folder once made (the personalize readers take its phone scan).
+WRITTEN: dict = {}
+
+
+def _scan_args(o, cameras=None, keypoints=None, template=None):
+    scan = WRITTEN["folder"] / "scan"
+    return ["personalize", scan / "view_00.exr", scan / "view_01.exr", "--cameras",
+            cameras or scan / "cameras.json", "--keypoints", keypoints or scan / "keypoints.json",
+            "--env", "builtin:sky", *(["--template", template] if template else []),
+            "-o", o / "x.npz"]
+
+
 READERS = {
     "relight/envmap": (lambda d, w: d / "sky.exr", "env.exr", {
         "envmap": lambda d, b, o: ["envmap", b, "-o", o / "x.exr"],
@@ -405,7 +426,8 @@ READERS = {
         "metrics shadow --camera": lambda d, b, o: [
             "metrics", "shadow", d / "img.exr", d / "img2.exr", "--roi-avatar", d / "ball.ply",
             "--camera", b, "-o", o / "x.json"],
-        "camera --from": lambda d, b, o: ["camera", "--from", b, "-o", o / "x.json"]}),
+        "camera --from": lambda d, b, o: ["camera", "--from", b, "-o", o / "x.json"],
+        "personalize --cameras": lambda d, b, o: _scan_args(o, cameras=b)}),
     "relight/hand": (lambda d, w: d / "hand.npz", "hand.npz", {
         "bake-features": lambda d, b, o: ["bake-features", b, d / "sky.exr", "-o", o / "x.exr"],
         "relight": lambda d, b, o: ["relight", b, d / "sky.exr", "-o", o / "x.exr"],
@@ -417,7 +439,11 @@ READERS = {
         "train-teacher": lambda d, b, o: ["train-teacher", _capture_with(d, b, o), *_train(d),
                                           "-o", o / "x.pt"],
         "distill": lambda d, b, o: ["distill", d / "teacher.pt", _capture_with(d, b, o),
-                                    "--envs", "builtin:sky", "-o", o / "x.pt"]}),
+                                    "--envs", "builtin:sky", "-o", o / "x.pt"],
+        "personalize --template": lambda d, b, o: _scan_args(o, template=b)}),
+    "relight/keypoints-2d": (lambda d, w: w / "scan" / "keypoints.json", "kp2d.json", {
+        "personalize --keypoints": lambda d, b, o: _scan_args(o, keypoints=b)}),
+    "relight/personalize-report": (None, "me.json", {}),
     "relight/keypoints": (None, "kp.json", {
         "fit-geometry --keypoints": lambda d, b, o: ["fit-geometry", "--keypoints", b,
                                                      "-o", o / "x.npz"]}),
