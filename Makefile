@@ -78,6 +78,15 @@ demo: install
 	$(RELIGHT) train-teacher demo/capture --model linear -o demo/linear.pt --preset tiny --metrics-out demo/linear_val.json
 	$(RELIGHT) relight demo/capture/hand.npz builtin:studio --model linear --checkpoint demo/linear.pt \
 		-o demo/hand_linear_env.exr --preview demo/hand_linear_env.png
+	# URHand's quick personalisation (Sec. 5.4, supp. 9): a phone scan of a new subject (another skin)
+	# under the sky, fitted and unwrapped into its mean texture, rendered by the linear model as it is
+	$(RELIGHT) synth-capture builtin:right --skin-seed 9 --phone-scan builtin:sky --views 4 --size 128 \
+		--tex-res 64 --aa 1 -o demo/scan
+	$(RELIGHT) personalize demo/scan/view_*.exr --cameras demo/scan/cameras.json \
+		--keypoints demo/scan/keypoints.json --env builtin:sky --checkpoint demo/linear.pt --iterations 60 \
+		-o demo/me.npz --report demo/me_fit.json --preview demo/me_fit.png
+	$(RELIGHT) relight demo/me.npz builtin:studio --model linear --checkpoint demo/linear.pt \
+		-o demo/me_linear_env.exr --preview demo/me_linear_env.png
 	# RelightableHands' student distilled from the teacher under env maps (one held out for
 	# evaluation), rendered in one pass from bake-features' texel maps, on one hand and on two
 	$(RELIGHT) distill demo/teacher.pt demo/capture --envs builtin:sky --envs builtin:studio \

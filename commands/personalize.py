@@ -309,5 +309,6 @@ def _write_preview(path, views, result, uv, conf) -> None:
     seen = result.seen.astype(np.float64)
     s_disp, _, _ = expose(seen, mode="unit")
     rows = [tiles, [Tile(t_disp, "mean texture x pi", "0…1 linear"),
-                    Tile(s_disp, "texels seen", f"{seen.mean():.0%} of the map")]]
+                    Tile(s_disp, "texels seen",
+                         f"{result.report['texels']['seen_fraction']:.0%} of the hand's")]]
     write_sheet(path, rows, "relight personalize")

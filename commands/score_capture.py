@@ -44,6 +44,7 @@ class Run:
     aa: int | None
     splits: str | None
     eval_samples: int | None
+    subject: str | None
     no_clobber: bool
     quiet: bool
 
@@ -72,6 +73,11 @@ def _scored_help() -> str:
                    "capture no checkpoint trained on), fully_lit, env].")
 @click.option("--eval-samples", type=int, default=None, metavar="N",
               help="At most N evenly spaced samples per split [default: all].")
+@click.option("--subject", default=None, metavar="SUBJECT.npz",
+              help="--model linear: condition on this hand file's mean texture T̄ (relight "
+                   "personalize writes one) instead of the capture's own, so a subject "
+                   "personalised from photos is scored against the capture's ground truth "
+                   "(scores say \"subject\": \"own\").")
 @no_clobber_option
 @quiet_option
 def command(**options):
@@ -86,6 +92,8 @@ def command(**options):
       relight relight capture/ --model teacher --checkpoint teacher.pt -o scores.json
       relight relight both/ --model teacher --checkpoint right.pt --checkpoint left.pt \\
           -o both_scores.json
+      relight relight unseen/ --model linear --checkpoint universal.pt --subject me.npz \\
+          --splits env -o me_scores.json
     """
     _capture(Run(**options))
 
@@ -123,7 +131,10 @@ def _capture(a) -> None:
         raise UsageProblem(f"--aa must be in [1, 8], got {a.aa}")
     grid = env_grid(a.env_res) if a.env_res is not None else DEFAULT_GRID
     index = index_path(a.input)   # names a folder without capture.json and a capture.json that is a folder
-    for path in (index, *a.checkpoint):
+    if a.subject is not None and a.model != "linear":
+        raise UsageProblem("--subject gives a linear model its subject's mean texture; use "
+                           "it with --model linear")
+    for path in (index, *a.checkpoint, *([a.subject] if a.subject else [])):
         check_input(path)
     # after the inputs (never one of them): the scores are a relight/metrics JSON
     check_output(a.output, a.no_clobber, kind="json")
@@ -136,7 +147,14 @@ def _capture(a) -> None:
 
     device = resolve_device(a.device or "auto")
     models = _load_hand_models(a.checkpoint, registry.get(a.model).kind, device)
-    options = CaptureOptions(names, a.eval_samples, a.aa, grid, a.model)
+    texture = None
+    if a.subject is not None:
+        from relight_cli.formats.hand_npz import read_hand
+        texture = read_hand(a.subject).mean_texture
+        if texture is None:
+            raise DataError("the hand file carries no mean texture (relight personalize "
+                            "writes one)", a.subject)
+    options = CaptureOptions(names, a.eval_samples, a.aa, grid, a.model, texture)
     try:
         result = score_capture(os.path.dirname(index) or ".", models, options, device,
                                log=lambda m: log(m, a.quiet), quiet=a.quiet)
@@ -145,7 +163,8 @@ def _capture(a) -> None:
     if not result.scores:
         raise DataError(f"the capture has no samples in {', '.join(result.settings['splits'])}",
                         index)
-    inputs = {"capture": index, **numbered_roles("checkpoint", a.checkpoint)}
+    inputs = {"capture": index, **numbered_roles("checkpoint", a.checkpoint),
+              **({"subject": a.subject} if a.subject else {})}
     record = provenance("relight/metrics", 2, inputs, result.settings)
     write_metrics(a.output, make_record("validation", result.scores,
                                         {r: {"path": p} for r, p in inputs.items()},

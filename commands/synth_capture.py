@@ -222,8 +222,14 @@ def _phone_scan(hand, output, env, views, res, tex_res, aa, no_sss, skin_seed, s
 
     if preview is not None:
         raise UsageProblem("--preview makes a capture's contact sheet; a --phone-scan has none")
-    if os.path.lexists(output) and (not os.path.isdir(output) or os.listdir(output)):
-        raise UsageProblem("--phone-scan writes into a new or empty folder", output)
+    if os.path.lexists(output):
+        if not os.path.isdir(output):
+            raise UsageProblem("--phone-scan writes a folder; this is a file", output)
+        if no_clobber:
+            raise UsageProblem("output exists and --no-clobber was given", output)
+        if os.path.exists(os.path.join(output, "capture.json")):
+            raise UsageProblem("the folder holds a capture; give another folder for a scan",
+                               output)
     check_input(env)
     data = load_hand(hand)
     if len(data.hands) != 1:
@@ -235,6 +241,11 @@ def _phone_scan(hand, output, env, views, res, tex_res, aa, no_sss, skin_seed, s
     inputs = {k: v for k, v in (("hand", hand), ("env", env)) if not v.startswith("builtin:")}
     record = {"views": views, "size": res, "tex_res": tex_res, "aa": aa, "sss": not no_sss,
               "skin_seed": skin_seed, "seed": seed, "env": env, "hand": hand}
+    if os.path.exists(os.path.join(output, "keypoints.json")):    # an earlier scan's photos
+        import glob
+        for stale in glob.glob(os.path.join(output, "view_*.exr")):
+            if os.path.basename(stale) not in scan.keypoints.images:
+                os.remove(stale)
     written = job.write_scan(output, scan, lambda fmt, version: provenance(fmt, version, inputs,
                                                                            record))
     log(f"wrote {output}: {len(written) - 2} photo(s) of the {data.side} hand under {env}, "

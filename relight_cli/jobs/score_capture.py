@@ -24,13 +24,17 @@ class CaptureOptions:
     """splits: among :data:`relight_cli.neural.evaluate.SPLITS` (None: the evaluator's
     default).  eval_samples: at most this many evenly spaced samples per split (None:
     all).  aa: samples per pixel axis (None: the capture's own).  env_res: (H, W) grid
-    the models integrate env maps over.  model: the kind recorded (teacher, linear)."""
+    the models integrate env maps over.  model: the kind recorded (teacher, linear).
+    subject_texture: a subject's own T̄ [3, M, M] (a personalised hand.npz's
+    ``mean_texture``) every linear model is conditioned on instead of the capture's
+    (:func:`~relight_cli.neural.evaluate.with_own_subject`), or None."""
 
     splits: list | None = None
     eval_samples: int | None = None
     aa: int | None = None
     env_res: tuple = DEFAULT_GRID
     model: str = "teacher"
+    subject_texture: object = None
 
 
 @dataclass
@@ -52,6 +56,9 @@ def score_capture(capture, models: list, options: CaptureOptions, device="cpu", 
 
     o = options
     evaluator = CaptureEvaluator(capture, models, device, o.aa, o.env_res)
+    if o.subject_texture is not None:
+        from relight_cli.neural.evaluate import with_own_subject
+        evaluator.models = with_own_subject(evaluator.models, o.subject_texture)
     if not evaluator.sampling["matched"]:
         log(f"note: pixels sampled {evaluator.aa}×{evaluator.aa}, but the capture's images were "
             f"made with {evaluator.sampling['capture_aa']}×{evaluator.sampling['capture_aa']} "

@@ -261,3 +261,35 @@ def test_subprocess_bad_input_leaves_nothing(scan, tmp_path):
                            tmp_path / "x.npz"))
     _one_error(r, 1)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_capture_scored_with_a_subject_file(tmp_path, run_cli, tiny_models):
+    """relight CAPTURE/ --subject: given the checkpoint's own subject's T̄ the scores equal
+    the plain ones; a hand file without T̄, or --subject with a teacher, is refused."""
+    from relight_cli.formats.hand_npz import read_hand, write_hand
+    from relight_cli.neural.checkpoints import read_checkpoint
+    from relight_cli.neural.evaluate import load_hand_model
+    ckpt = tmp_path / "linear.pt"
+    copy_entry(tiny_models.get("linear", STUDENT_CAPTURE, ["--iters", "1", "-q"], config=LINEAR),
+               ckpt)
+    capture = tiny_models.get("capture", STUDENT_CAPTURE)
+    hand = read_hand(str(next(capture.glob("*.npz"))))
+    hand.mean_texture = load_hand_model(read_checkpoint(str(ckpt))).mean_texture[0].numpy()
+    write_hand(str(tmp_path / "me.npz"), hand)
+    common = ["relight", capture, "--model", "linear", "--checkpoint", ckpt, "--splits",
+              "fully_lit", "--eval-samples", "1", "-q"]
+    assert run_cli(*common, "-o", tmp_path / "plain.json").exit_code == 0
+    r = run_cli(*common, "--subject", tmp_path / "me.npz", "-o", tmp_path / "own.json")
+    assert r.exit_code == 0, r.output
+    plain = json.loads((tmp_path / "plain.json").read_text())
+    own = json.loads((tmp_path / "own.json").read_text())
+    assert own["metrics"]["fully_lit"]["psnr"] == plain["metrics"]["fully_lit"]["psnr"]
+    assert own["provenance"]["settings"]["hands"][0]["subject"] == "own"
+    hand.mean_texture = None
+    write_hand(str(tmp_path / "bare.npz"), hand)
+    r = run_cli(*common, "--subject", tmp_path / "bare.npz", "-o", tmp_path / "x.json")
+    assert r.exit_code == 1 and "no mean texture" in r.output
+    r = run_cli("relight", capture, "--model", "teacher", "--checkpoint", ckpt, "--subject",
+                tmp_path / "me.npz", "-o", tmp_path / "x.json")
+    assert r.exit_code == 2 and "--model linear" in r.output
+    assert not (tmp_path / "x.json").exists()

@@ -334,3 +334,38 @@ def test_polyhaven_eval_env(run_cli, tmp_path, shared):
     np.testing.assert_allclose(E.power(stored), E.power(source), rtol=1e-4)
     rgb, mask = C.read_image(str(out / cap.evaluation["renders"][0]["image"]))
     assert rgb[mask > 0.5].mean() > 0
+
+
+def test_phone_scan_photos_cameras_and_keypoints(run_cli, tmp_path):
+    """--phone-scan: RGBA photos whose mask covers the hand, one camera per photo, and the
+    subject's joints projected into each (within the detector noise), MediaPipe's 21; a
+    rerun with fewer views leaves no stale photo; a capture folder is refused."""
+    from relight_cli.formats.camera import read_cameras
+    from relight_cli.formats.exr import read_exr
+    from relight_cli.formats.keypoints2d import MEDIAPIPE_TO_WEBXR, read_keypoints2d
+    from relight_cli.hand.model import PARENTS, builtin_hand
+    from relight_cli.hand.poses import named_pose
+    from relight_cli.hand.skinning import posed_joints
+    scan = tmp_path / "scan"
+    args = ["synth-capture", "builtin:right", "--phone-scan", "builtin:sky", "--size", "48",
+            "--tex-res", "16", "--aa", "1", "--no-sss", "-o", scan, "-q"]
+    assert run_cli(*args, "--views", "3").exit_code == 0
+    cams = read_cameras(str(scan / "cameras.json"))
+    kp = read_keypoints2d(str(scan / "keypoints.json"))
+    assert len(cams) == 3 and kp.skeleton == "mediapipe-21" and kp.side == "right"
+    rest = builtin_hand().rest_joints
+    joints = posed_joints(named_pose("relaxed", "right", rest)[None], np.zeros((1, 3)), rest,
+                          PARENTS)[0]
+    for cam, uv, name in zip(cams, kp.uv, kp.images):
+        x = joints @ cam.R.T + cam.t
+        p = x[:, :2] / x[:, 2:] @ cam.K[:2, :2].T + cam.K[:2, 2]
+        err = np.linalg.norm(p - uv, axis=1)[MEDIAPIPE_TO_WEBXR]
+        assert err.max() < 5.0                         # 1 px noise per axis
+        image = read_exr(str(scan / name)).channels
+        assert 0.02 < image["A"].mean() < 0.9 and image["R"][image["A"] == 0].max() == 0
+    assert run_cli(*args, "--views", "2").exit_code == 0
+    assert sorted(p.name for p in scan.glob("view_*.exr")) == ["view_00.exr", "view_01.exr"]
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "cap" / "capture.json").write_text("{}")
+    r = run_cli(*args[:-3], "-o", tmp_path / "cap")
+    assert r.exit_code == 2 and "holds a capture" in r.output
