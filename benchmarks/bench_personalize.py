@@ -125,17 +125,18 @@ def main(argv=None):
         truth = bone_lengths(read_hand(str(hand)).rest_joints, PARENTS)
         scan = a.out / f"scan_{name}"
         log(f"{name}: skin {settings['skin_seed']}, scan of {a.views} photos under {a.scan_env}")
-        t_scan = 0.0
+        timing = a.out / f"scan_{name}.seconds"          # the render's time, kept with the cache
         if not (scan / "keypoints.json").exists():
-            t_scan = run(["synth-capture", hand, "--phone-scan", a.scan_env, "--views", a.views,
+            timing.write_text("%.1f\n" % run(["synth-capture", hand, "--phone-scan", a.scan_env, "--views", a.views,
                           "--size", a.size, "--tex-res", settings["tex_res"], "--aa",
                           settings["aa"], *([] if settings["sss"] else ["--no-sss"]),
-                          "--skin-seed", settings["skin_seed"], "-o", scan], log)
+                          "--skin-seed", settings["skin_seed"], "-o", scan], log))
+        t_scan = float(timing.read_text()) if timing.exists() else None
         photos = sorted(scan.glob("view_*.exr"))
         envs = sorted((capture / "eval" / "envs").glob("*.exr"))
         for seed, ckpt in enumerate(checkpoints):
             row = {"subject": name, "seed": seed, "skin_seed": settings["skin_seed"],
-                   "views": a.views, "scan_seconds": round(t_scan, 1)}
+                   "views": a.views, "scan_seconds": t_scan}
             common = ["relight", capture, "--model", "linear", "--checkpoint", ckpt,
                       "--splits", "env"]
             oracle = a.out / f"{name}_s{seed}_oracle.json"

@@ -570,8 +570,8 @@ class Study:
                                                      if isinstance(v, dict)},
                   "curve": curve_points, "seconds": round(seconds, 1),
                   "resumed_from": resume["step"] if resume else None}
-        if kind == "teacher":
-            path = runs / f"{key}.pt"
+        if kind in ("teacher", "identity"):   # identity: the universal model, for
+            path = runs / f"{key}.pt"            # bench_personalize.py
             write_checkpoint(str(path), result.checkpoint)
             record["checkpoint"] = str(path)
         write_json(runs / f"{key}.json", record)

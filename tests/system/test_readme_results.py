@@ -877,3 +877,37 @@ def test_the_dgsm_table_reads_every_verdict_from_the_results(tmp_path):
     assert t5 != [x for x in before.splitlines() if "| Table 5 |" in x][0]
     paa = [x for x in after.splitlines() if "PAA-Y" in x][0]
     assert paa != [x for x in before.splitlines() if "PAA-Y" in x][0]
+
+
+IDENTITY = ROOT / "benchmarks" / "results" / "converged" / "study_ur_id.json"
+
+
+@pytest.mark.skipif(not IDENTITY.exists(), reason="no committed identity study")
+def test_readme_identity_claims_are_the_committed_results(tmp_path):
+    """README's URHand identity table (issue 51) is what readme_tables.py makes from
+    study_ur_id.json (and personalize.json): the unseen subjects are not trained ones,
+    every row sits beside its own capture's ceiling, and a verdict's "rows" cell says
+    "converged" only when every row it rests on did — a record whose rows did not
+    converge is labelled so."""
+    R = _tables()
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert _block(readme, "identity") == R.identity()
+    record = json.loads(IDENTITY.read_text())
+    roles = record["roles"]
+    assert len(roles["trained"]) >= 4 and len(roles["unseen"]) >= 2
+    assert not set(roles["unseen"]) & set(roles["trained"])
+    assert record["seeds"] and len(record["seeds"]) >= 2 and record["checks"]
+    for row in record["rows"].values():
+        assert row["subject"]["heldout"]["ceiling"]["psnr"]["mean"] is not None
+    # flip one row's convergence: the table must say so
+    for row in record["convergence"].values():
+        for hand in row.values():
+            hand["converged"] = True
+    (tmp_path / "all.json").write_text(json.dumps(record))
+    table = R.identity(tmp_path / "all.json", tmp_path / "none.json")
+    assert "not converged" not in table
+    first = next(iter(record["convergence"]))
+    record["convergence"][first]["subject"]["converged"] = False
+    (tmp_path / "one.json").write_text(json.dumps(record))
+    table = R.identity(tmp_path / "one.json", tmp_path / "none.json")
+    assert f"not converged: {first}" in table.splitlines()[2]
