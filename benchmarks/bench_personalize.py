@@ -127,7 +127,8 @@ def main(argv=None):
         log(f"{name}: skin {settings['skin_seed']}, scan of {a.views} photos under {a.scan_env}")
         timing = a.out / f"scan_{name}.seconds"          # the render's time, kept with the cache
         if not (scan / "keypoints.json").exists():
-            timing.write_text("%.1f\n" % run(["synth-capture", hand, "--phone-scan", a.scan_env, "--views", a.views,
+            timing.write_text("%.1f\n" % run([
+                          "synth-capture", hand, "--phone-scan", a.scan_env, "--views", a.views,
                           "--size", a.size, "--tex-res", settings["tex_res"], "--aa",
                           settings["aa"], *([] if settings["sss"] else ["--no-sss"]),
                           "--skin-seed", settings["skin_seed"], "-o", scan], log))
@@ -210,7 +211,8 @@ def markdown(record: dict) -> str:
     if rows:
         de = np.array([r["env"]["psnr"] - r["oracle"]["psnr"] for r in rows])
         ds = np.array([r["statistical"]["psnr"] - r["oracle"]["psnr"] for r in rows])
-        lines += ["", f"Personalised (env known) − true T̄: {de.mean():+.2f} ± {de.std():.2f} dB; "
+        lines += ["", f"Personalised (env known) − true T̄: {de.mean():+.2f} ± {de.std():.2f} "
+                      f"dB; "
                       f"estimated lighting − true T̄: {ds.mean():+.2f} ± {ds.std():.2f} dB "
                       f"(mean ± std over {len(rows)} subject × seed rows).",
                   "", "Seconds per step (2 cores): scan render "

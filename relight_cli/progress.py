@@ -149,3 +149,30 @@ class PlainProgress:
         self._said = line
         self.stream.write(line + "\n")
         self.stream.flush()
+
+
+class LateProgress:
+    """Progress over ``total`` units of work shown only once the work looks long: after
+    ``seconds`` / 5 have passed, if the units done so far project a total of at least
+    ``seconds`` (elapsed × total / done), :func:`progress` opens at the units done; short
+    work stays silent.  ``update(n)`` / ``close()`` as :func:`progress`'s object."""
+
+    def __init__(self, total: int, desc: str = "", unit: str = "", quiet: bool = False,
+                 seconds: float = 5.0, clock=time.monotonic):
+        self.total, self.desc, self.unit, self.quiet = total, desc, unit, quiet
+        self.seconds, self.clock, self.done, self.bar = float(seconds), clock, 0, None
+        self.start = clock()
+
+    def update(self, n: int = 1) -> None:
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+        elif not self.quiet and self.done > 0:
+            elapsed = self.clock() - self.start
+            if elapsed >= self.seconds / 5 and elapsed * self.total >= self.seconds * self.done:
+                self.bar = progress(total=self.total, initial=self.done, desc=self.desc,
+                                    unit=self.unit)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

@@ -25,22 +25,21 @@ bounding box of that ellipse and the tiled result equals the per-pixel one.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from relight_cli.formats.camera import Camera
 from relight_cli.formats.gaussians_ply import Gaussians
+from relight_cli.progress import LateProgress
 from relight_cli.sh import sh_basis
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
 #: A render expected to take at least this many seconds shows progress over its tiles
-#: (unless ``quiet``); the estimate is made once a render has run for a fifth of it
-#: (elapsed / tiles done × tiles), so short renders stay silent.  A 100k+-Gaussian scene
-#: at 400x300 takes 20-55 s on the 2-core test machine.
+#: (unless ``quiet``; relight_cli.progress.LateProgress), so short renders stay silent.
+#: A 100k+-Gaussian scene at 400x300 takes 20-55 s on the 2-core test machine.
 PROGRESS_SECONDS = 5.0
 
 
@@ -187,7 +186,7 @@ def render(g: Gaussians, camera: Camera, background=(0.0, 0.0, 0.0), near: float
         tile_id, gauss = tile_id[order], gauss[order]
         starts = np.searchsorted(tile_id, np.arange(tiles_x * tiles_y + 1))
         busy = np.flatnonzero(np.diff(starts))              # tiles some Gaussian reaches
-        bar = _LateProgress(len(busy), quiet)
+        bar = LateProgress(len(busy), "splatting", "tiles", quiet, PROGRESS_SECONDS)
         for tid in busy:
             ty, tx = divmod(int(tid), tiles_x)
             y0, x0 = ty * tile, tx * tile
@@ -199,35 +198,10 @@ def render(g: Gaussians, camera: Camera, background=(0.0, 0.0, 0.0), near: float
             image[y0:y1, x0:x1] = col.reshape(y1 - y0, x1 - x0, 3)
             transmittance[y0:y1, x0:x1] = T.reshape(y1 - y0, x1 - x0)
             depth[y0:y1, x0:x1] = dep.reshape(y1 - y0, x1 - x0)
-            bar.update()
+            bar.update(1)
         bar.close()
     image += transmittance[..., None] * np.asarray(background, np.float64)[None, None, :]
     return RenderResult(image, 1.0 - transmittance, depth)
-
-
-class _LateProgress:
-    """Progress over ``total`` tiles shown only once the work looks long: after a fifth of
-    :data:`PROGRESS_SECONDS`, if the tiles done so far project a total of at least that."""
-
-    def __init__(self, total: int, quiet: bool):
-        self.total, self.quiet, self.done, self.bar = total, quiet, 0, None
-        self.start = time.monotonic()
-
-    def update(self) -> None:
-        self.done += 1
-        if self.bar is not None:
-            self.bar.update(1)
-        elif not self.quiet:
-            elapsed = time.monotonic() - self.start
-            if elapsed >= PROGRESS_SECONDS / 5 \
-                    and elapsed * self.total / self.done >= PROGRESS_SECONDS:
-                from relight_cli.progress import progress
-                self.bar = progress(total=self.total, initial=self.done, desc="splatting",
-                                    unit="tiles")
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
 
 
 def _composite_tile(pr: Projected, ids: np.ndarray, px: np.ndarray, py: np.ndarray, chunk: int):

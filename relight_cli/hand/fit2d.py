@@ -165,7 +165,8 @@ def _refine(template, init, cameras, uv, confidence, groups, masks, opt, seen, p
     t_rest = torch.tensor(rest, dtype=dtype)
     verts0 = torch.tensor(mesh.vertices, dtype=dtype)
     weights = torch.tensor(mesh.weights, dtype=dtype)
-    basis = torch.tensor(displacement_basis(mesh.vertices, mesh.weights, rest, parents), dtype=dtype)
+    basis = torch.tensor(displacement_basis(mesh.vertices, mesh.weights, rest, parents),
+                         dtype=dtype)
     K = torch.tensor(np.stack([c.K for c in cameras]), dtype=dtype)
     R = torch.tensor(np.stack([c.R for c in cameras]), dtype=dtype)
     T = torch.tensor(np.stack([c.t for c in cameras]), dtype=dtype)

@@ -51,7 +51,7 @@ class PersonalizeOptions:
     iterations: int = 200
     lighting: str = "env"           # env | statistical
     level: float | None = None      # statistical: mean luminance of T̄ (sr⁻¹)
-    tv_weight: float = 0.05         # statistical: the shading map's TV weight
+    tv_weight: float = 0.2          # statistical: the shading map's TV weight (test_unwrap)
     env_res: tuple = (32, 64)       # env: the lat-long grid E integrates over
     seed: int = 0
 
@@ -187,7 +187,8 @@ def _report(hand, fit, views, seen, inside, texture, opt) -> dict:
                    "reprojection_px": round(float(e), 3),
                    "outside_mask_px": None if not np.isfinite(o) else round(float(o), 3)}
                   for v, e, o in zip(views, fit.reprojection_px, fit.outside_px)],
-        "bone_scales": {names[j]: round(float(fit.bone_scales[j]), 5) for j in range(1, len(names))},
+        "bone_scales": {names[j]: round(float(fit.bone_scales[j]), 5)
+                        for j in range(1, len(names))},
         "bone_lengths_mm": {names[j]: round(float(lengths[j]), 3) for j in range(1, len(names))},
         "texels": {"resolution": opt.tex_res, "inside": int(inside.sum()),
                    "seen_fraction": round(covered, 5)},

@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
+from types import SimpleNamespace
 
 import numpy as np
 import torch
+
+from relight_cli.progress import LateProgress
 
 from .data import LRU
 from .scores import score
@@ -41,7 +44,16 @@ class Ceiling:
     Args:
         data: the :class:`~relight_cli.neural.data.CaptureData` (its hand, eval hand,
             lights and env maps).
+
+    Attributes:
+        quiet: True (the default) keeps :meth:`predict` silent; False shows progress over
+            the texels shaded when a sample's ceiling looks long (an env render's GGX lobe
+            over every lit direction: minutes per sample at 256², 2 cores), on stderr.
     """
+
+    #: Texel centres shaded per call of the stage's shader: each is shaded on its own
+    #: (a one-sample "pixel"), so the chunks change no value, only when progress is said.
+    CHUNK = 4096
 
     def __init__(self, data):
         from relight_cli.formats.lights_json import Lights
@@ -57,6 +69,7 @@ class Ceiling:
             self.shader = StageShader(data.hand, settings, lights)
         self._lighting = LRU(2)
         self._scores = {}
+        self.quiet = True
 
     @property
     def available(self) -> bool:
@@ -82,10 +95,30 @@ class Ceiling:
             frame = self.data.frame(item[0])
             renderer, lighting = self._lit(frame.pose, False, lights_on=frame.lights_on)
         surfaces = [texels[k].surfaces[k] for k in range(len(texels))]
-        radiance = self.shader.texel_radiance(renderer, lighting, surfaces, gbuffer.eye)
+        radiance = self._texel_radiance(renderer, lighting, surfaces, gbuffer.eye)
         textures = [torch.from_numpy(texels[k].to_maps(k, radiance[k].astype(np.float32)))
                     for k in range(len(texels))]
         return composite(textures, gbuffer).numpy()
+
+    def _texel_radiance(self, renderer, lighting, surfaces, eye) -> list:
+        """The stage's texel_radiance of ``surfaces``, in chunks of :data:`CHUNK` texel
+        centres, with progress over them when long (unless :attr:`quiet`)."""
+        sizes = [len(s.points) for s in surfaces]
+        bar = LateProgress(sum(sizes), "ceiling", "ceiling texels", self.quiet)
+        out = []
+        for k, surface in enumerate(surfaces):
+            parts = []
+            for lo in range(0, sizes[k], self.CHUNK):
+                part = [SimpleNamespace(points=s.points[:0], normals=s.normals[:0],
+                                        uv=s.uv[:0]) for s in surfaces]
+                cut = slice(lo, lo + self.CHUNK)
+                part[k] = SimpleNamespace(points=surface.points[cut],
+                                          normals=surface.normals[cut], uv=surface.uv[cut])
+                parts.append(self.shader.texel_radiance(renderer, lighting, part, eye)[k])
+                bar.update(len(parts[-1]))
+            out.append(np.concatenate(parts) if parts else np.zeros((0, 3)))
+        bar.close()
+        return out
 
     def score(self, item, texels: list, gbuffer, gt, mask, hand_masks=None,
               names=None) -> dict:

@@ -126,7 +126,7 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
 
 
 def shading_map(radiance: np.ndarray, seen: np.ndarray, reference: np.ndarray,
-                weight: float = 0.05, iterations: int = 300) -> np.ndarray:
+                weight: float = 0.2, iterations: int = 300) -> np.ndarray:
     """[N, N] one-channel shading S of an unwrapped texture (URHand supp. 9): S fits the
     luminance of ``radiance`` [N, N, 3] over that of ``reference`` [3] (the images' mean
     foreground colour) on the ``seen`` texels, minimising Σ (S − Y/Y_ref)² + weight ·
