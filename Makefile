@@ -113,12 +113,13 @@ demo: install
 		--size 512 -o demo/shadows.exr --occluders-out demo/hand_gaussians.ply --receivers-out demo/room.ply \
 		--preview demo/shadows.png
 	# the room's own light at the hand (paper Sec. 3.4: a probe fitted to the scene's cube faces there),
-	# so the inserted hand (and the donut below) are lit as the room is
+	# so the inserted hand (and the donut below) are lit as the room is; each before/after pair of previews
+	# shares one exposure (--preview-exposure, the "before" picture's own auto scale) so the change shows
 	$(RELIGHT) sh-probe demo/room.ply --at 0,0.3,0.02 --degree auto -o demo/room_probe.json --preview demo/room_probe.png
 	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --receivers demo/room.ply \
-		--camera demo/room_cam.json -o demo/room_before.exr --preview demo/room_before.png
+		--camera demo/room_cam.json -o demo/room_before.exr --preview demo/room_before.png --preview-exposure 0.43
 	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --dgsm demo/shadows.exr \
-		--receivers demo/room.ply --camera demo/room_cam.json -o demo/room_after.exr --preview demo/room_after.png
+		--receivers demo/room.ply --camera demo/room_cam.json -o demo/room_after.exr --preview demo/room_after.png --preview-exposure 0.43
 	# the real donut (if ../shared/data is here) inserted beside the hand: fitted to 15 cm, laid flat
 	# on the floor; one deep Gaussian shadow map per object, relit by the room's probe without/with shadows,
 	# then with the lamp lighting the objects too (--direct-light; the shadows take the lamp's share, auto)
@@ -129,13 +130,13 @@ demo: install
 	    --receivers builtin:room --lights demo/scene_lights.json --size 512 -o demo/scene_shadows.exr \
 	    --preview demo/scene_shadows.png --preview-camera demo/scene_cam.json && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/room_probe.json \
-	    --receivers demo/room.ply --camera demo/scene_cam.json -o demo/scene_before.exr --preview demo/scene_before.png && \
+	    --receivers demo/room.ply --camera demo/scene_cam.json -o demo/scene_before.exr --preview demo/scene_before.png --preview-exposure 0.43 && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/room_probe.json \
 	    --dgsm demo/scene_shadows.exr --receivers demo/room.ply --camera demo/scene_cam.json \
-	    -o demo/scene_after.exr --preview demo/scene_after.png && \
+	    -o demo/scene_after.exr --preview demo/scene_after.png --preview-exposure 0.43 && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(DONUT)' --probe demo/room_probe.json \
 	    --dgsm demo/scene_shadows.exr --receivers demo/room.ply --camera demo/scene_cam.json \
-	    --direct-light -o demo/scene_lamp.exr --preview demo/scene_lamp.png; \
+	    --direct-light -o demo/scene_lamp.exr --preview demo/scene_lamp.png --preview-exposure 0.43; \
 	fi
 	# the real robot (if ../shared/data is here) beside the hand in the room, with a lamp added (a
 	# compact bright cluster of Gaussians): the light estimated from the scene (auto:1, paper
@@ -184,12 +185,13 @@ demo: install
 	$(RELIGHT) envmap builtin:sky --to latlong --size 128x64 -o demo/sky_direct.exr
 	$(RELIGHT) metrics image demo/sky_back.exr demo/sky_direct.exr --space srgb -o demo/metrics_envmap.json \
 		--preview demo/metrics_envmap.png
-	# the real donut (if ../shared/data is here) relit by two probes
+	# the real donut (if ../shared/data is here) relit by two probes, both previews on one exposure
+	# (--preview-exposure: the "before" picture's own auto scale, 0.7) so the brighter studio light shows
 	if [ -f $(SHARED)/gaussians/donut-fused.ply ]; then \
 	  $(RELIGHT) camera --eye 0,0.25,0.3 --target 0,0,0.03 --fov 45 --size 256x192 -o demo/donut_cam.json && \
 	  $(RELIGHT) sh-probe builtin:uniform --degree 0 -o demo/uniform_probe.json && \
-	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/uniform_probe.json --camera demo/donut_cam.json -o demo/donut_before.exr --preview demo/donut_before.png && \
-	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/studio_probe.json --intensity 2 --camera demo/donut_cam.json -o demo/donut_after.exr --preview demo/donut_after.png; \
+	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/uniform_probe.json --camera demo/donut_cam.json -o demo/donut_before.exr --preview demo/donut_before.png --preview-exposure 0.7 && \
+	  $(RELIGHT) relight $(SHARED)/gaussians/donut-fused.ply --probe demo/studio_probe.json --intensity 2 --camera demo/donut_cam.json -o demo/donut_after.exr --preview demo/donut_after.png --preview-exposure 0.7; \
 	fi
 	@echo "demo outputs are in demo/"
 

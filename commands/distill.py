@@ -26,7 +26,9 @@ from ._learned import training_options
                    "hypernetwork baseline (App. A.3) [default: student].")
 @click.option("--preset", type=click.Choice(["tiny", "cpu", "paper"]), default="tiny",
               show_default=True,
-              help="tiny: 32² maps, minutes on a CPU (tests, demo); cpu: 64² maps, the "
+              help="tiny: 32² maps, ~150 iterations, minutes on a CPU, far from converged "
+                   "(tests, demo; 315 s on the demo capture, 2 shared CPU cores); cpu: 64² "
+                   "maps, the "
                    "student's head linear in its features (ours; config head eq11: the "
                    "paper's), 4000 iterations with a cosine learning-rate decay, 10-30 min "
                    "on 2 CPU cores (benchmarks/results/converged/student_linear/); paper: "

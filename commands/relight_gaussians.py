@@ -359,7 +359,8 @@ def _gaussians(a, given: set = frozenset()) -> None:
                         f"object(s) were given (IN + --object, in dgsm-build's order)", a.dgsm)
     view = _read_view(a.camera)
     relit = G.relight(objects, probe, gaussian_options(a), shadow_map, scene, view, bg,
-                      names=[source for source, _ in parsed], log=lambda m: log(m, a.quiet))
+                      names=[source for source, _ in parsed], log=lambda m: log(m, a.quiet),
+                      quiet=a.quiet)
     settings = dict(relit.settings, objects=specs, colour_space=a.colour_space, **lighting)
     inputs = _gaussian_inputs(a, parsed, camera=False)
     if a.receivers_out is not None:
@@ -488,7 +489,7 @@ def _shadow_matte(a, specs, parsed, bg, start) -> None:
     options = gaussian_options(a)
     options.light_weights = a.light_weights or "intensity"
     matte = G.shadow_matte(a.shadow_matte, scene, shadow_map, view, options, meshes, bg,
-                           log=lambda m: log(m, a.quiet))
+                           log=lambda m: log(m, a.quiet), quiet=a.quiet)
     _write_view(a, matte.channels, matte.rgb, view, _gaussian_inputs(a, parsed, camera=True),
                 dict(matte.settings, objects=specs, colour_space=a.colour_space),
                 {"relight.matte": f"shadow strength ({a.shadow_matte})"})

@@ -46,7 +46,7 @@ def scan_cameras(center: np.ndarray, views: int, radius: float, res: int, fov: f
     return cams
 
 
-def phone_scan(subject, settings, env, views: int = 8, res: int = 256, radius: float = 0.32,
+def phone_scan(subject, settings, env, views: int = 8, res: int = 256, radius: float | None = None,
                pose: str = "relaxed", noise_px: float = 1.0, seed: int = 0) -> Scan:
     """Render the scan (see the module docstring).
 
@@ -56,6 +56,8 @@ def phone_scan(subject, settings, env, views: int = 8, res: int = 256, radius: f
             ``skin_seed`` is the subject's skin; ``tex_res``, ``aa``, ``sss`` the look).
         env: the scan's EnvMap.  pose: a named pose (held still for every photo).
         noise_px: standard deviation of the keypoints' pixel noise.
+        radius: the phone's distance from the hand's centre (metres); default: the whole
+            hand inside the frame with a 15 % margin.
     """
     import copy
 
@@ -74,7 +76,12 @@ def phone_scan(subject, settings, env, views: int = 8, res: int = 256, radius: f
                           hand.parents)[0]
     if not np.allclose(hand.hands[0].root, np.eye(4)):
         joints = joints @ hand.hands[0].root[:3, :3].T + hand.hands[0].root[:3, 3]
-    center = joints.mean(0)
+    from relight_cli.hand.scene import posed_meshes
+    vertices = np.concatenate([m.vertices for m in posed_meshes(hand, 0, "coarse")])
+    center = 0.5 * (vertices.min(0) + vertices.max(0))
+    if radius is None:                  # the bounding sphere inside the 35° field of view
+        reach = float(np.linalg.norm(vertices - center, axis=1).max())
+        radius = 1.15 * reach / np.sin(np.radians(35.0) / 2)
     cameras = scan_cameras(center, views, radius, res)
     stage_env = stage_envmap(env, settings.eval_env_res)
     plan = plan_capture(hand, settings, motion=hand)

@@ -197,7 +197,8 @@ def weights_mode(light_weights: str, shadow_map, log=_quiet) -> str:
 
 
 def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers=None,
-            camera=None, background=(0.0, 0.0, 0.0), names=None, log=_quiet) -> RelitGaussians:
+            camera=None, background=(0.0, 0.0, 0.0), names=None, log=_quiet,
+            quiet: bool = True) -> RelitGaussians:
     """Relight ``objects`` (a list of Gaussians, IN then each --object) by ``probe`` (an
     SH probe: ``coefficients``, ``degree``; or a list of them, one per object: each
     object's local light, as a clip refits them at the objects' positions, the first
@@ -205,7 +206,8 @@ def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers
     ``receivers`` (Gaussians, required then) are shadowed and, for a grouped DGSM, each
     object by the others; with ``camera`` receivers + objects are rendered over
     ``background``.  ``names``: each object's name in errors (a DataError for normals
-    that cannot be estimated)."""
+    that cannot be estimated).  ``quiet`` False: a long render shows progress on stderr
+    (relight_cli.gaussians.splat.render)."""
     from relight_cli.formats.gaussians_ply import concatenate
 
     o = options
@@ -253,7 +255,7 @@ def relight(objects, probe, options: GaussianOptions, shadow_map=None, receivers
     if camera is not None:
         from relight_cli.gaussians.splat import render
         everything = out.objects if receivers is None else concatenate([receivers, out.objects])
-        image = render(everything, camera, background=background)
+        image = render(everything, camera, background=background, quiet=quiet)
         out.channels = _rgba(image)
         out.rgb, out.rendered = image.image.astype(np.float32), len(everything)
     return out
@@ -349,12 +351,13 @@ def _shadow_objects(relit, direct, probes, shadow_map, weights_used, auto, stren
 
 
 def shadow_matte(mode: str, receivers, shadow_map, camera, options: GaussianOptions,
-                 meshes=None, background=(0.0, 0.0, 0.0), log=_quiet) -> Matte:
+                 meshes=None, background=(0.0, 0.0, 0.0), log=_quiet,
+                 quiet: bool = True) -> Matte:
     """The receivers-only shadow matte (paper Sec. 4.2): receivers coloured by shadow
     strength 1 − Σ w_l V_l / Σ w_l, nothing else drawn.  ``mode`` ``dgsm``: V the DGSM's
     transmittance; ``mesh``: embree shadow rays against ``meshes`` (the objects as
     triangle meshes).  Lights and weights (``options.light_weights``, default intensity)
-    come from the DGSM."""
+    come from the DGSM; ``quiet`` as :func:`relight`'s."""
     from relight_cli.gaussians import dgsm as D
     from relight_cli.gaussians import shadow_matte as SM
     from relight_cli.gaussians import transfer as TF
@@ -376,7 +379,8 @@ def shadow_matte(mode: str, receivers, shadow_map, camera, options: GaussianOpti
     else:
         raise ValueError(f"shadow matte mode is dgsm or mesh, got {mode!r}")
     strength = SM.shadow_strength(TF.shadow_factor(V, weights, 1.0))
-    image = render(scene, camera, background=background, colors=SM.matte_colors(strength))
+    image = render(scene, camera, background=background, colors=SM.matte_colors(strength),
+                   quiet=quiet)
     settings = {"shadow_matte": mode, "footprint": o.footprint, "samples": o.samples,
                 "seed": o.seed, "light_weights": used, "dgsm_mapping": shadow_map.mapping}
     return Matte(_rgba(image), image.image.astype(np.float32), strength, settings)

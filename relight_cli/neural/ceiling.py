@@ -52,8 +52,13 @@ class Ceiling:
     """
 
     #: Texel centres shaded per call of the stage's shader: each is shaded on its own
-    #: (a one-sample "pixel"), so the chunks change no value, only when progress is said.
+    #: (a one-sample "pixel"), so the chunks change no value (tests/neural/test_ceiling.py),
+    #: only when progress is said, and they are faster: an env render's texel-visibility
+    #: lookup grows with shaded points × texels (one 128² env sample of the demo capture:
+    #: 64.5 s in one call, 11.8 s in chunks, 2 shared cores).
     CHUNK = 4096
+    #: a sample's ceiling expected to take this long (s) shows progress (unless quiet)
+    PROGRESS_SECONDS = 5.0
 
     def __init__(self, data):
         from relight_cli.formats.lights_json import Lights
@@ -104,7 +109,8 @@ class Ceiling:
         """The stage's texel_radiance of ``surfaces``, in chunks of :data:`CHUNK` texel
         centres, with progress over them when long (unless :attr:`quiet`)."""
         sizes = [len(s.points) for s in surfaces]
-        bar = LateProgress(sum(sizes), "ceiling", "ceiling texels", self.quiet)
+        bar = LateProgress(sum(sizes), "ceiling", "ceiling texels", self.quiet,
+                           self.PROGRESS_SECONDS)
         out = []
         for k, surface in enumerate(surfaces):
             parts = []
