@@ -18,24 +18,27 @@ and skins no trained subject has) and each seed of its universal linear model:
 
 Every step runs the commands a user runs (subprocesses) and is timed.  Results:
 ``RESULTS.md`` / ``RESULTS.json``; previews of each personalised hand under the two
-held-out maps in ``OUT/``.
+held-out maps in ``--work``; ``--out`` gets personalize.{md,json,png} (the plot: each
+row's loss against the true T̄ over the seconds personalisation took).  ``--quick``: one
+unseen subject, the first seed, 4 photos of 128², 40 iterations.
 
     .venv/bin/python benchmarks/bench_personalize.py --study benchmarks/out/study_converged \\
-        --out benchmarks/out/personalize --results benchmarks/results/converged/personalize
+        --out benchmarks/results/converged
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _common as B  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RELIGHT = [str(Path(sys.executable).with_name("relight"))]
@@ -92,19 +95,24 @@ def metrics(path: Path, split: str = "env") -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = B.parser(__doc__, "one unseen subject, the first seed, 4 photos of 128², 40 "
+                           "iterations")
     ap.add_argument("--study", type=Path, default=ROOT / "benchmarks/out/study_converged")
     ap.add_argument("--checkpoints", type=Path, nargs="*", default=None,
                     help="universal linear checkpoints [default: the study's, one per seed]")
     ap.add_argument("--scan-env", default="builtin:sky")
-    ap.add_argument("--views", type=int, default=8)
-    ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--iterations", type=int, default=200)
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/out/personalize")
-    ap.add_argument("--results", type=Path,
-                    default=ROOT / "benchmarks/results/converged/personalize")
+    ap.add_argument("--views", type=B.integer(2), default=8)
+    ap.add_argument("--size", type=B.integer(32), default=256)
+    ap.add_argument("--iterations", type=B.integer(1), default=200)
+    ap.add_argument("--work", type=Path, default=B.OUT / "personalize_work", metavar="DIR",
+                    help="scans, subjects, scores and previews (a cache: scans are reused)")
     a = ap.parse_args(argv)
+    if a.quick:
+        a.views, a.size, a.iterations = 4, 128, 40
+    results = B.start(a, "bench_personalize.py", {"--work": a.work}) / "personalize"
+    a.out = a.work
     a.out.mkdir(parents=True, exist_ok=True)
+    machine = B.machine_limits()
     log_lines = []
 
     def log(message):
@@ -114,11 +122,13 @@ def main(argv=None):
     from relight_cli.formats.hand_npz import read_hand
     from relight_cli.hand.model import PARENTS, builtin_hand
     checkpoints = a.checkpoints or universal_checkpoints(a.study)
+    if a.quick:
+        checkpoints = checkpoints[:1]
     if not checkpoints:
         raise SystemExit(f"no trained universal model under {a.study}/runs (run the study)")
     template = bone_lengths(builtin_hand().rest_joints, PARENTS)
     rows = []
-    for name, capture in unseen_subjects(a.study):
+    for name, capture in unseen_subjects(a.study)[:1 if a.quick else None]:
         info = json.loads((capture / "capture.json").read_text())
         settings = info["settings"]
         hand = capture / info["hand"]
@@ -174,16 +184,16 @@ def main(argv=None):
             log(f"  {name} seed {seed}: oracle {row['oracle']['psnr']:.2f} dB, env "
                 f"{row['env']['psnr']:.2f}, statistical {row['statistical']['psnr']:.2f} "
                 f"(ceiling gap of the oracle {row['oracle']['gap_to_ceiling']:.2f} dB)")
-    record = {"command": "python benchmarks/bench_personalize.py " + " ".join(
-                  sys.argv[1:] if argv is None else argv),
-              "machine": f"{platform.platform()}, {os.cpu_count()} CPUs",
+    record = {"command": B.run_command("bench_personalize.py",
+                                       sys.argv[1:] if argv is None else argv),
+              "quick": a.quick, "machine": B.machine_line(machine), "limits": machine,
               "scan_env": a.scan_env, "views": a.views, "size": a.size,
               "checkpoints": [str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(p)
                               for p in checkpoints],
               "rows": rows}
-    a.results.parent.mkdir(parents=True, exist_ok=True)
-    a.results.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
-    a.results.with_suffix(".md").write_text(markdown(record))
+    results.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
+    results.with_suffix(".md").write_text(markdown(record))
+    plot(record, results.with_suffix(".png"), machine)
     print(markdown(record))
 
 
@@ -224,5 +234,19 @@ def markdown(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def plot(record: dict, path: Path, machine: dict) -> None:
+    """Each row's loss against the true T̄ (dB) over the seconds its personalisation took,
+    one curve per way of dividing the lighting out."""
+    fig, (ax,) = B.figure(1)
+    curves = {}
+    for lighting, name in (("env", "env map known"), ("statistical", "estimated (supp. 9)")):
+        curves[name] = sorted((r[lighting]["personalize_seconds"],
+                               max(r["oracle"]["psnr"] - r[lighting]["psnr"], 1e-3),
+                               f"{r['subject']}/{r['seed']}") for r in record["rows"])
+    B.plot(ax, curves, "personalize wall time (s)", "PSNR loss against the true T̄ (dB)",
+           "quick personalisation: time against error", logy=False)
+    B.save(fig, path, machine)
+
+
 if __name__ == "__main__":
-    main()
+    B.run_main("bench_personalize.py", main)

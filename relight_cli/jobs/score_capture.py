@@ -56,7 +56,8 @@ def score_capture(capture, models: list, options: CaptureOptions, device="cpu", 
 
     o = options
     evaluator = CaptureEvaluator(capture, models, device, o.aa, o.env_res)
-    evaluator.ceiling.quiet = quiet       # the ceiling's stage shading can take minutes
+    if getattr(evaluator, "ceiling", None) is not None:
+        evaluator.ceiling.quiet = quiet   # the ceiling's stage shading can take minutes
     if o.subject_texture is not None:
         from relight_cli.neural.evaluate import with_own_subject
         evaluator.models = with_own_subject(evaluator.models, o.subject_texture)
