@@ -201,7 +201,7 @@ def markdown(record: dict) -> str:
     rows = record["rows"]
     lines = ["# Quick personalisation from a phone scan (URHand Sec. 5.4, supp. 9)", "",
              f"Command: `{record['command']}`  ",
-             f"Machine: {record['machine']}  ",
+             f"{record['machine']}  ",
              f"Scan: {record['views']} photos of {record['size']}² under {record['scan_env']}; "
              "scored on each unseen subject's held-out poses under its capture's held-out env "
              "maps (split `env`), linear radiance inside the hand mask.", "",
