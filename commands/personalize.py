@@ -6,7 +6,7 @@ import os
 
 import click
 
-from relight_cli.cli.tools import (FiniteFloat, check_input, check_output, dumps_json, log,
+from relight_cli.cli.tools import (check_input, check_output, dumps_json, log,
                                    no_clobber_option, quiet_option, seed_option)
 
 

@@ -18,6 +18,7 @@ from relight_cli.cli.tools import (FiniteFloat, ShadowStrength, check_input, che
                                    colour_space_option, log, no_clobber_option, parse_vector,
                                    preview_exposure_option, quiet_option, renamed_option,
                                    seed_option)
+from relight_cli.commands import _gaussian_parts as parts
 from relight_cli.commands._clip import clip_options, gaussian_options, write_ply
 
 #: What IN may be in this mode: a Gaussians PLY (or a '{frame}' pattern of them), a mesh,
@@ -254,65 +255,6 @@ def _refuse_in_clip(a) -> None:
                            "frames where the scene puts them")
 
 
-def _lighting(a, log_line):
-    """The SH probe lighting IN: --probe read, or ENV's probe fitted (jobs.relight_gaussians.
-    env_probe); turned into IN's frame by --up.  (probe, settings it adds)."""
-    from dataclasses import replace
-
-    from relight_cli.jobs import relight_gaussians as G
-    settings = {}
-    if a.env is not None:
-        from relight_cli.cli.inputs import load_envmap
-        env = load_envmap(a.env)
-        log_line(f"read {a.env}: {env.layout} {env.width}x{env.height}")
-        probe = G.env_probe(env, a.lobe, a.env, log=log_line)
-        settings["env_probe_degree"] = probe.degree
-    else:
-        from relight_cli.formats.sh_probe_json import read_probe
-        probe = read_probe(a.probe)
-    if a.up is not None:
-        probe = replace(probe, coefficients=G.lighting_in_frame(probe.coefficients,
-                                                                _upright(a.up)))
-        settings["up"] = a.up
-    return probe, settings
-
-
-def _upright(text: str):
-    """--up's rotation taking IN's up axis to +Y (a usage error for a bad value)."""
-    from relight_cli.errors import UsageProblem
-    from relight_cli.jobs import relight_gaussians as G
-    up = text if "," not in text else parse_vector(text, 3, "--up")
-    try:
-        return G.upright_rotation(up)
-    except ValueError as exc:
-        raise UsageProblem(f"--up: {exc}") from None
-
-
-def _coordinates(a) -> str:
-    """The relit PLY's frame: --coordinates, else source for IN alone, scene with --object."""
-    return a.coordinates or ("scene" if a.objects else "source")
-
-
-def _load_in(a, source, placement, spec):
-    """IN placed for the scene, and (when its PLY is written back in its own frame and the
-    placement moves it) IN as read, less what the placement prunes, with the similarity
-    that placed it: (placed, unplaced or None, similarity or None)."""
-    from relight_cli.cli.inputs import load_placed
-    from relight_cli.errors import DataError
-    from relight_cli.gaussians import placement as PL
-    if a.camera is not None or _coordinates(a) != "source" or placement.is_identity():
-        return load_placed(source, placement, spec, colour_space=a.colour_space), None, None
-    unplaced = load_placed(source, PL.Placement(frame=placement.frame), spec,
-                           colour_space=a.colour_space)
-    try:
-        similarity = PL.resolve(placement, unplaced)
-        placed = PL.place(unplaced, placement)
-        kept = PL.prune(unplaced, placement)       # what crop/min-opacity/max-scale keep
-    except ValueError as exc:
-        raise DataError(f"cannot place it: {exc}", spec) from None
-    return placed, kept, similarity
-
-
 def _gaussians(a, given: set = frozenset()) -> None:
     """Gaussian mode: IN (+ --object) relit by --probe, shadowed by --dgsm with
     --receivers, → a PLY or with --camera an EXR view (relight_cli.jobs.relight_gaussians)."""
@@ -336,13 +278,13 @@ def _gaussians(a, given: set = frozenset()) -> None:
         check_input(a.env)
     start = time.perf_counter()
     if a.shadow_matte is not None:
-        return _shadow_matte(a, specs, parsed, bg, start)
-    probe, lighting = _lighting(a, lambda m: log(m, a.quiet))
-    shadow_map = _read_dgsm(a.dgsm) if a.dgsm is not None else None
+        return parts.shadow_matte(a, specs, parsed, bg, start)
+    probe, lighting = parts.lighting(a, lambda m: log(m, a.quiet))
+    shadow_map = parts.read_dgsm(a.dgsm) if a.dgsm is not None else None
     if a.self_shadow:
         from relight_cli.commands._clip import check_self_shadow
         check_self_shadow(shadow_map, a.dgsm)
-    placed, unplaced, similarity = _load_in(a, *parsed[0], specs[0])
+    placed, unplaced, similarity = parts.load_in(a, *parsed[0], specs[0])
     objects = [placed]
     log(f"read {specs[0]}: {len(placed)} Gaussians", a.quiet)
     for spec, (source, placement) in zip(specs[1:], parsed[1:]):
@@ -357,12 +299,12 @@ def _gaussians(a, given: set = frozenset()) -> None:
         raise DataError(f"the shadow map has {len(shadow_map.groups)} occluder groups "
                         f"({', '.join(shadow_map.group_names)}) but {len(objects)} "
                         f"object(s) were given (IN + --object, in dgsm-build's order)", a.dgsm)
-    view = _read_view(a.camera)
+    view = parts.read_view(a.camera)
     relit = G.relight(objects, probe, gaussian_options(a), shadow_map, scene, view, bg,
                       names=[source for source, _ in parsed], log=lambda m: log(m, a.quiet),
                       quiet=a.quiet)
     settings = dict(relit.settings, objects=specs, colour_space=a.colour_space, **lighting)
-    inputs = _gaussian_inputs(a, parsed, camera=False)
+    inputs = parts.gaussian_inputs(a, parsed, camera=False)
     if a.receivers_out is not None:
         write_ply(a.receivers_out, relit.receivers, inputs, dict(settings, role="receivers"))
         log(f"wrote {a.receivers_out}", a.quiet)
@@ -376,8 +318,9 @@ def _gaussians(a, given: set = frozenset()) -> None:
         write_ply(a.output, written, inputs, settings)
         log(f"wrote {a.output} ({time.perf_counter() - start:.2f} s)", a.quiet)
         return
-    _write_view(a, relit.channels, relit.rgb, view, _gaussian_inputs(a, parsed, camera=True),
-                dict(settings, background=list(bg)), {})
+    parts.write_view(a, relit.channels, relit.rgb, view,
+                     parts.gaussian_inputs(a, parsed, camera=True),
+                     dict(settings, background=list(bg)), {})
     log(f"wrote {a.output} ({view.width}x{view.height}, {relit.rendered} Gaussians, "
         f"{time.perf_counter() - start:.2f} s)", a.quiet)
     if a.preview is not None:
@@ -440,7 +383,7 @@ def _gaussian_usage(a, given: set = frozenset()) -> tuple:
         if wrong:
             raise UsageProblem(message)
     if a.up is not None:
-        _upright(a.up)
+        parts.upright(a.up)
     bg = parse_vector(a.background, 3, "--background", minimum=0)
     if a.camera is not None and not a.output.lower().endswith(".exr"):
         raise UsageProblem("with --camera, -o is an EXR image (name it .exr)", a.output)
@@ -451,73 +394,3 @@ def _gaussian_usage(a, given: set = frozenset()) -> tuple:
     check_output(a.receivers_out, a.no_clobber, kind="ply", what="--receivers-out")
     check_output(a.preview, a.no_clobber, kind="png", what="--preview")
     return bg
-
-
-def _gaussian_inputs(a, parsed, camera: bool) -> dict:
-    """The provenance roles of the Gaussian mode's input files."""
-    inputs = {"input": parsed[0][0]}
-    if a.shadow_matte is None:
-        inputs.update({"env": a.env} if a.env is not None else {"probe": a.probe})
-    inputs.update({f"object{j}": source for j, (source, _) in enumerate(parsed[1:])})
-    inputs.update({role: path for role, path in (("receivers", a.receivers), ("dgsm", a.dgsm))
-                   if path})
-    if camera:
-        inputs["camera"] = a.camera
-    return inputs
-
-
-def _shadow_matte(a, specs, parsed, bg, start) -> None:
-    """The receivers-only shadow matte of the paper's Sec. 4.2 (``--shadow-matte``)."""
-    import time
-
-    from relight_cli.errors import DataError
-    from relight_cli.gaussians.from_mesh import load_gaussians
-    from relight_cli.jobs import relight_gaussians as G
-
-    shadow_map = _read_dgsm(a.dgsm)
-    scene = load_gaussians(a.receivers, colour_space=a.colour_space)
-    view = _read_view(a.camera)
-    meshes = None
-    if a.shadow_matte == "mesh":
-        from relight_cli.gaussians import shadow_matte as SM
-        meshes = []
-        for spec, (source, placement) in zip(specs, parsed):
-            try:
-                meshes.append(SM.load_placed_mesh(source, placement))
-            except ValueError as exc:
-                raise DataError(str(exc), spec) from None
-    options = gaussian_options(a)
-    options.light_weights = a.light_weights or "intensity"
-    matte = G.shadow_matte(a.shadow_matte, scene, shadow_map, view, options, meshes, bg,
-                           log=lambda m: log(m, a.quiet), quiet=a.quiet)
-    _write_view(a, matte.channels, matte.rgb, view, _gaussian_inputs(a, parsed, camera=True),
-                dict(matte.settings, objects=specs, colour_space=a.colour_space),
-                {"relight.matte": f"shadow strength ({a.shadow_matte})"})
-    log(f"wrote {a.output} (shadow matte, {a.shadow_matte}: "
-        f"{int((matte.strength > 0.1).sum())} of {len(matte.strength)} receivers > 0.1, "
-        f"{time.perf_counter() - start:.2f} s)", a.quiet)
-
-
-def _write_view(a, channels, rgb, view, inputs, settings, attributes) -> None:
-    """A rendered Gaussian view: -o's EXR (R, G, B, A) and the --preview PNG."""
-    from relight_cli.formats.exr import write_exr
-    from relight_cli.provenance import provenance
-    write_exr(a.output, channels, attributes={**attributes, "relight.camera": view.to_json()},
-              provenance=provenance("relight/render", 1, inputs, settings), camera=view)
-    if a.preview is not None:
-        from relight_cli.preview import write_preview
-        write_preview(a.preview, rgb, exposure=a.preview_exposure)
-
-
-def _read_view(path):
-    """The camera of --camera (None without one)."""
-    if path is None:
-        return None
-    from relight_cli.formats.camera import read_camera
-    return read_camera(path)
-
-
-def _read_dgsm(path: str):
-    """The DGSM of --dgsm (formats/dgsm_exr.py)."""
-    from relight_cli.formats.dgsm_exr import read_dgsm
-    return read_dgsm(path)

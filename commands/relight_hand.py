@@ -15,12 +15,13 @@ from dataclasses import dataclass, fields
 
 import click
 
-from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, check_output, log,
+from relight_cli.cli.tools import (FiniteFloat, SquareSize, check_input, log,
                                    no_clobber_option, parse_vector, preview_exposure_option,
                                    quiet_option, refuse_given, seed_option)
 from relight_cli.cli.renders import frames_text, select_frames, view_of, write_renders
 from relight_cli.provenance import numbered_roles
 from relight_cli.sequence import FRAME_HELP, FRAMES_HELP
+from relight_cli.commands import _hand_view as hand_view
 
 #: What the dispatcher says IN is in this mode.
 DESCRIPTION = "a hand (IN = HAND.npz)"
@@ -247,10 +248,10 @@ def _hand_physical(a) -> None:
     from relight_cli.render import appearance as A
 
     p = a.physical
-    width, height, env_h, env_w, outputs = _view_options(a)
+    width, height, env_h, env_w, outputs = hand_view.view_options(a)
     tex, samples_axis, aovs, rough_value = _physical_usage(a)
     bg = parse_vector(a.background, 3, "--background", minimum=0)
-    _check_files(a, outputs, (p.albedo_map, None))
+    hand_view.check_files(a, outputs, (p.albedo_map, None))
 
     start = time.perf_counter()
     data = load_hand(a.input)
@@ -323,11 +324,11 @@ def _hand_learned(a, spec) -> None:
         raise UsageProblem(f"--model {spec.name} is an env-map model: it cannot take --lights "
                            f"(use " + " or ".join(f"--model {n}" for n in names(point_lights=True))
                            + " for point lights)")
-    width, height, env_h, env_w, outputs = _view_options(a)
+    width, height, env_h, env_w, outputs = hand_view.view_options(a)
     if a.aa is not None and not 1 <= a.aa <= 8:
         raise UsageProblem(f"--aa must be in [1, 8], got {a.aa}")
     bg = parse_vector(a.background, 3, "--background")
-    _check_files(a, outputs, *((path, None) for path in paths))
+    hand_view.check_files(a, outputs, *((path, None) for path in paths))
 
     start = time.perf_counter()
     device = resolve_device(a.learned.device or "auto")
@@ -383,40 +384,3 @@ def _model_call(a, function, *args):
         if exc.usage:
             raise UsageProblem(str(exc)) from None
         raise DataError(str(exc), exc.path or a.input) from None
-
-
-# ------------------------------------------------------------------------- shared
-
-def _view_options(a) -> tuple:
-    """The hand mode's shared usage checks: (width, height, env H, env W, the outputs:
-    plain names for one frame, ``{frame}`` patterns with --frames, not with --frame)."""
-    from relight_cli.cli.inputs import env_grid
-    from relight_cli.cli.tools import check_extension, parse_size
-    from relight_cli.envmap import DEFAULT_GRID
-    from relight_cli.errors import UsageProblem
-    from relight_cli.sequence import Outputs, check_frame
-    if a.env is None and a.hand_lights is None:
-        raise UsageProblem("give an env map ENV and/or --lights LIGHTS.json to light the hand")
-    if a.preview_exposure is not None and a.preview is None:
-        raise UsageProblem("--preview-exposure sets --preview's tone mapping: give --preview PNG")
-    check_extension(a.output, "exr")
-    if a.camera is not None and a.hand_size is not None:
-        raise UsageProblem("--size sets the default camera's image; the size of --camera is its own")
-    width, height = 256, 256
-    if a.hand_size is not None:
-        width, height = parse_size(a.hand_size, "--size", maximum=8192)
-    env_h, env_w = env_grid(a.env_res) if a.env_res is not None else DEFAULT_GRID
-    check_frame(a.hand_frame, a.hand_frames)
-    outputs = Outputs(a.hand_frames, {"-o": (a.output, "exr"), "--preview": (a.preview, "png")})
-    return width, height, env_h, env_w, outputs
-
-
-def _check_files(a, outputs, *more) -> None:
-    """-o and --preview (one frame; a sequence's once its frames are known), then the
-    input files: --camera, --lights and ``more`` (path, stdin role)."""
-    if not outputs.sequence:
-        outputs.check([a.hand_frame or 0], lambda path, kind, what: check_output(
-            path, a.no_clobber, kind=kind, what=what))
-    for path, role in ((a.camera, "--camera"), (a.hand_lights, "--lights"), *more):
-        if path is not None:
-            check_input(path, stdin=role)
