@@ -314,3 +314,153 @@ def rasterize_uv_reference(uv, faces_uv, resolution) -> tuple[np.ndarray, np.nda
                     weights[(r, c, fi)] = w
             covered[r, c] = hits
     return covered, weights
+
+
+# ---------------------------------------------------------------- seam-aware lookups
+#
+# A bilinear lookup reads the 2×2 texels around a sample.  Near a chart's border some of
+# them belong to another chart, packed beside it in UV but far away on the surface (the
+# built-in hand's thumb chart borders the palm's): at 32² texels the thumb's front read
+# its neighbours' shading and drew a hollow thumb (issue 53).  A seam-aware lookup keeps
+# only the taps inside the sample's own chart and renormalises their weights, as
+# seam-aware texture filtering does in production renderers; where none of the four is
+# in that chart (a sliver narrower than a texel) it falls back to the plain taps.
+
+
+def uv_charts(faces_uv: np.ndarray) -> np.ndarray:
+    """[F] int64 chart of each triangle: triangles that share a UV vertex (an index of
+    ``faces_uv``) are one chart, so a seam — the same mesh edge with different UV
+    indices on its two sides — separates charts.  Charts are numbered by their first
+    triangle."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
+    faces_uv = np.asarray(faces_uv, np.int64).reshape(-1, 3)
+    f = len(faces_uv)
+    if f == 0:
+        return np.zeros(0, np.int64)
+    n = int(faces_uv.max()) + 1
+    rows = np.repeat(np.arange(f), 3)
+    graph = sparse.coo_matrix((np.ones(3 * f, np.int8), (rows, f + faces_uv.ravel())),
+                              shape=(f + n, f + n))
+    _, labels = connected_components(graph, directed=False)
+    _, first = np.unique(labels[:f], return_index=True)
+    order = np.argsort(first)                       # charts in order of their first triangle
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    _, dense = np.unique(labels[:f], return_inverse=True)
+    return rank[dense]
+
+
+def texel_charts(raster: UVRaster, face_chart: np.ndarray) -> np.ndarray:
+    """[H, W] int64 chart of each texel: an inside texel's triangle's chart; a texel
+    outside the charts (the gutter) belongs to the chart of its nearest inside texel, as
+    the renderer's maps fill it from there and a learned map may use it to shade its
+    chart's border (−1 everywhere when no texel is inside)."""
+    from scipy.ndimage import distance_transform_edt
+    inside = raster.inside
+    if not inside.any():
+        return np.full(inside.shape, -1, np.int64)
+    charts = np.asarray(face_chart, np.int64)[np.maximum(raster.face, 0)]
+    _, (iy, ix) = distance_transform_edt(~inside, return_indices=True)
+    return charts[iy, ix]
+
+
+def bilinear_taps(uv: np.ndarray, height: int, width: int):
+    """The four texels and weights of a bilinear lookup at ``uv`` [S, 2] (clamped
+    borders, texel centres at ((c + ½)/W, 1 − (r + ½)/H)): ``(rows [S, 4], cols [S, 4],
+    weights [S, 4] float64)``, exactly :func:`relight_cli.render.appearance.bilinear`'s
+    and ``grid_sample``'s (align_corners=False, border padding)."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    x = np.clip(uv[:, 0] * width - 0.5, 0, width - 1)
+    y = np.clip((1 - uv[:, 1]) * height - 0.5, 0, height - 1)
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    x1 = np.minimum(x0 + 1, width - 1)
+    y1 = np.minimum(y0 + 1, height - 1)
+    fx, fy = x - x0, y - y0
+    rows = np.stack([y0, y0, y1, y1], 1)
+    cols = np.stack([x0, x1, x0, x1], 1)
+    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
+    return rows, cols, weights
+
+
+#: a sample whose own chart holds less of its bilinear weight than this keeps the plain
+#: taps: at a texel centre the three other weights are rounding (1e-16), and renormalising
+#: them would read a neighbour instead of the texel
+SEAM_MIN_WEIGHT = 1e-9
+
+
+def seam_taps(uv: np.ndarray, sample_chart: np.ndarray, chart_map: np.ndarray):
+    """:func:`bilinear_taps` at ``uv`` [S, 2] with the taps outside each sample's chart
+    (``sample_chart`` [S]: the chart of the triangle the sample lies on; ``chart_map``
+    [H, W]: :func:`texel_charts`) given weight 0 and the rest renormalised to sum 1.  A
+    sample none of whose four taps lies in its chart (their weight ≤
+    :data:`SEAM_MIN_WEIGHT`) keeps the plain weights.  Returns
+    ``(rows, cols, weights)`` as :func:`bilinear_taps`."""
+    chart_map = np.asarray(chart_map)
+    rows, cols, weights = bilinear_taps(uv, *chart_map.shape[:2])
+    same = chart_map[rows, cols] == np.asarray(sample_chart, np.int64).reshape(-1, 1)
+    kept = weights * same
+    total = kept.sum(1)
+    ok = total > SEAM_MIN_WEIGHT
+    weights = np.where(ok[:, None], kept / np.where(ok, total, 1.0)[:, None], weights)
+    return rows, cols, weights
+
+
+def gather_taps(image: np.ndarray, taps) -> np.ndarray:
+    """Σ weights · image[rows, cols]: [S] or [S, C] float64 from an [H, W] or [H, W, C] map."""
+    rows, cols, weights = taps
+    img = np.asarray(image)
+    values = img[rows, cols].astype(np.float64, copy=False)           # [S, 4(, C)]
+    w = weights if img.ndim == 2 else weights[..., None]
+    return (values * w).sum(1)
+
+
+class UVLayout:
+    """A mesh's UV layout (``uv`` [T, 2], ``faces_uv`` [F, 3]) with its charts and, per
+    map size, the chart of every texel — what a seam-aware lookup needs.  One instance
+    per distinct layout (:meth:`of`, keyed by its bytes), so every posed copy of a mesh
+    and every G-buffer share one rasterization per map size."""
+
+    _cache: dict = {}
+    _CACHE_SIZE = 16
+
+    def __init__(self, uv: np.ndarray, faces_uv: np.ndarray):
+        self.uv = np.asarray(uv, np.float64)
+        self.faces_uv = np.asarray(faces_uv, np.int64)
+        self._face_chart = None
+        self._maps = {}
+
+    @classmethod
+    def of(cls, uv, faces_uv) -> "UVLayout":
+        import hashlib
+        uv = np.ascontiguousarray(uv, np.float64)
+        faces_uv = np.ascontiguousarray(faces_uv, np.int64)
+        key = hashlib.blake2b(uv.tobytes() + b"|" + faces_uv.tobytes(), digest_size=16).digest()
+        layout = cls._cache.get(key)
+        if layout is None:
+            if len(cls._cache) >= cls._CACHE_SIZE:
+                cls._cache.pop(next(iter(cls._cache)))
+            layout = cls._cache[key] = cls(uv, faces_uv)
+        return layout
+
+    @property
+    def face_chart(self) -> np.ndarray:
+        """[F] chart of each triangle (:func:`uv_charts`)."""
+        if self._face_chart is None:
+            self._face_chart = uv_charts(self.faces_uv)
+        return self._face_chart
+
+    def chart_map(self, height: int, width: int, raster: UVRaster | None = None) -> np.ndarray:
+        """[H, W] chart of every texel of an H×W map (:func:`texel_charts`)."""
+        key = (int(height), int(width))
+        if key not in self._maps:
+            if raster is None or (raster.height, raster.width) != key:
+                raster = rasterize_uv(self.uv, self.faces_uv, key)
+            self._maps[key] = texel_charts(raster, self.face_chart)
+        return self._maps[key]
+
+    def taps(self, uv: np.ndarray, faces: np.ndarray, height: int, width: int):
+        """:func:`seam_taps` of samples at ``uv`` [S, 2] on triangles ``faces`` [S]."""
+        return seam_taps(uv, self.face_chart[np.asarray(faces, np.int64)],
+                         self.chart_map(height, width))

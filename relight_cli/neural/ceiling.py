@@ -116,10 +116,12 @@ class Ceiling:
             parts = []
             for lo in range(0, sizes[k], self.CHUNK):
                 part = [SimpleNamespace(points=s.points[:0], normals=s.normals[:0],
-                                        uv=s.uv[:0]) for s in surfaces]
+                                        uv=s.uv[:0], faces=np.zeros(0, np.int64))
+                        for s in surfaces]
                 cut = slice(lo, lo + self.CHUNK)
                 part[k] = SimpleNamespace(points=surface.points[cut],
-                                          normals=surface.normals[cut], uv=surface.uv[cut])
+                                          normals=surface.normals[cut], uv=surface.uv[cut],
+                                          faces=surface.raster.face[surface.inside][cut])
                 parts.append(self.shader.texel_radiance(renderer, lighting, part, eye)[k])
                 bar.update(len(parts[-1]))
             out.append(np.concatenate(parts) if parts else np.zeros((0, 3)))

@@ -521,7 +521,8 @@ class StageShader:
     def texel_radiance(self, renderer, lighting, surfaces, eye) -> list:
         """Per hand [K_k, 3] float64 stage radiance at the texel centres of ``surfaces``
         (:class:`~relight_cli.render.shading.TexelSurface` of each hand, any N, same pose
-        as ``renderer``) seen from ``eye`` [3], under ``lighting`` (``renderer.light``)."""
+        as ``renderer``; or any object with ``points``, ``normals``, ``uv`` and ``faces``,
+        the texels' triangles) seen from ``eye`` [3], under ``lighting`` (``renderer.light``)."""
         from .gbuffer import GBuffer
         points = [np.asarray(s.points, np.float64) for s in surfaces]
         normals = [np.asarray(s.normals, np.float64) for s in surfaces]
@@ -531,11 +532,17 @@ class StageShader:
         view = np.asarray(eye, np.float64)[None] - position
         view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-300)
         P = len(hand)
-        gb = GBuffer(width=P, height=1, spp=1, hand=hand, face=np.zeros(P, np.int64),
+        from relight_cli.uvraster import UVLayout
+        # each texel centre's triangle (a TexelSurface's raster, or a slice's ``faces``):
+        # the seam-aware lookups read its own chart
+        face = np.concatenate([np.asarray(s.faces if hasattr(s, "faces") else
+                                          s.raster.face[s.inside], np.int64) for s in surfaces])
+        layouts = [UVLayout.of(m.uv, m.faces_uv) for m in renderer.meshes]
+        gb = GBuffer(width=P, height=1, spp=1, hand=hand, face=face,
                      barycentric=np.zeros((P, 3)),
                      uv=np.concatenate([np.asarray(s.uv, np.float64) for s in surfaces]),
                      position=position, normal=normal, depth=np.ones(P), view=view,
-                     eye=np.asarray(eye, np.float64))
+                     eye=np.asarray(eye, np.float64), layouts=layouts)
         radiance = renderer.render(None, lighting, gbuffer=gb).samples
         out, start = [], 0
         for p in points:

@@ -14,7 +14,7 @@ x right, y down, z forward; as in OpenCV the centre of pixel (col, row) is at
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -37,6 +37,8 @@ class GBuffer:
         depth: [P] float64 camera-space z, metres (inf for background).
         view: [P, 3] float64 unit direction from the surface towards the camera centre.
         eye: [3] float64 camera centre, world.
+        layouts: per mesh its :class:`~relight_cli.uvraster.UVLayout` (None: unknown, and
+            texture lookups are plain bilinear).
     """
 
     width: int
@@ -51,6 +53,8 @@ class GBuffer:
     depth: np.ndarray
     view: np.ndarray
     eye: np.ndarray
+    layouts: list | None = None
+    _taps: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def hit(self) -> np.ndarray:
@@ -67,6 +71,33 @@ class GBuffer:
         per-hand masks sum to :attr:`mask`)."""
         return ((self.hand == hand).reshape(self.height, self.width, self.spp).mean(-1)
                 .astype(np.float32))
+
+    def taps(self, hand: int, height: int, width: int):
+        """``(samples, rows, cols, weights)``: the samples [S] that see hand ``hand`` and
+        the four texels and weights [S, 4] each reads of that hand's H×W UV map — the
+        seam-aware bilinear lookup (:func:`relight_cli.uvraster.seam_taps`: taps outside
+        the sample's UV chart dropped), plain bilinear without :attr:`layouts`.  Cached
+        per (hand, size): a G-buffer reused across training steps computes them once."""
+        from relight_cli.uvraster import bilinear_taps
+        key = (int(hand), int(height), int(width))
+        if key not in self._taps:
+            samples = np.nonzero(self.hand == hand)[0]
+            uv = self.uv[samples]
+            if self.layouts is not None and hand < len(self.layouts) and \
+                    self.layouts[hand] is not None:
+                taps = self.layouts[hand].taps(uv, self.face[samples], height, width)
+            else:
+                taps = bilinear_taps(uv, height, width)
+            self._taps[key] = (samples, *taps)
+        return self._taps[key]
+
+    def lookup(self, image: np.ndarray, hand: int) -> np.ndarray:
+        """Hand ``hand``'s UV map ``image`` [N, N(, C)] read at its samples (:meth:`taps`):
+        [S(, C)] float64, in the order of ``np.nonzero(self.hand == hand)``."""
+        from relight_cli.uvraster import gather_taps
+        image = np.asarray(image)
+        _, rows, cols, weights = self.taps(hand, image.shape[0], image.shape[1])
+        return gather_taps(image, (rows, cols, weights))
 
     def resolve(self, values: np.ndarray, background=0.0) -> np.ndarray:
         """Box-filter per-sample values [P, C] (or [P]) to pixels [H, W, C] (or [H, W]).
@@ -175,8 +206,10 @@ def render_gbuffer(meshes, camera, aa: int = 2, jitter: bool = False, seed: int 
     view[hand < 0] = 0
     z = position @ np.asarray(camera.R, np.float64)[2] + float(np.asarray(camera.t)[2])
     depth = np.where(hand >= 0, z, np.inf)
+    from relight_cli.uvraster import UVLayout
+    layouts = [UVLayout.of(m.uv, m.faces_uv) for m in meshes]
     return GBuffer(camera.width, camera.height, aa * aa, hand, face, bary, uv, position,
-                   normal, depth, view, eye)
+                   normal, depth, view, eye, layouts)
 
 
 def _blend(weights: np.ndarray, values: np.ndarray, corners: np.ndarray) -> np.ndarray:

@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .appearance import bilinear
+from relight_cli.uvraster import gather_taps
 from relight_cli import features as FE
 from relight_cli.brdf import MIN_ROUGHNESS, ggx_cosine
 from relight_cli.envmap import DEFAULT_GRID, DiscreteEnv, discretize_env
@@ -348,6 +348,12 @@ class HandRenderer:
         self._mark_buried()
         self.stats["buried"] = time.perf_counter() - t0
 
+    def _layout(self, k: int):
+        """Hand k's UV layout (:class:`relight_cli.uvraster.UVLayout`), whose charts the
+        seam-aware lookups of its maps respect."""
+        from relight_cli.uvraster import UVLayout
+        return UVLayout.of(self.meshes[k].uv, self.meshes[k].faces_uv)
+
     def _mark_buried(self):
         """Find texels inside another closed part (e.g. a finger tube's root inside the
         palm): a ray along the normal that first meets a surface from its back side
@@ -592,7 +598,8 @@ class HandRenderer:
                     b = hits.barycentric[sel].astype(np.float64)
                     uv = np.einsum("kc,kcd->kd", b, np.asarray(mesh.uv)[np.asarray(mesh.faces_uv)[f]])
                     gathered[sel] = (self.materials[j].albedo_at(uv) / math.pi
-                                     * bilinear(irradiance[j], uv))
+                                     * gather_taps(irradiance[j], self._layout(j).taps(
+                                         uv, f, *irradiance[j].shape[:2])))
             contrib = gathered * (cos[ii, mm] * omega[mm])[:, None]
             extra = np.zeros((len(surf.points), 3))
             np.add.at(extra, ii, contrib)
@@ -618,12 +625,11 @@ class HandRenderer:
             sel = np.nonzero(gb.hand == k)[0]
             if not len(sel):
                 continue
-            uv = gb.uv[sel]
-            irradiance = bilinear(lighting.irradiance[k], uv)
+            irradiance = gb.lookup(lighting.irradiance[k], k)      # seam-aware, as every map
             has_lights = lighting.lights is not None and len(lighting.lights) > 0
             spec = np.zeros((len(sel), 3))
             specular = s.specular and mat.specular > 0
-            rough = mat.roughness_at(uv) if specular else None
+            rough = gb.lookup(mat.roughness, k) if specular else None
             if has_lights and s.direct == "pixel":
                 exact, point_spec = self._point_samples(gb, sel, lighting.lights, k, rough,
                                                         mat.f0)
@@ -634,8 +640,8 @@ class HandRenderer:
                     # SSS or bounce the diffuse irradiance stays in texture space: adding
                     # their texture-space difference to exact irradiance goes negative where
                     # texel and pixel shadows disagree.)
-                    irradiance += exact - bilinear(lighting.point_maps[k], uv)
-            radiance[sel] = mat.albedo_at(uv) / math.pi * irradiance
+                    irradiance += exact - gb.lookup(lighting.point_maps[k], k)
+            radiance[sel] = gb.lookup(mat.albedo, k) / math.pi * irradiance
             if specular:
                 if has_lights and s.direct != "pixel":
                     spec += self._point_specular(gb, sel, rough, mat.f0, lighting, k)
@@ -682,8 +688,8 @@ class HandRenderer:
         baker = self._env_baker(env)
         lit = np.nonzero(env.lit)[0]
         if self.settings.env_space == "texels":
-            index, position, normal, puv = self._shading_points(gb, sel, k, mat)
-            lookup = _TexelLookup(surf, puv)
+            index, position, normal, puv, pface = self._shading_points(gb, sel, k, mat)
+            lookup = _TexelLookup(surf, puv, self._layout(k), pface)
             visible = lookup.rows_of(baker.cache.visible[baker.slices[k]], lit)
             spec = self._env_specular(k, env, (position, view_directions(position, gb.eye)),
                                       normal, mat.roughness_at(puv),
@@ -700,11 +706,12 @@ class HandRenderer:
                                   baker.receivers.normals[sl], mat.roughness_at(uv_of_vertex),
                                   lambda r: visible[r])
         spec = surf.raster.interpolate(spec, mesh.faces, fill=None)[surf.inside]
-        return bilinear(surf.to_map(spec), gb.uv[sel])
+        return gb.lookup(surf.to_map(spec), k)
 
     def _shading_points(self, gb, sel, k: int, mat):
         """Where hand k's texture-space lobes are evaluated for the samples ``sel``:
-        (index [len(sel)] → point, positions [P, 3], unit normals [P, 3], uv [P, 2]).
+        (index [len(sel)] → point, positions [P, 3], unit normals [P, 3], uv [P, 2],
+        triangles [P]).
 
         A pixel whose samples all hit hand k on one smooth patch (shading normals within a
         fraction :data:`SHARE_SPREAD` of the lobe's width α = ρ²
@@ -741,13 +748,14 @@ class HandRenderer:
         position = np.concatenate([gb.position[g].mean(1), gb.position[sel[own_at]]])
         normal = np.concatenate([mean_n[shared], gb.normal[sel[own_at]]])
         uv = np.concatenate([gb.uv[g].mean(1), gb.uv[sel[own_at]]])
+        face = np.concatenate([gb.face[g[:, 0]], gb.face[sel[own_at]]])
         # points in 8×8-pixel screen tiles: neighbours in the arrays see alike
         pix = np.concatenate([g[:, 0], sel[own_at]]) // spp
         tile = (pix // gb.width // 8) * (gb.width // 8 + 1) + (pix % gb.width) // 8
         order = np.argsort(tile, kind="stable")
         rank = np.empty_like(order)
         rank[order] = np.arange(len(order))
-        return rank[index], position[order], normal[order], uv[order]
+        return rank[index], position[order], normal[order], uv[order], face[order]
 
     def _point_specular(self, gb, sel, rough, f0, lighting, k):
         """[len(sel), 3] GGX radiance of point lights at the samples ``sel`` of hand k,
@@ -755,8 +763,8 @@ class HandRenderer:
         lights = lighting.lights
         intensity = lights.radiant_intensity()                                  # [L, 3]
         x, n, v = gb.position[sel], gb.normal[sel], gb.view[sel]
-        vis = bilinear(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
-                       gb.uv[sel]).reshape(len(sel), len(lights))           # [S, L]
+        vis = gb.lookup(lighting.visibility[k].reshape(*lighting.visibility[k].shape[:2], -1),
+                        k).reshape(len(sel), len(lights))                    # [S, L]
         out = np.zeros((len(sel), 3))
         for start in range(0, len(lights), _LIGHT_BLOCK):
             stop = min(len(lights), start + _LIGHT_BLOCK)
@@ -770,30 +778,22 @@ class HandRenderer:
 
 
 class _TexelLookup:
-    """:func:`~relight_cli.render.appearance.bilinear` of a texel map at ``uv`` as a sparse
-    matrix over one hand's inside texels (through the map's fill of outside and buried
-    texels), so per-texel rows [K, M] are looked up for M directions by one product."""
+    """The seam-aware bilinear lookup of a texel map at ``uv`` (samples on triangles
+    ``faces`` of ``layout``: :func:`relight_cli.uvraster.seam_taps`) as a sparse matrix
+    over one hand's inside texels (through the map's fill of outside and buried texels),
+    so per-texel rows [K, M] are looked up for M directions by one product."""
 
-    def __init__(self, surf: "TexelSurface", uv):
+    def __init__(self, surf: "TexelSurface", uv, layout, faces):
         from scipy import sparse
         h, w = surf.inside.shape
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
-        x = np.clip(uv[:, 0] * w - 0.5, 0, w - 1)
-        y = np.clip((1 - uv[:, 1]) * h - 0.5, 0, h - 1)
-        x0 = np.floor(x).astype(np.int64)
-        y0 = np.floor(y).astype(np.int64)
-        x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-        fx, fy = x - x0, y - y0
+        rows, cols, weights = layout.taps(uv, faces, h, w)
         iy, ix = surf.fill_index
         row_of = np.cumsum(surf.inside.ravel()) - 1                  # inside texel → row
-        cols, weights = [], []
-        for yy, xx, wt in ((y0, x0, (1 - fx) * (1 - fy)), (y0, x1, fx * (1 - fy)),
-                           (y1, x0, (1 - fx) * fy), (y1, x1, fx * fy)):
-            cols.append(row_of[iy[yy, xx] * w + ix[yy, xx]])
-            weights.append(wt)
-        self.rows, local = np.unique(np.concatenate(cols), return_inverse=True)  # texels read
+        texel = row_of[iy[rows, cols] * w + ix[rows, cols]]          # [S, 4]
+        self.rows, local = np.unique(texel.T.ravel(), return_inverse=True)  # texels read
         points = np.tile(np.arange(len(uv)), 4)
-        self.matrix = sparse.csr_matrix((np.concatenate(weights).astype(np.float32),
+        self.matrix = sparse.csr_matrix((weights.T.ravel().astype(np.float32),
                                          (points, local)), shape=(len(uv), len(self.rows)))
 
     def rows_of(self, per_texel: np.ndarray, columns) -> np.ndarray:
@@ -813,20 +813,22 @@ def lookup_torch(texture, gbuffer, hand: int = 0):
         hand: which hand's samples.
 
     Returns:
-        [P, C] tensor: bilinear samples (``grid_sample``, align_corners=False, border
-        padding; identical to :func:`relight_cli.render.appearance.bilinear`) at the
-        samples of ``hand``, 0 elsewhere.
+        [P, C] tensor: the seam-aware bilinear samples of :meth:`GBuffer.taps
+        <relight_cli.render.gbuffer.GBuffer.taps>` (the numpy path's
+        :meth:`~relight_cli.render.gbuffer.GBuffer.lookup`; plain bilinear, as
+        ``grid_sample`` with align_corners=False and border padding, for a G-buffer
+        without UV layouts) at the samples of ``hand``, 0 elsewhere.
     """
     import torch
 
-    sel = torch.as_tensor(gbuffer.hand == hand, device=texture.device)
-    uv = torch.as_tensor(gbuffer.uv, dtype=texture.dtype, device=texture.device)
-    grid = torch.stack([2 * uv[:, 0] - 1, 1 - 2 * uv[:, 1]], -1)            # v = 0 at the bottom
-    img = texture.permute(2, 0, 1)[None]                                     # [1, C, N, N]
-    out = torch.nn.functional.grid_sample(img, grid[None, None], mode="bilinear",
-                                          padding_mode="border", align_corners=False)
-    values = out[0, :, 0].T                                                  # [P, C]
-    return values * sel[:, None].to(values.dtype)
+    samples, rows, cols, weights = gbuffer.taps(hand, texture.shape[0], texture.shape[1])
+    device = texture.device
+    r = torch.as_tensor(rows, device=device)
+    c = torch.as_tensor(cols, device=device)
+    w = torch.as_tensor(weights, dtype=texture.dtype, device=device)
+    values = (texture[r, c] * w[..., None]).sum(1)                           # [S, C]
+    out = texture.new_zeros((len(gbuffer.hand), texture.shape[2]))
+    return out.index_copy(0, torch.as_tensor(samples, device=device), values)
 
 
 def resolve_torch(samples, gbuffer, background=0.0):

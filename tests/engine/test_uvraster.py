@@ -140,3 +140,78 @@ def test_bilinear_lookup_at_seam_never_pulls_zero():
     grid = torch.stack([2 * u - 1, 1 - 2 * v], -1)[None, None]
     s = torch.nn.functional.grid_sample(t, grid, mode="bilinear", align_corners=False)
     np.testing.assert_allclose(s.numpy().ravel(), 1.0, atol=1e-12)
+
+
+# ---------------------------------------------------------------- seam-aware lookups
+
+
+def _two_charts():
+    """Two unit squares side by side in UV (x ∈ [0, ½] and [½, 1]), separate UV vertices
+    (a seam): chart 0 left, chart 1 right."""
+    uv = np.array([[0, 0], [0.5, 0], [0.5, 1], [0, 1],
+                   [0.5, 0], [1, 0], [1, 1], [0.5, 1]], np.float64)
+    faces_uv = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    return uv, faces_uv
+
+
+def test_uv_charts_split_at_seams_not_at_shared_positions():
+    from relight_cli.uvraster import uv_charts
+    uv, faces_uv = _two_charts()
+    assert uv_charts(faces_uv).tolist() == [0, 0, 1, 1]
+    # one UV table shared by all four triangles: one chart
+    assert uv_charts(np.array([[0, 1, 2], [0, 2, 3], [1, 5, 6], [1, 6, 2]])).tolist() == [0] * 4
+    assert uv_charts(np.zeros((0, 3), np.int64)).shape == (0,)
+
+
+def test_seam_taps_read_only_the_samples_chart():
+    """A map holding 1 on chart 0's texels and 5 on chart 1's: a sample of chart 0 within
+    half a texel of the seam reads exactly 1 seam-aware, a mix (3 at the seam) plain; far
+    from the seam both agree with plain bilinear to rounding; weights sum to 1."""
+    from relight_cli.uvraster import UVLayout, bilinear_taps, gather_taps, seam_taps
+    uv, faces_uv = _two_charts()
+    layout = UVLayout(uv, faces_uv)
+    n = 8
+    charts = layout.chart_map(n, n)
+    assert (charts[:, :4] == 0).all() and (charts[:, 4:] == 1).all()
+    # a gutter texel belongs to its nearest chart
+    apart = uv * [0.8, 1.0] + np.array([[0.0, 0]] * 4 + [[0.2, 0]] * 4)   # x: [0, .4], [.6, 1]
+    gap = UVLayout(apart, faces_uv).chart_map(10, 10)
+    assert gap[0].tolist() == [0] * 4 + [0, 1] + [1] * 4
+    image = np.where(charts == 0, 1.0, 5.0)
+    pts = np.array([[0.499, 0.5], [0.47, 0.31], [0.501, 0.5], [0.2, 0.6], [0.999, 0.999]])
+    faces = np.array([1, 0, 2, 1, 2])
+    taps = layout.taps(pts, faces, n, n)
+    got = gather_taps(image, taps)
+    np.testing.assert_allclose(got, [1, 1, 5, 1, 5], rtol=0, atol=1e-12)
+    plain = gather_taps(image, bilinear_taps(pts, n, n))
+    from relight_cli.render.appearance import bilinear
+    np.testing.assert_allclose(plain, bilinear(image, pts), rtol=1e-12)
+    assert abs(plain[0] - 3.0) < 0.1 and abs(plain[2] - 3.0) < 0.1     # the leak it removes
+    np.testing.assert_allclose(taps[2].sum(1), 1.0, rtol=1e-12)
+    # a sample whose four taps are all of another chart keeps the plain weights
+    alone = seam_taps(pts[:1], np.array([7]), charts)
+    np.testing.assert_allclose(alone[2], bilinear_taps(pts[:1], n, n)[2])
+
+
+def test_torch_lookup_is_the_seam_aware_one_with_gradients():
+    import torch
+
+    from relight_cli.render.gbuffer import GBuffer
+    from relight_cli.render.shading import lookup_torch
+    from relight_cli.uvraster import UVLayout, gather_taps
+    uv, faces_uv = _two_charts()
+    layout = UVLayout(uv, faces_uv)
+    rng = np.random.default_rng(3)
+    p = 12
+    suv = rng.uniform(0.02, 0.98, (p, 2))
+    face = np.where(suv[:, 0] < 0.5, 0, 2)
+    hand = np.where(np.arange(p) % 5 == 4, -1, 0)
+    gb = GBuffer(p, 1, 1, hand, face, np.zeros((p, 3)), suv, np.zeros((p, 3)),
+                 np.zeros((p, 3)), np.ones(p), np.zeros((p, 3)), np.zeros(3), [layout])
+    tex = torch.rand(6, 6, 2, dtype=torch.float64, requires_grad=True)
+    got = lookup_torch(tex, gb).detach().numpy()
+    want = np.zeros((p, 2))
+    want[hand == 0] = gather_taps(tex.detach().numpy(), gb.taps(0, 6, 6)[1:])
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    np.testing.assert_allclose(gb.lookup(tex.detach().numpy(), 0), want[hand == 0], rtol=1e-12)
+    assert torch.autograd.gradcheck(lambda t: lookup_torch(t, gb), (tex,))
