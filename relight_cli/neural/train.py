@@ -338,8 +338,13 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         model = model.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
     start = 0
+    averaged = None
+    if float(getattr(config, "ema", 0.0) or 0.0) > 0:
+        averaged = averaged_model(model, config.ema)
     if resume is not None:
-        start = restore_state(task, model, optimizer, resume, device)
+        start = restore_state(task, model, optimizer, resume, device, averaged)
+    # what validations score and the checkpoint holds: the weights' average when kept
+    scored = model if averaged is None else averaged.module
     net = model
     use_ddp = world > 1 and getattr(task, "ddp", True)
     before_step = getattr(task, "before_step", None)
@@ -358,13 +363,17 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
     t_start = time.perf_counter()
     model.train()
 
+    def weights(module):
+        return {k: v.detach().cpu().contiguous().clone() for k, v in module.state_dict().items()}
+
     def checkpoint(step):
+        extra = copy.deepcopy(task.extra())
+        if averaged is not None:
+            extra["training_weights"] = weights(model)
         return make_checkpoint(task.kind, task.model_name, config.to_dict(), step,
-                               {k: v.detach().cpu().contiguous().clone()
-                                for k, v in model.state_dict().items()},
-                               copy.deepcopy(optimizer.state_dict()), rng_state(),
-                               task.capture_key,
-                               task.pose_dim, provenance or {}, copy.deepcopy(task.extra()))
+                               weights(scored), copy.deepcopy(optimizer.state_dict()),
+                               rng_state(), task.capture_key,
+                               task.pose_dim, provenance or {}, extra)
 
     cosine = getattr(config, "lr_schedule", "constant") == "cosine"
     # of the last COLLAPSE_WINDOW steps, those whose every gradient was exactly zero
@@ -403,6 +412,8 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
             _close_group(world)
             raise TrainingCollapsed(step, config.iters, parts_sum, task)
         optimizer.step()
+        if averaged is not None:
+            averaged.update_parameters(model)
         if after_step is not None:
             after_step(step, world)
         done = step + 1
@@ -410,7 +421,7 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
             bar.set_postfix({k: f"{v:.3g}" for k, v in parts_sum.items()}, refresh=False)
             bar.update(1)
         if config.val_every and done % config.val_every == 0 and done < config.iters and rank == 0:
-            record = {"step": done, **task.evaluate(model, device)}
+            record = {"step": done, **task.evaluate(scored, device)}
             history.append(record)
             if log:
                 log(_summary(record))
@@ -425,9 +436,9 @@ def fit(task, config, device: torch.device, resume: dict | None = None,
         if log:     # it can take minutes on a large capture: say what the silence is
             log("final validation: scoring the model on the capture's validation samples, "
                 "each beside its ceiling")
-        final = {"step": config.iters, **task.evaluate(model, device)}
+        final = {"step": config.iters, **task.evaluate(scored, device)}
         history.append(final)
-        every = evaluate_every(task, model, device)
+        every = evaluate_every(task, scored, device)
         if every is not None:          # in the final metrics only: the curve stays on
             final = {**final, "heldout_all": every}     # the same samples throughout
     peak = (torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else
@@ -635,13 +646,22 @@ def check_optimizer_state(optimizer, state, what: str = "optimizer") -> None:
                                  f"values")
 
 
-def restore_state(task, model, optimizer, resume: dict, device) -> int:
+def averaged_model(model, decay: float):
+    """An exponential moving average of ``model``'s weights and buffers (Polyak
+    averaging; torch's :class:`~torch.optim.swa_utils.AveragedModel`): w̄ ← d·w̄ + (1 − d)·w
+    after every optimizer step, w̄ = w at the first."""
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+    return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=True)
+
+
+def restore_state(task, model, optimizer, resume: dict, device, averaged=None) -> int:
     """Continue from a read checkpoint: its weights, Adam state, step, RNG states and the
     task's own extras (``task.restore``; a task's second module and optimizer, ``disc`` and
     ``opt_d``, from ``extra.discriminator`` / ``extra.optimizer_discriminator``), all
-    checked against this run's modules and optimizers before any is used.  Returns the
-    step to continue from.  DataError naming the checkpoint (``resume["path"]``) for
-    anything that does not fit."""
+    checked against this run's modules and optimizers before any is used.  With
+    ``averaged`` (:func:`averaged_model`) the checkpoint's weights are the average and
+    ``extra.training_weights`` the raw ones.  Returns the step to continue from.
+    DataError naming the checkpoint (``resume["path"]``) for anything that does not fit."""
     from relight_cli.formats.checkpoint import decode_rng
     source = resume.get("path")
     try:
@@ -659,8 +679,18 @@ def restore_state(task, model, optimizer, resume: dict, device) -> int:
                           "checkpoint extra.discriminator")
             check_optimizer_state(opt_d, extra.get("optimizer_discriminator"),
                                   "extra.optimizer_discriminator")
+        raw = resume["weights"]
+        if averaged is not None:
+            if "training_weights" not in extra:
+                raise ValueError("it has no extra.training_weights: it was not trained with "
+                                 "ema, so its averaged weights cannot be continued")
+            raw = extra["training_weights"]
+            check_weights(model.state_dict(), raw, "checkpoint extra.training_weights")
         decode_rng(resume["rng"], source)
-        model.load_state_dict(resume["weights"])
+        model.load_state_dict(raw)
+        if averaged is not None:
+            averaged.module.load_state_dict(resume["weights"])
+            averaged.n_averaged.fill_(max(int(step), 1))
         optimizer.load_state_dict(resume["optimizer"])
         task.restore(resume, device)
     except DataError:

@@ -241,3 +241,51 @@ def test_one_capture_writes_no_subject_fields(made, tmp_path):
     from relight_cli.neural.checkpoints import subjects_from_checkpoint
     subjects = subjects_from_checkpoint(read_checkpoint(str(tmp_path / "a.pt")))
     assert [(k, s) for k, s, _ in subjects] == [(_key(made / "a"), None)]
+
+
+def test_ema_weights_are_the_running_average_and_resume_exactly(made, tmp_path):
+    """``ema``: the checkpoint's weights are the exponential moving average of the raw
+    weights after each step (recomputed here from every step's saved raw weights), the raw
+    ones ride in ``extra.training_weights``, and a resumed run ends where the whole run did;
+    one that lost its raw weights cannot be continued (one line)."""
+    from relight_cli.neural.checkpoints import read_checkpoint
+    from relight_cli.neural.linear import LinearConfig
+    from relight_cli.neural.linear_train import train
+    decay = 0.6
+    cfg = LinearConfig.from_dict({**LINEAR, "iters": 4, "batch": 1, "ema": decay,
+                                  "save_every": 1})
+    assert LinearConfig.from_dict(LINEAR).to_dict().get("ema") is None   # old keys kept
+    data = _data(made / "a")
+    saved = []
+    result = train(data, cfg, torch.device("cpu"), save=saved.append, show_progress=False)
+    steps = saved + [result.checkpoint]
+    assert [c["step"] for c in steps] == [1, 2, 3, 4]
+    raw = [c["extra"]["training_weights"] for c in steps]
+    final = result.checkpoint["weights"]
+    moved = 0
+    for k, v in final.items():
+        if not v.is_floating_point():
+            continue
+        expect = raw[0][k].double()
+        for w in raw[1:]:
+            expect = decay * expect + (1 - decay) * w[k].double()
+        assert torch.allclose(v.double(), expect, rtol=1e-5, atol=1e-7), k
+        moved += int(not torch.equal(v, raw[-1][k]))
+    assert moved > 0                      # the average is not the last step's weights
+    # resume from step 2 (written as train-teacher writes it) and reach the same state
+    half = tmp_path / "half.pt"
+    torch.save(steps[1], half)
+    resumed = train(data, cfg, torch.device("cpu"), resume=read_checkpoint(str(half),
+                    kind="linear"), show_progress=False).checkpoint
+    for k in final:
+        assert torch.equal(final[k], resumed["weights"][k]), k
+        assert torch.equal(raw[-1][k], resumed["extra"]["training_weights"][k]), k
+    # an ema checkpoint that lost its raw weights cannot be continued: one line
+    bad = tmp_path / "bad.pt"
+    del steps[1]["extra"]["training_weights"]
+    torch.save(steps[1], bad)
+    out = tmp_path / "out"
+    out.mkdir()
+    r = _cli("train-teacher", made / "a", "--resume", bad, "--iters", "3", "-o", out / "t.pt")
+    _one_line(r, 1, names=bad, says="training_weights")
+    assert list(out.iterdir()) == []
