@@ -114,11 +114,15 @@ demo: install
 		--preview demo/shadows.png
 	# the room's own light at the hand (paper Sec. 3.4: a probe fitted to the scene's cube faces there),
 	# so the inserted hand (and the donut below) are lit as the room is; each before/after pair of previews
-	# shares one exposure (--preview-exposure, the "before" picture's own auto scale) so the change shows
+	# shares one exposure (--preview-exposure, the "before" picture's own auto scale) so the change shows.
+	# The room's floor is lit by the lamp, which the probe (the room's surfaces seen from the hand) leaves
+	# out: --direct-light adds it to the hand, or the hand is a dim brown with dark fingertips (they face
+	# the room's open top); "before" is the same light with the floor's shadow off (--shadow-strength 0)
 	$(RELIGHT) sh-probe demo/room.ply --at 0,0.3,0.02 --degree auto -o demo/room_probe.json --preview demo/room_probe.png
-	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --receivers demo/room.ply \
-		--camera demo/room_cam.json -o demo/room_before.exr --preview demo/room_before.png --preview-exposure 0.43
-	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --dgsm demo/shadows.exr \
+	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --dgsm demo/shadows.exr --direct-light \
+		--shadow-strength 0 --receivers demo/room.ply --camera demo/room_cam.json -o demo/room_before.exr \
+		--preview demo/room_before.png --preview-exposure 0.43
+	$(RELIGHT) relight demo/hand_gaussians.ply --probe demo/room_probe.json --dgsm demo/shadows.exr --direct-light \
 		--receivers demo/room.ply --camera demo/room_cam.json -o demo/room_after.exr --preview demo/room_after.png --preview-exposure 0.43
 	# the real donut (if ../shared/data is here) inserted beside the hand: fitted to 15 cm, laid flat
 	# on the floor; one deep Gaussian shadow map per object, relit by the room's probe without/with shadows,

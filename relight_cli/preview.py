@@ -47,6 +47,7 @@ NONFINITE = (1.0, 0.0, 1.0)         # magenta: NaN/Inf
 LUMA = np.array([0.2126, 0.7152, 0.0722])   # Rec. 709 luminance weights
 LABEL_SIZE = 13                     # pixels; legible at 100 % on any screen
 TITLE_SIZE = 14
+TITLE_LINES = 3                     # a title line wider than the sheet wraps onto this many
 MIN_TILE = 160                      # tiles are upscaled (nearest) to at least this many pixels
 MAX_TILE = 1024
 MAX_FACTOR = 8                      # … by at most this factor (a sheet's tiles)
@@ -65,7 +66,9 @@ class Tile:
     ``marks``: names drawn inside the picture after it is enlarged, each
     ``(x, y, text, vertical)`` with (x, y) the centre of the text in the
     image's own pixel units (column, row; 0.5 = the centre of the first
-    pixel) and ``vertical`` True to run the text bottom to top (narrow charts).
+    pixel) and ``vertical`` True to run the text bottom to top (narrow charts),
+    optionally a fifth item ``(x0, y0, x1, y1)``: the box (same units) the text
+    is kept inside (a chart's bounds).
     """
 
     image: np.ndarray
@@ -190,18 +193,40 @@ def _fit(text: str, font, width: int) -> str:
 
 def _wrap(text: str, font, width: int, lines: int) -> list[str]:
     """``text`` (printable) on at most ``lines`` lines of ``width`` pixels, broken at
-    spaces; a line that still does not fit (the last one takes the rest) ends in '...'."""
-    words = _printable(text).split(" ") if text else []
+    spaces, and a word wider than a line (a long path) broken inside it, after a '/'
+    where one fits; a line that still does not fit (the last one takes the rest) ends in
+    '...'."""
+    tokens = []                                   # (text, a space before it)
+    for i, word in enumerate(_printable(text).split(" ") if text else []):
+        tokens += [(piece, i > 0 and j == 0) for j, piece in enumerate(_pieces(word, font, width))]
+
+    def joined(part):
+        return "".join((" " if space and n else "") + t for n, (t, space) in enumerate(part))
     out: list[str] = []
-    while words and len(out) < lines:
+    while tokens and len(out) < lines:
         k = 1
-        while k < len(words) and font.getlength(" ".join(words[:k + 1])) <= width:
+        while k < len(tokens) and font.getlength(joined(tokens[:k + 1])) <= width:
             k += 1
         if len(out) == lines - 1:
-            k = len(words)
-        out.append(_fit(" ".join(words[:k]), font, width))
-        words = words[k:]
+            k = len(tokens)
+        out.append(_fit(joined(tokens[:k]), font, width))
+        tokens = tokens[k:]
     return out
+
+
+def _pieces(word: str, font, width: int) -> list[str]:
+    """``word`` cut into pieces no wider than ``width`` (each the longest that fits,
+    ending after its last '/' when it has one)."""
+    pieces = []
+    while word and font.getlength(word) > width:
+        n = 1
+        while n < len(word) and font.getlength(word[:n + 1]) <= width:
+            n += 1
+        cut = word.rfind("/", 0, n)
+        n = cut + 1 if cut > 0 else n
+        pieces.append(word[:n])
+        word = word[n:]
+    return pieces + ([word] if word else [])
 
 
 def _upscale(image: np.ndarray, factor: int) -> np.ndarray:
@@ -229,7 +254,8 @@ def sheet(rows: list[list[Tile]], title: str = "", min_tile: int = MIN_TILE,
           max_side: int = MAX_TILE, note_lines: int = 1) -> np.ndarray:
     """Tiles laid out row by row, each under its label band (the label, then the
     note on up to ``note_lines`` lines, wrapped at spaces); ``title`` (may hold
-    newlines) in a band across the top.  → display [H, W, 3] in [0, 1].
+    newlines; a line wider than the sheet wraps onto up to :data:`TITLE_LINES`, long
+    paths broken after a '/') in a band across the top.  → display [H, W, 3] in [0, 1].
     A row longer than ``columns`` wraps onto the next lines.
 
     Each tile is upscaled by an integer factor (nearest, so texels stay crisp)
@@ -257,15 +283,16 @@ def sheet(rows: list[list[Tile]], title: str = "", min_tile: int = MIN_TILE,
     band = (1 + note_lines) * line + 4
     columns = max(len(r) for r in rows)
     width = PAD + columns * (cell_w + PAD)
-    title_lines = title.splitlines() if title else []
+    title_lines = [part for text in (title.splitlines() if title else [])
+                   for part in (_wrap(text, title_font, width - 2 * PAD, TITLE_LINES) or [""])]
     title_h = (len(title_lines) * (TITLE_SIZE + 5) + PAD) if title_lines else 0
     height = PAD + title_h + len(rows) * (band + cell_h + PAD)
     grey = int(round(BACKGROUND * 255))
     canvas = Image.new("RGB", (width, height), (grey, grey, grey))
     draw = ImageDraw.Draw(canvas)
     for k, text in enumerate(title_lines):
-        draw.text((PAD, PAD + k * (TITLE_SIZE + 5)), _fit(text, title_font, width - 2 * PAD),
-                  fill=(255, 255, 255), font=title_font)
+        draw.text((PAD, PAD + k * (TITLE_SIZE + 5)), text, fill=(255, 255, 255),
+                  font=title_font)
     for r, row in enumerate(rows):
         y0 = PAD + title_h + r * (band + cell_h + PAD)
         for c, t in enumerate(row):
@@ -281,14 +308,21 @@ def sheet(rows: list[list[Tile]], title: str = "", min_tile: int = MIN_TILE,
             h, w = pixels.shape[:2]
             left = x0 + (cell_w - w) // 2
             canvas.paste(Image.fromarray(np.ascontiguousarray(pixels), "RGB"), (left, y0 + band))
-            for x, y, text, vertical in t.marks:
-                _draw_mark(canvas, left + x * k, y0 + band + y * k, text, vertical, font)
+            for x, y, text, vertical, *box in t.marks:
+                if box:                    # (x0, y0, x1, y1) image pixels → canvas pixels
+                    box = (left + box[0][0] * k, y0 + band + box[0][1] * k,
+                           left + box[0][2] * k, y0 + band + box[0][3] * k)
+                _draw_mark(canvas, left + x * k, y0 + band + y * k, text, vertical, font,
+                           box or None)
     return np.asarray(canvas, np.float64) / 255.0
 
 
-def _draw_mark(canvas, cx: float, cy: float, text: str, vertical: bool, font) -> None:
+def _draw_mark(canvas, cx: float, cy: float, text: str, vertical: bool, font,
+               box=None) -> None:
     """``text`` in white on a dark box centred on (cx, cy) of ``canvas`` (PIL image),
-    turned to run bottom to top when ``vertical``."""
+    turned to run bottom to top when ``vertical``; with ``box`` (x0, y0, x1, y1) moved
+    the least that keeps it inside the box (centred on the box along an axis it does not
+    fit)."""
     from PIL import Image, ImageDraw
     text = _printable(text)
     left, top, right, bottom = font.getbbox(text)
@@ -297,6 +331,11 @@ def _draw_mark(canvas, cx: float, cy: float, text: str, vertical: bool, font) ->
     ImageDraw.Draw(label).text((3 - left, 2 - top), text, fill=(255, 255, 255), font=font)
     if vertical:
         label = label.transpose(Image.Transpose.ROTATE_90)
+    if box is not None:
+        def inside(c, lo, hi, size):
+            return (lo + hi) / 2 if hi - lo < size else min(max(c, lo + size / 2), hi - size / 2)
+        cx = inside(cx, box[0], box[2], label.width)
+        cy = inside(cy, box[1], box[3], label.height)
     canvas.paste(label, (int(round(cx - label.width / 2)), int(round(cy - label.height / 2))))
 
 
@@ -635,17 +674,12 @@ def uv_charts(mesh, label_names, joint_names, shape) -> tuple[np.ndarray, list[s
     are (:func:`relight_cli.uvraster.rasterize_uv`, same resolution), so the
     regions lie exactly on the feature maps' charts.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     from relight_cli.uvraster import rasterize_uv
+    from relight_cli.uvraster import uv_charts as charts_of
     faces_uv = np.asarray(mesh.faces_uv, np.int64)
     faces = np.asarray(mesh.faces, np.int64)
-    nf, nt = len(faces_uv), len(mesh.uv)
-    graph = coo_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), nf + faces_uv.ravel())),
-                       shape=(nf + nt, nf + nt))
-    _, component = connected_components(graph, directed=False)
-    chart = np.unique(component[:nf], return_inverse=True)[1]
+    nf = len(faces_uv)
+    chart = charts_of(faces_uv)
     groups = np.array([_joint_group(n) for n in joint_names])
     weights = np.asarray(mesh.weights, np.float64)
     names = ["palm", *FINGER_NAMES]
@@ -686,7 +720,7 @@ def chart_tile(region: np.ndarray, names: list[str], label: str = "UV charts",
                note: str = "") -> Tile:
     """A tile naming the hand's UV charts (:func:`uv_charts`): each region in its
     colour, its name drawn at its most interior texel (along a tall narrow chart,
-    bottom to top); outside the charts slate grey."""
+    bottom to top) and kept inside the chart's bounds; outside the charts slate grey."""
     from scipy import ndimage
     region = np.asarray(region)
     image = np.empty(region.shape + (3,))
@@ -704,7 +738,8 @@ def chart_tile(region: np.ndarray, names: list[str], label: str = "UV charts",
         y, x = np.unravel_index(int(np.argmax(depth)), depth.shape)
         rows, cols = np.flatnonzero(piece.any(axis=1)), np.flatnonzero(piece.any(axis=0))
         tall = (rows[-1] - rows[0] + 1) > 1.5 * (cols[-1] - cols[0] + 1)
-        marks.append((x + 0.5, y + 0.5, name, bool(tall)))
+        marks.append((x + 0.5, y + 0.5, name, bool(tall),
+                      (float(cols[0]), float(rows[0]), float(cols[-1] + 1), float(rows[-1] + 1))))
     return Tile(image, label, note, marks)
 
 
@@ -736,7 +771,7 @@ def feature_sheet(layers: dict, title: str = "", charts=None) -> np.ndarray:
                             mask=None if base == "mask" else mask))
         if charts is not None:
             row.append(chart_tile(charts[0], charts[1], f"{prefix}.charts" if prefix
-                                  else "UV charts", "skinning + region labels"))
+                                  else "UV charts", "skinning + labels"))
         rows.append(row)
     longest = max(len(r) for r in rows)
     return sheet(rows, title, columns=math.ceil(longest / math.ceil(longest / 5)))
@@ -751,8 +786,9 @@ def capture_views(capture, max_cameras: int = 4) -> tuple[list[str], list[tuple]
     Cameras: the evaluation cameras first (they have every column), then the
     others spread over the dome, ``max_cameras`` in all.  Columns, each
     (label, note, {camera: image path relative to the folder}): the first fully
-    lit frame, the first grouped frame, and the first held-out pose under each
-    evaluation env map.
+    lit frame, a grouped frame of the same pose (else the first), and the first
+    held-out pose (not a training pose) under each evaluation env map; each note
+    names its pose.
     """
     import os
 
@@ -767,17 +803,23 @@ def capture_views(capture, max_cameras: int = 4) -> tuple[list[str], list[tuple]
         picked += [rest[int(round(i))] for i in np.linspace(0, len(rest) - 1, k)]
     picked = [n for n in names if n in picked]       # dome order
     columns = []
-    for lit, label in (("full", "fully lit"), ("group", "grouped")):
-        frame = next((f for f in capture.frames if f.lit == lit), None)
+    full = next((f for f in capture.frames if f.lit == "full"), None)
+    groups = [f for f in capture.frames if f.lit == "group"]
+    # the grouped frame of the fully lit frame's pose where there is one: a column pair
+    # that differs in lighting only
+    group = next((f for f in groups if full is not None and f.pose == full.pose),
+                 groups[0] if groups else None)
+    for frame, label in ((full, "fully lit"), (group, "grouped")):
         if frame is not None:
-            columns.append((f"{label}, frame {frame.index}", f"{len(frame.lights_on)} LEDs",
+            columns.append((f"{label}, frame {frame.index}",
+                            f"pose {frame.pose}, {len(frame.lights_on)} LEDs",
                             {n: image_path(frame.index, n) for n in picked if n in frame.images}))
     if renders:
         pose = min(r["pose"] for r in renders)
         for env in dict.fromkeys(r["env"] for r in renders):
             paths = {r["camera"]: os.path.normpath(r["image"]) for r in renders
                      if r["pose"] == pose and r["env"] == env and r["camera"] in picked}
-            columns.append((f"env {env}, pose {pose}", "held out", paths))
+            columns.append((f"env {env}", f"held-out pose {pose}", paths))
     return picked, columns
 
 

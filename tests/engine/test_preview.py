@@ -46,6 +46,14 @@ def grid_size(columns: int, rows: int, cell_w: int, cell_h: int, title_lines: in
             PV.PAD + title + rows * (band + cell_h + PV.PAD))
 
 
+def on_grid(image, columns: int, rows: int, cell_w: int, cell_h: int) -> bool:
+    """``image`` is a sheet of this grid under a title of any number of lines (a title
+    that names a temporary folder wraps onto as many lines as the path needs)."""
+    width, untitled = grid_size(columns, rows, cell_w, cell_h, title_lines=0)
+    extra = image.shape[0] - untitled - PV.PAD
+    return (image.shape[1] == width and extra > 0 and extra % (PV.TITLE_SIZE + 5) == 0)
+
+
 # ------------------------------------------------------------------ exposure
 
 
@@ -163,6 +171,65 @@ def test_long_labels_are_cut_to_their_cell():
     assert cut.endswith("...") and font.getlength(cut) <= 100
 
 
+def test_chart_names_stay_inside_their_chart():
+    """Issue 53: a chart's name was drawn at its deepest texel and could run off the
+    chart ("pinky" off its chart).  A short wide chart under a tall one: the tall chart's
+    deepest texel is near its top edge here (a notch), and its name's dark box lies
+    inside the chart's bounds on the sheet."""
+    region = np.full((40, 24), -1)
+    region[2:38, 2:8] = 0                      # tall and narrow: a vertical label
+    region[2:6, 2:7] = -1                      # a notch ...
+    region[6:10, 2:8] = 0
+    region[2:38, 10:22] = 1
+    tile = PV.chart_tile(region, ["pinky", "palm"])
+    x, y, name, vertical, box = tile.marks[0]
+    assert name == "pinky" and vertical and box == (2.0, 2.0, 8.0, 38.0)
+    image = PV.sheet([[tile]])
+    k = PV.zoom(region.shape)
+    band = 2 * (PV.LABEL_SIZE + 4) + 4
+    left = PV.PAD + 0                          # one tile: it fills its cell
+    top = PV.PAD + band
+    dark = np.all(np.abs(image - 20 / 255) < 1e-6, axis=2)
+    ys, xs = np.nonzero(dark[top:top + 40 * k, left:left + 8 * k + 40])
+    assert len(ys) > 0
+    assert ys.min() >= 2 * k and ys.max() < 38 * k and xs.min() >= 2 * k and xs.max() < 8 * k
+
+
+def test_long_titles_wrap_instead_of_being_cut():
+    """Issue 53: a command line with a long path was cut ("... -> /tmp/h/st...").  It
+    now wraps, long words after a '/', and every character is still there."""
+    font = PV._font(PV.TITLE_SIZE)
+    text = "envmap ../shared/data/envmaps/polyhaven/studio_small_03_1k.hdr -> example/studio.exr"
+    lines = PV._wrap(text, font, 220, PV.TITLE_LINES)
+    assert len(lines) > 1 and all(font.getlength(t) <= 220 for t in lines)
+    assert "".join(lines).replace(" ", "") == text.replace(" ", "")
+    assert lines[1].startswith("envmaps/") or "/" in lines[0][-1:]       # broken after a '/'
+    tall = PV.sheet([[PV.Tile(np.zeros((20, 20, 3)), "x")]], text)
+    short = PV.sheet([[PV.Tile(np.zeros((20, 20, 3)), "x")]], "envmap")
+    assert tall.shape[0] > short.shape[0] and tall.shape[1] == short.shape[1]
+
+
+def test_capture_sheet_names_each_columns_pose():
+    """Issue 53: the capture sheet set different poses side by side unlabelled.  Each
+    column's note names its pose; the grouped column takes the fully lit frame's pose
+    where a grouped frame has it; the env columns say their pose is held out."""
+    from types import SimpleNamespace as NS
+
+    from relight_cli.formats.capture import CaptureFrame
+    frames = [CaptureFrame(0, 0.0, 0, "full", [0, 1, 2], ["a"]),
+              CaptureFrame(1, 0.1, 1, "group", [0], ["a"]),
+              CaptureFrame(2, 0.2, 0, "group", [1], ["a"])]
+    renders = [{"camera": "a", "pose": 0, "env": "sky", "image": "eval/sky_a.exr"}]
+    capture = NS(cameras=[NS(name="a")], frames=frames, evaluation={"renders": renders})
+    cameras, columns = PV.capture_views(capture)
+    assert cameras == ["a"]
+    assert [(label, note) for label, note, _ in columns] == [
+        ("fully lit, frame 0", "pose 0, 3 LEDs"), ("grouped, frame 2", "pose 0, 1 LEDs"),
+        ("env sky", "held-out pose 0")]
+    capture.frames = frames[:2]              # no grouped frame of pose 0: the first one
+    assert PV.capture_views(capture)[1][1][:2] == ("grouped, frame 1", "pose 1, 1 LEDs")
+
+
 def test_png_is_byte_identical_and_has_no_time_stamp(tmp_path):
     rows = [_tiles(3)]
     PV.write_sheet(str(tmp_path / "a.png"), rows, "title")
@@ -251,9 +318,11 @@ def test_probe_sheet_has_source_and_probe_rows():
     c = P.fit_probe(P.env_samples(env), 2)
     image = PV.probe_sheet(c, 2, "builtin:studio", env, height=32)
     cell = 64 * math.ceil(PV.MIN_TILE / 32)
-    assert image.shape[:2][::-1] == grid_size(2, 2, cell, cell // 2)
+    # the title ("sh-probe of scene.ply at (0, 1, 0): lat-long maps, ...") is wider
+    # than the one-column sheet: it wraps there onto two lines
+    assert image.shape[:2][::-1] == grid_size(2, 2, cell, cell // 2, title_lines=1)
     alone = PV.probe_sheet(c, 2, "scene.ply", None, position=(0, 1, 0), height=32)
-    assert alone.shape[:2][::-1] == grid_size(1, 2, cell, cell // 2)
+    assert alone.shape[:2][::-1] == grid_size(1, 2, cell, cell // 2, title_lines=2)
 
 
 def test_negative_reconstruction_is_marked_not_black():
@@ -296,18 +365,19 @@ def test_probe_sheet_marks_the_ringing_of_a_sun():
 SMALL = ["--res", "16", "--env-res", "8x4"]
 
 
-def test_bake_features_contact_sheet(tmp_path):
+def test_bake_features_contact_sheet(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)               # short paths: a one-line title
     png = tmp_path / "f.png"
     r = invoke("bake-features", "builtin:right", "builtin:sky", *SMALL, "--specular", "both",
-               "-o", tmp_path / "f.exr", "--preview", png, "-q")
+               "-o", "f.exr", "--preview", "f.png", "-q")
     assert r.exit_code == 0, r.output
     image = read_png(png)
     # 7 layers (diffuse, phong16/32/64, ggx, visibility, mask) + the UV charts on 4 + 4 tiles,
-    # 16 px → 128 px
-    assert image.shape[:2][::-1] == grid_size(4, 2, 128, 128)
+    # 16 px → 128 px; the title (command, frame, env, view) wraps onto two lines
+    assert image.shape[:2][::-1] == grid_size(4, 2, 128, 128, title_lines=2)
     # every layer's band carries text
     band = 2 * (PV.LABEL_SIZE + 4)
-    y0 = PV.PAD + PV.TITLE_SIZE + 5 + PV.PAD
+    y0 = PV.PAD + 2 * (PV.TITLE_SIZE + 5) + PV.PAD
     for row in range(2):
         for col in range(4 if row == 0 else 3):
             x0 = PV.PAD + col * (128 + PV.PAD)
@@ -315,19 +385,21 @@ def test_bake_features_contact_sheet(tmp_path):
             assert image[y:y + band, x0:x0 + 128].std() > 10, (row, col)
 
 
-def test_bake_features_two_hands_get_a_row_each(tmp_path):
+def test_bake_features_two_hands_get_a_row_each(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)               # short paths: a one-line title
     png = tmp_path / "f.png"
     r = invoke("bake-features", "builtin:two:fist", "builtin:sky", *SMALL,
-               "-o", tmp_path / "f.exr", "--preview", png, "-q")
+               "-o", "f.exr", "--preview", "f.png", "-q")
     assert r.exit_code == 0, r.output
     # per hand: diffuse, phong16/32/64, visibility, mask, charts → 7 tiles, 4 a line, 2 lines each
-    assert read_png(png).shape[:2][::-1] == grid_size(4, 4, 128, 128)
+    assert read_png(png).shape[:2][::-1] == grid_size(4, 4, 128, 128, title_lines=2)
 
 
-def test_envmap_cube_preview_is_a_cross(tmp_path):
+def test_envmap_cube_preview_is_a_cross(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)               # short paths: a one-line title
     png = tmp_path / "c.png"
     r = invoke("envmap", "builtin:studio", "--to", "cube", "--size", "16", "-o",
-               tmp_path / "c.exr", "--preview", png, "-q")
+               "c.exr", "--preview", "c.png", "-q")
     assert r.exit_code == 0, r.output
     factor = math.ceil(PV.MIN_TILE / 2 / 16)            # faces of 16 px → 80 px
     cross = (3 * 16 * factor, 4 * 16 * factor)
@@ -408,7 +480,7 @@ def test_dgsm_build_preview_without_receivers_shows_the_atlas(small_scene, tmp_p
                "--size", "16", "--bins", "4", "--no-roi", "-o", tmp_path / "s.exr",
                "--preview", png, "-q")
     assert r.exit_code == 0, r.output
-    assert read_png(png).shape[:2][::-1] == grid_size(1, 1, 128, 128, title_lines=2)   # 16 px, ×8 at most
+    assert on_grid(read_png(png), 1, 1, 128, 128)                   # 16 px, ×8 at most
 
 
 def test_synth_capture_contact_sheet(tmp_path):
@@ -421,7 +493,7 @@ def test_synth_capture_contact_sheet(tmp_path):
     assert r.exit_code == 0, r.output
     image = read_png(png)
     # 3 cameras × (fully lit, grouped, env sky); 16 px → 128 px
-    assert image.shape[:2][::-1] == grid_size(3, 3, 128, 128)
+    assert on_grid(image, 3, 3, 128, 128)
     first = image.tobytes()
     png.unlink()
     r = invoke(*args)                       # resumed: nothing rendered, the same sheet
@@ -558,8 +630,8 @@ def test_feature_sheet_draws_the_chart_names(monkeypatch):
     charts = PV.uv_charts(hand.coarse, hand.label_names, hand.joint_names, (16, 16))
     marks = []
     draw = PV._draw_mark
-    monkeypatch.setattr(PV, "_draw_mark", lambda canvas, x, y, text, vertical, font: (
-        marks.append((x, y, text)), draw(canvas, x, y, text, vertical, font)))
+    monkeypatch.setattr(PV, "_draw_mark", lambda canvas, x, y, text, vertical, font, box: (
+        marks.append((x, y, text)), draw(canvas, x, y, text, vertical, font, box)))
     layers = {"diffuse": np.ones((16, 16, 3)), "mask": (charts[0] >= 0).astype(float)}
     image = PV.feature_sheet(layers, "t", charts=charts)
     assert sorted(m[2] for m in marks) == sorted(charts[1])
