@@ -251,7 +251,11 @@ def read_gaussians(path: str, colour_space: str = "auto") -> Gaussians:
     if os.path.isdir(path):
         raise DataError("is a directory, expected a Gaussians PLY file", path)
     try:
-        ply = plyfile.PlyData.read(path, mmap=False)  # copies: no view outlives the file
+        # copy-on-write memory map: plyfile's one fast path (mmap=False reads every property
+        # of every vertex in a Python loop: 6.3 s for a 90k-Gaussian file against 0.05 s).
+        # The columns are copied out below (np.asarray(..., float64)), so no view outlives
+        # the file; the map is closed on return
+        ply = plyfile.PlyData.read(path, mmap="c")
     except Exception as exc:  # plyfile raises PlyParseError, ValueError, struct errors …
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise DataError(f"not a readable PLY file: {msg}", path) from None

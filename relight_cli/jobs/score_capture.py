@@ -58,6 +58,7 @@ def score_capture(capture, models: list, options: CaptureOptions, device="cpu", 
     evaluator = CaptureEvaluator(capture, models, device, o.aa, o.env_res)
     if getattr(evaluator, "ceiling", None) is not None:
         evaluator.ceiling.quiet = quiet   # the ceiling's stage shading can take minutes
+        evaluator.ceiling.log = log
     if o.subject_texture is not None:
         from relight_cli.neural.evaluate import with_own_subject
         evaluator.models = with_own_subject(evaluator.models, o.subject_texture)

@@ -49,6 +49,8 @@ class Ceiling:
         quiet: True (the default) keeps :meth:`predict` silent; False shows progress over
             the texels shaded when a sample's ceiling looks long (an env render's GGX lobe
             over every lit direction: minutes per sample at 256², 2 cores), on stderr.
+        log: callable(str) or None: told (unless quiet) when an env map's lighting of a
+            pose is traced, a silent stretch of tens of seconds at the stage's size.
     """
 
     #: Texel centres shaded per call of the stage's shader: each is shaded on its own
@@ -75,6 +77,7 @@ class Ceiling:
         self._lighting = LRU(2)
         self._scores = {}
         self.quiet = True
+        self.log = None
 
     @property
     def available(self) -> bool:
@@ -82,6 +85,10 @@ class Ceiling:
 
     def _lit(self, pose: int, held_out: bool, lights_on=None, env_name=None):
         def make():
+            if env_name is not None and not self.quiet and self.log is not None:
+                # tens of seconds at the stage's texture size, with no unit to count
+                self.log(f"ceiling: tracing the stage's lighting of held-out pose {pose} under "
+                         f"{env_name} at its texels (once per pose and map)")
             renderer = self.shader.renderer(self.data.meshes(pose, held_out))
             if env_name is not None:
                 return renderer, renderer.light(env=self.data.env_map(env_name))
