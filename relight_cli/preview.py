@@ -367,10 +367,17 @@ def picture(display, label: str, note: str = "", title: str = "", marks=()) -> n
     """One picture (display [H, W, 3] in [0, 1]) as a preview: enlarged by an integer
     factor (nearest) until its short side is at least ``MIN_PICTURE`` pixels (at most
     ``MAX_PICTURE_FACTOR`` ×, long side at most 2048), under a caption band whose first
-    line is ``label`` (what it shows) and then ``note`` (its exposure; the picture's
-    own size and enlargement are added), wrapped onto up to three lines.
+    line is ``label`` (what it shows; one wider than the picture moves what follows its
+    first ': ' into the note) and then ``note`` (its exposure; the picture's own size and
+    enlargement are added), wrapped onto up to three lines.
     → display [H', W', 3] in [0, 1] (:func:`picture_box` finds the picture in it)."""
     display = np.asarray(display, np.float64)
+    k = zoom(display.shape, MIN_PICTURE, MAX_PICTURE_FACTOR, 2 * MAX_TILE)
+    if ": " in label and _font(LABEL_SIZE).getlength(_printable(label)) > display.shape[1] * k - 8:
+        # a label wider than the picture ("NAME: linear radiance") keeps its name on the
+        # first line and moves what follows to the note, which wraps, instead of being cut
+        label, rest = label.split(": ", 1)
+        note = ", ".join(filter(None, (rest, note)))
     note, lines, _ = _picture_layout(display.shape, note)
     return sheet([[Tile(display, label, note, list(marks))]], title, min_tile=MIN_PICTURE,
                  max_factor=MAX_PICTURE_FACTOR, max_side=2 * MAX_TILE, note_lines=lines)

@@ -230,6 +230,26 @@ def test_capture_sheet_names_each_columns_pose():
     assert PV.capture_views(capture)[1][1][:2] == ("grouped, frame 1", "pose 1, 1 LEDs")
 
 
+def test_a_long_picture_label_moves_into_the_note_not_cut():
+    """Issue 53: "wave-3_studio_small_03_1k: linear radiance" was cut to "linear radian..."
+    over a 256-pixel picture.  The name stays on the label line and the rest leads the
+    note, which wraps; a label that fits is left alone."""
+    long = "wave-3_studio_small_03_1k: linear radiance"
+    got = {}
+    real = PV.sheet
+
+    def spy(rows, *args, **kwargs):
+        got["tile"] = rows[0][0]
+        return real(rows, *args, **kwargs)
+    import unittest.mock
+    with unittest.mock.patch.object(PV, "sheet", spy):
+        PV.picture(np.zeros((256, 256, 3)), long, "Reinhard, key 0.18 (scale 0.467)")
+        assert got["tile"].label == "wave-3_studio_small_03_1k"
+        assert got["tile"].note.startswith("linear radiance, Reinhard, key 0.18")
+        PV.picture(np.zeros((256, 256, 3)), "hand: linear radiance", "x")
+        assert got["tile"].label == "hand: linear radiance"
+
+
 def test_png_is_byte_identical_and_has_no_time_stamp(tmp_path):
     rows = [_tiles(3)]
     PV.write_sheet(str(tmp_path / "a.png"), rows, "title")
