@@ -78,6 +78,10 @@ demo: install
 	$(RELIGHT) train-teacher demo/capture --model linear -o demo/linear.pt --preset tiny --metrics-out demo/linear_val.json
 	$(RELIGHT) relight demo/capture/hand.npz builtin:studio --model linear --checkpoint demo/linear.pt \
 		-o demo/hand_linear_env.exr --preview demo/hand_linear_env.png
+	# the same near point light through the linear model: its shading features carry the light's
+	# direction and shadows, so even 150 iterations draw one light (the tiny teacher's is still flat)
+	$(RELIGHT) relight demo/capture/hand.npz --lights demo/teacher_light.json --model linear \
+		--checkpoint demo/linear.pt -o demo/hand_linear_point.exr --preview demo/hand_linear_point.png
 	# URHand's quick personalisation (Sec. 5.4, supp. 9): a phone scan of a new subject (another skin)
 	# under the sky, fitted and unwrapped into its mean texture, rendered by the linear model as it is
 	$(RELIGHT) synth-capture builtin:right --skin-seed 9 --phone-scan builtin:sky --views 4 --size 128 \
