@@ -151,7 +151,8 @@ demo: install
 	# Sec. 3.1), one DGSM for hand + robot, the probe fitted from the scene at the robot (Sec. 3.4),
 	# before/after renders on one exposure (the "before" picture's own auto scale, 0.408) and the
 	# lighting metrics (Sec. 4.1); "before" is the robot relit by a uniform probe of radiance 1, i.e. its
-	# captured colours
+	# captured colours; "after" adds the estimated lamp's direct light (--direct-light: the probe holds
+	# only the room's surfaces, and without the lamp the hand is a dim brown)
 	if [ -f $(SHARED)/gaussians/playbot-lod3.ply ]; then \
 	  $(RELIGHT) camera --eye 0.45,0.45,0.7 --target -0.1,0.13,0.05 --fov 50 --size 400x300 -o demo/robot_cam.json && \
 	  $(PY) -c "import numpy as np; from relight_cli.gaussians.from_mesh import load_gaussians; from relight_cli.formats.gaussians_ply import Gaussians, concatenate, rgb_to_sh_dc, write_gaussians; n = 40; lamp = Gaussians(np.array([0.35, 1.3, 0.45]) + np.random.default_rng(0).normal(0, 0.015, (n, 3)), np.full((n, 3), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.95), rgb_to_sh_dc(np.tile([6.0, 5.6, 5.0], (n, 1)))[:, None, :], 0); write_gaussians('demo/room_lamp.ply', concatenate([load_gaussians('builtin:room'), lamp]))" && \
@@ -167,7 +168,7 @@ demo: install
 	    --receivers demo/room_lamp.ply --camera demo/robot_cam.json -o demo/robot_before.exr --preview demo/robot_before.png \
 	    --preview-exposure 0.408 && \
 	  $(RELIGHT) relight 'builtin:hand:translate=0,0.25,0' --object '$(ROBOT)' --probe demo/robot_probe.json \
-	    --dgsm demo/robot_shadows.exr --receivers demo/room_lamp.ply --camera demo/robot_cam.json \
+	    --dgsm demo/robot_shadows.exr --direct-light --receivers demo/room_lamp.ply --camera demo/robot_cam.json \
 	    -o demo/robot_after.exr --preview demo/robot_after.png --preview-exposure 0.408 && \
 	  $(RELIGHT) metrics lighting --scene demo/room_lamp.ply --avatar demo/robot_before.ply \
 	    --relit demo/robot_relit.ply --radius 1.5 -o demo/robot_lighting.json; \
