@@ -781,6 +781,19 @@ class Study:
         return {"subjects": subjects, "shapes": shapes}
 
 
+def paper_lines(table: Table) -> list:
+    """A table's "## The paper" section: its note, then one markdown table per metric."""
+    lines = ["## The paper", "", table.paper_note, ""]
+    paper = dict(table.paper)
+    cols = paper.pop("columns")
+    for block, values in paper.items():
+        lines += [f"| {block} | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+        for name, vals in values.items():
+            lines.append(f"| {name} | " + " | ".join(f"{v:g}" for v in vals) + " |")
+        lines.append("")
+    return lines
+
+
 def _final_splits(base, score, splits, curve):
     """``base`` task whose validations during training score only the plotted split and
     whose final one scores every split of the table (the validation cost stays small)."""
@@ -1199,14 +1212,7 @@ def identity_markdown(table: Table, record: dict) -> str:
               "unseen subjects got a trained subject's T̄ fails it): "
               + ("passed." if checks["conditioned_as_stated"] else
                  "**FAILED**: " + ", ".join(checks["wrong"]) + "."), ""]
-    lines += ["## The paper", "", table.paper_note, ""]
-    paper = dict(table.paper)
-    cols = paper.pop("columns")
-    for block, values in paper.items():
-        lines += [f"| {block} | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
-        for name, vals in values.items():
-            lines.append(f"| {name} | " + " | ".join(f"{v:g}" for v in vals) + " |")
-        lines.append("")
+    lines += paper_lines(table)
     lines += ["## Shapes", "", "Bone lengths (mm, parent joint → the named joint) of each "
               "shape's fitted skeleton, and the fit's mean joint error against its source.",
               "", "| bone | " + " | ".join(shapes) + " |", "|---|" + "---|" * len(shapes)]
@@ -1631,14 +1637,7 @@ def markdown(table: Table, record: dict) -> str:
               "initialization and sampling order on the same capture). Masked by the "
               "ground-truth hand mask; linear radiance, PSNR's data range that of the ground "
               "truth. " + " ".join(table.notes), ""]
-    lines += ["## The paper", "", table.paper_note, ""]
-    paper = dict(table.paper)
-    cols = paper.pop("columns")
-    for block, values in paper.items():
-        lines += [f"| {block} | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
-        for name, vals in values.items():
-            lines.append(f"| {name} | " + " | ".join(f"{v:g}" for v in vals) + " |")
-        lines.append("")
+    lines += paper_lines(table)
     lines += ["## Claims", ""]
     for c in record["claims"]:
         for hand, v in c["hands"].items():

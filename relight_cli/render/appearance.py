@@ -68,25 +68,14 @@ class Material:
 
 
 def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of an [H, W] or [H, W, C] map at ``uv`` [N, 2] (clamped borders).
+    """Bilinear lookup of an [H, W] or [H, W, C] map at ``uv`` [N, 2] (clamped borders;
+    the taps of :func:`relight_cli.uvraster.bilinear_taps`).
 
     Returns [N] or [N, C] float64.
     """
+    from relight_cli.uvraster import bilinear_taps, gather_taps
     image = np.asarray(image)
-    h, w = image.shape[:2]
-    uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    x = np.clip(uv[:, 0] * w - 0.5, 0, w - 1)
-    y = np.clip((1 - uv[:, 1]) * h - 0.5, 0, h - 1)              # v = 0 at the bottom row
-    x0 = np.floor(x).astype(np.int64)
-    y0 = np.floor(y).astype(np.int64)
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    fx, fy = x - x0, y - y0
-    if image.ndim == 3:
-        fx, fy = fx[:, None], fy[:, None]
-    img = image.astype(np.float64, copy=False)
-    return ((img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy)
-            + (img[y1, x0] * (1 - fx) + img[y1, x1] * fx) * fy)
+    return gather_taps(image, bilinear_taps(uv, image.shape[0], image.shape[1]))
 
 
 def constant_material(albedo=SKIN_ALBEDO, roughness: float = SKIN_ROUGHNESS, f0: float = 0.04,

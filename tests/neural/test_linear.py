@@ -488,7 +488,8 @@ def test_config_validation_and_presets():
     assert LM.resolve_config("tiny").sigma_t * LM.PAPER_UNIT == pytest.approx(64 / (255 * np.pi))
     for bad in ({"light_decoder": [8, 8, 8, 8, 8, 8, 8, 3]},
                 {"tex_res": 20}, {"linearity_loss": 1.0}, {"light_path": "holistic"},
-                {"olat": 1}, {"refiner": 1}, {"reg_layers": "decoder"}):
+                {"olat": 1}, {"refiner": 1}, {"reg_layers": "decoder"}, {"ema": 1.0},
+                {"ema": -0.1}, {"ema": float("nan")}, {"ema": True}):
         with pytest.raises(UsageProblem):
             LM.LinearConfig.from_dict(bad)
     assert LM.LinearConfig.from_dict({"light_path": "nonlinear", "linearity_loss": 0.1})
